@@ -1,0 +1,290 @@
+"""The in-process episode runner: sim, simulated human, policy and controller cores,
+composed without a bus and run as fast as the machine allows.
+
+This is what ``dammrl reach`` uses, and what training and the comparison study use.
+One control tick: read the state, deliver a due human decision, ask for a new one if the
+controller wants it, tick the controller, latch its command, advance the physics by one
+control period inside MuJoCo.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict
+
+from dammrl.errors import IKError
+from dammrl.metrics import (
+    GoalMonitor,
+    ReachMetrics,
+    dimensionless_jerk,
+    goal_error,
+    human_error_rate,
+    integrated_squared_jerk,
+    n_oscillations,
+)
+from dammrl.state import RobotState, StepEvent
+from dammrl.task import ReachTask, TaskSettings, sample_task
+from services.controller.config import ControllerSettings
+from services.controller.core import Controller
+from services.controller.dynamics import ArmModel
+from services.controller.ik import DampedLeastSquaresIK, IKSolver, make_ik_solver
+from services.intent.config import HumanSettings
+from services.intent.core import Decision, SimulatedHuman
+from services.policy.core import FixedPolicy, ModelChoice
+from services.sim.config import SimSettings
+from services.sim.core import Simulation
+
+HOLD_OBSERVATION_S = 0.5  # after a hold, keep simulating this long to record the arm at rest
+
+
+class ReachSettings(BaseModel):
+    """Everything one in-process reach needs."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    sim: SimSettings = SimSettings()
+    controller: ControllerSettings = ControllerSettings()
+    human: HumanSettings = HumanSettings()
+    task: TaskSettings = TaskSettings()
+
+
+class Policy(Protocol):
+    def choose(self) -> ModelChoice: ...
+
+
+@dataclass
+class Trajectory:
+    """Uniformly sampled log of one reach (control rate)."""
+
+    t: np.ndarray  # (N,) [s]
+    x: np.ndarray  # end-effector position (N, 3) [m]
+    v: np.ndarray  # end-effector velocity (N, 3) [m/s]
+    q: np.ndarray  # joint positions (N, 6) [rad]
+    tau: np.ndarray  # applied torques (N, 6) [N m]
+    subgoal: np.ndarray  # active subgoal (N, 3) [m], NaN before the first step
+    radius: np.ndarray  # active admission radius (N,) [m]
+
+
+@dataclass
+class ReachResult:
+    seed: int
+    trigger: str
+    model: tuple[int, int]
+    task: ReachTask
+    metrics: ReachMetrics
+    trajectory: Trajectory
+    steps: list[StepEvent] = field(default_factory=list)
+    decisions: list[Decision] = field(default_factory=list)
+
+    def summary(self) -> dict[str, object]:
+        """The metrics plus what identifies the run (the ``--json`` object)."""
+        return {
+            **self.metrics.as_dict(),
+            "trigger": self.trigger,
+            "model": list(self.model),
+            "seed": self.seed,
+            "start_m": self.task.start.round(4).tolist(),
+            "goal_m": self.task.goal.round(4).tolist(),
+        }
+
+
+class ReachRunner:
+    """Builds the cores once (MuJoCo compile, IK chain) and runs reaches on demand."""
+
+    def __init__(self, settings: ReachSettings | None = None) -> None:
+        self.settings = settings or ReachSettings()
+        self.sim = Simulation(self.settings.sim)
+        self.robot = self.sim.robot
+        self.arm = ArmModel(self.robot)
+        margin = self.settings.controller.joint_limit_margin_rad
+        self._solvers: dict[str, IKSolver] = {}
+        self._start_ik = DampedLeastSquaresIK(self.arm, limit_margin_rad=margin)
+        rate = self.settings.controller.control_rate_hz
+        self.substeps = max(1, round(1.0 / (rate * self.sim.timestep_s)))
+        self.control_dt_s = self.substeps * self.sim.timestep_s
+
+    def solver(self, controller: ControllerSettings) -> IKSolver:
+        if controller.ik_solver not in self._solvers:
+            self._solvers[controller.ik_solver] = make_ik_solver(
+                controller.ik_solver,
+                self.arm,
+                controller.joint_limit_margin_rad,
+                controller.max_joint_step_rad,
+            )
+        return self._solvers[controller.ik_solver]
+
+    def sample(self, seed: int) -> ReachTask:
+        """The start and goal a given seed draws."""
+        rng = np.random.default_rng(np.random.SeedSequence(seed).spawn(1)[0])
+        return sample_task(self.settings.task, self.sim.layout.goal_z_m, rng)
+
+    def run(
+        self,
+        seed: int,
+        model: tuple[int, int] = (1, 1),
+        trigger: str | None = None,
+        task: ReachTask | None = None,
+        policy: Policy | None = None,
+    ) -> ReachResult:
+        """One reach. ``trigger`` overrides the controller setting ('event' or 'fixed')."""
+        controller_settings = self.settings.controller
+        if trigger is not None:
+            controller_settings = controller_settings.model_copy(update={"trigger": trigger})
+        task_rng, human_rng, latency_rng, sim_rng = (
+            np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(4)
+        )
+        task = task or sample_task(self.settings.task, self.sim.layout.goal_z_m, task_rng)
+        policy = policy or FixedPolicy(self.settings.human.models, *model)
+        controller = Controller(
+            self.robot, controller_settings, latency_rng, self.arm, self.solver(controller_settings)
+        )
+        human = SimulatedHuman(self.settings.human)
+        human.rng = human_rng
+        self.sim.rng = sim_rng
+        episode = _Episode(self, controller, human, policy, task)
+        metrics, trajectory = episode.run()
+        choice = policy.choose()
+        return ReachResult(
+            seed=seed,
+            trigger=controller_settings.trigger,
+            model=(choice.human_model, choice.robot_model),
+            task=task,
+            metrics=metrics,
+            trajectory=trajectory,
+            steps=episode.steps,
+            decisions=episode.decisions,
+        )
+
+    def start_posture(self, start: np.ndarray) -> np.ndarray:
+        """Joint positions placing the end-effector at ``start``, solved from home."""
+        home = np.array(self.settings.task.home_q_rad)
+        result = self._start_ik.solve(start, home)
+        if result.error_m > 1e-4:
+            raise IKError(f"start position {start.round(3).tolist()} m is not reachable")
+        return result.q
+
+
+class _Episode:
+    """The tick loop of one reach and its log."""
+
+    def __init__(
+        self,
+        runner: ReachRunner,
+        controller: Controller,
+        human: SimulatedHuman,
+        policy: Policy,
+        task: ReachTask,
+    ) -> None:
+        self.runner, self.controller, self.human, self.policy, self.task = (
+            runner,
+            controller,
+            human,
+            policy,
+            task,
+        )
+        self.sim = runner.sim
+        self.steps: list[StepEvent] = []
+        self.decisions: list[Decision] = []
+        self.pending: Decision | None = None
+        task_settings = runner.settings.task
+        self.goal_monitor = GoalMonitor(
+            task.goal, task_settings.goal_tolerance_m, task_settings.goal_dwell_s
+        )
+        capacity = int(task_settings.episode_timeout_s / runner.control_dt_s) + 2
+        capacity += int(HOLD_OBSERVATION_S / runner.control_dt_s) + 2
+        self.hold_s: float | None = None
+        self.button_pressed = False
+        self.log = np.full((capacity, 3 + 3 + 6 + 6 + 3 + 1 + 1), np.nan)
+        self.n = 0
+
+    def run(self) -> tuple[ReachMetrics, Trajectory]:
+        sim, controller, task = self.sim, self.controller, self.task
+        state = sim.reset(self.runner.start_posture(task.start), (task.goal[0], task.goal[1]))
+        sim.apply(controller.reset(state, task.goal))
+        outcome, reason, hold_until = "timeout", "episode timeout", None
+        timeout = self.runner.settings.task.episode_timeout_s
+        while True:
+            state = sim.read()
+            self._record(state)
+            if hold_until is not None:
+                if state.t_s >= hold_until:
+                    break
+            elif self.goal_monitor.update(state.t_s, state.ee_pos):
+                outcome, reason = "success", "goal reached"
+                break
+            elif state.t_s >= timeout:
+                break
+            self._exchange_intents(state)
+            output = controller.tick(state)
+            self.steps.extend(output.steps)
+            if output.hold_reason is not None and hold_until is None:
+                outcome, reason = "hold", output.hold_reason
+                self.hold_s = state.t_s
+                hold_until = state.t_s + HOLD_OBSERVATION_S
+            sim.apply(output.command)
+            sim.step(self.runner.substeps)
+        return self._metrics(state, outcome, reason), self._trajectory()
+
+    def _exchange_intents(self, state: RobotState) -> None:
+        if self.pending is not None and state.t_s >= self.pending.intent.t_s - 1e-9:
+            self.controller.on_intent(self.pending.intent)
+            self.pending = None
+        if self.pending is None and self.controller.wants_intent:
+            choice = self.policy.choose()
+            self.controller.set_steps(choice.steps_m)
+            axis = self.controller.settings.primary_axis
+            self.pending = self.human.decide(
+                state.t_s, state.ee_pos, self.task.goal, axis, choice.human_model
+            )
+            self.decisions.append(self.pending)
+
+    def _record(self, state: RobotState) -> None:
+        subgoal = self.controller.subgoal
+        row = self.log[self.n]
+        row[0:3] = state.ee_pos
+        row[3:6] = state.ee_vel
+        row[6:12] = state.q
+        row[12:18] = state.tau
+        row[18:21] = subgoal if subgoal is not None else np.nan
+        row[21] = self.controller.radius_m
+        row[22] = state.t_s
+        self.n += 1
+        self.button_pressed |= state.button_pressed
+
+    def _trajectory(self) -> Trajectory:
+        log = self.log[: self.n]
+        return Trajectory(
+            t=log[:, 22].copy(),
+            x=log[:, 0:3].copy(),
+            v=log[:, 3:6].copy(),
+            q=log[:, 6:12].copy(),
+            tau=log[:, 12:18].copy(),
+            subgoal=log[:, 18:21].copy(),
+            radius=log[:, 21].copy(),
+        )
+
+    def _metrics(self, state: RobotState, outcome: str, reason: str) -> ReachMetrics:
+        traj = self._trajectory()
+        t_end = state.t_s if self.hold_s is None else self.hold_s  # a hold ends the reach
+        moving = traj.t <= t_end + 1e-9
+        t, v = traj.t[moving], traj.v[moving]
+        n_steps = len(self.steps)
+        decided = [d for d in self.decisions if d.intent.t_s <= t_end + 1e-9]
+        return ReachMetrics(
+            success=outcome == "success",
+            outcome=outcome,
+            reason=reason,
+            t_total_s=float(t_end),
+            t_step_mean_s=float(t_end) / n_steps if n_steps else float("nan"),
+            final_error_m=float(goal_error(state.ee_pos, self.task.goal)[0]),
+            n_osc=n_oscillations(traj.x[moving], traj.subgoal[moving], traj.radius[moving]),
+            jerk_isj=integrated_squared_jerk(t, v),
+            jerk_dimensionless=dimensionless_jerk(t, v),
+            human_error_rate=human_error_rate([d.correct for d in decided]),
+            n_steps=n_steps,
+            n_decisions=len(decided),
+            button_pressed=self.button_pressed,
+        )

@@ -1,0 +1,62 @@
+"""The reaching task: start and goal sampling, goal tolerance, time limits.
+
+Defaults describe a seated button-press reach with the shoulder at the origin of the
+task frame (x forward, y left, z up), the table 0.25 m below it: the hand starts 15-25 cm
+above the table near the body and reaches 0.2-0.4 m forward and down onto a button
+(cap radius 3 cm) somewhere on the table in front of it. The goal point is the fingertip
+centre touching the button cap.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from pydantic import Field
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+from dammrl.errors import ConfigurationError
+
+
+class TaskSettings(BaseSettings):
+    """Environment prefix ``DAMMRL_TASK_``."""
+
+    model_config = SettingsConfigDict(
+        env_prefix="DAMMRL_TASK_", env_nested_delimiter="__", frozen=True, extra="forbid"
+    )
+
+    goal_tolerance_m: float = Field(0.015, gt=0)
+    """eps_g: success when ||x - x_g|| <= eps_g (half the button cap radius) [m]."""
+    goal_dwell_s: float = Field(0.1, ge=0)
+    """How long the fingertip must stay inside eps_g to count as a press [s]."""
+    episode_timeout_s: float = Field(60.0, gt=0)
+    """A reach still running after this long ends as a timeout [s]."""
+    start_min_m: tuple[float, float, float] = (0.28, -0.15, -0.10)
+    start_max_m: tuple[float, float, float] = (0.38, 0.15, 0.0)
+    """Box of start positions x_s [m]."""
+    goal_min_xy_m: tuple[float, float] = (0.45, -0.15)
+    goal_max_xy_m: tuple[float, float] = (0.60, 0.15)
+    """Box of button positions on the table [m]; the goal height follows the table."""
+    reach_distance_m: tuple[float, float] = (0.2, 0.4)
+    """Allowed ||x_g - x_s|| [m]."""
+    home_q_rad: tuple[float, ...] = (0.0, 1.0, 0.0, 1.6, 0.0, 0.3)
+    """Posture from which the start posture is solved [rad]."""
+
+
+@dataclass(frozen=True)
+class ReachTask:
+    start: np.ndarray  # x_s (3,) [m]
+    goal: np.ndarray  # x_g (3,) [m]
+
+
+def sample_task(settings: TaskSettings, goal_z_m: float, rng: np.random.Generator) -> ReachTask:
+    """Uniform start and goal in their boxes, redrawn until the distance is in range."""
+    lo, hi = settings.reach_distance_m
+    for _ in range(1000):
+        start = rng.uniform(settings.start_min_m, settings.start_max_m)
+        goal = np.append(rng.uniform(settings.goal_min_xy_m, settings.goal_max_xy_m), goal_z_m)
+        if lo <= np.linalg.norm(goal - start) <= hi:
+            return ReachTask(start, goal)
+    raise ConfigurationError(
+        f"no start/goal pair {lo}-{hi} m apart in the configured boxes; widen them"
+    )

@@ -1,0 +1,76 @@
+"""Controller settings: one class, environment prefix ``DAMMRL_CONTROLLER_``."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import Field
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+Trigger = Literal["event", "fixed"]
+IKSolverName = Literal["ikpy", "pinocchio"]
+LatencyMode = Literal["model", "measured", "zero"]
+Feedforward = Literal["inverse_dynamics", "resolved_acceleration"]
+
+
+class ControllerSettings(BaseSettings):
+    """How micro-steps are planned, triggered, solved and turned into joint commands."""
+
+    model_config = SettingsConfigDict(
+        env_prefix="DAMMRL_CONTROLLER_", env_nested_delimiter="__", frozen=True, extra="forbid"
+    )
+
+    trigger: Trigger = "event"
+    """'event': next step when ||x - x_m|| <= eps and dV/dt <= 0; 'fixed': on a timer."""
+    fixed_period_s: float = Field(0.1, gt=0)
+    """Timer period of the fixed-frequency baseline [s]."""
+    control_rate_hz: float = Field(100.0, gt=0, le=1000)
+    """Rate at which the reference is sampled into joint commands and the trigger checked."""
+    primary_axis: Literal[0, 1, 2] = 0
+    """Task axis driven by the human's binary command (0 = x, 1 = y, 2 = z)."""
+    orthogonal_deadband: bool = True
+    """Skip an orthogonal step when |e| <= delta/2 (the step would increase |e|)."""
+    lyapunov_weights: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    """Diagonal of W in V = 1/2 e^T W e, e = x_m - x."""
+
+    ik_solver: IKSolverName = "pinocchio"
+    """'pinocchio' (damped least squares, fast) or 'ikpy' (bounded optimisation, the paper's)."""
+    ik_latency: LatencyMode = "model"
+    """How IK compute time enters simulated time: drawn from a fitted lognormal ('model'),
+    the wall time of each solve ('measured', not reproducible), or 0 ('zero')."""
+    ik_latency_profile: IKSolverName = "ikpy"
+    """Whose fitted compute-time distribution 'model' draws from. Default: the paper's solver,
+    so results carry the paper's timing whichever solver computes the joint solution."""
+    ik_latency_median_s: float | None = Field(None, gt=0)
+    """Override of the latency model's median [s]."""
+    ik_latency_sigma: float | None = Field(None, ge=0)
+    """Override of the latency model's log-standard deviation."""
+    ik_accept_error_m: float = Field(1e-3, gt=0)
+    """An IK solution farther than this from its target is a failure [m]."""
+    max_joint_step_rad: float = Field(0.5, gt=0)
+    """IK searches within the seed +- this per joint, so a micro-step never jumps [rad]."""
+
+    peak_speed_m_per_s: float = Field(0.2, gt=0)
+    """Peak Cartesian speed of a micro-step's minimum-jerk profile [m/s]."""
+    joint_speed_fraction: float = Field(0.5, gt=0, le=1)
+    """Peak joint speed as a fraction of the URDF velocity limit."""
+    min_segment_s: float = Field(0.08, gt=0)
+    """Shortest duration of one micro-step segment [s]."""
+    kp: tuple[float, ...] = (400.0, 400.0, 200.0, 200.0, 50.0, 50.0)
+    """Joint stiffness [N m/rad]."""
+    kd: tuple[float, ...] = (30.0, 30.0, 12.0, 12.0, 1.5, 1.5)
+    """Joint damping gains [N m s/rad]."""
+    feedforward: Feedforward = "inverse_dynamics"
+    """'inverse_dynamics': RNEA along the joint reference; 'resolved_acceleration': the
+    paper's J# (xdd - Jd qd) + (I - J# J) z with a joint-limit-avoiding null-space term."""
+    null_space_gain: float = Field(2.0, ge=0)
+    """Joint-limit avoidance acceleration at a limit, applied in the null space [rad/s^2]."""
+
+    joint_limit_margin_rad: float = Field(0.02, ge=0)
+    """IK targets stay this far inside the joint limits [rad]."""
+    workspace_min_m: tuple[float, float, float] = (0.1, -0.45, -0.235)
+    """Lower corner of the allowed end-effector box in the task frame [m]."""
+    workspace_max_m: tuple[float, float, float] = (0.72, 0.45, 0.20)
+    """Upper corner of the allowed end-effector box [m]."""
+    trigger_timeout_s: float = Field(3.0, gt=0)
+    """A step whose trigger has not fired after this long ends in a hold [s]."""

@@ -1,0 +1,167 @@
+"""Inverse kinematics of the end-effector point: ikpy and pinocchio damped least squares.
+
+Both solvers take a Cartesian target [m] (3,) and a seed [rad] (6,) and return joint
+positions inside the joint limits. The controller accepts a solution only if it lands
+within ``ik_accept_error_m`` of its target and does not jump away from the seed.
+
+The latency model turns the solvers' compute time into simulated time: a lognormal whose
+defaults were fitted to solves timed by ``benchmarks/bench_core.py`` on the 2-core
+development machine (re-fit there and pass ``ik_latency_median_s`` / ``ik_latency_sigma``).
+"""
+
+from __future__ import annotations
+
+import time
+import warnings
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+
+from services.controller.config import IKSolverName, LatencyMode
+from services.controller.dynamics import ArmModel
+
+# (median [s], log-sigma) of solve times fitted by benchmarks/bench_core.py
+FITTED_LATENCY: dict[IKSolverName, tuple[float, float]] = {
+    "ikpy": (0.045, 0.45),
+    "pinocchio": (0.00015, 0.30),
+}
+
+
+@dataclass(frozen=True)
+class IKResult:
+    q: np.ndarray  # joint positions [rad] (6,)
+    error_m: float  # ||FK(q) - target|| [m]
+    compute_s: float  # wall time spent solving [s]
+
+
+class IKSolver(Protocol):
+    name: IKSolverName
+
+    def solve(self, target: np.ndarray, q_seed: np.ndarray) -> IKResult: ...
+
+
+def _search_box(
+    q_seed: np.ndarray, q_lo: np.ndarray, q_hi: np.ndarray, max_step_rad: float | None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Joint limits, narrowed to ``q_seed +- max_step_rad`` when a step bound is given.
+
+    A redundant arm has many solutions; bounding the search around the seed keeps the
+    solver on the branch the arm is on, so a micro-step never becomes a joint jump.
+    """
+    if max_step_rad is None:
+        return q_lo, q_hi
+    lo = np.maximum(q_lo, q_seed - max_step_rad)
+    hi = np.minimum(q_hi, q_seed + max_step_rad)
+    return np.minimum(lo, hi), np.maximum(lo, hi)
+
+
+class DampedLeastSquaresIK:
+    """Position IK by damped least squares on pinocchio's Jacobian.
+
+    dq = J^T (J J^T + lambda^2 I)^-1 e, clipped to the joint limits at each iteration;
+    the minimal-norm update keeps the redundant arm close to its seed posture.
+    """
+
+    name: IKSolverName = "pinocchio"
+
+    def __init__(
+        self,
+        arm: ArmModel,
+        damping: float = 1e-3,
+        tolerance_m: float = 1e-7,
+        max_iterations: int = 100,
+        limit_margin_rad: float = 0.0,
+        max_step_rad: float | None = None,
+    ) -> None:
+        self.arm = arm
+        self.max_step_rad = max_step_rad
+        self.damping = damping
+        self.tolerance_m = tolerance_m
+        self.max_iterations = max_iterations
+        self.q_lo = arm.robot.q_min + limit_margin_rad
+        self.q_hi = arm.robot.q_max - limit_margin_rad
+
+    def solve(self, target: np.ndarray, q_seed: np.ndarray) -> IKResult:
+        start = time.perf_counter()
+        lo, hi = _search_box(q_seed, self.q_lo, self.q_hi, self.max_step_rad)
+        q = np.clip(q_seed, lo, hi)
+        lam2 = self.damping**2 * np.eye(3)
+        for _ in range(self.max_iterations):
+            error = target - self.arm.ee_position(q)
+            if np.linalg.norm(error) < self.tolerance_m:
+                break
+            J = self.arm.ee_jacobian(q)
+            dq = J.T @ np.linalg.solve(J @ J.T + lam2, error)
+            blocked = (q <= lo) & (dq < 0) | (q >= hi) & (dq > 0)
+            if blocked.any():  # joints pinned at a bound: let the others do the work
+                J[:, blocked] = 0.0
+                dq = J.T @ np.linalg.solve(J @ J.T + lam2, error)
+            q = np.clip(q + dq, lo, hi)
+        error_m = float(np.linalg.norm(target - self.arm.ee_position(q)))
+        return IKResult(q, error_m, time.perf_counter() - start)
+
+
+class IkpyIK:
+    """Position IK by ikpy's bounded least-squares optimisation (the paper's solver)."""
+
+    name: IKSolverName = "ikpy"
+
+    def __init__(
+        self, arm: ArmModel, limit_margin_rad: float = 0.0, max_step_rad: float | None = None
+    ) -> None:
+        self.arm = arm
+        self.chain = arm.robot.ikpy_chain()
+        self.active = np.asarray(self.chain.active_links_mask, dtype=bool)
+        self.active_links = [link for link, on in zip(self.chain.links, self.active) if on]
+        self.q_lo = arm.robot.q_min + limit_margin_rad
+        self.q_hi = arm.robot.q_max - limit_margin_rad
+        self.max_step_rad = max_step_rad
+
+    def solve(self, target: np.ndarray, q_seed: np.ndarray) -> IKResult:
+        start = time.perf_counter()
+        lo, hi = _search_box(q_seed, self.q_lo, self.q_hi, self.max_step_rad)
+        for link, low, high in zip(self.active_links, lo, hi, strict=True):
+            link.bounds = (float(low), float(high))
+        full = np.zeros(len(self.chain.links))
+        full[self.active] = np.clip(q_seed, lo, hi)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # ikpy warns about its own URDF conventions
+            solution = self.chain.inverse_kinematics(target_position=target, initial_position=full)
+        q = np.asarray(solution)[self.active]
+        error_m = float(np.linalg.norm(target - self.arm.ee_position(q)))
+        return IKResult(q, error_m, time.perf_counter() - start)
+
+
+def make_ik_solver(
+    name: IKSolverName, arm: ArmModel, limit_margin_rad: float, max_step_rad: float | None
+) -> IKSolver:
+    if name == "ikpy":
+        return IkpyIK(arm, limit_margin_rad, max_step_rad)
+    return DampedLeastSquaresIK(arm, limit_margin_rad=limit_margin_rad, max_step_rad=max_step_rad)
+
+
+class IKLatency:
+    """Simulated-time cost of one IK solve [s]."""
+
+    def __init__(
+        self,
+        mode: LatencyMode,
+        solver: IKSolverName,
+        rng: np.random.Generator,
+        median_s: float | None = None,
+        sigma: float | None = None,
+    ) -> None:
+        fitted_median, fitted_sigma = FITTED_LATENCY[solver]
+        self.mode = mode
+        self.median_s = fitted_median if median_s is None else median_s
+        self.sigma = fitted_sigma if sigma is None else sigma
+        self.rng = rng
+
+    def __call__(self, measured_s: float) -> float:
+        if self.mode == "zero":
+            return 0.0
+        if self.mode == "measured":
+            return measured_s
+        return float(self.median_s * np.exp(self.sigma * self.rng.standard_normal()))
+

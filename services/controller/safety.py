@@ -1,0 +1,71 @@
+"""Safety checks as pure functions: workspace box, joint limits, effort saturation."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from dammrl.robot import RobotDescription
+
+
+def outside_workspace(x: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> str | None:
+    """Why ``x`` [m] is outside the box [lower, upper], or None when it is inside."""
+    for axis, name in enumerate("xyz"):
+        if not lower[axis] <= x[axis] <= upper[axis]:
+            return (
+                f"target {name}={x[axis]:.3f} m outside the workspace "
+                f"[{lower[axis]:.3f}, {upper[axis]:.3f}] m"
+            )
+    return None
+
+
+def limit_violation(
+    robot: RobotDescription,
+    q: np.ndarray,
+    dq: np.ndarray,
+    position_tolerance_rad: float = 0.02,
+    velocity_tolerance: float = 1.0,
+) -> str | None:
+    """Why the measured state breaks a joint position or velocity limit, or None.
+
+    Positions may exceed the limits by ``position_tolerance_rad`` (the limit constraint is
+    soft in simulation); speeds may reach ``velocity_tolerance`` times the URDF limit.
+    """
+    for i, name in enumerate(robot.joint_names):
+        if not robot.q_min[i] - position_tolerance_rad <= q[i] <= robot.q_max[i] + position_tolerance_rad:
+            return (
+                f"joint {name} at {q[i]:.3f} rad outside its limits "
+                f"[{robot.q_min[i]:.3f}, {robot.q_max[i]:.3f}] rad"
+            )
+        if abs(dq[i]) > velocity_tolerance * robot.dq_max[i]:
+            return f"joint {name} at {dq[i]:.2f} rad/s beyond its limit {robot.dq_max[i]:.2f} rad/s"
+    return None
+
+
+class LimitMonitor:
+    """Fast vectorised test of the measured state against the limits, explained on failure."""
+
+    def __init__(
+        self,
+        robot: RobotDescription,
+        position_tolerance_rad: float = 0.02,
+        velocity_tolerance: float = 1.0,
+    ) -> None:
+        self.robot = robot
+        self.position_tolerance_rad = position_tolerance_rad
+        self.velocity_tolerance = velocity_tolerance
+        self.q_lo = robot.q_min - position_tolerance_rad
+        self.q_hi = robot.q_max + position_tolerance_rad
+        self.dq_max = velocity_tolerance * robot.dq_max
+
+    def check(self, q: np.ndarray, dq: np.ndarray) -> str | None:
+        """Why the state breaks a limit, or None (the common case, in a few microseconds)."""
+        if (q >= self.q_lo).all() and (q <= self.q_hi).all() and (abs(dq) <= self.dq_max).all():
+            return None
+        return limit_violation(
+            self.robot, q, dq, self.position_tolerance_rad, self.velocity_tolerance
+        )
+
+
+def saturate_torque(tau: np.ndarray, tau_max: np.ndarray) -> np.ndarray:
+    """``tau`` [N m] clipped to the effort limits +-tau_max."""
+    return np.clip(tau, -tau_max, tau_max)

@@ -1,0 +1,121 @@
+"""The simulation core: MuJoCo steps the arm under the joint impedance law.
+
+LeRobot-style robot interface (connect/read/send/disconnect is the node's business;
+here: ``reset``, ``read``, ``apply``, ``step``). The per-physics-step work runs inside
+MuJoCo: affine actuators evaluate tau = tau_ff + kp (q_ref - q) + kd (dq_ref - dq),
+saturated at the effort limits, and ``mj_step(..., nstep)`` advances many steps per call.
+The latest command is held between commands.
+"""
+
+from __future__ import annotations
+
+import mujoco
+import numpy as np
+
+from dammrl.robot import RobotDescription
+from dammrl.robot.scene import SENSOR_LAYOUT, SceneLayout, build_scene
+from dammrl.state import JointCommand, RobotState
+from services.sim.config import SimSettings
+
+
+class Simulation:
+    """A MuJoCo scene of the arm, a table and the goal button."""
+
+    def __init__(self, settings: SimSettings, seed: int | None = None) -> None:
+        self.settings = settings
+        self.robot = RobotDescription.from_urdf(
+            settings.urdf_path, settings.ee_frame, settings.armature_kgm2
+        )
+        self.layout = SceneLayout(
+            table_top_z_m=settings.table_top_z_m, timestep_s=settings.timestep_s
+        )
+        self.model = build_scene(self.robot, self.layout)
+        self.data = mujoco.MjData(self.model)
+        self.rng = np.random.default_rng(seed)
+        self._nominal = {
+            name: getattr(self.model, name).copy()
+            for name in ("body_mass", "body_inertia", "dof_damping", "dof_frictionloss")
+        }
+        self._n = len(self.robot.joint_names)
+        self._button_body = self.model.body("button").id
+        self._arm_bodies = np.arange(1, self.model.body("button").id)
+        self._noise_std = self._sensor_noise_std()
+        self._last_command: JointCommand | None = None
+
+    @property
+    def timestep_s(self) -> float:
+        return float(self.model.opt.timestep)
+
+    @property
+    def t_s(self) -> float:
+        return float(self.data.time)
+
+    def reset(self, q: np.ndarray, button_xy: tuple[float, float]) -> RobotState:
+        """Arm at rest at ``q`` [rad], button centred under ``button_xy`` [m], time 0."""
+        mujoco.mj_resetData(self.model, self.data)
+        self._last_command = None
+        self._randomize()
+        self.model.body_pos[self._button_body, :2] = button_xy
+        self.data.qpos[: self._n] = q
+        mujoco.mj_forward(self.model, self.data)
+        return self.read()
+
+    def apply(self, command: JointCommand) -> None:
+        """Latch a joint command; MuJoCo applies it at every step until the next one."""
+        if command is self._last_command:
+            return
+        self._last_command = command
+        self.model.actuator_biasprm[: self._n, 1] = -command.kp
+        self.model.actuator_biasprm[: self._n, 2] = -command.kd
+        self.data.ctrl[: self._n] = command.tau_ff + command.kp * command.q_ref + command.kd * command.dq_ref
+
+    def step(self, n_steps: int) -> None:
+        """Advance ``n_steps`` physics steps in one MuJoCo call."""
+        mujoco.mj_step(self.model, self.data, nstep=n_steps)
+
+    def read(self) -> RobotState:
+        """The arm's state from MuJoCo's sensors, with sensor noise when randomisation is on.
+
+        MuJoCo evaluates sensors before integrating, so values are one physics step old
+        at most (as on hardware, where state is sampled before the command is applied).
+        """
+        raw = self.data.sensordata.copy()
+        if self.settings.randomization.enabled:
+            raw += self._noise_std * self.rng.standard_normal(raw.size)
+        travel = -float(raw[SENSOR_LAYOUT["button"]][0])
+        return RobotState(
+            t_s=float(self.data.time),
+            q=raw[SENSOR_LAYOUT["q"]],
+            dq=raw[SENSOR_LAYOUT["dq"]],
+            tau=raw[SENSOR_LAYOUT["tau"]],
+            ee_pos=raw[SENSOR_LAYOUT["ee_pos"]],
+            ee_vel=raw[SENSOR_LAYOUT["ee_vel"]],
+            button_pressed=travel >= self.settings.button_press_travel_m,
+            button_travel_m=travel,
+        )
+
+    def _sensor_noise_std(self) -> np.ndarray:
+        """Per-entry standard deviation of the sensordata noise (see SENSOR_LAYOUT)."""
+        r = self.settings.randomization
+        std = np.zeros(self.model.nsensordata)
+        std[SENSOR_LAYOUT["q"]] = r.q_noise_rad
+        std[SENSOR_LAYOUT["dq"]] = r.dq_noise_rad_per_s
+        std[SENSOR_LAYOUT["ee_pos"]] = r.ee_noise_m
+        return std
+
+    def _randomize(self) -> None:
+        """Restore the nominal model, then perturb it when randomisation is enabled."""
+        for name, value in self._nominal.items():
+            getattr(self.model, name)[:] = value
+        randomization = self.settings.randomization
+        if not randomization.enabled:
+            return
+        bodies = self._arm_bodies
+        scale = self.rng.uniform(1 - randomization.mass_scale, 1 + randomization.mass_scale, len(bodies))
+        self.model.body_mass[bodies] *= scale
+        self.model.body_inertia[bodies] *= scale[:, None]
+        dofs = np.arange(self._n)
+        self.model.dof_damping[dofs] *= self.rng.uniform(
+            1 - randomization.damping_scale, 1 + randomization.damping_scale, self._n
+        )
+        self.model.dof_frictionloss[dofs] = self.rng.uniform(0, randomization.friction_max_nm, self._n)
