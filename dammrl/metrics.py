@@ -67,7 +67,7 @@ def _turning_points(signal: np.ndarray, deadband: float) -> list[int]:
     turns: list[int] = []
     direction, extreme, extreme_i = 0, float(signal[0]), 0
     for i, value in enumerate(signal.tolist()):
-        if direction >= 0 and value > extreme or direction <= 0 and value < extreme:
+        if (direction >= 0 and value > extreme) or (direction <= 0 and value < extreme):
             if direction == 0 and abs(value - float(signal[0])) > deadband:
                 direction = 1 if value > signal[0] else -1
             if direction != 0:

@@ -104,10 +104,6 @@ class RobotDescription:
         chain.active_links_mask = np.array(mask)
         return chain
 
-    def clamp(self, q: np.ndarray, margin_rad: float = 0.0) -> np.ndarray:
-        """``q`` clipped into the joint limits shrunk by ``margin_rad``."""
-        return np.clip(q, self.q_min + margin_rad, self.q_max - margin_rad)
-
     def within_limits(self, q: np.ndarray, tolerance_rad: float = 0.0) -> bool:
         """True when every joint lies inside its limits widened by ``tolerance_rad``."""
         return bool(

@@ -13,7 +13,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import mujoco
-import numpy as np
 
 from dammrl.robot.description import RobotDescription
 
@@ -34,6 +33,7 @@ class SceneLayout:
     button_stiffness_n_per_m: float = 400.0
     button_damping_ns_per_m: float = 5.0
     fingertip_radius_m: float = 0.012
+    goal_press_depth_m: float = 0.005  # the goal pushes the cap this far down
     timestep_s: float = 0.001
 
     @property
@@ -42,8 +42,8 @@ class SceneLayout:
 
     @property
     def goal_z_m(self) -> float:
-        """Fingertip-centre height when it touches the unpressed cap."""
-        return self.cap_top_z_m + self.fingertip_radius_m
+        """Fingertip-centre height that presses the cap by ``goal_press_depth_m``."""
+        return self.cap_top_z_m + self.fingertip_radius_m - self.goal_press_depth_m
 
 
 def build_scene_spec(robot: RobotDescription, layout: SceneLayout) -> mujoco.MjSpec:
@@ -94,7 +94,9 @@ def _add_sensors(spec: mujoco.MjSpec, robot: RobotDescription) -> None:
             spec.add_sensor(type=kind, objtype=mujoco.mjtObj.mjOBJ_JOINT, objname=name)
     for name in robot.joint_names:
         spec.add_sensor(
-            type=mujoco.mjtSensor.mjSENS_ACTUATORFRC, objtype=mujoco.mjtObj.mjOBJ_ACTUATOR, objname=name
+            type=mujoco.mjtSensor.mjSENS_ACTUATORFRC,
+            objtype=mujoco.mjtObj.mjOBJ_ACTUATOR,
+            objname=name,
         )
     for kind in (mujoco.mjtSensor.mjSENS_FRAMEPOS, mujoco.mjtSensor.mjSENS_FRAMELINVEL):
         spec.add_sensor(type=kind, objtype=mujoco.mjtObj.mjOBJ_SITE, objname="ee")

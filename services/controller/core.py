@@ -13,6 +13,7 @@ intent, wherever the arm is.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -81,7 +82,14 @@ class Controller:
         self._rest_command: JointCommand | None = None
         self._rest_segment: QuinticSegment | None = None
         self._limits = safety.LimitMonitor(robot)
-        self._reset_episode_state()
+        self.intent: Intent | None = None  # latest undelivered (event) / sampled (fixed) decision
+        self.pending: _PlannedStep | None = None  # solved step waiting out its IK latency
+        self.subgoal: np.ndarray | None = None  # x_m, the active Cartesian subgoal (3,) [m]
+        self.radius_m = 0.0  # admission radius of the active step [m]
+        self.awaiting_trigger = False
+        self.last_step_s: float | None = None  # fixed-rate: time of the last timer tick
+        self.hold_reason: str | None = None
+        self.index = 0
 
     # ---- inputs -------------------------------------------------------------------
     def reset(self, state: RobotState, goal: np.ndarray) -> JointCommand:
@@ -135,15 +143,13 @@ class Controller:
         if violation is not None:
             self.hold(violation, t)
             return
+        if self.settings.trigger == "event":
+            self._event_progress(state)
+        else:
+            self._fixed_progress(state)
         if self.pending is not None and t >= self.pending.ready_s:
             started.append(self._start_segment(self.pending, t))
             self.pending = None
-        if self.settings.trigger == "event":
-            self._event_progress(state)
-        elif self.intent is not None and self.pending is None:
-            if fixed_timer_due(t, self.last_step_s, self.settings.fixed_period_s):
-                self.last_step_s = t if self.last_step_s is None else self._next_tick(t)
-                self._plan(state, self.intent)
 
     def _event_progress(self, state: RobotState) -> None:
         t = state.t_s
@@ -161,10 +167,19 @@ class Controller:
             intent, self.intent = self.intent, None  # each decision drives one step
             self._plan(state, intent)
 
+    def _fixed_progress(self, state: RobotState) -> None:
+        """Plan a step on every timer tick with the latest intent, wherever the arm is."""
+        t = state.t_s
+        if self.intent is None or self.pending is not None:
+            return  # no decision yet, or the previous solve still running (the tick is late)
+        if fixed_timer_due(t, self.last_step_s, self.settings.fixed_period_s):
+            self.last_step_s = t if self.last_step_s is None else self._next_tick(t)
+            self._plan(state, self.intent)
+
     def _next_tick(self, t: float) -> float:
         assert self.last_step_s is not None
         period = self.settings.fixed_period_s
-        return self.last_step_s + period * np.floor((t - self.last_step_s) / period + 1e-9)
+        return self.last_step_s + period * math.floor((t - self.last_step_s) / period + 1e-9)
 
     # ---- planning -----------------------------------------------------------------
     def _plan(self, state: RobotState, intent: Intent) -> None:
@@ -270,11 +285,11 @@ class Controller:
         return self.arm.inverse_dynamics(state.q, state.dq, ddq_d)
 
     def _reset_episode_state(self) -> None:
-        self.intent: Intent | None = None
-        self.pending: _PlannedStep | None = None
-        self.subgoal: np.ndarray | None = None
+        self.intent = None
+        self.pending = None
+        self.subgoal = None
         self.radius_m = 0.0
         self.awaiting_trigger = False
-        self.last_step_s: float | None = None
-        self.hold_reason: str | None = None
+        self.last_step_s = None
+        self.hold_reason = None
         self.index = 0

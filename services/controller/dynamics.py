@@ -26,7 +26,9 @@ class ArmModel:
     def ee_position(self, q: np.ndarray) -> np.ndarray:
         """End-effector position [m] (3,) at joint positions ``q`` [rad] (6,)."""
         pin.forwardKinematics(self.model, self.data, q)
-        return np.array(pin.updateFramePlacement(self.model, self.data, self.ee_frame_id).translation)
+        return np.array(
+            pin.updateFramePlacement(self.model, self.data, self.ee_frame_id).translation
+        )
 
     def ee_jacobian(self, q: np.ndarray) -> np.ndarray:
         """Linear Jacobian of the end-effector point (3, 6), world-aligned axes."""

@@ -113,7 +113,8 @@ class IkpyIK:
         self.arm = arm
         self.chain = arm.robot.ikpy_chain()
         self.active = np.asarray(self.chain.active_links_mask, dtype=bool)
-        self.active_links = [link for link, on in zip(self.chain.links, self.active) if on]
+        links = zip(self.chain.links, self.active, strict=True)
+        self.active_links = [link for link, on in links if on]
         self.q_lo = arm.robot.q_min + limit_margin_rad
         self.q_hi = arm.robot.q_max - limit_margin_rad
         self.max_step_rad = max_step_rad
@@ -164,4 +165,3 @@ class IKLatency:
         if self.mode == "measured":
             return measured_s
         return float(self.median_s * np.exp(self.sigma * self.rng.standard_normal()))
-

@@ -31,7 +31,11 @@ def limit_violation(
     soft in simulation); speeds may reach ``velocity_tolerance`` times the URDF limit.
     """
     for i, name in enumerate(robot.joint_names):
-        if not robot.q_min[i] - position_tolerance_rad <= q[i] <= robot.q_max[i] + position_tolerance_rad:
+        if (
+            not robot.q_min[i] - position_tolerance_rad
+            <= q[i]
+            <= robot.q_max[i] + position_tolerance_rad
+        ):
             return (
                 f"joint {name} at {q[i]:.3f} rad outside its limits "
                 f"[{robot.q_min[i]:.3f}, {robot.q_max[i]:.3f}] rad"
@@ -68,4 +72,4 @@ class LimitMonitor:
 
 def saturate_torque(tau: np.ndarray, tau_max: np.ndarray) -> np.ndarray:
     """``tau`` [N m] clipped to the effort limits +-tau_max."""
-    return np.clip(tau, -tau_max, tau_max)
+    return np.asarray(np.clip(tau, -tau_max, tau_max))

@@ -67,7 +67,9 @@ class Simulation:
         self._last_command = command
         self.model.actuator_biasprm[: self._n, 1] = -command.kp
         self.model.actuator_biasprm[: self._n, 2] = -command.kd
-        self.data.ctrl[: self._n] = command.tau_ff + command.kp * command.q_ref + command.kd * command.dq_ref
+        self.data.ctrl[: self._n] = (
+            command.tau_ff + command.kp * command.q_ref + command.kd * command.dq_ref
+        )
 
     def step(self, n_steps: int) -> None:
         """Advance ``n_steps`` physics steps in one MuJoCo call."""
@@ -111,11 +113,15 @@ class Simulation:
         if not randomization.enabled:
             return
         bodies = self._arm_bodies
-        scale = self.rng.uniform(1 - randomization.mass_scale, 1 + randomization.mass_scale, len(bodies))
+        scale = self.rng.uniform(
+            1 - randomization.mass_scale, 1 + randomization.mass_scale, len(bodies)
+        )
         self.model.body_mass[bodies] *= scale
         self.model.body_inertia[bodies] *= scale[:, None]
         dofs = np.arange(self._n)
         self.model.dof_damping[dofs] *= self.rng.uniform(
             1 - randomization.damping_scale, 1 + randomization.damping_scale, self._n
         )
-        self.model.dof_frictionloss[dofs] = self.rng.uniform(0, randomization.friction_max_nm, self._n)
+        self.model.dof_frictionloss[dofs] = self.rng.uniform(
+            0, randomization.friction_max_nm, self._n
+        )

@@ -1,0 +1,119 @@
+"""The ``dammrl`` command: the researcher's front door."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+from dammrl.errors import DammrlError
+from dammrl.models import parse_model
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = _parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.handler(args))
+    except DammrlError as exc:
+        print(f"dammrl: error: {exc}", file=sys.stderr)
+        return 2
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="dammrl", description="Event-triggered human-robot co-adaptation (DAMMRL)."
+    )
+    commands = parser.add_subparsers(required=True, metavar="COMMAND")
+    reach = commands.add_parser(
+        "reach",
+        help="run one simulated reach in-process and print its metrics",
+        description="One reach of the button-press task, sim + simulated human, no bus.",
+    )
+    reach.add_argument(
+        "--trigger",
+        choices=["event", "fixed", "both"],
+        default="event",
+        help="progression: event trigger, fixed-frequency baseline, or both",
+    )
+    reach.add_argument(
+        "--model",
+        type=_model_arg,
+        default=(1, 1),
+        metavar="I,J",
+        help="multi-model M_ij: I=1 E_big, I=2 E_small; J=1..8 step vector "
+        "(J-1 in binary = large on x,y,z; 1 all-small, 8 all-large)",
+    )
+    reach.add_argument("--seed", type=int, default=0, help="seed of start/goal, human, latency")
+    reach.add_argument("--json", action="store_true", help="one JSON object per reach")
+    reach.add_argument("--plot", type=Path, metavar="PNG", help="save a trajectory figure")
+    reach.add_argument("--ik", choices=["pinocchio", "ikpy"], help="IK solver (default pinocchio)")
+    reach.add_argument("--feedforward", choices=["inverse_dynamics", "resolved_acceleration"])
+    reach.add_argument("--randomize", action="store_true", help="seeded domain randomisation")
+    reach.set_defaults(handler=_reach)
+    return parser
+
+
+def _model_arg(text: str) -> tuple[int, int]:
+    try:
+        return parse_model(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from exc
+
+
+def _reach(args: argparse.Namespace) -> int:
+    from dammrl.episode import ReachRunner, ReachSettings
+    from services.controller.config import ControllerSettings
+    from services.sim.config import DomainRandomization, SimSettings
+
+    controller: dict[str, object] = {}
+    if args.ik:
+        controller["ik_solver"] = args.ik
+    if args.feedforward:
+        controller["feedforward"] = args.feedforward
+    sim = SimSettings(randomization=DomainRandomization(enabled=args.randomize))
+    settings = ReachSettings(sim=sim, controller=ControllerSettings.model_validate(controller))
+    runner = ReachRunner(settings)
+    triggers = ["fixed", "event"] if args.trigger == "both" else [args.trigger]
+    task = runner.sample(args.seed)
+    results = [runner.run(args.seed, args.model, trigger=t, task=task) for t in triggers]
+    if args.json:
+        for result in results:
+            print(json.dumps(result.summary()))
+    else:
+        print(_table([r.summary() for r in results]))
+    if args.plot:
+        from dammrl.plots import plot_reaches
+
+        path = plot_reaches(results, runner.settings.task.goal_tolerance_m, args.plot)
+        print(f"figure written to {path}", file=sys.stderr)
+    return 0
+
+
+UNITS = {"t_total_s": "s", "t_step_mean_s": "s", "final_error_m": "m", "jerk_isj": "m^2/s^5"}
+
+
+def _table(rows: list[dict[str, object]]) -> str:
+    """Metrics as aligned text, one column per reach."""
+    keys = [k for k in rows[0] if k not in ("start_m", "goal_m")] + ["start_m", "goal_m"]
+    header = ["metric"] + [str(r["trigger"]) for r in rows]
+    lines = [[f"{k} [{UNITS[k]}]" if k in UNITS else k] + [_fmt(r[k]) for r in rows] for k in keys]
+    widths = [max(len(line[c]) for line in [header, *lines]) for c in range(len(header))]
+    out = ["  ".join(h.ljust(w) for h, w in zip(header, widths, strict=True))]
+    out.append("  ".join("-" * w for w in widths))
+    out += ["  ".join(c.ljust(w) for c, w in zip(line, widths, strict=True)) for line in lines]
+    return "\n".join(out)
+
+
+def _fmt(value: object) -> str:
+    if isinstance(value, float):
+        return f"{value:.4g}"
+    if isinstance(value, list):
+        return "(" + ", ".join(_fmt(v) for v in value) + ")"
+    return str(value)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,41 @@
+"""Shared fixtures: the reference arm and its models, built once per test session."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from dammrl.episode import ReachRunner
+from dammrl.robot import RobotDescription
+from services.controller.dynamics import ArmModel
+from services.sim.config import SimSettings
+from services.sim.core import Simulation
+
+HOME_Q = np.array([0.0, 1.0, 0.0, 1.6, 0.0, 0.3])
+
+
+@pytest.fixture(scope="session")
+def robot() -> RobotDescription:
+    return RobotDescription.from_urdf()
+
+
+@pytest.fixture(scope="session")
+def arm(robot: RobotDescription) -> ArmModel:
+    return ArmModel(robot)
+
+
+@pytest.fixture()
+def sim() -> Simulation:
+    return Simulation(SimSettings())
+
+
+@pytest.fixture(scope="session")
+def runner() -> ReachRunner:
+    return ReachRunner()
+
+
+def random_postures(robot: RobotDescription, n: int, seed: int, spread: float = 0.4) -> np.ndarray:
+    """``n`` postures around home, inside the joint limits, shape (n, 6)."""
+    rng = np.random.default_rng(seed)
+    q = HOME_Q + rng.uniform(-spread, spread, (n, 6))
+    return np.clip(q, robot.q_min + 0.05, robot.q_max - 0.05)

@@ -1,0 +1,62 @@
+"""Whole reaches in-process: success, determinism, holds without jumps."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from dammrl.episode import ReachRunner, ReachSettings
+from dammrl.task import ReachTask
+from services.controller.config import ControllerSettings
+
+
+def test_event_triggered_reach_presses_the_goal(runner: ReachRunner) -> None:
+    result = runner.run(seed=3, model=(2, 1), trigger="event")
+    m = result.metrics
+    assert m.success and m.outcome == "success"
+    assert m.final_error_m <= runner.settings.task.goal_tolerance_m
+    assert m.n_steps >= 15 and 0.0 <= m.human_error_rate <= 0.5
+    assert all(s.trigger == "event" for s in result.steps)
+
+
+def test_fixed_frequency_reach_steps_on_the_timer_grid(runner: ReachRunner) -> None:
+    result = runner.run(seed=3, model=(1, 1), trigger="fixed")
+    decided = np.array([s.t_s for s in result.steps])
+    decided -= decided[0]  # the timer starts with the first decision
+    periods = np.floor(decided / 0.1 + 1e-6)
+    assert np.all(np.diff(periods) >= 1)  # at most one step per timer period
+    late = decided - periods * 0.1
+    assert np.mean(late < runner.control_dt_s / 2) > 0.9  # on the tick unless IK ran long
+
+
+def test_same_seed_same_reach(runner: ReachRunner) -> None:
+    a, b = runner.run(seed=5, model=(1, 2)), runner.run(seed=5, model=(1, 2))
+    assert a.summary() == b.summary()
+    np.testing.assert_array_equal(a.trajectory.x, b.trajectory.x)
+
+
+def test_unreachable_goal_ends_in_a_hold_with_a_reason_and_no_jump(runner: ReachRunner) -> None:
+    task = runner.sample(0)
+    far = ReachTask(task.start, np.array([0.95, 0.0, -0.05]))  # beyond the 0.74 m reach
+    result = runner.run(seed=0, model=(2, 8), task=far)
+    m = result.metrics
+    assert not m.success and m.outcome == "hold"
+    assert "workspace" in m.reason or "IK" in m.reason
+    q = result.trajectory.q
+    dt = runner.control_dt_s
+    assert np.max(np.abs(np.diff(q, axis=0))) / dt < runner.robot.dq_max.max()
+    after_hold = result.trajectory.t >= m.t_total_s + 0.3
+    assert np.max(np.linalg.norm(result.trajectory.v[after_hold], axis=1)) < 0.01  # at rest
+
+
+def test_reach_with_resolved_acceleration_feedforward_succeeds() -> None:
+    runner = ReachRunner(
+        ReachSettings(controller=ControllerSettings(feedforward="resolved_acceleration"))
+    )
+    assert runner.run(seed=2, model=(2, 1)).metrics.success
+
+
+def test_reach_with_ikpy_succeeds() -> None:
+    runner = ReachRunner(ReachSettings(controller=ControllerSettings(ik_solver="ikpy")))
+    result = runner.run(seed=1, model=(1, 8))
+    assert result.metrics.outcome in ("success", "timeout")
+    assert all(s.ik_compute_s > 0 for s in result.steps)

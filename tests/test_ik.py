@@ -1,0 +1,55 @@
+"""Both IK solvers reach reachable targets and never jump."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from dammrl.robot import RobotDescription
+from services.controller.dynamics import ArmModel
+from services.controller.ik import DampedLeastSquaresIK, IKLatency, IkpyIK
+from tests.conftest import HOME_Q, random_postures
+
+
+@pytest.fixture(scope="module")
+def solvers(arm: ArmModel) -> list[DampedLeastSquaresIK | IkpyIK]:
+    return [DampedLeastSquaresIK(arm), IkpyIK(arm)]
+
+
+def test_both_solvers_reach_random_reachable_targets(
+    solvers: list[DampedLeastSquaresIK | IkpyIK], arm: ArmModel, robot: RobotDescription
+) -> None:
+    for q_true in random_postures(robot, 15, seed=5):
+        target = arm.ee_position(q_true)
+        for solver in solvers:
+            result = solver.solve(target, HOME_Q)
+            assert result.error_m <= 1e-4, solver.name
+            np.testing.assert_allclose(arm.ee_position(result.q), target, atol=1e-4)
+            assert robot.within_limits(result.q)
+
+
+def test_solutions_stay_inside_the_step_bound(arm: ArmModel) -> None:
+    target = arm.ee_position(HOME_Q) + np.array([0.2, 0.1, 0.1])  # far: needs > 0.1 rad moves
+    for solver in (DampedLeastSquaresIK(arm, max_step_rad=0.1), IkpyIK(arm, max_step_rad=0.1)):
+        result = solver.solve(target, HOME_Q)
+        assert np.max(np.abs(result.q - HOME_Q)) <= 0.1 + 1e-9
+        assert result.error_m > 1e-3  # the bound, not the target, decided
+
+
+def test_unreachable_target_reports_its_error(arm: ArmModel) -> None:
+    result = DampedLeastSquaresIK(arm).solve(np.array([1.5, 0.0, 0.0]), HOME_Q)
+    assert result.error_m > 0.5
+
+
+def test_model_latency_is_seeded_and_lognormal() -> None:
+    draw = IKLatency("model", "ikpy", np.random.default_rng(0), median_s=0.02, sigma=0.5)
+    again = IKLatency("model", "ikpy", np.random.default_rng(0), median_s=0.02, sigma=0.5)
+    samples = np.array([draw(0.0) for _ in range(4000)])
+    assert [again(0.0) for _ in range(5)] == samples[:5].tolist()
+    assert np.median(samples) == pytest.approx(0.02, rel=0.05)
+    assert np.std(np.log(samples)) == pytest.approx(0.5, rel=0.05)
+
+
+def test_measured_latency_is_the_solve_time() -> None:
+    assert IKLatency("measured", "pinocchio", np.random.default_rng(0))(0.123) == 0.123
+    assert IKLatency("zero", "pinocchio", np.random.default_rng(0))(0.123) == 0.0

@@ -1,0 +1,74 @@
+"""Metrics against hand-computed and analytic values."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from dammrl.metrics import (
+    GoalMonitor,
+    dimensionless_jerk,
+    human_error_rate,
+    integrated_squared_jerk,
+    n_oscillations,
+)
+
+
+def _min_jerk(
+    distance: float, duration: float, rate_hz: float = 2000.0
+) -> tuple[np.ndarray, np.ndarray]:
+    t = np.arange(0.0, duration + 0.5 / rate_hz, 1.0 / rate_hz)
+    s = t / duration
+    speed = distance / duration * (30 * s**2 - 60 * s**3 + 30 * s**4)
+    return t, np.stack([speed, 0 * speed, 0 * speed], axis=1)
+
+
+def test_isj_of_a_minimum_jerk_reach_matches_the_analytic_value() -> None:
+    t, v = _min_jerk(0.3, 1.5)
+    assert integrated_squared_jerk(t, v) == pytest.approx(720 * 0.3**2 / 1.5**5, rel=0.01)
+
+
+def test_dimensionless_jerk_is_independent_of_amplitude_and_duration() -> None:
+    a = dimensionless_jerk(*_min_jerk(0.3, 1.5))
+    b = dimensionless_jerk(*_min_jerk(0.1, 0.6))
+    assert a == pytest.approx(b, rel=0.01)
+    assert a == pytest.approx(720 / 1.875**2, rel=0.01)
+
+
+def test_oscillation_count_ignores_noise_within_the_deadband() -> None:
+    rng = np.random.default_rng(0)
+    x = np.zeros((500, 3)) + rng.normal(0, 2e-4, (500, 3))
+    subgoal, radius = np.zeros((500, 3)), np.full(500, 0.005)
+    assert n_oscillations(x, subgoal, radius, deadband_m=0.001) == 0
+
+
+def test_oscillation_count_counts_reversals_near_the_subgoal_per_axis() -> None:
+    t = np.linspace(0, 1, 1000)
+    x = np.zeros((1000, 3))
+    x[:, 0] = 0.003 * np.sin(2 * np.pi * 3 * t)  # 3 periods: 5 interior turning points
+    x[:, 2] = 0.003 * np.sin(2 * np.pi * 1 * t)  # 1 period: 2 turning points
+    subgoal, radius = np.zeros((1000, 3)), np.full(1000, 0.004)
+    assert n_oscillations(x, subgoal, radius, deadband_m=0.001) == 6 + 2
+
+
+def test_reversals_far_from_the_subgoal_do_not_count() -> None:
+    t = np.linspace(0, 1, 1000)
+    x = np.zeros((1000, 3))
+    x[:, 0] = 0.003 * np.sin(2 * np.pi * 3 * t)
+    subgoal = np.tile([0.1, 0.0, 0.0], (1000, 1))
+    assert n_oscillations(x, subgoal, np.full(1000, 0.004)) == 0
+    assert n_oscillations(x, np.full((1000, 3), np.nan), np.full(1000, 0.004)) == 0
+
+
+def test_human_error_rate() -> None:
+    assert human_error_rate([True, True, False, True]) == 0.25
+    assert human_error_rate([]) == 0.0
+
+
+def test_goal_needs_a_dwell_not_a_fly_by() -> None:
+    monitor = GoalMonitor(np.zeros(3), 0.01, 0.1)
+    assert not monitor.update(0.0, np.array([0.005, 0, 0]))
+    assert not monitor.update(0.05, np.array([0.005, 0, 0]))
+    assert not monitor.update(0.08, np.array([0.02, 0, 0]))  # left: the dwell restarts
+    assert not monitor.update(0.10, np.array([0.0, 0, 0]))
+    assert monitor.update(0.20, np.array([0.0, 0, 0]))
