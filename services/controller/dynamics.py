@@ -30,6 +30,12 @@ class ArmModel:
             pin.updateFramePlacement(self.model, self.data, self.ee_frame_id).translation
         )
 
+    def ee_position_and_jacobian(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """End-effector position (3,) and linear Jacobian (3, 6) in one kinematics pass."""
+        J = pin.computeFrameJacobian(self.model, self.data, q, self.ee_frame_id, _WORLD_ALIGNED)
+        placement = pin.updateFramePlacement(self.model, self.data, self.ee_frame_id)
+        return np.array(placement.translation), np.array(J[:3])
+
     def ee_jacobian(self, q: np.ndarray) -> np.ndarray:
         """Linear Jacobian of the end-effector point (3, 6), world-aligned axes."""
         J = pin.computeFrameJacobian(self.model, self.data, q, self.ee_frame_id, _WORLD_ALIGNED)

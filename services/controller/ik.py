@@ -23,8 +23,8 @@ from services.controller.dynamics import ArmModel
 
 # (median [s], log-sigma) of solve times fitted by benchmarks/bench_core.py
 FITTED_LATENCY: dict[IKSolverName, tuple[float, float]] = {
-    "ikpy": (0.045, 0.45),
-    "pinocchio": (0.00015, 0.30),
+    "ikpy": (0.055, 0.57),
+    "pinocchio": (0.00015, 0.7),
 }
 
 
@@ -56,6 +56,21 @@ def _search_box(
     return np.minimum(lo, hi), np.maximum(lo, hi)
 
 
+def _solve3(A: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """x with A x = b for a symmetric 3x3 ``A``, by its adjugate. At this size numpy's
+    linalg call overhead is larger than the whole solve."""
+    (a, d, e), (_, b_, f), (_, _, c) = A.tolist()
+    adj = np.array(
+        [
+            [b_ * c - f * f, e * f - d * c, d * f - e * b_],
+            [e * f - d * c, a * c - e * e, d * e - a * f],
+            [d * f - e * b_, d * e - a * f, a * b_ - d * d],
+        ]
+    )
+    det = a * adj[0, 0] + d * adj[0, 1] + e * adj[0, 2]
+    return np.asarray(adj @ b / det)
+
+
 class DampedLeastSquaresIK:
     """Position IK by damped least squares on pinocchio's Jacobian.
 
@@ -69,7 +84,7 @@ class DampedLeastSquaresIK:
         self,
         arm: ArmModel,
         damping: float = 1e-3,
-        tolerance_m: float = 1e-7,
+        tolerance_m: float = 1e-6,
         max_iterations: int = 100,
         limit_margin_rad: float = 0.0,
         max_step_rad: float | None = None,
@@ -85,19 +100,19 @@ class DampedLeastSquaresIK:
     def solve(self, target: np.ndarray, q_seed: np.ndarray) -> IKResult:
         start = time.perf_counter()
         lo, hi = _search_box(q_seed, self.q_lo, self.q_hi, self.max_step_rad)
-        q = np.clip(q_seed, lo, hi)
+        q = np.minimum(np.maximum(q_seed, lo), hi)
         lam2 = self.damping**2 * np.eye(3)
         for _ in range(self.max_iterations):
-            error = target - self.arm.ee_position(q)
-            if np.linalg.norm(error) < self.tolerance_m:
+            x, J = self.arm.ee_position_and_jacobian(q)
+            error = target - x
+            if error @ error < self.tolerance_m**2:
                 break
-            J = self.arm.ee_jacobian(q)
-            dq = J.T @ np.linalg.solve(J @ J.T + lam2, error)
+            dq = J.T @ _solve3(J @ J.T + lam2, error)  # J J^T + lambda^2 I is symmetric
             blocked = (q <= lo) & (dq < 0) | (q >= hi) & (dq > 0)
             if blocked.any():  # joints pinned at a bound: let the others do the work
                 J[:, blocked] = 0.0
-                dq = J.T @ np.linalg.solve(J @ J.T + lam2, error)
-            q = np.clip(q + dq, lo, hi)
+                dq = J.T @ _solve3(J @ J.T + lam2, error)
+            q = np.minimum(np.maximum(q + dq, lo), hi)
         error_m = float(np.linalg.norm(target - self.arm.ee_position(q)))
         return IKResult(q, error_m, time.perf_counter() - start)
 

@@ -57,13 +57,15 @@ class LimitMonitor:
         self.robot = robot
         self.position_tolerance_rad = position_tolerance_rad
         self.velocity_tolerance = velocity_tolerance
-        self.q_lo = robot.q_min - position_tolerance_rad
-        self.q_hi = robot.q_max + position_tolerance_rad
+        self.q_mid = (robot.q_min + robot.q_max) / 2
+        self.q_half_span = (robot.q_max - robot.q_min) / 2 + position_tolerance_rad
         self.dq_max = velocity_tolerance * robot.dq_max
 
     def check(self, q: np.ndarray, dq: np.ndarray) -> str | None:
         """Why the state breaks a limit, or None (the common case, in a few microseconds)."""
-        if (q >= self.q_lo).all() and (q <= self.q_hi).all() and (abs(dq) <= self.dq_max).all():
+        # ufunc.reduce directly: ndarray.all() goes through a slow Python-level wrapper
+        outside = np.logical_or.reduce(np.abs(q - self.q_mid) > self.q_half_span)
+        if not outside and not np.logical_or.reduce(np.abs(dq) > self.dq_max):
             return None
         return limit_violation(
             self.robot, q, dq, self.position_tolerance_rad, self.velocity_tolerance
@@ -72,4 +74,4 @@ class LimitMonitor:
 
 def saturate_torque(tau: np.ndarray, tau_max: np.ndarray) -> np.ndarray:
     """``tau`` [N m] clipped to the effort limits +-tau_max."""
-    return np.asarray(np.clip(tau, -tau_max, tau_max))
+    return np.minimum(np.maximum(tau, -tau_max), tau_max)

@@ -48,9 +48,9 @@ class QuinticSegment:
 
     @classmethod
     def hold(cls, t0_s: float, q: np.ndarray) -> QuinticSegment:
-        """A segment that stays at ``q``."""
+        """A segment that stays at ``q`` (already finished at ``t0_s``)."""
         zeros = np.zeros_like(q)
-        return cls(t0_s, 1.0, np.stack([q, zeros, zeros, zeros, zeros, zeros]))
+        return cls(t0_s, 0.0, np.stack([q, zeros, zeros, zeros, zeros, zeros]))
 
     @property
     def end_s(self) -> float:
@@ -68,10 +68,14 @@ class QuinticSegment:
         if t_s >= self.t0_s + self.duration_s:
             return self.rest
         tau = max(t_s - self.t0_s, 0.0)
-        c = self.coeffs
-        q = c[0] + tau * (c[1] + tau * (c[2] + tau * (c[3] + tau * (c[4] + tau * c[5]))))
-        dq = c[1] + tau * (2 * c[2] + tau * (3 * c[3] + tau * (4 * c[4] + tau * 5 * c[5])))
-        ddq = 2 * c[2] + tau * (6 * c[3] + tau * (12 * c[4] + tau * 20 * c[5]))
+        t2 = tau * tau
+        t3 = t2 * tau
+        basis = np.array(  # rows: d^k/dtau^k of (1, tau, ..., tau^5) for k = 0, 1, 2
+            (1.0, tau, t2, t3, t3 * tau, t3 * t2,
+             0.0, 1.0, 2 * tau, 3 * t2, 4 * t3, 5 * t3 * tau,
+             0.0, 0.0, 2.0, 6 * tau, 12 * t2, 20 * t3)
+        ).reshape(3, 6)  # fmt: skip
+        q, dq, ddq = basis @ self.coeffs
         return q, dq, ddq
 
 

@@ -40,6 +40,9 @@ class Simulation:
         self._button_body = self.model.body("button").id
         self._arm_bodies = np.arange(1, self.model.body("button").id)
         self._noise_std = self._sensor_noise_std()
+        self._sensor_slices = tuple(
+            SENSOR_LAYOUT[k] for k in ("q", "dq", "tau", "ee_pos", "ee_vel", "button")
+        )
         self._last_command: JointCommand | None = None
 
     @property
@@ -62,11 +65,12 @@ class Simulation:
 
     def apply(self, command: JointCommand) -> None:
         """Latch a joint command; MuJoCo applies it at every step until the next one."""
-        if command is self._last_command:
+        last, self._last_command = self._last_command, command
+        if command is last:
             return
-        self._last_command = command
-        self.model.actuator_biasprm[: self._n, 1] = -command.kp
-        self.model.actuator_biasprm[: self._n, 2] = -command.kd
+        if last is None or command.kp is not last.kp or command.kd is not last.kd:
+            self.model.actuator_biasprm[: self._n, 1] = -command.kp
+            self.model.actuator_biasprm[: self._n, 2] = -command.kd
         self.data.ctrl[: self._n] = (
             command.tau_ff + command.kp * command.q_ref + command.kd * command.dq_ref
         )
@@ -84,14 +88,15 @@ class Simulation:
         raw = self.data.sensordata.copy()
         if self.settings.randomization.enabled:
             raw += self._noise_std * self.rng.standard_normal(raw.size)
-        travel = -float(raw[SENSOR_LAYOUT["button"]][0])
+        q, dq, tau, ee_pos, ee_vel, button = self._sensor_slices
+        travel = -float(raw[button][0])
         return RobotState(
             t_s=float(self.data.time),
-            q=raw[SENSOR_LAYOUT["q"]],
-            dq=raw[SENSOR_LAYOUT["dq"]],
-            tau=raw[SENSOR_LAYOUT["tau"]],
-            ee_pos=raw[SENSOR_LAYOUT["ee_pos"]],
-            ee_vel=raw[SENSOR_LAYOUT["ee_vel"]],
+            q=raw[q],
+            dq=raw[dq],
+            tau=raw[tau],
+            ee_pos=raw[ee_pos],
+            ee_vel=raw[ee_vel],
             button_pressed=travel >= self.settings.button_press_travel_m,
             button_travel_m=travel,
         )

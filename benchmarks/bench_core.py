@@ -1,0 +1,132 @@
+"""Control-core benchmarks, in one run on this machine (figures, not pass/fail):
+
+(a) physics steps per second of the full in-process sim + controller loop (whole reaches:
+    IK, human, metrics included) against raw ``mj_step`` on the same compiled model;
+(b) median / p95 solve time and accuracy of the two IK solvers on the same micro-step
+    targets, and the lognormal fit of each (the IK latency model's parameters);
+(c) wall time of one complete event-triggered reach (pinocchio and ikpy).
+
+    python benchmarks/bench_core.py [--reaches 20] [--targets 200]
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import mujoco
+import numpy as np
+
+from dammrl.episode import ReachRunner, ReachSettings
+from services.controller.config import ControllerSettings
+from services.controller.ik import DampedLeastSquaresIK, IkpyIK
+
+
+def raw_mj_step_rate(runner: ReachRunner, n_steps: int = 200_000) -> float:
+    """Steps/s of bare mj_step on the scene, the arm posed at a start and PD-held."""
+    model, data = runner.sim.model, mujoco.MjData(runner.sim.model)
+    data.qpos[:6] = runner.start_posture(runner.sample(0).start)
+    mujoco.mj_forward(model, data)
+    start = time.perf_counter()
+    for _ in range(n_steps // runner.substeps):  # same chunking as the control loop
+        mujoco.mj_step(model, data, nstep=runner.substeps)
+    return n_steps / (time.perf_counter() - start)
+
+
+def loop_rate(runner: ReachRunner, n_reaches: int) -> tuple[float, float]:
+    """(physics steps/s, wall s per reach) of whole event-triggered reaches."""
+    steps, start = 0, time.perf_counter()
+    for seed in range(n_reaches):
+        result = runner.run(seed, (1, 1), trigger="event")
+        steps += round(result.trajectory.t[-1] / runner.sim.timestep_s)
+    wall = time.perf_counter() - start
+    return steps / wall, wall / n_reaches
+
+
+def ik_targets(runner: ReachRunner, n: int, seed: int = 0) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(seed posture, reachable target) pairs: the posture at a sampled start, the target the
+    FK of a nearby posture (micro-step sized, 1-4 cm away)."""
+    rng = np.random.default_rng(seed)
+    robot = runner.robot
+    pairs = []
+    for k in range(n):
+        q = runner.start_posture(runner.sample(k).start)
+        q_near = np.clip(q + rng.normal(0.0, 0.04, 6), robot.q_min + 0.03, robot.q_max - 0.03)
+        pairs.append((q, runner.arm.ee_position(q_near)))
+    return pairs
+
+
+def bench_solver(
+    solver: DampedLeastSquaresIK | IkpyIK, pairs: list[tuple[np.ndarray, np.ndarray]]
+) -> dict[str, float]:
+    times, errors = [], []
+    for q_seed, target in pairs:
+        result = solver.solve(target, q_seed)
+        times.append(result.compute_s)
+        errors.append(result.error_m)
+    t = np.array(times)
+    return {
+        "median_ms": float(np.median(t) * 1e3),
+        "p95_ms": float(np.percentile(t, 95) * 1e3),
+        "max_error_m": float(np.max(errors)),
+        "converged": float(np.mean(np.array(errors) <= 1e-4)),
+        "fit_median_s": float(np.exp(np.mean(np.log(t)))),
+        "fit_sigma": float(np.std(np.log(t))),
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--reaches", type=int, default=20)
+    parser.add_argument("--targets", type=int, default=200)
+    args = parser.parse_args()
+
+    runner = ReachRunner()
+    runner.run(0)  # warm up (imports, caches)
+    raw = raw_mj_step_rate(runner)
+    loop, _ = loop_rate(runner, args.reaches)
+    raw_after = raw_mj_step_rate(runner)  # bracket the loop: the machine is shared
+    raw_mean = (raw + raw_after) / 2
+    print("(a) physics throughput")
+    print(
+        f"    raw mj_step (nstep={runner.substeps} chunks) : {raw_mean:10.0f} steps/s "
+        f"(before {raw:.0f}, after {raw_after:.0f})"
+    )
+    print(
+        f"    full sim+controller loop           : {loop:10.0f} steps/s "
+        f"({args.reaches} event reaches, control {1 / runner.control_dt_s:.0f} Hz, "
+        f"physics {1 / runner.sim.timestep_s:.0f} Hz)"
+    )
+    print(f"    ratio loop / raw                   : {loop / raw_mean:10.2f}   (goal >= 0.7)")
+
+    pairs = ik_targets(runner, args.targets)
+    dls = bench_solver(DampedLeastSquaresIK(runner.arm, max_step_rad=0.5), pairs)
+    ikpy = bench_solver(IkpyIK(runner.arm, max_step_rad=0.5), pairs)
+    print(f"(b) IK on {len(pairs)} reachable micro-step targets (same targets, same seeds)")
+    for name, r in (("pinocchio DLS", dls), ("ikpy", ikpy)):
+        print(
+            f"    {name:14s} median {r['median_ms']:8.3f} ms  p95 {r['p95_ms']:8.3f} ms  "
+            f"max error {r['max_error_m']:.1e} m ({r['converged']:.0%} <= 1e-4 m)  lognormal fit: median {r['fit_median_s']:.5f} s, "
+            f"sigma {r['fit_sigma']:.2f}"
+        )
+    print(
+        f"    speed-up pinocchio / ikpy (median) : {ikpy['median_ms'] / dls['median_ms']:.0f}x "
+        "(goal >= 100x)"
+    )
+
+    print("(c) one complete event-triggered reach (seed 7, M_1,1)")
+    for solver in ("pinocchio", "ikpy"):
+        settings = ReachSettings(controller=ControllerSettings(ik_solver=solver))
+        solver_runner = runner if solver == "pinocchio" else ReachRunner(settings)
+        start = time.perf_counter()
+        result = solver_runner.run(7, (1, 1), trigger="event")
+        wall = time.perf_counter() - start
+        m = result.metrics
+        print(
+            f"    {solver:10s}: {wall:6.3f} s wall for {m.t_total_s:.1f} s simulated "
+            f"({m.t_total_s / wall:.0f}x real time), {m.n_steps} steps, {m.outcome}"
+        )
+
+
+if __name__ == "__main__":
+    main()
