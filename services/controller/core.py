@@ -143,10 +143,14 @@ class Controller:
         if violation is not None:
             self.hold(violation, t)
             return
+        self._start_if_ready(t, started)  # a solve that finished since the last tick
         if self.settings.trigger == "event":
             self._event_progress(state)
         else:
             self._fixed_progress(state)
+        self._start_if_ready(t, started)  # a step planned now with no IK latency
+
+    def _start_if_ready(self, t: float, started: list[StepEvent]) -> None:
         if self.pending is not None and t >= self.pending.ready_s:
             started.append(self._start_segment(self.pending, t))
             self.pending = None
