@@ -106,7 +106,8 @@ def main() -> None:
     for name, r in (("pinocchio DLS", dls), ("ikpy", ikpy)):
         print(
             f"    {name:14s} median {r['median_ms']:8.3f} ms  p95 {r['p95_ms']:8.3f} ms  "
-            f"max error {r['max_error_m']:.1e} m ({r['converged']:.0%} <= 1e-4 m)  lognormal fit: median {r['fit_median_s']:.5f} s, "
+            f"max error {r['max_error_m']:.1e} m ({r['converged']:.0%} <= 1e-4 m)\n"
+            f"    {'':14s} lognormal fit: median {r['fit_median_s']:.5f} s, "
             f"sigma {r['fit_sigma']:.2f}"
         )
     print(

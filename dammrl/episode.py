@@ -280,7 +280,11 @@ class _Episode:
             t_total_s=float(t_end),
             t_step_mean_s=float(t_end) / n_steps if n_steps else float("nan"),
             final_error_m=float(goal_error(state.ee_pos, self.task.goal)[0]),
-            n_osc=n_oscillations(traj.x[moving], traj.subgoal[moving], traj.radius[moving]),
+            n_osc=n_oscillations(
+                traj.x[moving],
+                np.array([step.subgoal for step in self.steps]).reshape(-1, 3),
+                np.array([step.radius_m for step in self.steps]),
+            ),
             jerk_isj=integrated_squared_jerk(t, v),
             jerk_dimensionless=dimensionless_jerk(t, v),
             human_error_rate=human_error_rate([d.correct for d in decided]),

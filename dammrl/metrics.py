@@ -41,25 +41,29 @@ def goal_error(x: np.ndarray, goal: np.ndarray) -> np.ndarray:
 
 def n_oscillations(
     x: np.ndarray,
-    subgoal: np.ndarray,
-    radius: np.ndarray,
+    subgoals: np.ndarray,
+    radii: np.ndarray,
     deadband_m: float = 0.001,
     near_factor: float = 2.0,
 ) -> int:
     """Waypoint oscillation count N_osc: direction reversals near the admission spheres.
 
-    For each task axis, the measured end-effector coordinate is scanned for reversals of
-    the direction of its successive increments, with a deadband: a reversal counts only
-    once the coordinate has moved back by more than ``deadband_m`` from its last extreme
-    (so sensor noise and sub-millimetre vibration are not chatter). A reversal is counted
-    when its turning point lies within ``near_factor`` times the admission radius of the
-    subgoal active at that instant (``subgoal`` (N, 3), NaN before the first step;
-    ``radius`` (N,)). N_osc is the sum over the three axes.
+    For each task axis, the measured end-effector coordinate (``x`` (N, 3), sampled at the
+    control rate) is scanned for reversals of the direction of its successive increments,
+    with a deadband: a reversal counts only once the coordinate has moved back by more
+    than ``deadband_m`` from its last extreme, so sensor noise and sub-millimetre vibration
+    are not chatter. A reversal counts when its turning point lies within ``near_factor``
+    times the admission radius of one of the reach's subgoals (``subgoals`` (M, 3),
+    ``radii`` (M,)): the same rule for every progression strategy, whichever subgoal was
+    active. N_osc is the sum over the three axes.
     """
-    near = np.linalg.norm(x - subgoal, axis=1) <= near_factor * radius  # NaN -> False
-    return sum(
-        sum(1 for i in _turning_points(x[:, axis], deadband_m) if near[i]) for axis in range(3)
-    )
+    if len(subgoals) == 0:
+        return 0
+    turns = [i for axis in range(3) for i in _turning_points(x[:, axis], deadband_m)]
+    if not turns:
+        return 0
+    distance = np.linalg.norm(x[turns][:, None, :] - subgoals[None, :, :], axis=2)  # (T, M)
+    return int(np.sum(np.any(distance <= near_factor * radii[None, :], axis=1)))
 
 
 def _turning_points(signal: np.ndarray, deadband: float) -> list[int]:

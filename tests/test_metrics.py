@@ -35,29 +35,33 @@ def test_dimensionless_jerk_is_independent_of_amplitude_and_duration() -> None:
     assert a == pytest.approx(720 / 1.875**2, rel=0.01)
 
 
+SUBGOAL = np.zeros((1, 3))
+RADIUS = np.array([0.004])
+
+
 def test_oscillation_count_ignores_noise_within_the_deadband() -> None:
     rng = np.random.default_rng(0)
     x = np.zeros((500, 3)) + rng.normal(0, 2e-4, (500, 3))
-    subgoal, radius = np.zeros((500, 3)), np.full(500, 0.005)
-    assert n_oscillations(x, subgoal, radius, deadband_m=0.001) == 0
+    assert n_oscillations(x, SUBGOAL, RADIUS, deadband_m=0.001) == 0
 
 
-def test_oscillation_count_counts_reversals_near_the_subgoal_per_axis() -> None:
+def test_oscillation_count_counts_reversals_near_a_subgoal_per_axis() -> None:
     t = np.linspace(0, 1, 1000)
     x = np.zeros((1000, 3))
-    x[:, 0] = 0.003 * np.sin(2 * np.pi * 3 * t)  # 3 periods: 5 interior turning points
+    x[:, 0] = 0.003 * np.sin(2 * np.pi * 3 * t)  # 3 periods: 6 extrema, each reversed
     x[:, 2] = 0.003 * np.sin(2 * np.pi * 1 * t)  # 1 period: 2 turning points
-    subgoal, radius = np.zeros((1000, 3)), np.full(1000, 0.004)
-    assert n_oscillations(x, subgoal, radius, deadband_m=0.001) == 6 + 2
+    assert n_oscillations(x, SUBGOAL, RADIUS, deadband_m=0.001) == 6 + 2
 
 
-def test_reversals_far_from_the_subgoal_do_not_count() -> None:
+def test_reversals_far_from_every_subgoal_do_not_count() -> None:
     t = np.linspace(0, 1, 1000)
     x = np.zeros((1000, 3))
     x[:, 0] = 0.003 * np.sin(2 * np.pi * 3 * t)
-    subgoal = np.tile([0.1, 0.0, 0.0], (1000, 1))
-    assert n_oscillations(x, subgoal, np.full(1000, 0.004)) == 0
-    assert n_oscillations(x, np.full((1000, 3), np.nan), np.full(1000, 0.004)) == 0
+    far = np.array([[0.1, 0.0, 0.0], [0.0, 0.1, 0.0]])
+    assert n_oscillations(x, far, np.array([0.004, 0.004])) == 0
+    assert n_oscillations(x, np.zeros((0, 3)), np.zeros(0)) == 0
+    near_second = np.array([[0.1, 0.0, 0.0], [0.0, 0.0, 0.0]])
+    assert n_oscillations(x, near_second, np.array([0.004, 0.004])) == 6
 
 
 def test_human_error_rate() -> None:

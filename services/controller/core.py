@@ -236,7 +236,7 @@ class Controller:
                 f"from target {np.round(target, 3).tolist()} m (unreachable?)"
             )
         jump = float(np.max(np.abs(q - q_seed)))
-        if jump > self.settings.max_joint_step_rad:
+        if jump > self.settings.max_joint_step_rad + 1e-6:
             return f"IK solution jumps {jump:.2f} rad (> {self.settings.max_joint_step_rad} rad)"
         return None
 

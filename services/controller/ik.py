@@ -56,26 +56,27 @@ def _search_box(
     return np.minimum(lo, hi), np.maximum(lo, hi)
 
 
-def _solve3(A: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """x with A x = b for a symmetric 3x3 ``A``, by its adjugate. At this size numpy's
-    linalg call overhead is larger than the whole solve."""
-    (a, d, e), (_, b_, f), (_, _, c) = A.tolist()
+def _inverse3(A: np.ndarray) -> np.ndarray:
+    """Inverse of a symmetric 3x3 ``A`` by its adjugate. At this size numpy.linalg's call
+    overhead is larger than the whole computation."""
+    (a, d, e), (_, b, f), (_, _, c) = A.tolist()
     adj = np.array(
         [
-            [b_ * c - f * f, e * f - d * c, d * f - e * b_],
+            [b * c - f * f, e * f - d * c, d * f - e * b],
             [e * f - d * c, a * c - e * e, d * e - a * f],
-            [d * f - e * b_, d * e - a * f, a * b_ - d * d],
+            [d * f - e * b, d * e - a * f, a * b - d * d],
         ]
     )
-    det = a * adj[0, 0] + d * adj[0, 1] + e * adj[0, 2]
-    return np.asarray(adj @ b / det)
+    return np.asarray(adj / (a * adj[0, 0] + d * adj[0, 1] + e * adj[0, 2]))
 
 
 class DampedLeastSquaresIK:
     """Position IK by damped least squares on pinocchio's Jacobian.
 
-    dq = J^T (J J^T + lambda^2 I)^-1 e, clipped to the joint limits at each iteration;
-    the minimal-norm update keeps the redundant arm close to its seed posture.
+    dq = J# e + (I - J# J) z with J# = J^T (J J^T + lambda^2 I)^-1: the task step plus a
+    null-space step z = posture_gain (q_mid - q) that uses the arm's three redundant DoF to
+    drift toward mid-range, away from the joint limits, without moving the end-effector.
+    Joints pinned at a bound are taken out of J so the others do the work.
     """
 
     name: IKSolverName = "pinocchio"
@@ -88,33 +89,41 @@ class DampedLeastSquaresIK:
         max_iterations: int = 100,
         limit_margin_rad: float = 0.0,
         max_step_rad: float | None = None,
+        posture_gain: float = 0.1,
     ) -> None:
         self.arm = arm
         self.max_step_rad = max_step_rad
         self.damping = damping
         self.tolerance_m = tolerance_m
         self.max_iterations = max_iterations
+        self.posture_gain = posture_gain
         self.q_lo = arm.robot.q_min + limit_margin_rad
         self.q_hi = arm.robot.q_max - limit_margin_rad
+        self.q_mid = (arm.robot.q_min + arm.robot.q_max) / 2
 
     def solve(self, target: np.ndarray, q_seed: np.ndarray) -> IKResult:
         start = time.perf_counter()
         lo, hi = _search_box(q_seed, self.q_lo, self.q_hi, self.max_step_rad)
         q = np.minimum(np.maximum(q_seed, lo), hi)
-        lam2 = self.damping**2 * np.eye(3)
         for _ in range(self.max_iterations):
             x, J = self.arm.ee_position_and_jacobian(q)
             error = target - x
             if error @ error < self.tolerance_m**2:
                 break
-            dq = J.T @ _solve3(J @ J.T + lam2, error)  # J J^T + lambda^2 I is symmetric
+            dq = self._step(J, error, q)
             blocked = (q <= lo) & (dq < 0) | (q >= hi) & (dq > 0)
             if blocked.any():  # joints pinned at a bound: let the others do the work
                 J[:, blocked] = 0.0
-                dq = J.T @ _solve3(J @ J.T + lam2, error)
+                dq = self._step(J, error, q)
+                dq[blocked] = 0.0
             q = np.minimum(np.maximum(q + dq, lo), hi)
         error_m = float(np.linalg.norm(target - self.arm.ee_position(q)))
         return IKResult(q, error_m, time.perf_counter() - start)
+
+    def _step(self, J: np.ndarray, error: np.ndarray, q: np.ndarray) -> np.ndarray:
+        J_pinv = J.T @ _inverse3(J @ J.T + self.damping**2 * np.eye(3))  # (6, 3)
+        posture = self.posture_gain * (self.q_mid - q)
+        return np.asarray(J_pinv @ error + posture - J_pinv @ (J @ posture))
 
 
 class IkpyIK:

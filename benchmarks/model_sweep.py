@@ -1,0 +1,68 @@
+"""Every multi-model M_ij under both progression rules on the same seeds.
+
+Prints, per (trigger, model): success rate with a 95 % Wilson interval, mean total time,
+mean N_osc, mean final error and the share of reaches that pressed the button.
+
+    python benchmarks/model_sweep.py --seeds 50 [--trigger event|fixed|both] [--models 1,1 2,1]
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import time
+
+import numpy as np
+
+from dammrl.episode import ReachRunner
+from dammrl.metrics import ReachMetrics
+from dammrl.models import HUMAN_MODELS, ROBOT_MODELS, parse_model
+
+
+def wilson(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
+    """95 % Wilson score interval of a proportion."""
+    p = successes / n
+    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
+    return centre - half, centre + half
+
+
+def summarise(trigger: str, model: tuple[int, int], rows: list[ReachMetrics]) -> str:
+    n, wins = len(rows), sum(m.success for m in rows)
+    lo, hi = wilson(wins, n)
+    mean = lambda key: float(np.mean([getattr(m, key) for m in rows]))  # noqa: E731
+    failures: dict[str, int] = {}
+    for m in rows:
+        if not m.success:
+            cause = m.outcome if m.outcome == "timeout" else m.reason.split(":")[0][:40]
+            failures[cause] = failures.get(cause, 0) + 1
+    return (
+        f"{trigger:6s} M_{model[0]},{model[1]}  success {wins / n:5.0%} [{lo:4.0%}, {hi:4.0%}]  "
+        f"t_total {mean('t_total_s'):5.1f} s  N_osc {mean('n_osc'):5.1f}  "
+        f"error {mean('final_error_m') * 1000:5.1f} mm  pressed {mean('button_pressed'):4.0%}  "
+        f"{failures or ''}"
+    )
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seeds", type=int, default=50)
+    parser.add_argument("--trigger", choices=["event", "fixed", "both"], default="both")
+    parser.add_argument("--models", nargs="*", type=parse_model)
+    args = parser.parse_args()
+    models = args.models or [(i, j) for i in HUMAN_MODELS for j in ROBOT_MODELS]
+    triggers = ["event", "fixed"] if args.trigger == "both" else [args.trigger]
+    runner = ReachRunner()
+    start = time.perf_counter()
+    for trigger in triggers:
+        for model in models:
+            rows = [runner.run(seed, model, trigger=trigger).metrics for seed in range(args.seeds)]
+            print(summarise(trigger, model, rows), flush=True)
+    print(
+        f"{args.seeds} seeds x {len(models)} models x {len(triggers)} triggers "
+        f"in {time.perf_counter() - start:.0f} s"
+    )
+
+
+if __name__ == "__main__":
+    main()
