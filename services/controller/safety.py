@@ -74,4 +74,4 @@ class LimitMonitor:
 
 def saturate_torque(tau: np.ndarray, tau_max: np.ndarray) -> np.ndarray:
     """``tau`` [N m] clipped to the effort limits +-tau_max."""
-    return np.minimum(np.maximum(tau, -tau_max), tau_max)
+    return np.asarray(np.minimum(np.maximum(tau, -tau_max), tau_max))
