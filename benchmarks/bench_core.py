@@ -1,7 +1,8 @@
 """Control-core benchmarks, in one run on this machine (figures, not pass/fail):
 
 (a) physics steps per second of the full in-process sim + controller loop (whole reaches:
-    IK, human, metrics included) against raw ``mj_step`` on the same compiled model;
+    IK, human, metrics included) against raw ``mj_step`` on the same compiled model, with
+    and without the runner's idle fast-forward;
 (b) median / p95 solve time and accuracy of the two IK solvers on the same micro-step
     targets, and the lognormal fit of each (the IK latency model's parameters);
 (c) wall time of one complete event-triggered reach (pinocchio and ikpy).
@@ -22,15 +23,19 @@ from services.controller.config import ControllerSettings
 from services.controller.ik import DampedLeastSquaresIK, IkpyIK
 
 
-def raw_mj_step_rate(runner: ReachRunner, n_steps: int = 200_000) -> float:
-    """Steps/s of bare mj_step on the scene, the arm posed at a start and PD-held."""
+def raw_mj_step_rates(runner: ReachRunner, n_steps: int = 200_000) -> tuple[float, float]:
+    """Steps/s of bare mj_step on the scene (arm posed at a start, PD-held): in chunks of
+    one control period from Python, and in a single call."""
     model, data = runner.sim.model, mujoco.MjData(runner.sim.model)
     data.qpos[:6] = runner.start_posture(runner.sample(0).start)
     mujoco.mj_forward(model, data)
     start = time.perf_counter()
-    for _ in range(n_steps // runner.substeps):  # same chunking as the control loop
+    for _ in range(n_steps // runner.substeps):
         mujoco.mj_step(model, data, nstep=runner.substeps)
-    return n_steps / (time.perf_counter() - start)
+    chunked = n_steps / (time.perf_counter() - start)
+    start = time.perf_counter()
+    mujoco.mj_step(model, data, nstep=n_steps)
+    return chunked, n_steps / (time.perf_counter() - start)
 
 
 def loop_rate(runner: ReachRunner, n_reaches: int) -> tuple[float, float]:
@@ -83,21 +88,23 @@ def main() -> None:
 
     runner = ReachRunner()
     runner.run(0)  # warm up (imports, caches)
-    raw = raw_mj_step_rate(runner)
+    before = raw_mj_step_rates(runner)
     loop, _ = loop_rate(runner, args.reaches)
-    raw_after = raw_mj_step_rate(runner)  # bracket the loop: the machine is shared
-    raw_mean = (raw + raw_after) / 2
-    print("(a) physics throughput")
+    ticking, _ = loop_rate(ReachRunner(ReachSettings(fast_forward=False)), args.reaches // 2)
+    after = raw_mj_step_rates(runner)  # bracket the loops: the machine is shared
+    chunked, single = (before[0] + after[0]) / 2, (before[1] + after[1]) / 2
+    control_hz, physics_hz = 1 / runner.control_dt_s, 1 / runner.sim.timestep_s
+    print(f"(a) physics throughput (control {control_hz:.0f} Hz, physics {physics_hz:.0f} Hz)")
+    print(f"    raw mj_step, one call              : {single:9.0f} steps/s")
+    print(f"    raw mj_step, nstep={runner.substeps} per call      : {chunked:9.0f} steps/s")
     print(
-        f"    raw mj_step (nstep={runner.substeps} chunks) : {raw_mean:10.0f} steps/s "
-        f"(before {raw:.0f}, after {raw_after:.0f})"
+        f"    full loop, {args.reaches} event reaches       : {loop:9.0f} steps/s  "
+        f"ratio {loop / chunked:.2f} / {loop / single:.2f} (chunked / one call; goal >= 0.7)"
     )
     print(
-        f"    full sim+controller loop           : {loop:10.0f} steps/s "
-        f"({args.reaches} event reaches, control {1 / runner.control_dt_s:.0f} Hz, "
-        f"physics {1 / runner.sim.timestep_s:.0f} Hz)"
+        f"    same, without idle fast-forward    : {ticking:9.0f} steps/s  "
+        f"ratio {ticking / chunked:.2f} / {ticking / single:.2f}"
     )
-    print(f"    ratio loop / raw                   : {loop / raw_mean:10.2f}   (goal >= 0.7)")
 
     pairs = ik_targets(runner, args.targets)
     dls = bench_solver(DampedLeastSquaresIK(runner.arm, max_step_rad=0.5), pairs)

@@ -9,6 +9,7 @@ control period inside MuJoCo.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -25,6 +26,7 @@ from dammrl.metrics import (
     integrated_squared_jerk,
     n_oscillations,
 )
+from dammrl.robot.scene import SENSOR_LAYOUT
 from dammrl.state import RobotState, StepEvent
 from dammrl.task import ReachTask, TaskSettings, sample_task
 from services.controller.config import ControllerSettings
@@ -45,6 +47,8 @@ class ReachSettings(BaseModel):
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
+    fast_forward: bool = True
+    """Step idle stretches (controller waiting for the human) in one MuJoCo rollout."""
     sim: SimSettings = SimSettings()
     controller: ControllerSettings = ControllerSettings()
     human: HumanSettings = HumanSettings()
@@ -195,38 +199,98 @@ class _Episode:
         )
         capacity = int(task_settings.episode_timeout_s / runner.control_dt_s) + 2
         capacity += int(HOLD_OBSERVATION_S / runner.control_dt_s) + 2
-        self.hold_s: float | None = None
+        self.timeout_s = task_settings.episode_timeout_s
+        self.outcome, self.reason = "timeout", "episode timeout"
+        self.hold_s: float | None = None  # when the controller entered a hold
+        self.hold_until: float | None = None  # end of the observation after a hold
+        self.final_state: RobotState | None = None  # set when a fast-forward ends the reach
         self.button_pressed = False
         self.log = np.full((capacity, 3 + 3 + 6 + 6 + 3 + 1 + 1), np.nan)
         self.n = 0
 
     def run(self) -> tuple[ReachMetrics, Trajectory]:
-        sim, controller, task = self.sim, self.controller, self.task
+        sim, task = self.sim, self.task
         state = sim.reset(self.runner.start_posture(task.start), (task.goal[0], task.goal[1]))
-        sim.apply(controller.reset(state, task.goal))
-        outcome, reason, hold_until = "timeout", "episode timeout", None
-        timeout = self.runner.settings.task.episode_timeout_s
+        sim.apply(self.controller.reset(state, task.goal))
         while True:
             state = sim.read()
-            self._record(state)
-            if hold_until is not None:
-                if state.t_s >= hold_until:
+            if self._tick(state):
+                break
+            idle = self._idle_periods(state.t_s)
+            if idle > 1:
+                if self._fast_forward(idle):
                     break
-            elif self.goal_monitor.update(state.t_s, state.ee_pos):
-                outcome, reason = "success", "goal reached"
-                break
-            elif state.t_s >= timeout:
-                break
-            self._exchange_intents(state)
-            output = controller.tick(state)
-            self.steps.extend(output.steps)
-            if output.hold_reason is not None and hold_until is None:
-                outcome, reason = "hold", output.hold_reason
-                self.hold_s = state.t_s
-                hold_until = state.t_s + HOLD_OBSERVATION_S
-            sim.apply(output.command)
-            sim.step(self.runner.substeps)
-        return self._metrics(state, outcome, reason), self._trajectory()
+            else:
+                sim.step(self.runner.substeps)
+        return self._metrics(self.final_state or state), self._trajectory()
+
+    def _tick(self, state: RobotState) -> bool:
+        """One control tick on ``state``; True when the reach is over."""
+        self._record(state)
+        if self.hold_until is not None:
+            return state.t_s >= self.hold_until
+        if self.goal_monitor.update(state.t_s, state.ee_pos):
+            self.outcome, self.reason = "success", "goal reached"
+            return True
+        if state.t_s >= self.timeout_s:
+            return True
+        self._exchange_intents(state)
+        output = self.controller.tick(state)
+        self.steps.extend(output.steps)
+        if output.hold_reason is not None:
+            self.outcome, self.reason = "hold", output.hold_reason
+            self.hold_s = state.t_s
+            self.hold_until = state.t_s + HOLD_OBSERVATION_S
+        self.sim.apply(output.command)
+        return False
+
+    def _idle_periods(self, t_s: float) -> int:
+        """Control periods until something can change while the controller is idle."""
+        if not self.runner.settings.fast_forward or not self.controller.idle:
+            return 0
+        if self.hold_until is not None:
+            until = self.hold_until
+        elif self.pending is not None:
+            until = min(self.pending.intent.t_s, self.timeout_s)
+        else:
+            return 0
+        return math.ceil((until - t_s - 1e-9) / self.runner.control_dt_s)
+
+    def _fast_forward(self, periods: int) -> bool:
+        """Advance ``periods`` idle control periods in one MuJoCo rollout.
+
+        Ticks at which nothing can happen (far from the goal, inside the limits, before
+        any deadline) are only logged, in bulk; from the first that might matter on, each
+        tick runs exactly as in the loop. The last period's state is left for the loop.
+        True when the reach ended inside the stretch.
+        """
+        times, rows = self.sim.advance(periods, self.runner.substeps)
+        times, rows = times[:-1], rows[:-1]
+        quiet = self._quiet_ticks(times, rows)
+        self._record_many(times[:quiet], rows[:quiet])
+        for t_s, row in zip(times[quiet:], rows[quiet:], strict=True):
+            state = self.sim.state_from_sensors(float(t_s), row)
+            if self._tick(state):
+                self.final_state = state
+                return True
+        return False
+
+    def _quiet_ticks(self, times: np.ndarray, rows: np.ndarray) -> int:
+        """How many leading ticks need no more than logging (see ``_fast_forward``)."""
+        if self.goal_monitor.entered_s is not None:
+            return 0
+        layout = SENSOR_LAYOUT
+        deadline = self.timeout_s if self.hold_until is None else self.hold_until
+        eventful = times >= deadline - 1e-9
+        if self.hold_until is None:
+            distance = np.linalg.norm(rows[:, layout["ee_pos"]] - self.task.goal, axis=1)
+            eventful |= distance <= self.goal_monitor.tolerance_m
+            violation = self.controller.limits.first_violation(
+                rows[:, layout["q"]], rows[:, layout["dq"]]
+            )
+            if violation is not None:
+                eventful[violation] = True
+        return int(np.argmax(eventful)) if eventful.any() else len(times)
 
     def _exchange_intents(self, state: RobotState) -> None:
         if self.pending is not None and state.t_s >= self.pending.intent.t_s - 1e-9:
@@ -240,6 +304,23 @@ class _Episode:
                 state.t_s, state.ee_pos, self.task.goal, axis, choice.human_model
             )
             self.decisions.append(self.pending)
+
+    def _record_many(self, times: np.ndarray, rows: np.ndarray) -> None:
+        """Log many ticks at once (a fast-forwarded stretch: subgoal and radius fixed)."""
+        if len(times) == 0:
+            return
+        layout, block = SENSOR_LAYOUT, self.log[self.n : self.n + len(times)]
+        block[:, 0:3] = rows[:, layout["ee_pos"]]
+        block[:, 3:6] = rows[:, layout["ee_vel"]]
+        block[:, 6:12] = rows[:, layout["q"]]
+        block[:, 12:18] = rows[:, layout["tau"]]
+        subgoal = self.controller.subgoal
+        block[:, 18:21] = subgoal if subgoal is not None else np.nan
+        block[:, 21] = self.controller.radius_m
+        block[:, 22] = times
+        self.n += len(times)
+        travel = -rows[:, layout["button"]][:, 0]
+        self.button_pressed |= bool(np.any(travel >= self.sim.settings.button_press_travel_m))
 
     def _record(self, state: RobotState) -> None:
         subgoal = self.controller.subgoal
@@ -266,7 +347,7 @@ class _Episode:
             radius=log[:, 21].copy(),
         )
 
-    def _metrics(self, state: RobotState, outcome: str, reason: str) -> ReachMetrics:
+    def _metrics(self, state: RobotState) -> ReachMetrics:
         traj = self._trajectory()
         t_end = state.t_s if self.hold_s is None else self.hold_s  # a hold ends the reach
         moving = traj.t <= t_end + 1e-9
@@ -274,9 +355,9 @@ class _Episode:
         n_steps = len(self.steps)
         decided = [d for d in self.decisions if d.intent.t_s <= t_end + 1e-9]
         return ReachMetrics(
-            success=outcome == "success",
-            outcome=outcome,
-            reason=reason,
+            success=self.outcome == "success",
+            outcome=self.outcome,
+            reason=self.reason,
             t_total_s=float(t_end),
             t_step_mean_s=float(t_end) / n_steps if n_steps else float("nan"),
             final_error_m=float(goal_error(state.ee_pos, self.task.goal)[0]),

@@ -62,3 +62,21 @@ def test_reach_with_ikpy_succeeds() -> None:
     result = runner.run(seed=1, model=(1, 8))
     assert result.metrics.outcome in ("success", "timeout")
     assert all(s.ik_compute_s > 0 for s in result.steps)
+
+
+def test_fast_forward_reproduces_the_tick_by_tick_loop_exactly(runner: ReachRunner) -> None:
+    ticking = ReachRunner(ReachSettings(fast_forward=False))
+    for seed, model in ((3, (2, 1)), (4, (1, 6))):
+        fast, slow = runner.run(seed, model), ticking.run(seed, model)
+        assert fast.summary() == slow.summary()
+        np.testing.assert_array_equal(fast.trajectory.x, slow.trajectory.x)
+        np.testing.assert_array_equal(fast.trajectory.t, slow.trajectory.t)
+
+
+def test_fast_forward_keeps_the_hold_observation(runner: ReachRunner) -> None:
+    task = runner.sample(0)
+    far = ReachTask(task.start, np.array([0.95, 0.0, -0.05]))
+    ticking = ReachRunner(ReachSettings(fast_forward=False))
+    fast, slow = runner.run(0, (2, 8), task=far), ticking.run(0, (2, 8), task=far)
+    assert fast.summary() == slow.summary()
+    np.testing.assert_array_equal(fast.trajectory.q, slow.trajectory.q)

@@ -81,7 +81,7 @@ class Controller:
         self.segment = QuinticSegment.hold(0.0, np.zeros(6))
         self._rest_command: JointCommand | None = None
         self._rest_segment: QuinticSegment | None = None
-        self._limits = safety.LimitMonitor(robot)
+        self.limits = safety.LimitMonitor(robot)
         self.intent: Intent | None = None  # latest undelivered (event) / sampled (fixed) decision
         self.pending: _PlannedStep | None = None  # solved step waiting out its IK latency
         self.subgoal: np.ndarray | None = None  # x_m, the active Cartesian subgoal (3,) [m]
@@ -127,6 +127,23 @@ class Controller:
             return True
         return self.intent is None and self.pending is None and not self.awaiting_trigger
 
+    @property
+    def idle(self) -> bool:
+        """Nothing changes until a new intent arrives: the controller holds, or (event mode)
+        its trigger has fired, no solve is pending and its reference rests with a fixed
+        command. Each tick would only re-check the limits and return the same command."""
+        if self.hold_reason is not None:
+            return True
+        return (
+            self.settings.trigger == "event"
+            and self.settings.feedforward == "inverse_dynamics"
+            and self.intent is None
+            and self.pending is None
+            and not self.awaiting_trigger
+            and self._rest_command is not None
+            and self._rest_segment is self.segment
+        )
+
     # ---- the control tick ---------------------------------------------------------
     def tick(self, state: RobotState) -> ControllerOutput:
         """One control period: progression logic, then the joint command for ``state``."""
@@ -139,7 +156,7 @@ class Controller:
 
     def _progress(self, state: RobotState, started: list[StepEvent]) -> None:
         t = state.t_s
-        violation = self._limits.check(state.q, state.dq)
+        violation = self.limits.check(state.q, state.dq)
         if violation is not None:
             self.hold(violation, t)
             return

@@ -71,6 +71,12 @@ class LimitMonitor:
             self.robot, q, dq, self.position_tolerance_rad, self.velocity_tolerance
         )
 
+    def first_violation(self, q: np.ndarray, dq: np.ndarray) -> int | None:
+        """Index of the first of many states (rows of ``q``, ``dq`` (n, 6)) breaking a limit."""
+        bad = np.any(np.abs(q - self.q_mid) > self.q_half_span, axis=1)
+        bad |= np.any(np.abs(dq) > self.dq_max, axis=1)
+        return int(np.argmax(bad)) if bad.any() else None
+
 
 def saturate_torque(tau: np.ndarray, tau_max: np.ndarray) -> np.ndarray:
     """``tau`` [N m] clipped to the effort limits +-tau_max."""

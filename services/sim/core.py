@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import mujoco
 import numpy as np
+from mujoco import rollout
 
 from dammrl.robot import RobotDescription
 from dammrl.robot.scene import SENSOR_LAYOUT, SceneLayout, build_scene
@@ -44,6 +45,7 @@ class Simulation:
             SENSOR_LAYOUT[k] for k in ("q", "dq", "tau", "ee_pos", "ee_vel", "button")
         )
         self._last_command: JointCommand | None = None
+        self._state = np.zeros(mujoco.mj_stateSize(self.model, mujoco.mjtState.mjSTATE_FULLPHYSICS))
 
     @property
     def timestep_s(self) -> float:
@@ -88,10 +90,14 @@ class Simulation:
         raw = self.data.sensordata.copy()
         if self.settings.randomization.enabled:
             raw += self._noise_std * self.rng.standard_normal(raw.size)
+        return self.state_from_sensors(float(self.data.time), raw)
+
+    def state_from_sensors(self, t_s: float, raw: np.ndarray) -> RobotState:
+        """A RobotState over one sensordata vector (see SENSOR_LAYOUT); no copy."""
         q, dq, tau, ee_pos, ee_vel, button = self._sensor_slices
         travel = -float(raw[button][0])
         return RobotState(
-            t_s=float(self.data.time),
+            t_s=t_s,
             q=raw[q],
             dq=raw[dq],
             tau=raw[tau],
@@ -100,6 +106,30 @@ class Simulation:
             button_pressed=travel >= self.settings.button_press_travel_m,
             button_travel_m=travel,
         )
+
+    def advance(self, n_periods: int, substeps: int) -> tuple[np.ndarray, np.ndarray]:
+        """Advance ``n_periods * substeps`` steps under the latched command in one rollout.
+
+        Returns the times (n,) and sensor vectors (n, nsensordata) at the end of each
+        period: what ``read`` would have returned there. The final state is bitwise the
+        one ``step`` would reach (same integrator, solver warm start carried over).
+        """
+        spec = mujoco.mjtState.mjSTATE_FULLPHYSICS
+        mujoco.mj_getState(self.model, self.data, self._state, spec)
+        states, sensordata = rollout.rollout(
+            self.model,
+            self.data,
+            self._state,
+            self.data.ctrl[None, None, :].copy(),
+            control_spec=mujoco.mjtState.mjSTATE_CTRL,
+            nstep=n_periods * substeps,
+            initial_warmstart=self.data.qacc_warmstart[None, :].copy(),
+        )
+        ends = slice(substeps - 1, None, substeps)
+        times, rows = states[0, ends, 0].copy(), sensordata[0, ends].copy()  # time is first
+        if self.settings.randomization.enabled:
+            rows += self._noise_std * self.rng.standard_normal(rows.shape)
+        return times, rows
 
     def _sensor_noise_std(self) -> np.ndarray:
         """Per-entry standard deviation of the sensordata noise (see SENSOR_LAYOUT)."""
