@@ -14,35 +14,40 @@ from matplotlib.patches import Circle
 
 from dammrl.episode import ReachResult
 
-STYLE = {
-    "fixed": {"color": "black", "label": "fixed-frequency"},
-    "event": {"color": "tab:red", "label": "event-triggered"},
-}
+COLORS = {"fixed": "black", "event": "tab:red"}  # the paper's colours
+LABELS = {"fixed": "fixed-frequency", "event": "event-triggered"}
+AXES = {0: "x (primary)", 1: "y", 2: "z"}
 MM = 1000.0
+ZOOM_RADIUS_M = 0.05  # the close-up shows the path within this distance of the goal
 
 
 def plot_reaches(results: list[ReachResult], goal_tolerance_m: float, path: Path) -> Path:
-    """Fixed vs event trajectories: overview, the final approach with its subgoals and
-    admission spheres, and the distance to the goal over time."""
-    fig, axes = plt.subplots(2, 2, figsize=(12, 9.5), constrained_layout=True)
-    (top, side), (zoom, distance) = axes
+    """One reach per progression strategy, same start and goal: overview, close-ups of the
+    final approach with subgoals and admission spheres, and convergence over time."""
+    fig, axes = plt.subplots(2, 3, figsize=(16, 9.5), constrained_layout=True)
+    (top, side, distance), (zoom_top, zoom_side, primary) = axes
     task = results[0].task
+    for ax, plane, zoom in (
+        (top, (0, 1), False),
+        (side, (0, 2), False),
+        (zoom_top, (0, 1), True),
+        (zoom_side, (0, 2), True),
+    ):
+        for result in results:
+            _plot_path(ax, result, plane, with_subgoals=zoom)
+        _mark_task(ax, task.start, task.goal, goal_tolerance_m, plane, with_start=not zoom)
+        if zoom:
+            _zoom(ax, results, plane, goal_tolerance_m)
+        view = "top" if plane[1] == 1 else "side"
+        ax.set_title(
+            f"{view} view" + (", near the goal: subgoals and admission spheres" if zoom else "")
+        )
+        ax.set_xlabel(f"{AXES[plane[0]]} [mm]")
+        ax.set_ylabel(f"{AXES[plane[1]]} [mm]")
+        ax.legend(loc="best", fontsize=7)
     for result in results:
-        style = STYLE[result.trigger]
-        x = result.trajectory.x
-        top.plot(x[:, 0] * MM, x[:, 1] * MM, color=style["color"], lw=1.2, label=style["label"])
-        side.plot(x[:, 0] * MM, x[:, 2] * MM, color=style["color"], lw=1.2, label=style["label"])
-        _plot_approach(zoom, result, style["color"], style["label"])
-        _plot_distance(distance, result, style["color"], style["label"])
-    for ax, (i, j), title in ((top, (0, 1), "top view"), (side, (0, 2), "side view")):
-        _mark_task(ax, task.start, task.goal, goal_tolerance_m, i, j)
-        ax.set_title(title)
-        ax.set_xlabel("x (primary axis) [mm]")
-        ax.set_ylabel(f"{'yz'[j - 1]} [mm]")
-        ax.set_aspect("equal", adjustable="datalim")
-        ax.legend(loc="best", fontsize=8)
-    _mark_task(zoom, task.start, task.goal, goal_tolerance_m, 0, 1)
-    _zoom_on_goal(zoom, task.goal, results)
+        _plot_distance(distance, result)
+        _plot_primary(primary, result)
     distance.axhline(
         goal_tolerance_m * MM,
         color="tab:green",
@@ -50,68 +55,111 @@ def plot_reaches(results: list[ReachResult], goal_tolerance_m: float, path: Path
         lw=1,
         label="goal tolerance $\\varepsilon_g$",
     )
-    distance.set_xlabel("time [s]")
-    distance.set_ylabel("distance to goal $\\|x - x_g\\|$ [mm]")
-    distance.set_yscale("log")
-    distance.set_title("convergence")
-    distance.legend(loc="best", fontsize=8)
+    distance.set(
+        xlabel="time [s]",
+        ylabel="distance to goal $\\|x - x_g\\|$ [mm]",
+        yscale="log",
+        title="convergence",
+    )
+    distance.legend(loc="best", fontsize=7)
+    primary.axhline(0.0, color="tab:green", lw=0.8)
+    primary.set(
+        xlabel="time before the end of the reach [s]",
+        ylabel="primary-axis error $x - x_g$ [mm]",
+        title="primary axis: last 4 s (dots: subgoals)",
+    )
+    primary.set_xlim(-4.0, 0.1)
+    primary.legend(loc="best", fontsize=7)
     fig.suptitle(_title(results))
     path = Path(path)
-    fig.savefig(path, dpi=130)
+    fig.savefig(path, dpi=120)
     plt.close(fig)
     return path
 
 
-def _plot_approach(ax: Axes, result: ReachResult, color: str, label: str) -> None:
-    """Final approach seen from above: path, subgoals and (event) admission spheres."""
+def _plot_path(ax: Axes, result: ReachResult, plane: tuple[int, int], with_subgoals: bool) -> None:
+    i, j = plane
+    color, label = COLORS[result.trigger], LABELS[result.trigger]
     x = result.trajectory.x
-    ax.plot(x[:, 0] * MM, x[:, 1] * MM, color=color, lw=1.0, label=label)
-    subgoals = np.array([s.subgoal for s in result.steps]) if result.steps else np.zeros((0, 3))
+    ax.plot(x[:, i] * MM, x[:, j] * MM, color=color, lw=1.1, label=label)
+    if not with_subgoals or not result.steps:
+        return
+    subgoals = np.array([s.subgoal for s in result.steps])
     marker = "o" if result.trigger == "event" else "x"
     ax.plot(
-        subgoals[:, 0] * MM,
-        subgoals[:, 1] * MM,
+        subgoals[:, i] * MM,
+        subgoals[:, j] * MM,
         marker,
         color=color,
-        ms=3,
+        ms=3.5,
         ls="none",
         label=f"{label} subgoals",
     )
-    if result.trigger == "event":
+    if result.trigger == "event":  # the fixed baseline has no admission sphere
         for step in result.steps:
             ax.add_patch(
                 Circle(
-                    (step.subgoal[0] * MM, step.subgoal[1] * MM),
+                    (step.subgoal[i] * MM, step.subgoal[j] * MM),
                     step.radius_m * MM,
                     fill=False,
                     color=color,
                     lw=0.6,
-                    alpha=0.5,
+                    alpha=0.45,
                 )
             )
 
 
-def _zoom_on_goal(ax: Axes, goal: np.ndarray, results: list[ReachResult]) -> None:
-    span = 60.0  # mm around the goal
-    ax.set_xlim(goal[0] * MM - span, goal[0] * MM + span)
-    ax.set_ylim(goal[1] * MM - span, goal[1] * MM + span)
+def _zoom(ax: Axes, results: list[ReachResult], plane: tuple[int, int], tolerance_m: float) -> None:
+    """Frame the samples within ZOOM_RADIUS_M of the goal and the goal ball, equal scale."""
+    goal = results[0].task.goal
+    near = np.concatenate(
+        [
+            r.trajectory.x[np.linalg.norm(r.trajectory.x - goal, axis=1) < ZOOM_RADIUS_M]
+            for r in results
+        ]
+        + [goal[None, :]]
+    )
+    lo, hi = near[:, plane].min(axis=0) * MM - 8, near[:, plane].max(axis=0) * MM + 8
+    half = max(hi - lo) / 2
+    centre = (lo + hi) / 2
+    ax.set_xlim(centre[0] - half, centre[0] + half)
+    ax.set_ylim(centre[1] - half, centre[1] + half)
     ax.set_aspect("equal")
-    ax.set_title("near the goal (top view): subgoals, admission spheres $\\varepsilon$")
-    ax.set_xlabel("x (primary axis) [mm]")
-    ax.set_ylabel("y [mm]")
-    ax.legend(loc="upper left", fontsize=7)
 
 
-def _plot_distance(ax: Axes, result: ReachResult, color: str, label: str) -> None:
+def _plot_distance(ax: Axes, result: ReachResult) -> None:
     t, x = result.trajectory.t, result.trajectory.x
-    ax.plot(t, np.linalg.norm(x - result.task.goal, axis=1) * MM, color=color, lw=1.0, label=label)
+    ax.plot(
+        t,
+        np.linalg.norm(x - result.task.goal, axis=1) * MM,
+        color=COLORS[result.trigger],
+        lw=1.0,
+        label=LABELS[result.trigger],
+    )
+
+
+def _plot_primary(ax: Axes, result: ReachResult) -> None:
+    t, x = result.trajectory.t, result.trajectory.x
+    end, goal = t[-1], result.task.goal[0]
+    color = COLORS[result.trigger]
+    ax.plot(t - end, (x[:, 0] - goal) * MM, color=color, lw=1.0, label=LABELS[result.trigger])
+    starts = np.array([s.start_s for s in result.steps]) - end
+    subgoals = (np.array([s.subgoal[0] for s in result.steps]) - goal) * MM
+    ax.plot(starts, subgoals, "o", color=color, ms=3, alpha=0.7)
 
 
 def _mark_task(
-    ax: Axes, start: np.ndarray, goal: np.ndarray, tolerance_m: float, i: int, j: int
+    ax: Axes,
+    start: np.ndarray,
+    goal: np.ndarray,
+    tolerance_m: float,
+    plane: tuple[int, int],
+    with_start: bool,
 ) -> None:
-    ax.plot(start[i] * MM, start[j] * MM, "s", color="tab:blue", ms=6, label="start $x_s$")
-    ax.plot(goal[i] * MM, goal[j] * MM, "*", color="tab:green", ms=10, label="goal $x_g$")
+    i, j = plane
+    if with_start:
+        ax.plot(start[i] * MM, start[j] * MM, "s", color="tab:blue", ms=6, label="start $x_s$")
+    ax.plot(goal[i] * MM, goal[j] * MM, "*", color="tab:green", ms=11, label="goal $x_g$")
     ax.add_patch(
         Circle(
             (goal[i] * MM, goal[j] * MM),
@@ -126,11 +174,11 @@ def _mark_task(
 
 def _title(results: list[ReachResult]) -> str:
     first = results[0]
-    parts = [f"M_{first.model[0]},{first.model[1]}, seed {first.seed}"]
+    parts = [f"$M_{{{first.model[0]},{first.model[1]}}}$, seed {first.seed}"]
     for r in results:
         m = r.metrics
         parts.append(
-            f"{r.trigger}: {m.outcome}, t={m.t_total_s:.1f} s, N_osc={m.n_osc}, "
-            f"error={m.final_error_m * MM:.1f} mm"
+            f"{LABELS[r.trigger]}: {m.outcome} in {m.t_total_s:.1f} s, "
+            f"$N_{{osc}}$ = {m.n_osc}, final error {m.final_error_m * MM:.1f} mm"
         )
-    return " | ".join(parts)
+    return "   |   ".join(parts)

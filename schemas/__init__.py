@@ -1,0 +1,1 @@
+"""Message models, codec and key expressions of the bus (the bus issue)."""

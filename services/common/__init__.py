@@ -1,0 +1,1 @@
+"""What services share: bus session and settings, logging, health (the bus issue)."""

@@ -1,0 +1,1 @@
+"""Policy service: the multi-model choice M_ij (a fixed model until DAMMRL lands)."""

@@ -1,0 +1,1 @@
+"""Recorder service: captures the bus to MCAP (the recording issue)."""
