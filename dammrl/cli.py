@@ -8,6 +8,8 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
+from pydantic import ValidationError
+
 from dammrl.errors import DammrlError
 from dammrl.models import parse_model
 
@@ -19,6 +21,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         return int(args.handler(args))
     except DammrlError as exc:
         print(f"dammrl: error: {exc}", file=sys.stderr)
+        return 2
+    except ValidationError as exc:  # a setting (flag or DAMMRL_* variable) out of range
+        print(f"dammrl: invalid settings: {exc}", file=sys.stderr)
         return 2
 
 

@@ -1,0 +1,54 @@
+"""`dammrl reach` as a user runs it."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from dammrl.cli import main
+
+KEYS = {
+    "success", "t_total_s", "t_step_mean_s", "final_error_m", "n_osc", "jerk_isj",
+    "jerk_dimensionless", "human_error_rate", "n_steps", "trigger", "model", "seed",
+}  # fmt: skip
+
+
+def test_reach_json_has_the_promised_keys(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["reach", "--trigger", "fixed", "--model", "1,3", "--seed", "7", "--json"]) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert result.keys() >= KEYS
+    assert result["trigger"] == "fixed" and result["model"] == [1, 3] and result["seed"] == 7
+
+
+def test_reach_table_shows_both_strategies(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["reach", "--trigger", "both", "--seed", "2"]) == 0
+    out = capsys.readouterr().out
+    header = out.splitlines()[0].split()
+    assert header == ["metric", "fixed", "event"]
+    assert "n_osc" in out and "t_total_s [s]" in out
+
+
+def test_reach_plot_writes_a_png(tmp_path: Path) -> None:
+    png = tmp_path / "reach.png"
+    assert main(["reach", "--trigger", "both", "--seed", "1", "--plot", str(png)]) == 0
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+@pytest.mark.parametrize("model", ["3,1", "1,9", "x"])
+def test_bad_model_is_a_usage_error_naming_the_range(
+    model: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    with pytest.raises(SystemExit) as exit_info:
+        main(["reach", "--model", model])
+    assert exit_info.value.code == 2
+    assert "must be" in capsys.readouterr().err
+
+
+def test_bad_setting_from_the_environment_is_a_clear_error(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    monkeypatch.setenv("DAMMRL_CONTROLLER_FIXED_PERIOD_S", "-1")
+    assert main(["reach"]) == 2
+    assert "fixed_period_s" in capsys.readouterr().err
