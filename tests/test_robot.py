@@ -73,3 +73,20 @@ def test_urdf_with_wrong_joint_count_is_refused(tmp_path: Path) -> None:
     )
     with pytest.raises(RobotDescriptionError, match="expected 6"):
         RobotDescription.from_urdf(urdf, ee_frame="b")
+
+
+def test_another_urdf_with_other_names_runs_a_reach(tmp_path: Path) -> None:
+    """Nothing depends on the reference arm's names: rename every joint and the tool."""
+    from dammrl.episode import ReachRunner, ReachSettings
+    from dammrl.robot import DEFAULT_URDF
+    from services.sim.config import SimSettings
+
+    text = DEFAULT_URDF.read_text()
+    for name in RobotDescription.from_urdf().joint_names:
+        text = text.replace(f'name="{name}"', f'name="r_{name}"')
+    text = text.replace('"fingertip"', '"tool0"')
+    urdf = tmp_path / "renamed.urdf"
+    urdf.write_text(text)
+    runner = ReachRunner(ReachSettings(sim=SimSettings(urdf_path=urdf, ee_frame="tool0")))
+    assert runner.robot.joint_names[0] == "r_shoulder_yaw"
+    assert runner.run(seed=1, model=(2, 1)).metrics.success
