@@ -122,8 +122,7 @@ class ReachRunner:
 
     def sample(self, seed: int) -> ReachTask:
         """The start and goal a given seed draws."""
-        rng = np.random.default_rng(np.random.SeedSequence(seed).spawn(1)[0])
-        return sample_task(self.settings.task, self.sim.layout.goal_z_m, rng)
+        return sample_task(self.settings.task, self.sim.layout.goal_z_m, _streams(seed)[0])
 
     def run(
         self,
@@ -137,17 +136,14 @@ class ReachRunner:
         controller_settings = self.settings.controller
         if trigger is not None:
             controller_settings = controller_settings.model_copy(update={"trigger": trigger})
-        task_rng, human_rng, latency_rng, sim_rng = (
-            np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(4)
-        )
+        task_rng, human_rng, latency_rng, sim_rng = _streams(seed)
         task = task or sample_task(self.settings.task, self.sim.layout.goal_z_m, task_rng)
         policy = policy or FixedPolicy(self.settings.human.models, *model)
         controller = Controller(
             self.robot, controller_settings, latency_rng, self.arm, self.solver(controller_settings)
         )
-        human = SimulatedHuman(self.settings.human)
-        human.rng = human_rng
         self.sim.rng = sim_rng
+        human = SimulatedHuman(self.settings.human, human_rng)
         episode = _Episode(self, controller, human, policy, task)
         metrics, trajectory = episode.run()
         choice = policy.choose()
@@ -171,6 +167,11 @@ class ReachRunner:
         return result.q
 
 
+def _streams(seed: int) -> list[np.random.Generator]:
+    """Independent random streams of one seed: task, human, IK latency, simulation."""
+    return [np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(4)]
+
+
 class _Episode:
     """The tick loop of one reach and its log."""
 
@@ -182,14 +183,12 @@ class _Episode:
         policy: Policy,
         task: ReachTask,
     ) -> None:
-        self.runner, self.controller, self.human, self.policy, self.task = (
-            runner,
-            controller,
-            human,
-            policy,
-            task,
-        )
+        self.runner = runner
         self.sim = runner.sim
+        self.controller = controller
+        self.human = human
+        self.policy = policy
+        self.task = task
         self.steps: list[StepEvent] = []
         self.decisions: list[Decision] = []
         self.pending: Decision | None = None

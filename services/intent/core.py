@@ -25,9 +25,11 @@ class Decision:
 class SimulatedHuman:
     """Correct with probability 0.8 under E_big and 0.9 under E_small (settings)."""
 
-    def __init__(self, settings: HumanSettings, seed: int | None = None) -> None:
+    def __init__(
+        self, settings: HumanSettings, seed: int | np.random.Generator | None = None
+    ) -> None:
         self.settings = settings
-        self.rng = np.random.default_rng(seed)
+        self.rng = np.random.default_rng(seed)  # a Generator passes through unchanged
 
     def accuracy(self, human_model: int) -> float:
         return self.settings.accuracy_big if human_model == 1 else self.settings.accuracy_small
