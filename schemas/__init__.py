@@ -1,1 +1,40 @@
-"""Message models, codec and key expressions of the bus (the bus issue)."""
+"""Message models, codec and key expressions of the bus: the contract between services."""
+
+from schemas.codec import DecodeError, decode, encode
+from schemas.keys import DEFAULT_NAMESPACE, TOPICS, key, type_of
+from schemas.messages import (
+    DecisionRequest,
+    EpisodeResult,
+    Header,
+    Health,
+    Intent,
+    JointCommand,
+    Message,
+    ModelChoice,
+    RobotState,
+    SensorSample,
+    StepEvent,
+    TaskGoal,
+)
+
+__all__ = [
+    "DEFAULT_NAMESPACE",
+    "TOPICS",
+    "DecisionRequest",
+    "DecodeError",
+    "EpisodeResult",
+    "Header",
+    "Health",
+    "Intent",
+    "JointCommand",
+    "Message",
+    "ModelChoice",
+    "RobotState",
+    "SensorSample",
+    "StepEvent",
+    "TaskGoal",
+    "decode",
+    "encode",
+    "key",
+    "type_of",
+]

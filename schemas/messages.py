@@ -1,0 +1,181 @@
+"""The messages of the bus: frozen pydantic models, SI units in field names.
+
+Every message carries a :class:`Header`. Unknown fields, NaN and infinities are rejected,
+arrays have fixed lengths (6 joints, 3 task axes). Ranges that depend on the robot (joint
+limits, effort limits) are checked by the receiving node against its robot description.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+Finite = Annotated[float, Field(allow_inf_nan=False)]
+Vec3 = tuple[Finite, Finite, Finite]  # task-frame vector (x, y, z)
+Joints = tuple[Finite, Finite, Finite, Finite, Finite, Finite]  # one value per joint, base first
+NonNegativeJoints = tuple[
+    Annotated[float, Field(ge=0, allow_inf_nan=False)],
+    Annotated[float, Field(ge=0, allow_inf_nan=False)],
+    Annotated[float, Field(ge=0, allow_inf_nan=False)],
+    Annotated[float, Field(ge=0, allow_inf_nan=False)],
+    Annotated[float, Field(ge=0, allow_inf_nan=False)],
+    Annotated[float, Field(ge=0, allow_inf_nan=False)],
+]
+HumanModel = Annotated[int, Field(ge=1, le=2)]  # i: 1 = E_big, 2 = E_small
+RobotModel = Annotated[int, Field(ge=1, le=8)]  # j: step vector, see dammrl.models
+Trigger = Literal["event", "fixed"]
+
+
+class Header(BaseModel):
+    """Who published, when (publisher clock), and the publisher's sequence number."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    stamp_ns: int = Field(ge=0, description="publisher wall clock, ns since the Unix epoch")
+    seq: int = Field(ge=0, description="per-publisher sequence number, +1 per message")
+    source: str = Field(min_length=1, max_length=64, description="publishing service id")
+
+
+class Message(BaseModel):
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
+
+    header: Header
+
+
+class RobotState(Message):
+    """The arm at one instant (sim or robot)."""
+
+    episode: int = Field(ge=0, description="episode the state belongs to (0 before the first)")
+    t_s: Finite = Field(ge=0, description="robot / simulation clock [s]")
+    q_rad: Joints
+    dq_rad_s: Joints
+    tau_nm: Joints = Field(description="torques actually applied, after saturation [N m]")
+    ee_pos_m: Vec3
+    ee_vel_m_s: Vec3
+    button_pressed: bool
+    button_travel_m: Finite
+    holding: bool = Field(description="commands are stale: the arm holds its position")
+
+
+class JointCommand(Message):
+    """Joint impedance command: tau = tau_ff + kp (q_ref - q) + kd (dq_ref - dq)."""
+
+    episode: int = Field(ge=0)
+    q_ref_rad: Joints
+    dq_ref_rad_s: Joints
+    tau_ff_nm: Joints
+    kp_nm_per_rad: NonNegativeJoints
+    kd_nms_per_rad: NonNegativeJoints
+
+
+class DecisionRequest(Message):
+    """The controller asks the human for the next decision (one per event trigger)."""
+
+    episode: int = Field(ge=0)
+    request: int = Field(ge=0, description="request number within the episode")
+    t_s: Finite = Field(ge=0, description="robot clock when asked [s]")
+    ee_pos_m: Vec3 = Field(description="end-effector position the human sees")
+    goal_m: Vec3
+    primary_axis: Literal[0, 1, 2]
+    human_model: HumanModel
+
+
+class Intent(Message):
+    """One decision of the human agent."""
+
+    episode: int = Field(ge=0)
+    request: int = Field(ge=-1, description="request answered, -1 when unsolicited")
+    u_h: Literal[-1, 1] = Field(description="binary command on the primary axis")
+    human_model: HumanModel = Field(description="radius chosen: 1 = E_big, 2 = E_small")
+    radius_m: Finite = Field(gt=0, le=0.1, description="admission radius epsilon [m]")
+    confidence: Finite = Field(ge=0, le=1)
+    source: Literal["simulated", "sensor"]
+    decision_s: Finite = Field(ge=0, description="time the decision took [s]")
+    correct: bool | None = Field(None, description="toward the goal (known in simulation)")
+
+
+class ModelChoice(Message):
+    """The multi-model M_ij in force: human radius i and robot step vector j."""
+
+    human_model: HumanModel
+    robot_model: RobotModel
+    radius_m: Finite = Field(gt=0, le=0.1)
+    steps_m: tuple[
+        Annotated[float, Field(gt=0, le=0.1, allow_inf_nan=False)],
+        Annotated[float, Field(gt=0, le=0.1, allow_inf_nan=False)],
+        Annotated[float, Field(gt=0, le=0.1, allow_inf_nan=False)],
+    ]
+    posterior: tuple[Annotated[float, Field(ge=0, le=1, allow_inf_nan=False)], ...] | None = None
+
+
+class StepEvent(Message):
+    """One micro-step of the controller."""
+
+    episode: int = Field(ge=0)
+    index: int = Field(ge=1)
+    t_s: Finite = Field(ge=0, description="when the step was decided [s]")
+    start_s: Finite = Field(ge=0, description="when its joint reference began [s]")
+    trigger: Trigger
+    u_h: Literal[-1, 1]
+    radius_m: Finite = Field(gt=0)
+    steps_m: Vec3
+    dx_m: Vec3
+    x_start_m: Vec3
+    subgoal_m: Vec3
+    goal_error_m: Finite = Field(ge=0)
+    ik_compute_s: Finite = Field(ge=0)
+    ik_latency_s: Finite = Field(ge=0)
+
+
+class TaskGoal(Message):
+    """A new episode: the arm starts at rest at ``q_start_rad`` and reaches ``goal_m``."""
+
+    episode: int = Field(ge=1)
+    seed: int = Field(ge=0)
+    start_m: Vec3
+    goal_m: Vec3
+    q_start_rad: Joints
+
+
+class EpisodeResult(Message):
+    """The metrics of one finished episode (same keys as ``dammrl reach --json``)."""
+
+    episode: int = Field(ge=1)
+    seed: int = Field(ge=0)
+    trigger: Trigger
+    model: tuple[HumanModel, RobotModel]
+    success: bool
+    outcome: Literal["success", "hold", "timeout"]
+    reason: str
+    t_total_s: Finite
+    t_step_mean_s: Finite | None = Field(description="None when no step was taken")
+    final_error_m: Finite
+    n_osc: int = Field(ge=0)
+    jerk_isj: Finite
+    jerk_dimensionless: Finite
+    human_error_rate: Finite
+    n_steps: int = Field(ge=0)
+    n_decisions: int = Field(ge=0)
+    button_pressed: bool
+    start_m: Vec3
+    goal_m: Vec3
+
+
+class SensorSample(Message):
+    """One raw sample of the pressure sensor (semi-virtual mode)."""
+
+    device_seq: int = Field(ge=0, description="sequence number sent by the device")
+    raw: int = Field(description="ADC counts as sent by the device")
+    pressure_kpa: Finite | None = Field(None, description="calibrated pressure [kPa]")
+
+
+class Health(Message):
+    """A service's periodic health report."""
+
+    service: str = Field(min_length=1, max_length=64)
+    state: Literal["ok", "holding", "degraded"]
+    detail: str = ""
+    rejected: dict[str, int] = Field(default_factory=dict, description="rejected messages per key")
+    rates_hz: dict[str, Finite] = Field(default_factory=dict, description="publish rate per key")
+    uptime_s: Finite = Field(ge=0)

@@ -1,0 +1,135 @@
+"""The schemas are the contract: round trips, rejections, key expressions, JSON Schema."""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import msgpack
+import pytest
+
+from schemas import (
+    TOPICS,
+    DecisionRequest,
+    DecodeError,
+    EpisodeResult,
+    Header,
+    Health,
+    Intent,
+    JointCommand,
+    Message,
+    ModelChoice,
+    RobotState,
+    SensorSample,
+    StepEvent,
+    TaskGoal,
+    decode,
+    encode,
+    key,
+    type_of,
+)
+
+HEADER = Header(stamp_ns=1_700_000_000_000_000_000, seq=42, source="test")
+J6 = (0.1, -0.2, 0.3, 1.2, 0.0, -0.5)
+V3 = (0.4, -0.1, -0.2)
+
+EXAMPLES: list[Message] = [
+    RobotState(header=HEADER, episode=1, t_s=2.5, q_rad=J6, dq_rad_s=J6, tau_nm=J6,
+               ee_pos_m=V3, ee_vel_m_s=V3, button_pressed=True, button_travel_m=0.004,
+               holding=False),
+    JointCommand(header=HEADER, episode=1, q_ref_rad=J6, dq_ref_rad_s=J6, tau_ff_nm=J6,
+                 kp_nm_per_rad=(400,) * 6, kd_nms_per_rad=(30,) * 6),
+    DecisionRequest(header=HEADER, episode=1, request=3, t_s=1.0, ee_pos_m=V3, goal_m=V3,
+                    primary_axis=0, human_model=2),
+    Intent(header=HEADER, episode=1, request=3, u_h=-1, human_model=2, radius_m=0.004,
+           confidence=0.9, source="simulated", decision_s=0.4, correct=False),
+    ModelChoice(header=HEADER, human_model=1, robot_model=3, radius_m=0.01,
+                steps_m=(0.01, 0.03, 0.01), posterior=(0.7, 0.3)),
+    StepEvent(header=HEADER, episode=1, index=4, t_s=1.0, start_s=1.05, trigger="event",
+              u_h=1, radius_m=0.01, steps_m=V3, dx_m=V3, x_start_m=V3, subgoal_m=V3,
+              goal_error_m=0.2, ik_compute_s=0.0001, ik_latency_s=0.05),
+    TaskGoal(header=HEADER, episode=2, seed=7, start_m=V3, goal_m=V3, q_start_rad=J6),
+    EpisodeResult(header=HEADER, episode=2, seed=7, trigger="fixed", model=(1, 3),
+                  success=True, outcome="success", reason="goal reached", t_total_s=5.0,
+                  t_step_mean_s=None, final_error_m=0.01, n_osc=3, jerk_isj=1e4,
+                  jerk_dimensionless=1e8, human_error_rate=0.1, n_steps=40, n_decisions=20,
+                  button_pressed=True, start_m=V3, goal_m=V3),
+    SensorSample(header=HEADER, device_seq=9, raw=512, pressure_kpa=12.5),
+    Health(header=HEADER, service="sim", state="ok", rejected={"dammrl/robot/command": 2},
+           rates_hz={"dammrl/robot/state": 100.0}, uptime_s=3.0),
+]  # fmt: skip
+
+
+@pytest.mark.parametrize("message", EXAMPLES, ids=lambda m: type(m).__name__)
+def test_every_message_round_trips(message: Message) -> None:
+    assert decode(type(message), encode(message)) == message
+
+
+@pytest.mark.parametrize("message", EXAMPLES, ids=lambda m: type(m).__name__)
+def test_wire_format_is_plain_msgpack_maps_and_lists(message: Message) -> None:
+    plain = msgpack.unpackb(encode(message))
+    assert isinstance(plain, dict) and plain["header"]["seq"] == 42
+
+    def only_plain(value: Any) -> bool:
+        if isinstance(value, dict):
+            return all(isinstance(k, str) and only_plain(v) for k, v in value.items())
+        if isinstance(value, list):
+            return all(only_plain(v) for v in value)
+        return value is None or isinstance(value, bool | int | float | str)
+
+    assert only_plain(plain)
+
+
+def _mutated(message: Message, **changes: Any) -> bytes:
+    plain = msgpack.unpackb(encode(message))
+    plain.update(changes)
+    return bytes(msgpack.packb(plain))
+
+
+STATE, COMMAND, INTENT = EXAMPLES[0], EXAMPLES[1], EXAMPLES[3]
+
+
+def test_bytes_that_are_not_msgpack_are_refused() -> None:
+    with pytest.raises(DecodeError, match="not msgpack"):
+        decode(RobotState, b"\xc1\xc1 definitely not msgpack")
+
+
+def test_msgpack_that_is_not_a_map_is_refused() -> None:
+    with pytest.raises(DecodeError, match="expected a msgpack map"):
+        decode(RobotState, bytes(msgpack.packb([1, 2, 3])))
+
+
+@pytest.mark.parametrize(
+    ("message", "changes", "complaint"),
+    [
+        (STATE, {"q_rad": [math.nan, 0, 0, 0, 0, 0]}, "finite"),
+        (STATE, {"ee_pos_m": [math.inf, 0, 0]}, "finite"),
+        (STATE, {"q_rad": [0, 0, 0]}, "q_rad"),
+        (STATE, {"surprise": 1}, "Extra inputs"),
+        (COMMAND, {"kp_nm_per_rad": [-1, 0, 0, 0, 0, 0]}, "greater than or equal"),
+        (INTENT, {"u_h": 0}, "u_h"),
+        (INTENT, {"source": "telepathy"}, "source"),
+        (INTENT, {"human_model": 3}, "human_model"),
+    ],
+)
+def test_invalid_content_is_refused_with_the_field_named(
+    message: Message, changes: dict[str, Any], complaint: str
+) -> None:
+    with pytest.raises(DecodeError, match=complaint):
+        decode(type(message), _mutated(message, **changes))
+
+
+def test_each_type_has_one_key_under_the_namespace() -> None:
+    assert key("dammrl", RobotState) == "dammrl/robot/state"
+    assert key("lab2", Health, "sim") == "lab2/health/sim"
+    assert type_of("lab2", "lab2/health/sim") is Health
+    assert type_of("dammrl", "dammrl/robot/command") is JointCommand
+    assert type_of("dammrl", "other/robot/state") is None
+    assert len(set(TOPICS.values())) == len(TOPICS)
+
+
+def test_json_schema_exists_for_every_message() -> None:
+    for message_type in TOPICS.values():
+        schema = message_type.model_json_schema()
+        assert schema["additionalProperties"] is False
+        assert "header" in schema["properties"]
