@@ -17,15 +17,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict
 
 from dammrl.errors import IKError
-from dammrl.metrics import (
-    GoalMonitor,
-    ReachMetrics,
-    dimensionless_jerk,
-    goal_error,
-    human_error_rate,
-    integrated_squared_jerk,
-    n_oscillations,
-)
+from dammrl.metrics import GoalMonitor, ReachMetrics, reach_metrics
 from dammrl.robot.scene import SENSOR_LAYOUT
 from dammrl.state import RobotState, StepEvent
 from dammrl.task import ReachTask, TaskSettings, sample_task
@@ -350,25 +342,16 @@ class _Episode:
         traj = self._trajectory()
         t_end = state.t_s if self.hold_s is None else self.hold_s  # a hold ends the reach
         moving = traj.t <= t_end + 1e-9
-        t, v = traj.t[moving], traj.v[moving]
-        n_steps = len(self.steps)
-        decided = [d for d in self.decisions if d.intent.t_s <= t_end + 1e-9]
-        return ReachMetrics(
-            success=self.outcome == "success",
+        return reach_metrics(
             outcome=self.outcome,
             reason=self.reason,
-            t_total_s=float(t_end),
-            t_step_mean_s=float(t_end) / n_steps if n_steps else float("nan"),
-            final_error_m=float(goal_error(state.ee_pos, self.task.goal)[0]),
-            n_osc=n_oscillations(
-                traj.x[moving],
-                np.array([step.subgoal for step in self.steps]).reshape(-1, 3),
-                np.array([step.radius_m for step in self.steps]),
-            ),
-            jerk_isj=integrated_squared_jerk(t, v),
-            jerk_dimensionless=dimensionless_jerk(t, v),
-            human_error_rate=human_error_rate([d.correct for d in decided]),
-            n_steps=n_steps,
-            n_decisions=len(decided),
+            t_end_s=t_end,
+            t=traj.t[moving],
+            x=traj.x[moving],
+            v=traj.v[moving],
+            goal=self.task.goal,
+            subgoals=np.array([step.subgoal for step in self.steps]),
+            radii=np.array([step.radius_m for step in self.steps]),
+            decisions_correct=[d.correct for d in self.decisions if d.intent.t_s <= t_end + 1e-9],
             button_pressed=self.button_pressed,
         )

@@ -34,6 +34,41 @@ class ReachMetrics:
         return asdict(self)
 
 
+def reach_metrics(
+    *,
+    outcome: str,
+    reason: str,
+    t_end_s: float,
+    t: np.ndarray,
+    x: np.ndarray,
+    v: np.ndarray,
+    goal: np.ndarray,
+    subgoals: np.ndarray,
+    radii: np.ndarray,
+    decisions_correct: list[bool],
+    button_pressed: bool,
+) -> ReachMetrics:
+    """All metrics of one reach from its samples up to its end ``t_end_s`` (a success, the
+    start of a hold, or the timeout): ``t`` (N,), ``x``, ``v`` (N, 3); the subgoals (M, 3)
+    and admission radii (M,) of its M steps; whether each human decision was correct."""
+    n_steps = len(subgoals)
+    return ReachMetrics(
+        success=outcome == "success",
+        outcome=outcome,
+        reason=reason,
+        t_total_s=float(t_end_s),
+        t_step_mean_s=float(t_end_s) / n_steps if n_steps else float("nan"),
+        final_error_m=float(goal_error(x[-1], goal)[0]),
+        n_osc=n_oscillations(x, subgoals.reshape(-1, 3), radii),
+        jerk_isj=integrated_squared_jerk(t, v),
+        jerk_dimensionless=dimensionless_jerk(t, v),
+        human_error_rate=human_error_rate(decisions_correct),
+        n_steps=n_steps,
+        n_decisions=len(decisions_correct),
+        button_pressed=button_pressed,
+    )
+
+
 def goal_error(x: np.ndarray, goal: np.ndarray) -> np.ndarray:
     """||x - x_g|| per sample [m], shape (N,)."""
     return np.asarray(np.linalg.norm(np.atleast_2d(x) - goal, axis=-1))

@@ -1,0 +1,179 @@
+"""A service's connection to the Zenoh bus: typed publishers, one inbox, health.
+
+Subscriptions only enqueue raw payloads (the callback never blocks or publishes); the
+service loop takes them out with :meth:`Bus.receive`, which decodes and validates each
+one. A payload that fails is logged once per key and counted; the counts go out in the
+service's Health reports (``dammrl status``), and the loop carries on.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import queue
+import time
+from collections import Counter
+from types import TracebackType
+from typing import Any, Generic, TypeVar
+
+import zenoh
+
+from schemas import DecodeError, Header, Health, Message, decode, encode, key, type_of
+from services.common.config import BusSettings
+
+M = TypeVar("M", bound=Message)
+log = logging.getLogger("dammrl.bus")
+
+
+def zenoh_config(settings: BusSettings) -> zenoh.Config:
+    config = zenoh.Config()
+    config.insert_json5("mode", json.dumps(settings.mode))
+    config.insert_json5("scouting/multicast/enabled", json.dumps(settings.multicast_scouting))
+    if settings.listen:
+        config.insert_json5("listen/endpoints", json.dumps(settings.listen))
+    if settings.connect:
+        config.insert_json5("connect/endpoints", json.dumps(settings.connect))
+    return config
+
+
+class Publisher(Generic[M]):
+    """Publishes one message type; stamps the header (clock, sequence number, source)."""
+
+    def __init__(self, bus: Bus, message_type: type[M], key_expr: str, express: bool) -> None:
+        self.message_type = message_type
+        self.key_expr = key_expr
+        self._bus = bus
+        self._zenoh = bus.session.declare_publisher(
+            key_expr,
+            express=express,
+            congestion_control=zenoh.CongestionControl.DROP,
+        )
+        self.seq = 0
+        self.count = 0
+        self.reported = (0, time.monotonic())  # count and time at the last Health report
+
+    def publish(self, **fields: Any) -> M:
+        """Validate, stamp and send a message built from ``fields``; return it."""
+        header = Header(stamp_ns=time.time_ns(), seq=self.seq, source=self._bus.source)
+        message = self.message_type(header=header, **fields)
+        self._zenoh.put(encode(message))
+        self.seq += 1
+        self.count += 1
+        return message
+
+
+class Bus:
+    """A service's Zenoh session (a context manager)."""
+
+    def __init__(self, settings: BusSettings, service: str) -> None:
+        self.settings = settings
+        self.service = service
+        self.source = service
+        self.namespace = settings.namespace
+        self.session: zenoh.Session
+        self.rejected: Counter[str] = Counter()
+        self.dropped = 0
+        self._inbox: queue.Queue[tuple[str, bytes]] = queue.Queue(settings.inbox_size)
+        self._subscribers: list[Any] = []
+        self._publishers: list[Publisher[Any]] = []
+        self._started = time.monotonic()
+        self._next_health = 0.0
+        self._health: Publisher[Health] | None = None
+        self._token: Any = None
+
+    def __enter__(self) -> Bus:
+        self.session = zenoh.open(zenoh_config(self.settings))
+        self._token = self.session.liveliness().declare_token(
+            f"{self.namespace}/alive/{self.service}"
+        )
+        self._health = self.publisher(Health)
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.session.close()  # type: ignore[no-untyped-call]
+
+    def key(self, message_type: type[Message]) -> str:
+        return key(self.namespace, message_type, self.service)
+
+    def publisher(self, message_type: type[M], express: bool = True) -> Publisher[M]:
+        publisher = Publisher(self, message_type, self.key(message_type), express)
+        self._publishers.append(publisher)
+        return publisher
+
+    def subscribe(self, *message_types: type[Message]) -> None:
+        """Deliver these message types to :meth:`receive`."""
+        for message_type in message_types:
+            self.subscribe_key(key(self.namespace, message_type))
+
+    def subscribe_key(self, key_expr: str) -> None:
+        """Deliver everything published on ``key_expr`` (wildcards allowed)."""
+        self._subscribers.append(self.session.declare_subscriber(key_expr, self._enqueue))
+
+    def _enqueue(self, sample: zenoh.Sample) -> None:
+        try:
+            self._inbox.put_nowait((str(sample.key_expr), sample.payload.to_bytes()))
+        except queue.Full:
+            self.dropped += 1  # the loop is behind; counted in Health
+
+    def receive(self, timeout_s: float | None) -> Message | None:
+        """The next valid message, or None after ``timeout_s`` (0: do not wait)."""
+        deadline = None if timeout_s is None else time.monotonic() + timeout_s
+        while True:
+            remaining = None if deadline is None else max(0.0, deadline - time.monotonic())
+            try:
+                key_expr, payload = (
+                    self._inbox.get_nowait()
+                    if remaining == 0.0
+                    else self._inbox.get(timeout=remaining)
+                )
+            except queue.Empty:
+                return None
+            message = self._decode(key_expr, payload)
+            if message is not None:
+                return message
+
+    def _decode(self, key_expr: str, payload: bytes) -> Message | None:
+        message_type = type_of(self.namespace, key_expr)
+        if message_type is None:
+            return None  # not one of ours (e.g. a liveliness or foreign key)
+        try:
+            return decode(message_type, payload)
+        except DecodeError as exc:
+            self.reject(key_expr, str(exc))
+            return None
+
+    def reject(self, key_expr: str, reason: str) -> None:
+        """Count a refused input; log the first few per key, then every 100th."""
+        self.rejected[key_expr] += 1
+        n = self.rejected[key_expr]
+        if n <= 5 or n % 100 == 0:
+            log.warning("rejected message #%d on %s: %s", n, key_expr, reason)
+
+    def report_health(self, state: str = "ok", detail: str = "", force: bool = False) -> None:
+        """Publish Health at most every ``health_period_s`` (call it from the loop)."""
+        now = time.monotonic()
+        if self._health is None or (now < self._next_health and not force):
+            return
+        uptime = now - self._started
+        rates = {}
+        for p in self._publishers:
+            count, since = p.reported
+            rates[p.key_expr] = (p.count - count) / max(now - since, 1e-3)
+            p.reported = (p.count, now)
+        rejected = dict(self.rejected)
+        if self.dropped:
+            rejected["inbox overflow"] = self.dropped
+        self._health.publish(
+            service=self.service,
+            state=state,
+            detail=detail,
+            rejected=rejected,
+            rates_hz=rates,
+            uptime_s=uptime,
+        )
+        self._next_health = now + self.settings.health_period_s

@@ -1,0 +1,35 @@
+"""Bus settings shared by every service: environment prefix ``DAMMRL_BUS_``.
+
+Lists are JSON in the environment, e.g.
+``DAMMRL_BUS_CONNECT='["tcp/192.168.1.20:7447"]'``.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import Field
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+from schemas import DEFAULT_NAMESPACE
+
+
+class BusSettings(BaseSettings):
+    """How a service joins the Zenoh network."""
+
+    model_config = SettingsConfigDict(env_prefix="DAMMRL_BUS_", frozen=True, extra="forbid")
+
+    mode: Literal["peer", "client", "router"] = "peer"
+    """Zenoh mode: peers talk directly; clients go through a router."""
+    listen: list[str] = Field(default_factory=list)
+    """Endpoints this service listens on, e.g. ["tcp/0.0.0.0:7447"]."""
+    connect: list[str] = Field(default_factory=list)
+    """Endpoints this service connects to, e.g. ["tcp/192.168.1.20:7447"]."""
+    multicast_scouting: bool = False
+    """Discover peers by UDP multicast on the LAN (off: only explicit endpoints)."""
+    namespace: str = Field(DEFAULT_NAMESPACE, pattern=r"^[A-Za-z0-9_\-]+(/[A-Za-z0-9_\-]+)*$")
+    """Key-expression prefix: stacks with different namespaces share a network unseen."""
+    health_period_s: float = Field(1.0, gt=0)
+    """How often the service publishes its Health [s]."""
+    inbox_size: int = Field(4096, ge=16)
+    """Messages buffered between the Zenoh callback and the service loop."""
