@@ -20,7 +20,7 @@ from dammrl.errors import IKError
 from dammrl.metrics import GoalMonitor, ReachMetrics, reach_metrics
 from dammrl.robot.scene import SENSOR_LAYOUT
 from dammrl.state import RobotState, StepEvent
-from dammrl.task import ReachTask, TaskSettings, sample_task
+from dammrl.task import ReachTask, TaskSettings, seed_streams, task_for_seed
 from services.controller.config import ControllerSettings
 from services.controller.core import Controller
 from services.controller.dynamics import ArmModel
@@ -114,7 +114,7 @@ class ReachRunner:
 
     def sample(self, seed: int) -> ReachTask:
         """The start and goal a given seed draws."""
-        return sample_task(self.settings.task, self.sim.layout.goal_z_m, _streams(seed)[0])
+        return task_for_seed(self.settings.task, self.sim.layout.goal_z_m, seed)
 
     def run(
         self,
@@ -128,8 +128,8 @@ class ReachRunner:
         controller_settings = self.settings.controller
         if trigger is not None:
             controller_settings = controller_settings.model_copy(update={"trigger": trigger})
-        task_rng, human_rng, latency_rng, sim_rng = _streams(seed)
-        task = task or sample_task(self.settings.task, self.sim.layout.goal_z_m, task_rng)
+        _, human_rng, latency_rng, sim_rng = seed_streams(seed)  # the first one draws the task
+        task = task or self.sample(seed)
         policy = policy or FixedPolicy(self.settings.human.models, *model)
         controller = Controller(
             self.robot, controller_settings, latency_rng, self.arm, self.solver(controller_settings)
@@ -157,11 +157,6 @@ class ReachRunner:
         if result.error_m > 1e-4:
             raise IKError(f"start position {start.round(3).tolist()} m is not reachable")
         return result.q
-
-
-def _streams(seed: int) -> list[np.random.Generator]:
-    """Independent random streams of one seed: task, human, IK latency, simulation."""
-    return [np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(4)]
 
 
 class _Episode:

@@ -41,12 +41,30 @@ class TaskSettings(BaseSettings):
     """Allowed ||x_g - x_s|| [m]."""
     home_q_rad: tuple[float, ...] = (0.0, 1.0, 0.0, 1.6, 0.0, 0.3)
     """Posture from which the start posture is solved [rad]."""
+    episodes: int | None = Field(None, ge=1)
+    """Episodes the bus supervisor runs (None: until stopped)."""
+    seed: int = Field(0, ge=0)
+    """Seed of the first episode; episode k uses seed + k - 1 (same draws as `dammrl reach`)."""
 
 
 @dataclass(frozen=True)
 class ReachTask:
     start: np.ndarray  # x_s (3,) [m]
     goal: np.ndarray  # x_g (3,) [m]
+
+
+def seed_streams(seed: int) -> list[np.random.Generator]:
+    """Independent random streams of one episode seed: task, human, IK latency, simulation.
+
+    Every runner (in-process or on the bus) draws each from its own stream, so one seed
+    gives the same start, goal, human decisions and latencies wherever it runs.
+    """
+    return [np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(4)]
+
+
+def task_for_seed(settings: TaskSettings, goal_z_m: float, seed: int) -> ReachTask:
+    """The start and goal of ``seed``."""
+    return sample_task(settings, goal_z_m, seed_streams(seed)[0])
 
 
 def sample_task(settings: TaskSettings, goal_z_m: float, rng: np.random.Generator) -> ReachTask:

@@ -74,3 +74,11 @@ class ControllerSettings(BaseSettings):
     """Upper corner of the allowed end-effector box [m]."""
     trigger_timeout_s: float = Field(3.0, gt=0)
     """A step whose trigger has not fired after this long ends in a hold [s]."""
+
+    # --- the node (bus) ---
+    state_stale_s: float = Field(0.1, gt=0)
+    """No RobotState for this long: stop stepping and hold the last reference [s]."""
+    human_model: int = Field(1, ge=1, le=2)
+    """Model used until the policy's first ModelChoice arrives (i: 1 = E_big)."""
+    robot_model: int = Field(1, ge=1, le=8)
+    """Model used until the policy's first ModelChoice arrives (j: step vector)."""

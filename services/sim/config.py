@@ -50,3 +50,21 @@ class SimSettings(BaseSettings):
     button_press_travel_m: float = Field(0.003, gt=0)
     """Cap travel at which the button counts as pressed [m]."""
     randomization: DomainRandomization = DomainRandomization()
+    seed: int | None = None
+    """Seed of the domain randomisation and sensor noise (None: fresh entropy)."""
+
+    # --- the node (bus) ---
+    state_rate_hz: float = Field(100.0, gt=0, le=1000)
+    """RobotState publication rate; also the rate at which commands are taken up [Hz]."""
+    command_stale_s: float = Field(0.1, gt=0)
+    """No valid command for this long: hold position (gravity compensation + damping) [s]."""
+    hold_kp_nm_per_rad: float = Field(100.0, ge=0)
+    """Stiffness of the stale-command hold [N m/rad]."""
+    hold_kd_nms_per_rad: float = Field(10.0, ge=0)
+    """Damping of the stale-command hold [N m s/rad]."""
+    max_kp_nm_per_rad: float = Field(2000.0, gt=0)
+    """Commands asking for more stiffness are rejected [N m/rad]."""
+    max_kd_nms_per_rad: float = Field(200.0, gt=0)
+    """Commands asking for more damping are rejected [N m s/rad]."""
+    limit_tolerance_rad: float = Field(0.05, ge=0)
+    """Commanded q_ref may exceed the joint limits by this much before rejection [rad]."""

@@ -1,0 +1,93 @@
+"""Conversions between the cores' numpy dataclasses and the bus messages."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from dammrl import state as core
+from schemas import messages as wire
+
+
+def _floats(array: np.ndarray) -> tuple[float, ...]:
+    return tuple(float(v) for v in array)
+
+
+def state_fields(state: core.RobotState, episode: int, holding: bool) -> dict[str, Any]:
+    return {
+        "episode": episode,
+        "t_s": state.t_s,
+        "q_rad": _floats(state.q),
+        "dq_rad_s": _floats(state.dq),
+        "tau_nm": _floats(state.tau),
+        "ee_pos_m": _floats(state.ee_pos),
+        "ee_vel_m_s": _floats(state.ee_vel),
+        "button_pressed": state.button_pressed,
+        "button_travel_m": state.button_travel_m,
+        "holding": holding,
+    }
+
+
+def robot_state(message: wire.RobotState) -> core.RobotState:
+    return core.RobotState(
+        t_s=message.t_s,
+        q=np.array(message.q_rad),
+        dq=np.array(message.dq_rad_s),
+        tau=np.array(message.tau_nm),
+        ee_pos=np.array(message.ee_pos_m),
+        ee_vel=np.array(message.ee_vel_m_s),
+        button_pressed=message.button_pressed,
+        button_travel_m=message.button_travel_m,
+    )
+
+
+def command_fields(command: core.JointCommand, episode: int) -> dict[str, Any]:
+    return {
+        "episode": episode,
+        "q_ref_rad": _floats(command.q_ref),
+        "dq_ref_rad_s": _floats(command.dq_ref),
+        "tau_ff_nm": _floats(command.tau_ff),
+        "kp_nm_per_rad": _floats(command.kp),
+        "kd_nms_per_rad": _floats(command.kd),
+    }
+
+
+def joint_command(message: wire.JointCommand) -> core.JointCommand:
+    return core.JointCommand(
+        q_ref=np.array(message.q_ref_rad),
+        dq_ref=np.array(message.dq_ref_rad_s),
+        tau_ff=np.array(message.tau_ff_nm),
+        kp=np.array(message.kp_nm_per_rad),
+        kd=np.array(message.kd_nms_per_rad),
+    )
+
+
+def intent(message: wire.Intent, t_s: float) -> core.Intent:
+    """The core's Intent, stamped with the robot clock ``t_s`` of its arrival."""
+    return core.Intent(
+        t_s=t_s,
+        u_h=message.u_h,
+        radius_m=message.radius_m,
+        human_model=message.human_model,
+        confidence=message.confidence,
+    )
+
+
+def step_fields(step: core.StepEvent, episode: int) -> dict[str, Any]:
+    return {
+        "episode": episode,
+        "index": step.index,
+        "t_s": step.t_s,
+        "start_s": step.start_s,
+        "trigger": step.trigger,
+        "u_h": step.u_h,
+        "radius_m": step.radius_m,
+        "steps_m": _floats(step.steps_m),
+        "dx_m": _floats(step.dx),
+        "x_start_m": _floats(step.x_start),
+        "subgoal_m": _floats(step.subgoal),
+        "goal_error_m": step.goal_error_m,
+        "ik_compute_s": step.ik_compute_s,
+        "ik_latency_s": step.ik_latency_s,
+    }

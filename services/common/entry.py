@@ -1,0 +1,67 @@
+"""The entry point every service shares: flags for the bus, settings from the environment."""
+
+from __future__ import annotations
+
+import argparse
+import threading
+from collections.abc import Callable, Sequence
+from typing import Protocol
+
+from pydantic import ValidationError
+
+from dammrl.errors import DammrlError
+from services.common.bus import Bus
+from services.common.config import BusSettings
+from services.common.logs import setup_logging
+from services.common.runtime import stop_on_signals
+
+EPILOG = """\
+Every setting can also come from the environment: DAMMRL_BUS_* for the bus (MODE,
+LISTEN and CONNECT as JSON lists, MULTICAST_SCOUTING, NAMESPACE) and the service's own
+prefix ({prefixes}); see the README and the settings classes for names and units.
+"""
+
+
+class Node(Protocol):
+    def run(self, stop: threading.Event) -> None: ...
+
+
+def run_service(
+    name: str,
+    description: str,
+    prefixes: str,
+    build: Callable[[Bus], Node],
+    argv: Sequence[str] | None = None,
+) -> int:
+    """Parse the bus flags, open the session, build the node and run it until a signal."""
+    parser = argparse.ArgumentParser(
+        prog=f"python -m services.{name}",
+        description=description,
+        epilog=EPILOG.format(prefixes=prefixes),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("--mode", choices=["peer", "client", "router"], help="Zenoh mode")
+    parser.add_argument(
+        "--listen", action="append", metavar="ENDPOINT", help="e.g. tcp/0.0.0.0:7447"
+    )
+    parser.add_argument(
+        "--connect", action="append", metavar="ENDPOINT", help="e.g. tcp/10.0.0.2:7447"
+    )
+    parser.add_argument("--namespace", help="key-expression prefix (default dammrl)")
+    args = parser.parse_args(argv)
+    log = setup_logging(name)
+    overrides = {
+        k: v for k in ("mode", "listen", "connect", "namespace") if (v := getattr(args, k))
+    }
+    stop = stop_on_signals()
+    try:
+        settings = BusSettings(**overrides)
+        with Bus(settings, name) as bus:
+            node = build(bus)
+            log.info("up on namespace %r", settings.namespace)
+            node.run(stop)
+    except (ValidationError, DammrlError) as exc:
+        log.error("cannot start: %s", exc)
+        return 2
+    log.info("stopped")
+    return 0

@@ -1,0 +1,5 @@
+"""python -m services.controller --help"""
+
+from services.controller.node import main
+
+raise SystemExit(main())

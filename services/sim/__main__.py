@@ -1,0 +1,5 @@
+"""python -m services.sim --help"""
+
+from services.sim.node import main
+
+raise SystemExit(main())
