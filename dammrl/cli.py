@@ -7,10 +7,14 @@ import json
 import sys
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from pydantic import ValidationError
 
 from dammrl.errors import DammrlError
+
+if TYPE_CHECKING:
+    from services.common.config import BusSettings
 from dammrl.models import parse_model
 
 
@@ -58,6 +62,46 @@ def _parser() -> argparse.ArgumentParser:
     reach.add_argument("--feedforward", choices=["inverse_dynamics", "resolved_acceleration"])
     reach.add_argument("--randomize", action="store_true", help="seeded domain randomisation")
     reach.set_defaults(handler=_reach)
+
+    up = commands.add_parser(
+        "up",
+        help="launch the service stack of a mode",
+        description="Start the services as processes on the bus; Ctrl-C stops them all.",
+    )
+    up.add_argument("--mode", choices=["virtual", "semi-virtual"], default="virtual")
+    up.add_argument(
+        "--episodes", type=int, help="run this many episodes, then stop (default: until Ctrl-C)"
+    )
+    up.add_argument("--seed", type=int, default=0, help="seed of the first episode")
+    up.add_argument("--model", type=_model_arg, default=(1, 1), metavar="I,J")
+    up.add_argument("--trigger", choices=["event", "fixed"], default="event")
+    up.add_argument("--port", type=int, default=7447, help="loopback port of the stack's endpoint")
+    up.add_argument("--namespace", default="dammrl")
+    up.add_argument("--json", action="store_true", help="one JSON object per episode")
+    up.set_defaults(handler=_up)
+
+    for name, helptext in (
+        ("status", "services alive on the bus, their health and rates"),
+        ("echo", "print the decoded messages of one topic"),
+    ):
+        sub = commands.add_parser(name, help=helptext, description=helptext)
+        sub.add_argument(
+            "--connect",
+            action="append",
+            metavar="ENDPOINT",
+            help="where the stack listens (default tcp/127.0.0.1:7447)",
+        )
+        sub.add_argument("--namespace", default="dammrl")
+        if name == "echo":
+            sub.add_argument("topic", help="e.g. robot/state, task/result, health/*")
+            sub.add_argument("--hz", action="store_true", help="print the rate instead")
+            sub.add_argument("--count", type=int, help="stop after this many messages")
+            sub.add_argument("--duration", type=float, help="stop after this many seconds")
+        sub.set_defaults(handler=_status if name == "status" else _echo)
+
+    schemas = commands.add_parser("schemas", help="write the JSON Schema of every message")
+    schemas.add_argument("--out", type=Path, required=True, metavar="DIR")
+    schemas.set_defaults(handler=_schemas)
     return parser
 
 
@@ -94,6 +138,56 @@ def _reach(args: argparse.Namespace) -> int:
 
         path = plot_reaches(results, runner.settings.task.goal_tolerance_m, args.plot)
         print(f"figure written to {path}", file=sys.stderr)
+    return 0
+
+
+def _up(args: argparse.Namespace) -> int:
+    from dammrl.launch import Stack, StackOptions
+
+    options = StackOptions(
+        mode=args.mode, episodes=args.episodes, seed=args.seed, model=args.model,
+        trigger=args.trigger, port=args.port, namespace=args.namespace, json=args.json,
+    )  # fmt: skip
+    return Stack(options, out=_print, info=_print_err).run()
+
+
+def _print(line: str) -> None:
+    print(line, flush=True)
+
+
+def _print_err(line: str) -> None:
+    print(line, file=sys.stderr, flush=True)
+
+
+def _client_settings(args: argparse.Namespace) -> BusSettings:
+    from services.common.config import BusSettings
+
+    return BusSettings(connect=args.connect or ["tcp/127.0.0.1:7447"], namespace=args.namespace)
+
+
+def _status(args: argparse.Namespace) -> int:
+    from dammrl.inspect import status
+
+    print(status(_client_settings(args)))
+    return 0
+
+
+def _echo(args: argparse.Namespace) -> int:
+    from dammrl.inspect import echo
+
+    echo(_client_settings(args), args.topic, hz=args.hz, count=args.count, duration_s=args.duration)
+    return 0
+
+
+def _schemas(args: argparse.Namespace) -> int:
+    from schemas import TOPICS
+
+    args.out.mkdir(parents=True, exist_ok=True)
+    for topic, message_type in TOPICS.items():
+        path = args.out / f"{message_type.__name__}.json"
+        schema = message_type.model_json_schema() | {"x-dammrl-topic": topic}
+        path.write_text(json.dumps(schema, indent=2) + "\n")
+        print(f"{topic:16s} -> {path}")
     return 0
 
 

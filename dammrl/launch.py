@@ -1,0 +1,212 @@
+"""``dammrl up``: start the services of a mode as child processes and watch them.
+
+The launcher opens its own Zenoh session listening on a loopback endpoint; every service
+connects to it (and, as Zenoh peers, to each other). It waits for each service's
+liveliness token, prints each EpisodeResult, and stops every child on Ctrl-C / SIGTERM,
+when the requested episodes are done, or (exit 1) when a service dies on its own.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import zenoh
+
+from dammrl.errors import DammrlError
+from schemas import EpisodeResult, decode, key
+from services.common.bus import zenoh_config
+from services.common.config import BusSettings
+
+MODES = {"virtual": ("sim", "policy", "intent", "controller")}
+START_TIMEOUT_S = 60.0
+STOP_TIMEOUT_S = 5.0
+
+
+@dataclass(frozen=True)
+class StackOptions:
+    mode: str = "virtual"
+    episodes: int | None = None
+    seed: int = 0
+    model: tuple[int, int] = (1, 1)
+    trigger: str = "event"
+    port: int = 7447
+    namespace: str = "dammrl"
+    json: bool = False
+
+
+def free_port(preferred: int) -> int:
+    """``preferred`` if nothing listens there on loopback, else any free port."""
+    for port in (preferred, 0):
+        with socket.socket() as sock:
+            try:
+                sock.bind(("127.0.0.1", port))
+            except OSError:
+                continue
+            return int(sock.getsockname()[1])
+    raise DammrlError("no free TCP port on 127.0.0.1")
+
+
+def _die_with_parent() -> None:
+    """In the child: receive SIGTERM when the launcher dies, even by kill -9 (Linux)."""
+    libc = ctypes.CDLL(None, use_errno=True)
+    libc.prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+
+
+class Stack:
+    def __init__(
+        self,
+        options: StackOptions,
+        out: Callable[[str], None] = print,
+        info: Callable[[str], None] = print,
+    ) -> None:
+        """``out`` receives the episode results, ``info`` the progress lines."""
+        if options.mode not in MODES:
+            raise DammrlError(
+                f"mode {options.mode!r} is not available; choose from {sorted(MODES)} "
+                "(semi-virtual arrives with the pressure-sensor service)"
+            )
+        self.options = options
+        self.out = out
+        self.info = info
+        self.endpoint = f"tcp/127.0.0.1:{free_port(options.port)}"
+        self.children: dict[str, subprocess.Popen[bytes]] = {}
+        self.results: list[EpisodeResult] = []
+
+    def environment(self) -> dict[str, str]:
+        o = self.options
+        env = dict(os.environ)
+        env.update(
+            DAMMRL_BUS_CONNECT=json.dumps([self.endpoint]),
+            DAMMRL_BUS_NAMESPACE=o.namespace,
+            DAMMRL_TASK_SEED=str(o.seed),
+            DAMMRL_POLICY_HUMAN_MODEL=str(o.model[0]),
+            DAMMRL_POLICY_ROBOT_MODEL=str(o.model[1]),
+            DAMMRL_CONTROLLER_HUMAN_MODEL=str(o.model[0]),
+            DAMMRL_CONTROLLER_ROBOT_MODEL=str(o.model[1]),
+            DAMMRL_CONTROLLER_TRIGGER=o.trigger,
+        )
+        if o.episodes is not None:
+            env["DAMMRL_TASK_EPISODES"] = str(o.episodes)
+        env.setdefault("DAMMRL_LOG_LEVEL", "WARNING")  # progress comes from the launcher
+        return env
+
+    def run(self) -> int:
+        """Run until done; the exit code of ``dammrl up``."""
+        settings = BusSettings(listen=[self.endpoint], namespace=self.options.namespace)
+        stop = {"signal": 0}
+
+        def on_signal(signum: int, frame: object) -> None:
+            stop["signal"] = signum
+
+        previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+        session = zenoh.open(zenoh_config(settings))
+        try:
+            results = session.declare_subscriber(key(self.options.namespace, EpisodeResult))
+            self._start_children()
+            self._wait_alive(session, stop)
+            return self._watch(results, stop)
+        finally:
+            self._stop_children()
+            session.close()  # type: ignore[no-untyped-call]
+            for s, handler in previous.items():
+                signal.signal(s, handler)
+
+    def _start_children(self) -> None:
+        env = self.environment()
+        for name in MODES[self.options.mode]:
+            self.children[name] = subprocess.Popen(
+                [sys.executable, "-m", f"services.{name}"],
+                env=env,
+                preexec_fn=_die_with_parent,
+                stdin=subprocess.DEVNULL,
+                start_new_session=True,  # Ctrl-C reaches the launcher only; it stops them
+            )
+        self.info(f"started {', '.join(self.children)} on {self.endpoint}")
+
+    def _wait_alive(self, session: zenoh.Session, stop: dict[str, int]) -> None:
+        deadline = time.monotonic() + START_TIMEOUT_S
+        wanted = set(self.children)
+        while time.monotonic() < deadline and not stop["signal"]:
+            self._check_children()
+            replies = session.liveliness().get(f"{self.options.namespace}/alive/*", timeout=1.0)
+            alive = {str(r.ok.key_expr).rsplit("/", 1)[-1] for r in replies if r.ok is not None}
+            if wanted <= alive:
+                self.info(f"all services alive: {', '.join(sorted(wanted))}")
+                return
+            time.sleep(0.2)
+        if not stop["signal"]:
+            raise DammrlError(f"services not alive after {START_TIMEOUT_S:.0f} s")
+
+    def _watch(
+        self, results: zenoh.Subscriber[zenoh.handlers.Handler[zenoh.Sample]], stop: dict[str, int]
+    ) -> int:
+        total = self.options.episodes
+        while not stop["signal"]:
+            self._check_children()
+            sample = results.try_recv()
+            if sample is None:
+                time.sleep(0.02)
+                continue
+            result = decode(EpisodeResult, sample.payload.to_bytes())
+            self.results.append(result)
+            self._report(result)
+            if total is not None and len(self.results) >= total:
+                self.info(summary(self.results))
+                return 0
+        self.info(f"stopping on signal {stop['signal']}")
+        return 0
+
+    def _report(self, result: EpisodeResult) -> None:
+        if self.options.json:
+            self.out(json.dumps(result_dict(result)))
+            return
+        total = self.options.episodes or "?"
+        self.out(
+            f"episode {result.episode}/{total}: {result.outcome} in {result.t_total_s:.1f} s, "
+            f"N_osc {result.n_osc}, final error {result.final_error_m * 1000:.1f} mm"
+            + ("" if result.success else f" ({result.reason})")
+        )
+
+    def _check_children(self) -> None:
+        for name, child in self.children.items():
+            code = child.poll()
+            if code is not None:
+                raise DammrlError(f"service {name} exited unexpectedly with code {code}")
+
+    def _stop_children(self) -> None:
+        for child in self.children.values():
+            if child.poll() is None:
+                child.send_signal(signal.SIGTERM)
+        deadline = time.monotonic() + STOP_TIMEOUT_S
+        for child in self.children.values():
+            try:
+                child.wait(max(0.1, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                child.kill()
+                child.wait()
+
+
+def result_dict(result: EpisodeResult) -> dict[str, object]:
+    """The JSON object of one episode: the keys of ``dammrl reach --json``."""
+    fields = result.model_dump(mode="json", exclude={"header", "episode"})
+    return fields | {"episode": result.episode}
+
+
+def summary(results: list[EpisodeResult]) -> str:
+    n = len(results)
+    wins = sum(r.success for r in results)
+    mean_t = sum(r.t_total_s for r in results) / n
+    mean_osc = sum(r.n_osc for r in results) / n
+    return (
+        f"{wins}/{n} successful ({wins / n:.0%}), mean time {mean_t:.1f} s, "
+        f"mean N_osc {mean_osc:.1f}"
+    )
