@@ -80,6 +80,7 @@ class Bus:
         self._next_health = 0.0
         self._health: Publisher[Health] | None = None
         self._token: Any = None
+        self._sources: dict[type[Message], frozenset[str]] = {}
 
     def __enter__(self) -> Bus:
         self.session = zenoh.open(zenoh_config(self.settings))
@@ -109,6 +110,11 @@ class Bus:
         """Deliver these message types to :meth:`receive`."""
         for message_type in message_types:
             self.subscribe_key(key(self.namespace, message_type))
+
+    def expect(self, message_type: type[Message], *sources: str) -> None:
+        """Accept ``message_type`` only from these publishers (header.source); others are
+        rejected, so a stray or misconfigured process cannot drive this service."""
+        self._sources[message_type] = frozenset(sources)
 
     def subscribe_key(self, key_expr: str) -> None:
         """Deliver everything published on ``key_expr`` (wildcards allowed)."""
@@ -142,10 +148,15 @@ class Bus:
         if message_type is None:
             return None  # not one of ours (e.g. a liveliness or foreign key)
         try:
-            return decode(message_type, payload)
+            message = decode(message_type, payload)
         except DecodeError as exc:
             self.reject(key_expr, str(exc))
             return None
+        allowed = self._sources.get(message_type)
+        if allowed is not None and message.header.source not in allowed:
+            self.reject(key_expr, f"from {message.header.source!r}, expected {sorted(allowed)}")
+            return None
+        return message
 
     def reject(self, key_expr: str, reason: str) -> None:
         """Count a refused input; log the first few per key, then every 100th."""

@@ -76,6 +76,9 @@ class ControllerNode:
             for t in (JointCommand, StepEvent, DecisionRequest, TaskGoal, EpisodeResult)
         }
         bus.subscribe(RobotState, Intent, ModelChoice)
+        bus.expect(RobotState, "sim")
+        bus.expect(Intent, "intent")
+        bus.expect(ModelChoice, "policy")
 
     def run(self, stop: threading.Event) -> None:
         self._next_episode()

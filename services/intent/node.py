@@ -33,6 +33,8 @@ class IntentNode:
         self.due: list[tuple[float, int, dict[str, Any]]] = []  # (wall time, tiebreak, fields)
         self.publisher = bus.publisher(Intent)
         bus.subscribe(DecisionRequest, TaskGoal)
+        bus.expect(DecisionRequest, "controller")
+        bus.expect(TaskGoal, "controller")
 
     def run(self, stop: threading.Event) -> None:
         while not stop.is_set():

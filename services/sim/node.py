@@ -17,6 +17,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from dammrl.robot import RobotDescription
+from dammrl.robot.scene import SceneLayout
 from dammrl.state import JointCommand as CoreCommand
 from dammrl.task import TaskSettings
 from schemas import JointCommand, RobotState, TaskGoal
@@ -57,6 +58,20 @@ def command_violation(
     return None
 
 
+def goal_violation(
+    goal: TaskGoal, robot: RobotDescription, layout: SceneLayout, settings: SimSettings
+) -> str | None:
+    """Why a TaskGoal must not reset the arm, or None."""
+    q = np.array(goal.q_start_rad)
+    if not robot.within_limits(q, settings.limit_tolerance_rad):
+        return f"start posture {np.round(q, 3).tolist()} rad outside the joint limits"
+    (cx, cy), (hx, hy) = layout.table_center_xy_m, layout.table_half_size_xy_m
+    x, y = goal.goal_m[0], goal.goal_m[1]
+    if abs(x - cx) > hx or abs(y - cy) > hy:
+        return f"button position ({x:.3f}, {y:.3f}) m is not on the table"
+    return None
+
+
 class SimNode:
     def __init__(self, settings: SimSettings, task: TaskSettings, bus: Bus) -> None:
         self.settings = settings
@@ -70,6 +85,8 @@ class SimNode:
         self.holding = False
         self.state_publisher = bus.publisher(RobotState)
         bus.subscribe(JointCommand, TaskGoal)
+        bus.expect(JointCommand, "controller")
+        bus.expect(TaskGoal, "controller")
         state = self.sim.reset(np.array(task.home_q_rad), (0.45, 0.0))
         self._hold(state.q)
 
@@ -132,6 +149,10 @@ class SimNode:
     def _reset(self, goal: TaskGoal) -> None:
         if goal.episode == self.episode:
             return  # a repeated announcement
+        reason = goal_violation(goal, self.sim.robot, self.sim.layout, self.settings)
+        if reason is not None:
+            self.bus.reject(self.bus.key(TaskGoal), reason)
+            return
         self.episode = goal.episode
         state = self.sim.reset(np.array(goal.q_start_rad), (goal.goal_m[0], goal.goal_m[1]))
         self._hold(state.q)

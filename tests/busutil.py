@@ -1,0 +1,82 @@
+"""Helpers for tests on a real Zenoh bus: loopback endpoints, one free port per test."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+
+import zenoh
+
+from schemas import DecodeError, Message, decode, key, type_of
+from services.common.bus import zenoh_config
+from services.common.config import BusSettings
+
+
+def free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
+
+
+def endpoint(port: int) -> str:
+    return f"tcp/127.0.0.1:{port}"
+
+
+def listener_settings(port: int, namespace: str = "dammrl") -> BusSettings:
+    return BusSettings(listen=[endpoint(port)], namespace=namespace)
+
+
+def client_settings(port: int, namespace: str = "dammrl") -> BusSettings:
+    return BusSettings(connect=[endpoint(port)], namespace=namespace)
+
+
+def start_service(name: str, port: int, **env: str) -> subprocess.Popen[bytes]:
+    """``python -m services.<name>`` connected to the test's endpoint."""
+    environment = dict(os.environ)
+    environment.update(DAMMRL_BUS_CONNECT=json.dumps([endpoint(port)]), **env)
+    return subprocess.Popen(
+        [sys.executable, "-m", f"services.{name}"],
+        env=environment,
+        stdin=subprocess.DEVNULL,
+    )
+
+
+def wait_for(condition: Callable[[], bool], timeout_s: float, what: str) -> None:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if condition():
+            return
+        time.sleep(0.05)
+    raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
+
+
+class Observer:
+    """A test's own session: listens on the endpoint and collects decoded messages."""
+
+    def __init__(self, port: int, namespace: str = "dammrl") -> None:
+        self.namespace = namespace
+        self.session = zenoh.open(zenoh_config(listener_settings(port, namespace)))
+        self.received: list[Message] = []
+        self._subscriber = self.session.declare_subscriber(f"{namespace}/**", self._on_sample)
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        message_type = type_of(self.namespace, str(sample.key_expr))
+        if message_type is None:
+            return
+        with contextlib.suppress(DecodeError):  # the fuzzer's garbage is seen here too
+            self.received.append(decode(message_type, sample.payload.to_bytes()))
+
+    def of(self, message_type: type[Message]) -> list[Message]:
+        return [m for m in list(self.received) if isinstance(m, message_type)]
+
+    def put(self, message_type: type[Message], payload: bytes) -> None:
+        self.session.put(key(self.namespace, message_type, "fuzz"), payload)
+
+    def close(self) -> None:
+        self.session.close()  # type: ignore[no-untyped-call]

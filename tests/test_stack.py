@@ -1,0 +1,184 @@
+"""The stack as real processes on a real Zenoh bus (loopback, one port per test)."""
+
+from __future__ import annotations
+
+import json
+import os
+import random
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+
+import msgpack
+import numpy as np
+import pytest
+
+from dammrl.robot import RobotDescription
+from schemas import TOPICS, EpisodeResult, Health, RobotState, StepEvent, encode
+from tests.busutil import Observer, free_port, start_service, wait_for
+from tests.test_schemas import EXAMPLES
+
+SERVICES = ("sim", "policy", "intent", "controller")
+LONG_EPISODE = {"DAMMRL_TASK_EPISODES": "1", "DAMMRL_TASK_EPISODE_TIMEOUT_S": "120"}
+
+
+@pytest.fixture()
+def port() -> int:
+    return free_port()
+
+
+@pytest.fixture()
+def observer(port: int) -> Iterator[Observer]:
+    observer = Observer(port)
+    yield observer
+    observer.close()
+
+
+class Stack:
+    def __init__(self, port: int, **env: str) -> None:
+        self.port, self.env = port, env
+        self.processes = {name: start_service(name, port, **env) for name in SERVICES}
+
+    def kill(self, name: str) -> None:
+        self.processes[name].send_signal(signal.SIGKILL)
+        self.processes[name].wait()
+
+    def restart(self, name: str) -> None:
+        self.processes[name] = start_service(name, self.port, **self.env)
+
+    def alive(self) -> dict[str, bool]:
+        return {name: p.poll() is None for name, p in self.processes.items()}
+
+    def stop(self) -> None:
+        for process in self.processes.values():
+            if process.poll() is None:
+                process.terminate()
+        for process in self.processes.values():
+            try:
+                process.wait(10)
+            except subprocess.TimeoutExpired:
+                process.kill()
+
+
+@pytest.fixture()
+def stack(port: int, observer: Observer) -> Iterator[Stack]:
+    running = Stack(port, **LONG_EPISODE)
+    yield running
+    running.stop()
+
+
+def _steps(observer: Observer) -> int:
+    return len(observer.of(StepEvent))
+
+
+def test_dammrl_up_runs_episodes_and_exits_zero(port: int) -> None:
+    command = [sys.executable, "-m", "dammrl.cli", "up", "--episodes", "1", "--json",
+               "--port", str(port), "--model", "2,1"]  # fmt: skip
+    done = subprocess.run(command, capture_output=True, text=True, timeout=180, check=False)
+    assert done.returncode == 0, done.stderr
+    result = json.loads(done.stdout.strip().splitlines()[-1])
+    assert result["success"] and result["model"] == [2, 1] and result["trigger"] == "event"
+    assert {"t_total_s", "n_osc", "jerk_isj", "human_error_rate", "seed"} <= result.keys()
+
+
+def test_dammrl_up_stops_every_service_on_sigterm(port: int) -> None:
+    launcher = subprocess.Popen(
+        [sys.executable, "-m", "dammrl.cli", "up", "--port", str(port)],
+        stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    assert launcher.stderr is not None
+    deadline = time.monotonic() + 60
+    while "all services alive" not in launcher.stderr.readline():
+        assert time.monotonic() < deadline and launcher.poll() is None
+    children = subprocess.run(
+        ["pgrep", "-P", str(launcher.pid)], capture_output=True, text=True, check=False
+    ).stdout.split()
+    assert len(children) == 4
+    launcher.send_signal(signal.SIGTERM)
+    assert launcher.wait(30) == 0
+    time.sleep(0.5)
+    assert not [pid for pid in children if os.path.exists(f"/proc/{pid}")]
+
+
+def test_killed_controller_leaves_the_arm_held_and_a_new_one_resumes(
+    stack: Stack, observer: Observer
+) -> None:
+    wait_for(lambda: _steps(observer) >= 3, 60, "the reach to start")
+    stack.kill("controller")
+    wait_for(lambda: observer.of(RobotState)[-1].holding, 5, "the sim to hold")
+    held_from = len(observer.received)
+    time.sleep(2.0)
+    held = [m for m in observer.received[held_from:] if isinstance(m, RobotState)]
+    positions = np.array([m.ee_pos_m for m in held])
+    assert len(held) > 100
+    assert np.max(np.linalg.norm(positions - positions[0], axis=1)) <= 0.005
+    steps_before = _steps(observer)
+    stack.restart("controller")
+    wait_for(
+        lambda: _steps(observer) > steps_before + 2 or bool(observer.of(EpisodeResult)),
+        60,
+        "the reach to resume",
+    )
+
+
+def test_killed_sim_makes_the_controller_report_stale_state(
+    stack: Stack, observer: Observer
+) -> None:
+    wait_for(lambda: _steps(observer) >= 2, 60, "the reach to start")
+    stack.kill("sim")
+    wait_for(lambda: bool(observer.of(EpisodeResult)), 10, "the controller to give up")
+    result = observer.of(EpisodeResult)[0]
+    assert isinstance(result, EpisodeResult)
+    assert result.outcome == "hold" and "stale" in result.reason
+    time.sleep(1.0)
+    assert stack.alive()["controller"]
+    steps_after = _steps(observer)
+    time.sleep(1.0)
+    assert _steps(observer) == steps_after  # it stopped stepping
+
+
+def _fuzz_payloads(rng: random.Random) -> Iterator[tuple[type, bytes]]:
+    robot = RobotDescription.from_urdf()
+    bad_command = msgpack.unpackb(encode(EXAMPLES[1]))
+    bad_command["header"]["source"] = "controller"  # spoofed: only the ranges can stop it
+    for message_type in TOPICS.values():
+        yield message_type, rng.randbytes(rng.randint(0, 200))
+        yield message_type, msgpack.packb({"header": 1, "x": [1, 2, 3]})
+        valid = next(m for m in EXAMPLES if isinstance(m, message_type))
+        plain = msgpack.unpackb(encode(valid))
+        field = next(k for k, v in plain.items() if isinstance(v, float | list) and k != "header")
+        plain[field] = float("nan") if isinstance(plain[field], float) else [float("nan")] * 6
+        yield message_type, msgpack.packb(plain)
+    for episode in range(0, 3):
+        for field, value in (
+            ("q_ref_rad", list(robot.q_max + 0.5)),
+            ("tau_ff_nm", list(robot.tau_max * 3)),
+            ("kp_nm_per_rad", [1e5] * 6),
+        ):
+            yield type(EXAMPLES[1]), msgpack.packb(bad_command | {"episode": episode, field: value})
+
+
+def test_fuzzing_every_key_leaves_every_service_alive_and_the_arm_in_its_limits(
+    stack: Stack, observer: Observer
+) -> None:
+    wait_for(lambda: _steps(observer) >= 1, 60, "the reach to start")
+    rng = random.Random(0)
+    payloads = list(_fuzz_payloads(rng))
+    end = time.monotonic() + 4.0
+    sent = 0
+    while time.monotonic() < end:
+        message_type, payload = payloads[sent % len(payloads)]
+        observer.put(message_type, payload)
+        sent += 1
+        time.sleep(0.001)
+    time.sleep(1.5)
+    assert all(stack.alive().values()), stack.alive()
+    robot = RobotDescription.from_urdf()
+    states = [m for m in observer.of(RobotState) if m.header.source == "sim"]
+    q = np.array([m.q_rad for m in states])
+    assert np.all(q >= robot.q_min - 0.02) and np.all(q <= robot.q_max + 0.02)
+    rejected = {m.service: sum(m.rejected.values()) for m in observer.of(Health)}
+    assert rejected.get("sim", 0) > 0 and rejected.get("controller", 0) > 0, rejected
+    assert sent > 1000
