@@ -62,6 +62,7 @@ class JointCommand(Message):
     """Joint impedance command: tau = tau_ff + kp (q_ref - q) + kd (dq_ref - dq)."""
 
     episode: int = Field(ge=0)
+    state_stamp_ns: int = Field(ge=0, description="header stamp of the RobotState answered")
     q_ref_rad: Joints
     dq_ref_rad_s: Joints
     tau_ff_nm: Joints

@@ -73,7 +73,8 @@ class Bus:
         self.session: zenoh.Session
         self.rejected: Counter[str] = Counter()
         self.dropped = 0
-        self._inbox: queue.Queue[tuple[str, bytes]] = queue.Queue(settings.inbox_size)
+        self._inbox: queue.Queue[tuple[str, bytes, int]] = queue.Queue(settings.inbox_size)
+        self.arrival_ns = 0  # when the message last returned by receive() reached this process
         self._subscribers: list[Any] = []
         self._publishers: list[Publisher[Any]] = []
         self._started = time.monotonic()
@@ -122,7 +123,8 @@ class Bus:
 
     def _enqueue(self, sample: zenoh.Sample) -> None:
         try:
-            self._inbox.put_nowait((str(sample.key_expr), sample.payload.to_bytes()))
+            item = (str(sample.key_expr), sample.payload.to_bytes(), time.time_ns())
+            self._inbox.put_nowait(item)
         except queue.Full:
             self.dropped += 1  # the loop is behind; counted in Health
 
@@ -132,7 +134,7 @@ class Bus:
         while True:
             remaining = None if deadline is None else max(0.0, deadline - time.monotonic())
             try:
-                key_expr, payload = (
+                key_expr, payload, self.arrival_ns = (
                     self._inbox.get_nowait()
                     if remaining == 0.0
                     else self._inbox.get(timeout=remaining)

@@ -42,9 +42,10 @@ def robot_state(message: wire.RobotState) -> core.RobotState:
     )
 
 
-def command_fields(command: core.JointCommand, episode: int) -> dict[str, Any]:
+def command_fields(command: core.JointCommand, episode: int, state_stamp_ns: int) -> dict[str, Any]:
     return {
         "episode": episode,
+        "state_stamp_ns": state_stamp_ns,
         "q_ref_rad": _floats(command.q_ref),
         "dq_ref_rad_s": _floats(command.dq_ref),
         "tau_ff_nm": _floats(command.tau_ff),

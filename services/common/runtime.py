@@ -28,6 +28,11 @@ class Pacer:
         self.ticks = 0
         self.missed = 0
 
+    def restart(self) -> None:
+        """Start counting from now (call when the loop begins)."""
+        self.next_s = time.monotonic()
+        self.ticks = self.missed = 0
+
     def wait(self) -> None:
         """Sleep until the next deadline; a loop more than a period late starts afresh."""
         self.ticks += 1

@@ -116,7 +116,9 @@ class ControllerNode:
             self._finish(*ended)
             return
         output = self.controller.tick(state)
-        self.publish[JointCommand].publish(**convert.command_fields(output.command, episode.number))
+        self.publish[JointCommand].publish(
+            **convert.command_fields(output.command, episode.number, message.header.stamp_ns)
+        )
         for step in output.steps:
             episode.steps.append(step)
             self.publish[StepEvent].publish(**convert.step_fields(step, episode.number))

@@ -12,6 +12,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections import deque
 from collections.abc import Sequence
 
 import numpy as np
@@ -83,6 +84,8 @@ class SimNode:
         self.command: CoreCommand | None = None
         self.command_wall_s = 0.0
         self.holding = False
+        self.round_trips_s: deque[float] = deque(maxlen=100_000)  # state sent -> command in
+        self.pacer = Pacer(self.substeps * self.sim.timestep_s)
         self.state_publisher = bus.publisher(RobotState)
         bus.subscribe(JointCommand, TaskGoal)
         bus.expect(JointCommand, "controller")
@@ -91,7 +94,8 @@ class SimNode:
         self._hold(state.q)
 
     def run(self, stop: threading.Event) -> None:
-        pacer = Pacer(self.substeps * self.sim.timestep_s)
+        pacer = self.pacer
+        pacer.restart()
         log.info(
             "simulating at %.0f Hz state rate, %d physics steps per period",
             1 / pacer.period_s,
@@ -121,6 +125,7 @@ class SimNode:
             return
         self.command = convert.joint_command(message)
         self.command_wall_s = time.monotonic()
+        self.round_trips_s.append((self.bus.arrival_ns - message.state_stamp_ns) * 1e-9)
         self.sim.apply(self.command)
         if self.holding:
             log.info("commands resumed: leaving the hold")
