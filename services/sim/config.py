@@ -59,9 +59,9 @@ class SimSettings(BaseSettings):
     command_stale_s: float = Field(0.1, gt=0)
     """No valid command for this long: hold position (gravity compensation + damping) [s]."""
     hold_kp_nm_per_rad: float = Field(100.0, ge=0)
-    """Stiffness of the stale-command hold [N m/rad]."""
+    """Stiffness of a hold before any command arrived (then: the last command's) [N m/rad]."""
     hold_kd_nms_per_rad: float = Field(10.0, ge=0)
-    """Damping of the stale-command hold [N m s/rad]."""
+    """Damping of a hold before any command arrived (then: the last command's) [N m s/rad]."""
     max_kp_nm_per_rad: float = Field(2000.0, gt=0)
     """Commands asking for more stiffness are rejected [N m/rad]."""
     max_kd_nms_per_rad: float = Field(200.0, gt=0)

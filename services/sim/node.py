@@ -138,15 +138,19 @@ class SimNode:
         self._hold(self.sim.read().q)
 
     def _hold(self, q: np.ndarray) -> None:
-        """Gravity compensation at ``q`` with a soft spring and damping."""
+        """Gravity compensation at ``q``, with the last command's gains (the stiffness the
+        arm had) or, before any command, the hold gains of the settings."""
         zeros = np.zeros(6)
+        last = self.command
+        kp = last.kp if last is not None else np.full(6, self.settings.hold_kp_nm_per_rad)
+        kd = last.kd if last is not None else np.full(6, self.settings.hold_kd_nms_per_rad)
         self.sim.apply(
             CoreCommand(
                 q_ref=q.copy(),
                 dq_ref=zeros,
                 tau_ff=self.arm.inverse_dynamics(q, zeros, zeros),
-                kp=np.full(6, self.settings.hold_kp_nm_per_rad),
-                kd=np.full(6, self.settings.hold_kd_nms_per_rad),
+                kp=kp,
+                kd=kd,
             )
         )
         self.holding = True
@@ -160,6 +164,7 @@ class SimNode:
             return
         self.episode = goal.episode
         state = self.sim.reset(np.array(goal.q_start_rad), (goal.goal_m[0], goal.goal_m[1]))
+        self.command = None
         self._hold(state.q)
         log.info("episode %d: arm at its start, button at %s", goal.episode, goal.goal_m)
 
