@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import os
 import random
+import re
 import signal
 import subprocess
 import sys
@@ -182,3 +183,21 @@ def test_fuzzing_every_key_leaves_every_service_alive_and_the_arm_in_its_limits(
     rejected = {m.service: sum(m.rejected.values()) for m in observer.of(Health)}
     assert rejected.get("sim", 0) > 0 and rejected.get("controller", 0) > 0, rejected
     assert sent > 1000
+
+
+def test_status_lists_every_service_and_echo_decodes_a_topic(
+    stack: Stack, observer: Observer, port: int
+) -> None:
+    from dammrl.inspect import echo, status
+    from tests.busutil import client_settings
+
+    wait_for(lambda: _steps(observer) >= 1, 60, "the reach to start")
+    table = status(client_settings(port))
+    for name in SERVICES:
+        assert any(line.split()[:2] == [name, "yes"] for line in table.splitlines()), table
+    rate = re.search(r"robot/state (\d+) Hz", table)
+    assert rate is not None and 80 <= int(rate.group(1)) <= 120, table
+    lines: list[str] = []
+    assert echo(client_settings(port), "robot/state", count=3, out=lines.append) == 3
+    decoded = [json.loads(line) for line in lines]
+    assert all(d["key"] == "dammrl/robot/state" and len(d["q_rad"]) == 6 for d in decoded)
