@@ -201,3 +201,22 @@ def test_status_lists_every_service_and_echo_decodes_a_topic(
     assert echo(client_settings(port), "robot/state", count=3, out=lines.append) == 3
     decoded = [json.loads(line) for line in lines]
     assert all(d["key"] == "dammrl/robot/state" and len(d["q_rad"]) == 6 for d in decoded)
+
+
+def test_dammrl_up_exits_non_zero_when_a_service_dies(port: int) -> None:
+    launcher = subprocess.Popen(
+        [sys.executable, "-m", "dammrl.cli", "up", "--port", str(port)],
+        stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    assert launcher.stderr is not None
+    deadline = time.monotonic() + 60
+    while "all services alive" not in launcher.stderr.readline():
+        assert time.monotonic() < deadline and launcher.poll() is None
+    children = subprocess.run(
+        ["pgrep", "-P", str(launcher.pid)], capture_output=True, text=True, check=False
+    ).stdout.split()
+    os.kill(int(children[0]), signal.SIGKILL)
+    assert launcher.wait(30) != 0
+    assert "exited unexpectedly" in launcher.stderr.read()
+    time.sleep(0.5)
+    assert not [pid for pid in children[1:] if os.path.exists(f"/proc/{pid}")]
