@@ -30,10 +30,12 @@ def run_service(
     name: str,
     description: str,
     prefixes: str,
-    build: Callable[[Bus], Node],
+    build: Callable[[Bus, argparse.Namespace], Node],
     argv: Sequence[str] | None = None,
+    add_arguments: Callable[[argparse.ArgumentParser], None] | None = None,
 ) -> int:
-    """Parse the bus flags, open the session, build the node and run it until a signal."""
+    """Parse the bus flags (and the service's own), open the session, build the node and
+    run it until a signal."""
     parser = argparse.ArgumentParser(
         prog=f"python -m services.{name}",
         description=description,
@@ -48,6 +50,8 @@ def run_service(
         "--connect", action="append", metavar="ENDPOINT", help="e.g. tcp/10.0.0.2:7447"
     )
     parser.add_argument("--namespace", help="key-expression prefix (default dammrl)")
+    if add_arguments is not None:
+        add_arguments(parser)
     args = parser.parse_args(argv)
     log = setup_logging(name)
     overrides = {
@@ -57,7 +61,7 @@ def run_service(
     try:
         settings = BusSettings(**overrides)
         with Bus(settings, name) as bus:
-            node = build(bus)
+            node = build(bus, args)
             log.info("up on namespace %r", settings.namespace)
             node.run(stop)
     except (ValidationError, DammrlError) as exc:

@@ -214,6 +214,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         "controller",
         "Controller service: micro-steps, trigger, IK, joint commands, episodes.",
         "DAMMRL_CONTROLLER_*, DAMMRL_TASK_*, DAMMRL_SIM_* (robot)",
-        lambda bus: ControllerNode(ControllerSettings(), TaskSettings(), SimSettings(), bus),
+        lambda bus, _: ControllerNode(ControllerSettings(), TaskSettings(), SimSettings(), bus),
         argv,
     )

@@ -81,6 +81,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         "intent",
         "Intent service: the simulated human answers decision requests.",
         "DAMMRL_INTENT_*",
-        lambda bus: IntentNode(HumanSettings(), bus),
+        lambda bus, _: IntentNode(HumanSettings(), bus),
         argv,
     )

@@ -38,6 +38,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         "policy",
         "Policy service: publishes the multi-model choice M_ij.",
         "DAMMRL_POLICY_*",
-        lambda bus: PolicyNode(PolicySettings(), bus),
+        lambda bus, _: PolicyNode(PolicySettings(), bus),
         argv,
     )

@@ -175,6 +175,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         "sim",
         "Simulation service: the MuJoCo arm in real time on the bus.",
         "DAMMRL_SIM_*, DAMMRL_TASK_*",
-        lambda bus: SimNode(SimSettings(), TaskSettings(), bus),
+        lambda bus, _: SimNode(SimSettings(), TaskSettings(), bus),
         argv,
     )
