@@ -78,6 +78,9 @@ def _parser() -> argparse.ArgumentParser:
     up.add_argument("--port", type=int, default=7447, help="loopback port of the stack's endpoint")
     up.add_argument("--namespace", default="dammrl")
     up.add_argument("--json", action="store_true", help="one JSON object per episode")
+    up.add_argument(
+        "--record", type=Path, metavar="MCAP", help="also run the recorder into this file"
+    )
     up.set_defaults(handler=_up)
 
     for name, helptext in (
@@ -99,10 +102,126 @@ def _parser() -> argparse.ArgumentParser:
             sub.add_argument("--duration", type=float, help="stop after this many seconds")
         sub.set_defaults(handler=_status if name == "status" else _echo)
 
+    _add_recording_commands(commands)
+
     schemas = commands.add_parser("schemas", help="write the JSON Schema of every message")
     schemas.add_argument("--out", type=Path, required=True, metavar="DIR")
     schemas.set_defaults(handler=_schemas)
     return parser
+
+
+def _add_recording_commands(commands: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    recording = commands.add_parser("recording", help="inspect, repair and export recordings")
+    actions = recording.add_subparsers(required=True, metavar="ACTION")
+    info = actions.add_parser("info", help="topics, counts, rates, duration, gaps, metadata")
+    info.add_argument("file", type=Path)
+    info.add_argument("--json", action="store_true")
+    info.set_defaults(handler=_recording_info)
+    repair = actions.add_parser("repair", help="rewrite a cut recording as a complete MCAP")
+    repair.add_argument("file", type=Path)
+    repair.add_argument("-o", "--out", type=Path, help="default: <file>.repaired.mcap")
+    repair.set_defaults(handler=_recording_repair)
+    export = actions.add_parser("export", help="JSON-encoded MCAP (Foxglove) or CSV per topic")
+    export.add_argument("file", type=Path)
+    export.add_argument("--format", choices=["json", "csv"], required=True)
+    export.add_argument(
+        "-o", "--out", type=Path, required=True, help="file (json) or directory (csv)"
+    )
+    export.set_defaults(handler=_recording_export)
+    human = actions.add_parser("human", help="the human's error rate per radius, decision rate")
+    human.add_argument("file", type=Path)
+    human.add_argument("--json", action="store_true")
+    human.set_defaults(handler=_recording_human)
+
+    replay = commands.add_parser("replay", help="publish a recording onto the bus")
+    replay.add_argument("file", type=Path)
+    replay.add_argument(
+        "--rate", type=float, default=1.0, help="1 real time, 0 as fast as possible"
+    )
+    replay.add_argument("--topics", help="comma-separated topic prefixes, e.g. intent,robot/state")
+    replay.add_argument("--start", type=float, default=0.0, help="offset into the recording [s]")
+    replay.add_argument("--end", type=float, help="offset where to stop [s]")
+    replay.add_argument("--loop", action="store_true")
+    replay.add_argument("--namespace", help="publish under this namespace (default: recorded one)")
+    replay.add_argument("--connect", action="append", metavar="ENDPOINT",
+                        help="default tcp/127.0.0.1:7447")  # fmt: skip
+    replay.add_argument("--force", action="store_true", help="replay commands even to a live arm")
+    replay.set_defaults(handler=_replay)
+
+
+def _recording_info(args: argparse.Namespace) -> int:
+    from dammrl.recording import info
+
+    summary = info(args.file)
+    if args.json:
+        print(json.dumps(summary, indent=2))
+        return 0
+    state = "complete" if summary["complete"] else f"NOT finished ({summary['truncated']})"
+    print(
+        f"{summary['file']}: {summary['messages']} messages, {summary['duration_s']:.1f} s, {state}"
+    )
+    for topic, t in summary["topics"].items():
+        print(f"  {topic:36s} {t['type']:16s} {t['count']:8d}  {t['rate_hz']:8.1f} Hz")
+    gaps = summary["sequence_gaps"]
+    print("  sequence gaps: " + (", ".join(f"{k} {v}" for k, v in gaps.items()) or "none"))
+    for name, data in summary["metadata"].items():
+        print(
+            f"  metadata {name}: "
+            + ", ".join(f"{k}={v}" for k, v in data.items() if k != "settings")
+        )
+    return 0
+
+
+def _recording_repair(args: argparse.Namespace) -> int:
+    from dammrl.recording import repair
+
+    out = args.out or args.file.with_suffix(".repaired.mcap")
+    done = repair(args.file, out)
+    print(f"wrote {done['messages']} messages to {out} (source complete: {done['was_complete']})")
+    return 0
+
+
+def _recording_export(args: argparse.Namespace) -> int:
+    from dammrl.recording import export_csv, export_json
+
+    if args.format == "json":
+        print(f"wrote {export_json(args.file, args.out)} JSON messages to {args.out}")
+    else:
+        for topic, rows in export_csv(args.file, args.out).items():
+            print(f"{topic}: {rows} rows")
+    return 0
+
+
+def _recording_human(args: argparse.Namespace) -> int:
+    from dammrl.recording import human_statistics
+
+    stats = human_statistics(args.file)
+    if args.json:
+        print(json.dumps(stats))
+        return 0
+    print(f"{stats['decisions']} decisions, {stats['decision_frequency_hz']:.2f} per second")
+    for radius, r in stats["per_radius"].items():
+        print(f"  {radius:8s} {r['decisions']:5d} decisions, error rate {r['error_rate']:.3f}, "
+              f"mean decision time {r['mean_decision_s']:.2f} s")  # fmt: skip
+    return 0
+
+
+def _replay(args: argparse.Namespace) -> int:
+    from dammrl.recording import read_recording
+    from dammrl.replay import ReplayOptions, replay
+    from services.common.config import BusSettings
+
+    recording = read_recording(args.file)
+    options = ReplayOptions(
+        rate=args.rate, topics=tuple(filter(None, (args.topics or "").split(","))),
+        start_s=args.start, end_s=args.end, loop=args.loop, force=args.force,
+    )  # fmt: skip
+    settings = BusSettings(
+        connect=args.connect or ["tcp/127.0.0.1:7447"],
+        namespace=args.namespace or recording.namespace(),
+    )
+    print(f"replayed {replay(recording, settings, options, info=_print_err)} messages")
+    return 0
 
 
 def _model_arg(text: str) -> tuple[int, int]:
@@ -147,6 +266,7 @@ def _up(args: argparse.Namespace) -> int:
     options = StackOptions(
         mode=args.mode, episodes=args.episodes, seed=args.seed, model=args.model,
         trigger=args.trigger, port=args.port, namespace=args.namespace, json=args.json,
+        record=args.record,
     )  # fmt: skip
     return Stack(options, out=_print, info=_print_err).run()
 

@@ -18,6 +18,7 @@ import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 
 import zenoh
 
@@ -41,6 +42,7 @@ class StackOptions:
     port: int = 7447
     namespace: str = "dammrl"
     json: bool = False
+    record: Path | None = None  # also run the recorder into this MCAP file
 
 
 def free_port(preferred: int) -> int:
@@ -97,6 +99,8 @@ class Stack:
         if o.episodes is not None:
             env["DAMMRL_TASK_EPISODES"] = str(o.episodes)
         env.setdefault("DAMMRL_LOG_LEVEL", "WARNING")  # progress comes from the launcher
+        if o.record is not None:
+            env.update(DAMMRL_RECORDER_OUT=str(o.record), DAMMRL_RECORDER_MODE=o.mode)
         return env
 
     def run(self) -> int:
@@ -111,7 +115,7 @@ class Stack:
         session = zenoh.open(zenoh_config(settings))
         try:
             results = session.declare_subscriber(key(self.options.namespace, EpisodeResult))
-            self._start_children()
+            self._start_children(session, stop)
             self._wait_alive(session, stop)
             return self._watch(results, stop)
         finally:
@@ -120,9 +124,13 @@ class Stack:
             for s, handler in previous.items():
                 signal.signal(s, handler)
 
-    def _start_children(self) -> None:
+    def services(self) -> tuple[str, ...]:
+        recorder = ("recorder",) if self.options.record is not None else ()
+        return recorder + MODES[self.options.mode]  # the recorder first: it sees everything
+
+    def _start_children(self, session: zenoh.Session, stop: dict[str, int]) -> None:
         env = self.environment()
-        for name in MODES[self.options.mode]:
+        for name in self.services():
             self.children[name] = subprocess.Popen(
                 [sys.executable, "-m", f"services.{name}"],
                 env=env,
@@ -130,9 +138,13 @@ class Stack:
                 stdin=subprocess.DEVNULL,
                 start_new_session=True,  # Ctrl-C reaches the launcher only; it stops them
             )
+            if name == "recorder":  # record from the first message of the stack on
+                self._wait_alive(session, stop, quiet=True)
         self.info(f"started {', '.join(self.children)} on {self.endpoint}")
 
-    def _wait_alive(self, session: zenoh.Session, stop: dict[str, int]) -> None:
+    def _wait_alive(
+        self, session: zenoh.Session, stop: dict[str, int], quiet: bool = False
+    ) -> None:
         deadline = time.monotonic() + START_TIMEOUT_S
         wanted = set(self.children)
         while time.monotonic() < deadline and not stop["signal"]:
@@ -140,7 +152,8 @@ class Stack:
             replies = session.liveliness().get(f"{self.options.namespace}/alive/*", timeout=1.0)
             alive = {str(r.ok.key_expr).rsplit("/", 1)[-1] for r in replies if r.ok is not None}
             if wanted <= alive:
-                self.info(f"all services alive: {', '.join(sorted(wanted))}")
+                if not quiet:
+                    self.info(f"all services alive: {', '.join(sorted(wanted))}")
                 return
             time.sleep(0.2)
         if not stop["signal"]:

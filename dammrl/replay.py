@@ -1,0 +1,103 @@
+"""``dammrl replay``: a recording back onto the bus, with its original timing.
+
+A replayed JointCommand or TaskGoal must never move an arm by accident: replaying those
+topics into a namespace where a sim (or robot) is alive needs ``force``.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import zenoh
+
+from dammrl.errors import DammrlError
+from dammrl.recording import Recording
+from services.common.bus import zenoh_config
+from services.common.config import BusSettings
+
+COMMAND_TOPICS = ("robot/command", "task/goal")
+ARM_SERVICES = ("sim", "robot")
+
+
+@dataclass(frozen=True)
+class ReplayOptions:
+    rate: float = 1.0  # 1 = real time, 2 = twice as fast, 0 = as fast as possible
+    topics: tuple[str, ...] = ()  # topic prefixes relative to the namespace; () = all
+    start_s: float = 0.0
+    end_s: float | None = None
+    loop: bool = False
+    force: bool = False
+
+
+def selected(recording: Recording, options: ReplayOptions) -> list[tuple[str, int, bytes]]:
+    """(relative topic, log time ns, payload) of the messages to replay, in order."""
+    namespace = recording.namespace()
+    if not recording.messages:
+        return []
+    first = recording.messages[0].log_time
+    chosen = []
+    for message in recording.messages:
+        channel = recording.channels[message.channel_id]
+        if channel.metadata.get("dammrl.invalid") or not channel.topic.startswith(namespace + "/"):
+            continue
+        topic = channel.topic[len(namespace) + 1 :]
+        offset_s = (message.log_time - first) * 1e-9
+        if options.topics and not topic.startswith(options.topics):
+            continue
+        if offset_s < options.start_s or (options.end_s is not None and offset_s > options.end_s):
+            continue
+        chosen.append((topic, message.log_time, message.data))
+    return chosen
+
+
+def replay(
+    recording: Recording,
+    settings: BusSettings,
+    options: ReplayOptions,
+    info: Callable[[str], None] = print,
+) -> int:
+    """Publish the selected messages under ``settings.namespace``; return how many."""
+    messages = selected(recording, options)
+    if not messages:
+        raise DammrlError("nothing to replay: no message matches the topics and time window")
+    commands = sorted({t for t, _, _ in messages if t.startswith(COMMAND_TOPICS)})
+    sent = 0
+    with zenoh.open(zenoh_config(settings)) as session:
+        time.sleep(0.5)  # let the session connect before publishing
+        if commands and not options.force:
+            _refuse_if_an_arm_listens(session, settings.namespace, commands)
+        publishers = {
+            topic: session.declare_publisher(f"{settings.namespace}/{topic}", express=True)
+            for topic in {t for t, _, _ in messages}
+        }
+        info(f"replaying {len(messages)} messages on {len(publishers)} topics")
+        while True:
+            sent += _play_once(messages, publishers, options.rate)
+            if not options.loop:
+                return sent
+
+
+def _play_once(
+    messages: list[tuple[str, int, bytes]], publishers: dict[str, zenoh.Publisher], rate: float
+) -> int:
+    first, start = messages[0][1], time.perf_counter()
+    for topic, log_time, payload in messages:
+        if rate > 0:
+            delay = start + (log_time - first) * 1e-9 / rate - time.perf_counter()
+            if delay > 0:
+                time.sleep(delay)
+        publishers[topic].put(payload)
+    return len(messages)
+
+
+def _refuse_if_an_arm_listens(session: zenoh.Session, namespace: str, commands: list[str]) -> None:
+    for service in ARM_SERVICES:
+        replies = session.liveliness().get(f"{namespace}/alive/{service}", timeout=1.0)
+        if any(r.ok is not None for r in replies):
+            raise DammrlError(
+                f"refusing to replay {', '.join(commands)} into namespace {namespace!r}: a "
+                f"{service} is alive there and would move. Use --namespace to replay elsewhere, "
+                "--topics to leave the commands out, or --force if you mean it."
+            )
