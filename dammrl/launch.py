@@ -1,7 +1,7 @@
 """``dammrl up``: start the services of a mode as child processes and watch them.
 
-The launcher opens its own Zenoh session listening on a loopback endpoint; every service
-connects to it (and, as Zenoh peers, to each other). It waits for each service's
+The launcher opens its own Zenoh session (a router) listening on a loopback endpoint;
+every service connects to it (and, as Zenoh peers, to each other). It waits for each service's
 liveliness token, prints each EpisodeResult, and stops every child on Ctrl-C / SIGTERM,
 when the requested episodes are done, or (exit 1) when a service dies on its own.
 """
@@ -105,7 +105,11 @@ class Stack:
 
     def run(self) -> int:
         """Run until done; the exit code of ``dammrl up``."""
-        settings = BusSettings(listen=[self.endpoint], namespace=self.options.namespace)
+        # a router: it brokers for the services until their direct peer links are up, so a
+        # recorder misses nothing a service publishes in its first milliseconds
+        settings = BusSettings(
+            listen=[self.endpoint], namespace=self.options.namespace, mode="router"
+        )
         stop = {"signal": 0}
 
         def on_signal(signum: int, frame: object) -> None:

@@ -28,8 +28,8 @@ def endpoint(port: int) -> str:
     return f"tcp/127.0.0.1:{port}"
 
 
-def listener_settings(port: int, namespace: str = "dammrl") -> BusSettings:
-    return BusSettings(listen=[endpoint(port)], namespace=namespace)
+def listener_settings(port: int, namespace: str = "dammrl", mode: str = "peer") -> BusSettings:
+    return BusSettings(listen=[endpoint(port)], namespace=namespace, mode=mode)
 
 
 def client_settings(port: int, namespace: str = "dammrl") -> BusSettings:
@@ -61,7 +61,8 @@ class Observer:
 
     def __init__(self, port: int, namespace: str = "dammrl") -> None:
         self.namespace = namespace
-        self.session = zenoh.open(zenoh_config(listener_settings(port, namespace)))
+        # a router, like the launcher: it brokers for peers until they are linked directly
+        self.session = zenoh.open(zenoh_config(listener_settings(port, namespace, "router")))
         self.received: list[Message] = []
         self._subscriber = self.session.declare_subscriber(f"{namespace}/**", self._on_sample)
 

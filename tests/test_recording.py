@@ -1,0 +1,195 @@
+"""Recording, inspection, export and replay with real processes on a real bus."""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import time
+from collections import Counter
+from collections.abc import Iterator
+from pathlib import Path
+
+import jsonschema
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+
+from dammrl.errors import DammrlError
+from dammrl.recording import export_csv, export_json, human_statistics, info, read_recording, repair
+from dammrl.replay import ReplayOptions, replay, selected
+from schemas import StepEvent
+from services.common.config import BusSettings
+from tests.busutil import Observer, client_settings, free_port, start_service, wait_for
+
+STACK = ("sim", "policy", "intent", "controller")
+
+
+def _stop(processes: list[subprocess.Popen[bytes]]) -> None:
+    for process in processes:
+        if process.poll() is None:
+            process.terminate()
+    for process in processes:
+        process.wait(15)
+
+
+@pytest.fixture(scope="module")
+def session_recording(
+    tmp_path_factory: pytest.TempPathFactory,
+) -> Iterator[tuple[Path, Counter[str]]]:
+    """A recorded stack run and what an independent subscriber saw during it."""
+    port = free_port()
+    path = tmp_path_factory.mktemp("rec") / "session.mcap"
+    observer = Observer(port)
+    seen: Counter[str] = Counter()
+    observer.session.declare_subscriber("dammrl/**", lambda s: seen.update([str(s.key_expr)]))
+    recorder = start_service("recorder", port, DAMMRL_RECORDER_OUT=str(path))
+    wait_for(lambda: "dammrl/health/recorder" in seen, 30, "the recorder")
+    stack = [start_service(name, port, DAMMRL_TASK_EPISODES="1") for name in STACK]
+    try:
+        wait_for(lambda: len(observer.of(StepEvent)) >= 6, 60, "a few steps")
+        _stop(stack)
+        time.sleep(0.5)
+        recorder.send_signal(signal.SIGINT)
+        assert recorder.wait(15) == 0
+        time.sleep(0.3)
+        yield path, seen
+    finally:
+        _stop([*stack, recorder])
+        observer.close()
+
+
+def test_recorded_counts_equal_what_an_independent_subscriber_saw(
+    session_recording: tuple[Path, Counter[str]],
+) -> None:
+    path, seen = session_recording
+    summary = info(path)
+    assert summary["complete"] and summary["sequence_gaps"] == {}
+    recorded = {topic: t["count"] for topic, t in summary["topics"].items()}
+    expected = {k: v for k, v in seen.items() if k != "dammrl/health/recorder"}
+    recorded.pop("dammrl/health/recorder", None)
+    assert recorded == expected
+    assert summary["metadata"]["dammrl.session"]["mode"] == "virtual"
+
+
+def test_json_export_decodes_and_validates_against_its_schemas(
+    session_recording: tuple[Path, Counter[str]], tmp_path: Path
+) -> None:
+    path, _ = session_recording
+    out = tmp_path / "foxglove.mcap"
+    written = export_json(path, out)
+    assert written > 100
+    with open(out, "rb") as stream:
+        reader = make_reader(stream)
+        count = 0
+        for schema, channel, message in reader.iter_messages():
+            assert channel.message_encoding == "json" and schema.encoding == "jsonschema"
+            jsonschema.validate(json.loads(message.data), json.loads(schema.data))
+            count += 1
+    assert count == written
+
+
+def test_csv_export_has_one_file_per_topic(
+    session_recording: tuple[Path, Counter[str]], tmp_path: Path
+) -> None:
+    path, _ = session_recording
+    counts = export_csv(path, tmp_path / "csv")
+    state_csv = tmp_path / "csv" / "dammrl.robot.state.csv"
+    header = state_csv.read_text().splitlines()[0].split(",")
+    assert "q_rad.0" in header and "ee_pos_m.2" in header
+    assert counts["dammrl/robot/state"] == len(state_csv.read_text().splitlines()) - 1
+
+
+def test_human_statistics_score_each_decision(session_recording: tuple[Path, Counter[str]]) -> None:
+    stats = human_statistics(session_recording[0])
+    assert stats["decisions"] >= 5
+    assert 0.0 <= stats["per_radius"]["E_big"]["error_rate"] <= 1.0
+    assert 0.5 < stats["decision_frequency_hz"] < 10
+
+
+def test_replay_as_fast_as_possible_reproduces_the_sequence(
+    session_recording: tuple[Path, Counter[str]],
+) -> None:
+    recording = read_recording(session_recording[0])
+    options = ReplayOptions(rate=0.0, topics=("robot/state", "intent"))
+    expected = [(t, payload) for t, _, payload in selected(recording, options)]
+    port = free_port()
+    observer = Observer(port, namespace="replay")
+    got: list[tuple[str, bytes]] = []
+    observer.session.declare_subscriber(
+        "replay/**", lambda s: got.append((str(s.key_expr)[len("replay/") :], s.payload.to_bytes()))
+    )
+    try:
+        sent = replay(
+            recording, BusSettings(connect=[f"tcp/127.0.0.1:{port}"], namespace="replay"), options
+        )
+        wait_for(lambda: len(got) >= sent, 10, "every replayed message")
+    finally:
+        observer.close()
+    assert got == expected
+
+
+def test_replay_in_real_time_keeps_the_inter_arrival_times(
+    session_recording: tuple[Path, Counter[str]],
+) -> None:
+    recording = read_recording(session_recording[0])
+    options = ReplayOptions(rate=1.0, topics=("robot/state",), end_s=3.0)
+    original = np.diff([t for _, t, _ in selected(recording, options)]) * 1e-9
+    port = free_port()
+    observer = Observer(port, namespace="replay")
+    arrivals: list[float] = []
+    observer.session.declare_subscriber("replay/**", lambda s: arrivals.append(time.perf_counter()))
+    try:
+        replay(
+            recording, BusSettings(connect=[f"tcp/127.0.0.1:{port}"], namespace="replay"), options
+        )
+        wait_for(lambda: len(arrivals) == len(original) + 1, 10, "the replay")
+    finally:
+        observer.close()
+    error = np.abs(np.diff(arrivals) - original)
+    assert np.median(error) < 0.005
+
+
+def test_a_cut_recording_is_readable_and_repairable(tmp_path: Path) -> None:
+    port = free_port()
+    path = tmp_path / "cut.mcap"
+    observer = Observer(port)
+    recorder = start_service("recorder", port, DAMMRL_RECORDER_OUT=str(path),
+                             DAMMRL_RECORDER_CHUNK_BYTES="8192")  # fmt: skip
+    stack = [start_service(name, port, DAMMRL_TASK_EPISODES="1") for name in STACK]
+    try:
+        wait_for(lambda: len(observer.of(StepEvent)) >= 4, 60, "a few steps")
+        recorder.send_signal(signal.SIGKILL)
+        recorder.wait(10)
+    finally:
+        _stop([*stack, recorder])
+        observer.close()
+    summary = info(path)
+    assert not summary["complete"] and summary["messages"] > 100
+    done = repair(path, tmp_path / "fixed.mcap")
+    fixed = info(tmp_path / "fixed.mcap")
+    assert fixed["complete"] and fixed["messages"] == done["messages"] == summary["messages"]
+
+
+def test_replaying_commands_to_a_live_sim_needs_force(
+    session_recording: tuple[Path, Counter[str]],
+) -> None:
+    recording = read_recording(session_recording[0])
+    port = free_port()
+    observer = Observer(port)
+    sim = start_service("sim", port)
+    try:
+        wait_for(
+            lambda: bool(
+                observer.of(type(observer.of.__self__.received[0])) if observer.received else False
+            ),
+            30,
+            "the sim",
+        )
+        with pytest.raises(DammrlError, match="--force"):
+            replay(
+                recording, client_settings(port), ReplayOptions(rate=0, topics=("robot/command",))
+            )
+    finally:
+        _stop([sim])
+        observer.close()
