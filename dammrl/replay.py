@@ -69,7 +69,11 @@ def replay(
         if commands and not options.force:
             _refuse_if_an_arm_listens(session, settings.namespace, commands)
         publishers = {
-            topic: session.declare_publisher(f"{settings.namespace}/{topic}", express=True)
+            topic: session.declare_publisher(
+                f"{settings.namespace}/{topic}",
+                express=True,
+                congestion_control=zenoh.CongestionControl.BLOCK,  # a replay never drops
+            )
             for topic in {t for t, _, _ in messages}
         }
         info(f"replaying {len(messages)} messages on {len(publishers)} topics")
