@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import csv
 import json
+import struct
 from collections import Counter, defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -57,7 +58,7 @@ def read_recording(path: Path) -> Recording:
         try:
             for record in StreamReader(stream).records:
                 _collect(recording, record)
-        except (McapError, EOFError, ValueError, OSError) as exc:
+        except (McapError, EOFError, ValueError, OSError, struct.error) as exc:
             if not recording.channels and not recording.metadata:
                 raise RecordingError(f"{path} is not an MCAP recording: {exc}") from exc
             recording.truncated_reason = f"{type(exc).__name__}: {exc}".strip()
