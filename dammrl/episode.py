@@ -10,6 +10,7 @@ control period inside MuJoCo.
 from __future__ import annotations
 
 import math
+from collections.abc import Generator
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -189,29 +190,50 @@ class _Episode:
         self.outcome, self.reason = "timeout", "episode timeout"
         self.hold_s: float | None = None  # when the controller entered a hold
         self.hold_until: float | None = None  # end of the observation after a hold
-        self.final_state: RobotState | None = None  # set when a fast-forward ends the reach
+        self.last_state: RobotState  # the last state observed (set by the loop)
+        self.choice: ModelChoice | None = None  # the model in force
         self.button_pressed = False
         self.log = np.full((capacity, 3 + 3 + 6 + 6 + 3 + 1 + 1), np.nan)
         self.n = 0
 
     def run(self) -> tuple[ReachMetrics, Trajectory]:
+        """The whole reach, the policy choosing the model at every decision."""
+        loop = self.loop()
+        try:
+            next(loop)
+            while True:
+                loop.send(self.policy.choose())
+        except StopIteration:
+            pass
+        return self.result()
+
+    def loop(self) -> Generator[RobotState, ModelChoice, None]:
+        """The tick loop as a generator: it yields the state whenever the human is asked
+        for a decision and takes the ModelChoice in force for that decision."""
         sim, task = self.sim, self.task
         state = sim.reset(self.runner.start_posture(task.start), (task.goal[0], task.goal[1]))
         sim.apply(self.controller.reset(state, task.goal))
         while True:
             state = sim.read()
-            if self._tick(state):
-                break
+            self.last_state = state
+            if self._observe(state):
+                return
+            if self.pending is None and self.controller.wants_intent:
+                self._ask_human(state, (yield state))
+            self._act(state)
             idle = self._idle_periods(state.t_s)
             if idle > 1:
                 if self._fast_forward(idle):
-                    break
+                    return
             else:
                 sim.step(self.runner.substeps)
-        return self._metrics(self.final_state or state), self._trajectory()
 
-    def _tick(self, state: RobotState) -> bool:
-        """One control tick on ``state``; True when the reach is over."""
+    def result(self) -> tuple[ReachMetrics, Trajectory]:
+        """Metrics and trajectory once the loop has ended."""
+        return self._metrics(self.last_state), self._trajectory()
+
+    def _observe(self, state: RobotState) -> bool:
+        """Log the tick, decide whether the reach is over, deliver a due decision."""
         self._record(state)
         if self.hold_until is not None:
             return state.t_s >= self.hold_until
@@ -220,7 +242,22 @@ class _Episode:
             return True
         if state.t_s >= self.timeout_s:
             return True
-        self._exchange_intents(state)
+        if self.pending is not None and state.t_s >= self.pending.intent.t_s - 1e-9:
+            self.controller.on_intent(self.pending.intent)
+            self.pending = None
+        return False
+
+    def _ask_human(self, state: RobotState, choice: ModelChoice) -> None:
+        self.choice = choice
+        self.controller.set_steps(choice.steps_m)
+        axis = self.controller.settings.primary_axis
+        self.pending = self.human.decide(
+            state.t_s, state.ee_pos, self.task.goal, axis, choice.human_model
+        )
+        self.decisions.append(self.pending)
+
+    def _act(self, state: RobotState) -> None:
+        """Tick the controller and latch its command."""
         output = self.controller.tick(state)
         self.steps.extend(output.steps)
         if output.hold_reason is not None:
@@ -228,7 +265,6 @@ class _Episode:
             self.hold_s = state.t_s
             self.hold_until = state.t_s + HOLD_OBSERVATION_S
         self.sim.apply(output.command)
-        return False
 
     def _idle_periods(self, t_s: float) -> int:
         """Control periods until something can change while the controller is idle."""
@@ -256,9 +292,10 @@ class _Episode:
         self._record_many(times[:quiet], rows[:quiet])
         for t_s, row in zip(times[quiet:], rows[quiet:], strict=True):
             state = self.sim.state_from_sensors(float(t_s), row)
-            if self._tick(state):
-                self.final_state = state
+            self.last_state = state
+            if self._observe(state):
                 return True
+            self._act(state)  # idle: no decision can be due before the stretch ends
         return False
 
     def _quiet_ticks(self, times: np.ndarray, rows: np.ndarray) -> int:
@@ -277,19 +314,6 @@ class _Episode:
             if violation is not None:
                 eventful[violation] = True
         return int(np.argmax(eventful)) if eventful.any() else len(times)
-
-    def _exchange_intents(self, state: RobotState) -> None:
-        if self.pending is not None and state.t_s >= self.pending.intent.t_s - 1e-9:
-            self.controller.on_intent(self.pending.intent)
-            self.pending = None
-        if self.pending is None and self.controller.wants_intent:
-            choice = self.policy.choose()
-            self.controller.set_steps(choice.steps_m)
-            axis = self.controller.settings.primary_axis
-            self.pending = self.human.decide(
-                state.t_s, state.ee_pos, self.task.goal, axis, choice.human_model
-            )
-            self.decisions.append(self.pending)
 
     def _record_many(self, times: np.ndarray, rows: np.ndarray) -> None:
         """Log many ticks at once (a fast-forwarded stretch: subgoal and radius fixed)."""
