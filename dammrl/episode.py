@@ -126,30 +126,37 @@ class ReachRunner:
         policy: Policy | None = None,
     ) -> ReachResult:
         """One reach. ``trigger`` overrides the controller setting ('event' or 'fixed')."""
-        controller_settings = self.settings.controller
-        if trigger is not None:
-            controller_settings = controller_settings.model_copy(update={"trigger": trigger})
-        _, human_rng, latency_rng, sim_rng = seed_streams(seed)  # the first one draws the task
-        task = task or self.sample(seed)
         policy = policy or FixedPolicy(self.settings.human.models, *model)
-        controller = Controller(
-            self.robot, controller_settings, latency_rng, self.arm, self.solver(controller_settings)
-        )
-        self.sim.rng = sim_rng
-        human = SimulatedHuman(self.settings.human, human_rng)
-        episode = _Episode(self, controller, human, policy, task)
+        episode = self.episode(seed, trigger, task)
+        episode.policy = policy
         metrics, trajectory = episode.run()
         choice = policy.choose()
         return ReachResult(
             seed=seed,
-            trigger=controller_settings.trigger,
+            trigger=episode.controller.settings.trigger,
             model=(choice.human_model, choice.robot_model),
-            task=task,
+            task=episode.task,
             metrics=metrics,
             trajectory=trajectory,
             steps=episode.steps,
             decisions=episode.decisions,
         )
+
+    def episode(
+        self, seed: int, trigger: str | None = None, task: ReachTask | None = None
+    ) -> Episode:
+        """A fresh episode of ``seed``, ready to run (or to be stepped, see Episode.loop)."""
+        controller_settings = self.settings.controller
+        if trigger is not None:
+            controller_settings = controller_settings.model_copy(update={"trigger": trigger})
+        _, human_rng, latency_rng, sim_rng = seed_streams(seed)  # the first one draws the task
+        task = task or self.sample(seed)
+        controller = Controller(
+            self.robot, controller_settings, latency_rng, self.arm, self.solver(controller_settings)
+        )
+        self.sim.rng = sim_rng
+        human = SimulatedHuman(self.settings.human, human_rng)
+        return Episode(self, controller, human, task)
 
     def start_posture(self, start: np.ndarray) -> np.ndarray:
         """Joint positions placing the end-effector at ``start``, solved from home."""
@@ -160,7 +167,7 @@ class ReachRunner:
         return result.q
 
 
-class _Episode:
+class Episode:
     """The tick loop of one reach and its log."""
 
     def __init__(
@@ -168,14 +175,13 @@ class _Episode:
         runner: ReachRunner,
         controller: Controller,
         human: SimulatedHuman,
-        policy: Policy,
         task: ReachTask,
     ) -> None:
         self.runner = runner
         self.sim = runner.sim
         self.controller = controller
         self.human = human
-        self.policy = policy
+        self.policy: Policy | None = None  # who chooses the model in run()
         self.task = task
         self.steps: list[StepEvent] = []
         self.decisions: list[Decision] = []
@@ -198,6 +204,7 @@ class _Episode:
 
     def run(self) -> tuple[ReachMetrics, Trajectory]:
         """The whole reach, the policy choosing the model at every decision."""
+        assert self.policy is not None, "set Episode.policy before run()"
         loop = self.loop()
         try:
             next(loop)
@@ -227,6 +234,10 @@ class _Episode:
                     return
             else:
                 sim.step(self.runner.substeps)
+
+    def segment(self, start: int) -> Trajectory:
+        """What was logged since row ``start`` (``self.n`` is the next row)."""
+        return self._trajectory(start)
 
     def result(self) -> tuple[ReachMetrics, Trajectory]:
         """Metrics and trajectory once the loop has ended."""
@@ -345,8 +356,9 @@ class _Episode:
         self.n += 1
         self.button_pressed |= state.button_pressed
 
-    def _trajectory(self) -> Trajectory:
-        log = self.log[: self.n]
+    def _trajectory(self, start: int = 0) -> Trajectory:
+        """The log from row ``start`` on (the RL environment takes one decision's worth)."""
+        log = self.log[start : self.n]
         return Trajectory(
             t=log[:, 22].copy(),
             x=log[:, 0:3].copy(),

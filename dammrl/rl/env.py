@@ -1,0 +1,127 @@
+"""The reach as a Gymnasium-style environment: one step per human decision (event trigger).
+
+Observation (16,): the end-effector position and the goal, normalised to the workspace
+([-1, 1] per axis), and the model in force as one-hots (i: 2, j: 8). Action (i, j) as
+0-based indices: Agent_0 picks the admission radius i, Agent_1 the step vector j. The
+reward of a step is the composite reward over the stretch until the next decision.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Generator
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from dammrl.episode import Episode, ReachRunner
+from dammrl.metrics import n_oscillations
+from dammrl.models import HUMAN_MODELS, ROBOT_MODELS
+from dammrl.rl.config import RewardWeights
+from dammrl.state import RobotState
+from services.policy.core import ModelChoice
+
+OBSERVATION_SIZE = 3 + 3 + len(HUMAN_MODELS) + len(ROBOT_MODELS)
+ACTIONS = (len(HUMAN_MODELS), len(ROBOT_MODELS))
+WORKSPACE_CENTRE = np.array([0.45, 0.0, -0.10])
+WORKSPACE_HALF = np.array([0.25, 0.25, 0.20])
+
+
+@dataclass(frozen=True)
+class RewardTerms:
+    accuracy: float
+    time_s: float
+    effort_j: float
+    oscillations: int
+    success: bool
+
+    def total(self, w: RewardWeights) -> float:
+        return (
+            w.alpha * self.accuracy
+            - w.beta * self.time_s
+            - w.gamma * self.effort_j
+            - w.eta * self.oscillations
+            + w.rho * float(self.success)
+        )
+
+
+def accuracy_term(error_m: float) -> float:
+    """1 / (||e||^2 + 0.5) with e in centimetres."""
+    return 1.0 / ((error_m * 100.0) ** 2 + 0.5)
+
+
+def observe(x: np.ndarray, goal: np.ndarray, model: tuple[int, int] | None) -> np.ndarray:
+    obs = np.zeros(OBSERVATION_SIZE, dtype=np.float32)
+    obs[0:3] = (x - WORKSPACE_CENTRE) / WORKSPACE_HALF
+    obs[3:6] = (goal - WORKSPACE_CENTRE) / WORKSPACE_HALF
+    if model is not None:
+        obs[6 + model[0] - 1] = 1.0
+        obs[8 + model[1] - 1] = 1.0
+    return obs
+
+
+class ReachEnv:
+    """``reset(seed) -> (obs, info)``, ``step((i, j)) -> (obs, r, terminated, truncated, info)``."""
+
+    def __init__(self, runner: ReachRunner, weights: RewardWeights, max_decisions: int) -> None:
+        self.runner = runner
+        self.weights = weights
+        self.max_decisions = max_decisions
+        self.models = runner.settings.human.models
+        self.episode: Episode
+        self._loop: Generator[RobotState, ModelChoice, None]
+        self._state: RobotState
+        self._mark = 0  # log row at the last decision
+        self._decisions = 0
+        self._model: tuple[int, int] | None = None
+
+    def reset(self, seed: int) -> tuple[np.ndarray, dict[str, Any]]:
+        self.episode = self.runner.episode(seed)
+        self._loop = self.episode.loop()
+        self._state = next(self._loop)
+        self._mark, self._decisions, self._model = 0, 0, None
+        return self._observation(), {}
+
+    def step(self, action: tuple[int, int]) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        i, j = int(action[0]) + 1, int(action[1]) + 1
+        self._model = (i, j)
+        choice = ModelChoice(i, j, self.models.radius_m(i), self.models.steps_m(j))
+        self._decisions += 1
+        try:
+            self._state = self._loop.send(choice)
+            terminated = False
+        except StopIteration:
+            terminated = True
+            self._state = self.episode.last_state
+        terms = self._terms(terminated)
+        truncated = not terminated and self._decisions >= self.max_decisions
+        info: dict[str, Any] = {"terms": terms, "model": (i, j)}
+        if terminated or truncated:
+            info["metrics"] = self.episode.result()[0]
+        return self._observation(), terms.total(self.weights), terminated, truncated, info
+
+    def _observation(self) -> np.ndarray:
+        return observe(self._state.ee_pos, self.episode.task.goal, self._model)
+
+    def _terms(self, terminated: bool) -> RewardTerms:
+        episode = self.episode
+        segment = episode.segment(self._mark)
+        self._mark = episode.n
+        effort, oscillations = 0.0, 0
+        if len(segment.t) > 2:
+            dt = episode.runner.control_dt_s
+            dq = np.gradient(segment.q, dt, axis=0)
+            effort = float(np.sum(np.abs(np.sum(segment.tau * dq, axis=1))) * dt)
+            oscillations = n_oscillations(
+                segment.x,
+                np.array([s.subgoal for s in episode.steps]).reshape(-1, 3),
+                np.array([s.radius_m for s in episode.steps]),
+            )
+        error = float(np.linalg.norm(self._state.ee_pos - episode.task.goal))
+        return RewardTerms(
+            accuracy=accuracy_term(error),
+            time_s=float(segment.t[-1] - segment.t[0]) if len(segment.t) else 0.0,
+            effort_j=effort,
+            oscillations=oscillations,
+            success=terminated and episode.outcome == "success",
+        )

@@ -1,0 +1,257 @@
+"""``dammrl train`` and ``dammrl evaluate``: the dual-agent DQN on the reach environment.
+
+A run directory holds ``checkpoint.pt`` (networks, optimiser, counters and the settings
+that produced them; training resumes from it), ``training.csv`` (one row per episode)
+and ``training.png`` (returns, success rate, Q-values and losses of both agents).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+import torch
+
+from dammrl.episode import ReachRunner
+from dammrl.errors import DammrlError
+from dammrl.rl.config import RewardWeights, TrainSettings
+from dammrl.rl.dqn import DualAgentDQN, ReplayBuffer, UpdateStats
+from dammrl.rl.env import ACTIONS, OBSERVATION_SIZE, ReachEnv
+
+CHECKPOINT = "checkpoint.pt"
+FORMAT = 1
+EVAL_SEED_OFFSET = 1_000_000  # evaluation seeds never seen in training
+
+
+class CheckpointError(DammrlError):
+    """A checkpoint that is missing, corrupt or made for something else."""
+
+
+@dataclass
+class EpisodeLog:
+    episode: int
+    ret: float
+    success: bool
+    decisions: int
+    epsilon: float
+    t_total_s: float
+    loss_human: float
+    loss_robot: float
+    q_human: float
+    q_robot: float
+    small_steps: float  # share of decisions with the all-small step vector (j = 1)
+
+
+def pick_device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name == "cuda" and not torch.cuda.is_available():
+        raise DammrlError("--device cuda: no CUDA device is available here")
+    return torch.device(name)
+
+
+def epsilon_at(decisions: int, s: TrainSettings) -> float:
+    fraction = min(1.0, decisions / s.epsilon_decay_decisions)
+    return s.epsilon_start + fraction * (s.epsilon_end - s.epsilon_start)
+
+
+def train(
+    reward: Literal[1, 2],
+    out: Path,
+    settings: TrainSettings,
+    device: str = "auto",
+    progress: Callable[[str], None] = print,
+) -> list[EpisodeLog]:
+    """Train (or resume) both agents; return the per-episode log."""
+    out.mkdir(parents=True, exist_ok=True)
+    torch.manual_seed(settings.seed)
+    rng = np.random.default_rng(settings.seed)
+    env = ReachEnv(ReachRunner(), RewardWeights.preset(reward), settings.max_decisions)
+    agent = DualAgentDQN(OBSERVATION_SIZE, ACTIONS, settings, pick_device(device))
+    buffer = ReplayBuffer(settings.buffer_size, OBSERVATION_SIZE, settings.seed)
+    logs, decisions = _resume(out, agent, reward, settings)
+    started = time.monotonic()
+    for episode in range(len(logs), settings.episodes):
+        log, decisions = _run_episode(env, agent, buffer, rng, episode, decisions, settings)
+        logs.append(log)
+        if (episode + 1) % 10 == 0 or episode + 1 == settings.episodes:
+            progress(_progress_line(logs, settings, time.monotonic() - started))
+        if (episode + 1) % 50 == 0 or episode + 1 == settings.episodes:
+            save(out, agent, reward, settings, logs, decisions)
+    plot_training(logs, out / "training.png", reward)
+    return logs
+
+
+def _run_episode(
+    env: ReachEnv,
+    agent: DualAgentDQN,
+    buffer: ReplayBuffer,
+    rng: np.random.Generator,
+    episode: int,
+    decisions: int,
+    s: TrainSettings,
+) -> tuple[EpisodeLog, int]:
+    obs, _ = env.reset(seed=s.seed * 100_000 + episode)
+    total, stats, small, n = 0.0, [], 0, 0
+    while True:
+        epsilon = epsilon_at(decisions, s)
+        action = agent.act(obs, epsilon, rng)
+        next_obs, reward, terminated, truncated, info = env.step(action)
+        buffer.add(obs, action, reward, next_obs, terminated)
+        obs, total, decisions, n = next_obs, total + reward, decisions + 1, n + 1
+        small += action[1] == 0
+        if buffer.size >= max(s.learning_starts, s.batch_size) and decisions % s.train_every == 0:
+            stats.append(agent.update(buffer.sample(s.batch_size)))
+        if terminated or truncated:
+            metrics = info["metrics"]
+            break
+    mean = _mean_stats(stats)
+    return EpisodeLog(episode + 1, total, metrics.success, n, epsilon, metrics.t_total_s,
+                      mean.loss_human, mean.loss_robot, mean.q_human, mean.q_robot,
+                      small / n), decisions  # fmt: skip
+
+
+def _mean_stats(stats: list[UpdateStats]) -> UpdateStats:
+    if not stats:
+        return UpdateStats(float("nan"), float("nan"), float("nan"), float("nan"))
+    return UpdateStats(*(float(np.mean([getattr(s, f) for s in stats])) for f in
+                         ("loss_human", "loss_robot", "q_human", "q_robot")))  # fmt: skip
+
+
+def _progress_line(logs: list[EpisodeLog], s: TrainSettings, elapsed_s: float) -> str:
+    recent, last = logs[-50:], logs[-1]
+    mean_return = np.mean([r.ret for r in recent])
+    return (
+        f"episode {last.episode:5d}/{s.episodes}  return {mean_return:7.2f}  "
+        f"success {np.mean([r.success for r in recent]):5.0%}  epsilon {logs[-1].epsilon:4.2f}  "
+        f"Q {last.q_human:6.2f}/{last.q_robot:6.2f}  {elapsed_s:6.0f} s"
+    )
+
+
+def save(out: Path, agent: DualAgentDQN, reward: Literal[1, 2], settings: TrainSettings,
+         logs: list[EpisodeLog], decisions: int) -> None:  # fmt: skip
+    checkpoint = {
+        "format": FORMAT, "reward": reward, "weights": RewardWeights.preset(reward).model_dump(),
+        "settings": settings.model_dump(), "agent": agent.state_dict(), "decisions": decisions,
+        "observation_size": OBSERVATION_SIZE, "actions": ACTIONS,
+    }  # fmt: skip
+    torch.save(checkpoint, out / CHECKPOINT)
+    with open(out / "training.csv", "w", newline="") as handle:
+        writer = csv.DictWriter(handle, list(asdict(logs[0])))
+        writer.writeheader()
+        writer.writerows(asdict(log) for log in logs)
+    (out / "settings.json").write_text(json.dumps(checkpoint["settings"], indent=2))
+
+
+def _resume(out: Path, agent: DualAgentDQN, reward: int, settings: TrainSettings
+            ) -> tuple[list[EpisodeLog], int]:  # fmt: skip
+    if not (out / CHECKPOINT).exists():
+        return [], 0
+    checkpoint = load_checkpoint(out)
+    if checkpoint["reward"] != reward:
+        raise CheckpointError(
+            f"{out} holds a Reward {checkpoint['reward']} run, not Reward {reward}"
+        )
+    agent.load_state_dict(checkpoint["agent"])
+    with open(out / "training.csv") as handle:
+        logs = [EpisodeLog(**_typed(row)) for row in csv.DictReader(handle)]
+    return logs, int(checkpoint["decisions"])
+
+
+def _typed(row: dict[str, str]) -> dict[str, Any]:
+    types = {f: t for f, t in EpisodeLog.__annotations__.items()}
+    return {k: (v == "True" if types[k] == "bool" else int(v) if types[k] == "int" else float(v))
+            for k, v in row.items()}  # fmt: skip
+
+
+def load_checkpoint(run: Path) -> dict[str, Any]:
+    """The checkpoint of a run directory (or file), checked for format and shapes."""
+    path = run / CHECKPOINT if run.is_dir() else run
+    if not path.is_file():
+        raise CheckpointError(f"no checkpoint at {path}")
+    try:
+        checkpoint = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as exc:  # torch raises many types for a damaged file
+        raise CheckpointError(f"checkpoint {path} is corrupt: {exc}") from exc
+    if not isinstance(checkpoint, dict) or checkpoint.get("format") != FORMAT:
+        raise CheckpointError(f"{path} is not a dammrl checkpoint (format {FORMAT})")
+    if (
+        checkpoint.get("observation_size") != OBSERVATION_SIZE
+        or tuple(checkpoint.get("actions", ())) != ACTIONS
+    ):
+        raise CheckpointError(f"{path} was trained for another observation/action layout")
+    return checkpoint
+
+
+def evaluate(run: Path, episodes: int, progress: Callable[[str], None] = print) -> dict[str, Any]:
+    """Greedy policy of a run over ``episodes`` unseen seeds, stochastic human."""
+    checkpoint = load_checkpoint(run)
+    settings = TrainSettings(**checkpoint["settings"])
+    agent = DualAgentDQN(OBSERVATION_SIZE, ACTIONS, settings, torch.device("cpu"))
+    agent.load_state_dict(checkpoint["agent"])
+    env = ReachEnv(ReachRunner(), RewardWeights(**checkpoint["weights"]), settings.max_decisions)
+    rng = np.random.default_rng(0)
+    rows = []
+    for k in range(episodes):
+        obs, _ = env.reset(seed=EVAL_SEED_OFFSET + k)
+        choices = []
+        while True:
+            action = agent.act(obs, 0.0, rng)
+            choices.append(action)
+            obs, _, terminated, truncated, info = env.step(action)
+            if terminated or truncated:
+                break
+        metrics = info["metrics"]
+        rows.append((metrics, choices))
+    successes = [m.success for m, _ in rows]
+    return {
+        "checkpoint": str(run), "reward": checkpoint["reward"], "episodes": episodes,
+        "success_rate": float(np.mean(successes)),
+        "t_total_s": float(np.mean([m.t_total_s for m, _ in rows])),
+        "final_error_m": float(np.mean([m.final_error_m for m, _ in rows])),
+        "n_osc": float(np.mean([m.n_osc for m, _ in rows])),
+        "share_e_small": float(np.mean([a[0] == 1 for _, c in rows for a in c])),
+        "share_all_small_steps": float(np.mean([a[1] == 0 for _, c in rows for a in c])),
+    }  # fmt: skip
+
+
+def plot_training(logs: list[EpisodeLog], path: Path, reward: int) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    episodes = np.array([r.episode for r in logs])
+
+    def smooth(values: list[float], width: int = 25) -> np.ndarray:
+        v = np.asarray(values, dtype=float)
+        kernel = np.ones(min(width, len(v))) / min(width, len(v))
+        return np.convolve(np.nan_to_num(v), kernel, mode="same")
+
+    fig, axes = plt.subplots(2, 2, figsize=(11, 7), constrained_layout=True)
+    axes[0, 0].plot(episodes, [r.ret for r in logs], alpha=0.3)
+    axes[0, 0].plot(episodes, smooth([r.ret for r in logs]))
+    axes[0, 0].set(title="episode return", xlabel="episode", ylabel="return")
+    axes[0, 1].plot(
+        episodes, smooth([float(r.success) for r in logs]), label="success (moving mean)"
+    )
+    axes[0, 1].plot(episodes, [r.epsilon for r in logs], label="epsilon")
+    axes[0, 1].set(title="success rate and exploration", xlabel="episode", ylim=(0, 1.05))
+    axes[0, 1].legend()
+    axes[1, 0].plot(episodes, [r.q_human for r in logs], label="Agent_0 (human radius)")
+    axes[1, 0].plot(episodes, [r.q_robot for r in logs], label="Agent_1 (robot steps)")
+    axes[1, 0].set(title="mean Q of the actions taken", xlabel="episode", ylabel="Q")
+    axes[1, 0].legend()
+    axes[1, 1].semilogy(episodes, [r.loss_human for r in logs], label="Agent_0")
+    axes[1, 1].semilogy(episodes, [r.loss_robot for r in logs], label="Agent_1")
+    axes[1, 1].set(title="Huber loss", xlabel="episode")
+    axes[1, 1].legend()
+    fig.suptitle(f"DAMMRL training, Reward {reward}")
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

@@ -1,0 +1,120 @@
+"""DAMMRL pieces: reward terms, replay buffer, DQN updates, checkpoints, environment."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from dammrl.episode import ReachRunner
+from dammrl.rl.config import RewardWeights, TrainSettings
+from dammrl.rl.dqn import DualAgentDQN, ReplayBuffer
+from dammrl.rl.env import ACTIONS, OBSERVATION_SIZE, ReachEnv, RewardTerms, accuracy_term
+from dammrl.rl.train import CheckpointError, evaluate, load_checkpoint, train
+
+SMALL = TrainSettings(episodes=4, learning_starts=8, batch_size=8, buffer_size=500,
+                      target_update_every=5, epsilon_decay_decisions=50)  # fmt: skip
+
+
+def test_accuracy_term_discriminates_near_the_goal_in_centimetres() -> None:
+    assert accuracy_term(0.0) == pytest.approx(2.0)
+    assert accuracy_term(0.01) == pytest.approx(1 / 1.5)
+    assert accuracy_term(0.05) == pytest.approx(1 / 25.5)
+
+
+def test_reward_one_ignores_time_and_reward_two_charges_it() -> None:
+    terms = RewardTerms(accuracy=0.5, time_s=0.4, effort_j=2.0, oscillations=3, success=True)
+    r1, r2 = RewardWeights.preset(1), RewardWeights.preset(2)
+    assert r1.beta == 0 and r2.beta > 0
+    assert terms.total(r1) == pytest.approx(0.5 - r1.gamma * 2.0 - r1.eta * 3 + r1.rho)
+    assert terms.total(r2) == pytest.approx(terms.total(r1) - r2.beta * 0.4)
+
+
+def test_replay_buffer_wraps_around_and_samples_what_was_stored() -> None:
+    buffer = ReplayBuffer(capacity=5, obs_size=2, seed=0)
+    for k in range(8):
+        buffer.add(np.full(2, k), (k % 2, k % 8), float(k), np.full(2, k + 1), k == 7)
+    assert buffer.size == 5
+    obs, actions, rewards, next_obs, dones = buffer.sample(100)
+    assert set(rewards.tolist()) == {3.0, 4.0, 5.0, 6.0, 7.0}
+    np.testing.assert_array_equal(obs[:, 0], rewards)
+    np.testing.assert_array_equal(next_obs[:, 0], rewards + 1)
+    assert np.all(dones[rewards == 7.0] == 1.0) and np.all(dones[rewards != 7.0] == 0.0)
+    np.testing.assert_array_equal(actions[:, 0], rewards.astype(int) % 2)
+
+
+def test_targets_follow_the_online_networks_only_every_n_updates() -> None:
+    torch.manual_seed(0)
+    agent = DualAgentDQN(OBSERVATION_SIZE, ACTIONS, SMALL, torch.device("cpu"))
+    buffer = ReplayBuffer(100, OBSERVATION_SIZE, seed=0)
+    rng = np.random.default_rng(0)
+    for _ in range(50):
+        buffer.add(
+            rng.normal(size=OBSERVATION_SIZE), (1, 3), 1.0, rng.normal(size=OBSERVATION_SIZE), False
+        )
+    frozen = [p.clone() for p in agent.target_robot.parameters()]
+    for _ in range(SMALL.target_update_every - 1):
+        agent.update(buffer.sample(8))
+    assert all(
+        torch.equal(a, b) for a, b in zip(frozen, agent.target_robot.parameters(), strict=True)
+    )
+    agent.update(buffer.sample(8))
+    online = list(agent.q_robot.parameters())
+    assert all(
+        torch.equal(a, b) for a, b in zip(online, agent.target_robot.parameters(), strict=True)
+    )
+
+
+def test_q_values_move_toward_the_reward() -> None:
+    torch.manual_seed(0)
+    settings = SMALL.model_copy(update={"gamma": 0.5, "learning_rate": 1e-2})
+    agent = DualAgentDQN(OBSERVATION_SIZE, ACTIONS, settings, torch.device("cpu"))
+    buffer = ReplayBuffer(100, OBSERVATION_SIZE, seed=0)
+    obs = np.zeros(OBSERVATION_SIZE, dtype=np.float32)
+    for _ in range(64):
+        buffer.add(obs, (0, 2), 3.0, obs, True)
+    for _ in range(300):
+        stats = agent.update(buffer.sample(16))
+    assert stats.q_human == pytest.approx(3.0, abs=0.1) and stats.q_robot == pytest.approx(
+        3.0, abs=0.1
+    )
+
+
+def test_environment_steps_one_decision_at_a_time() -> None:
+    env = ReachEnv(ReachRunner(), RewardWeights.preset(2), max_decisions=3)
+    obs, _ = env.reset(seed=1)
+    assert obs.shape == (OBSERVATION_SIZE,) and np.all(obs[6:] == 0)
+    obs, reward, terminated, truncated, info = env.step((1, 4))
+    assert obs[7] == 1.0 and obs[8 + 4] == 1.0  # the model in force: E_small, j = 5
+    assert np.isfinite(reward) and not terminated
+    env.step((1, 4))
+    *_, terminated, truncated, info = env.step((1, 4))
+    assert truncated and "metrics" in info
+
+
+def test_training_writes_a_checkpoint_that_resumes_and_evaluates(tmp_path: Path) -> None:
+    logs = train(1, tmp_path, SMALL, "cpu", progress=lambda _: None)
+    assert len(logs) == 4 and (tmp_path / "training.png").exists()
+    checkpoint = load_checkpoint(tmp_path)
+    assert checkpoint["reward"] == 1 and checkpoint["settings"]["episodes"] == 4
+    more = train(
+        1, tmp_path, SMALL.model_copy(update={"episodes": 6}), "cpu", progress=lambda _: None
+    )
+    assert [log.episode for log in more] == [1, 2, 3, 4, 5, 6]
+    result = evaluate(tmp_path, episodes=2, progress=lambda _: None)
+    assert 0.0 <= result["success_rate"] <= 1.0 and result["episodes"] == 2
+    with pytest.raises(CheckpointError, match="Reward 1 run"):
+        train(2, tmp_path, SMALL, "cpu", progress=lambda _: None)
+
+
+def test_missing_or_corrupt_checkpoints_are_clear_errors(tmp_path: Path) -> None:
+    with pytest.raises(CheckpointError, match="no checkpoint"):
+        load_checkpoint(tmp_path)
+    (tmp_path / "checkpoint.pt").write_bytes(b"\x00 not a torch file")
+    with pytest.raises(CheckpointError, match="corrupt"):
+        load_checkpoint(tmp_path)
+    torch.save({"format": 99}, tmp_path / "checkpoint.pt")
+    with pytest.raises(CheckpointError, match="not a dammrl checkpoint"):
+        load_checkpoint(tmp_path)
