@@ -108,7 +108,7 @@ def _parser() -> argparse.ArgumentParser:
     train.add_argument("--reward", type=int, choices=[1, 2], required=True,
                        help="1: accuracy focus (beta = 0); 2: speed and accuracy")  # fmt: skip
     train.add_argument("--out", type=Path, required=True, help="run directory (resumes if present)")
-    train.add_argument("--episodes", type=int, help="default 600 (DAMMRL_RL_EPISODES)")
+    train.add_argument("--episodes", type=int, help="default 1500 (DAMMRL_RL_EPISODES)")
     train.add_argument("--seed", type=int)
     train.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto")
     train.set_defaults(handler=_train)

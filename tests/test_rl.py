@@ -118,3 +118,31 @@ def test_missing_or_corrupt_checkpoints_are_clear_errors(tmp_path: Path) -> None
     torch.save({"format": 99}, tmp_path / "checkpoint.pt")
     with pytest.raises(CheckpointError, match="not a dammrl checkpoint"):
         load_checkpoint(tmp_path)
+
+
+def _posterior_right_after(n: int, true_model: int, seeds: int, use_time: bool) -> float:
+    from dammrl.rl.posterior import HumanModelPosterior
+    from services.intent.config import HumanSettings
+    from services.intent.core import SimulatedHuman
+
+    settings = HumanSettings()
+    goal, right = np.array([0.5, 0.0, -0.2]), 0
+    for seed in range(seeds):
+        human = SimulatedHuman(settings, seed)
+        posterior = HumanModelPosterior(settings, use_decision_time=use_time)
+        for _ in range(n):
+            decision = human.decide(0.0, np.zeros(3), goal, 0, true_model)
+            posterior.update(decision.correct, decision.decision_s)
+        right += posterior.map_model == true_model
+    return right / seeds
+
+
+@pytest.mark.parametrize("true_model", [1, 2])
+def test_posterior_finds_the_human_model_within_6_decisions(true_model: int) -> None:
+    assert _posterior_right_after(6, true_model, seeds=200, use_time=True) >= 0.95
+
+
+def test_posterior_from_commands_alone_needs_many_more_decisions() -> None:
+    assert _posterior_right_after(8, 2, seeds=200, use_time=False) < 0.95
+    assert _posterior_right_after(200, 2, seeds=200, use_time=False) >= 0.95
+    assert _posterior_right_after(200, 1, seeds=200, use_time=False) >= 0.95

@@ -37,7 +37,7 @@ class TrainSettings(BaseSettings):
 
     model_config = SettingsConfigDict(env_prefix="DAMMRL_RL_", frozen=True, extra="forbid")
 
-    episodes: int = Field(600, ge=1)
+    episodes: int = Field(1500, ge=1)
     """Training episodes."""
     max_decisions: int = Field(150, ge=1)
     """Decisions per episode before it is truncated."""
