@@ -103,7 +103,7 @@ def test_training_writes_a_checkpoint_that_resumes_and_evaluates(tmp_path: Path)
         1, tmp_path, SMALL.model_copy(update={"episodes": 6}), "cpu", progress=lambda _: None
     )
     assert [log.episode for log in more] == [1, 2, 3, 4, 5, 6]
-    result = evaluate(tmp_path, episodes=2, progress=lambda _: None)
+    result = evaluate(tmp_path, episodes=2)
     assert 0.0 <= result["success_rate"] <= 1.0 and result["episodes"] == 2
     with pytest.raises(CheckpointError, match="Reward 1 run"):
         train(2, tmp_path, SMALL, "cpu", progress=lambda _: None)

@@ -71,6 +71,7 @@ def train(
     """Train (or resume) both agents; return the per-episode log."""
     out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(settings.seed)
+    torch.set_num_threads(1)  # small networks: threads only contend with the simulation
     rng = np.random.default_rng(settings.seed)
     env = ReachEnv(ReachRunner(), RewardWeights.preset(reward), settings.max_decisions)
     agent = DualAgentDQN(OBSERVATION_SIZE, ACTIONS, settings, pick_device(device))
@@ -189,35 +190,50 @@ def load_checkpoint(run: Path) -> dict[str, Any]:
     return checkpoint
 
 
-def evaluate(run: Path, episodes: int, progress: Callable[[str], None] = print) -> dict[str, Any]:
-    """Greedy policy of a run over ``episodes`` unseen seeds, stochastic human."""
+@dataclass(frozen=True)
+class Rollout:
+    """One greedy episode: its metrics and, per decision, (distance to goal [m], i, j)."""
+
+    metrics: Any
+    decisions: list[tuple[float, int, int]]
+
+
+def greedy_rollouts(run: Path, episodes: int) -> list[Rollout]:
+    """The run's greedy policy on ``episodes`` unseen seeds, stochastic human."""
     checkpoint = load_checkpoint(run)
     settings = TrainSettings(**checkpoint["settings"])
     agent = DualAgentDQN(OBSERVATION_SIZE, ACTIONS, settings, torch.device("cpu"))
     agent.load_state_dict(checkpoint["agent"])
     env = ReachEnv(ReachRunner(), RewardWeights(**checkpoint["weights"]), settings.max_decisions)
     rng = np.random.default_rng(0)
-    rows = []
+    rollouts = []
     for k in range(episodes):
         obs, _ = env.reset(seed=EVAL_SEED_OFFSET + k)
-        choices = []
+        decisions = []
         while True:
-            action = agent.act(obs, 0.0, rng)
-            choices.append(action)
-            obs, _, terminated, truncated, info = env.step(action)
+            distance = float(np.linalg.norm(env.episode.last_state.ee_pos - env.episode.task.goal))
+            i, j = agent.act(obs, 0.0, rng)
+            decisions.append((distance, i + 1, j + 1))
+            obs, _, terminated, truncated, info = env.step((i, j))
             if terminated or truncated:
                 break
-        metrics = info["metrics"]
-        rows.append((metrics, choices))
-    successes = [m.success for m, _ in rows]
+        rollouts.append(Rollout(info["metrics"], decisions))
+    return rollouts
+
+
+def evaluate(run: Path, episodes: int) -> dict[str, Any]:
+    """Summary of :func:`greedy_rollouts` (the ``dammrl evaluate`` JSON)."""
+    rollouts = greedy_rollouts(run, episodes)
+    metrics = [r.metrics for r in rollouts]
+    choices = [d for r in rollouts for d in r.decisions]
     return {
-        "checkpoint": str(run), "reward": checkpoint["reward"], "episodes": episodes,
-        "success_rate": float(np.mean(successes)),
-        "t_total_s": float(np.mean([m.t_total_s for m, _ in rows])),
-        "final_error_m": float(np.mean([m.final_error_m for m, _ in rows])),
-        "n_osc": float(np.mean([m.n_osc for m, _ in rows])),
-        "share_e_small": float(np.mean([a[0] == 1 for _, c in rows for a in c])),
-        "share_all_small_steps": float(np.mean([a[1] == 0 for _, c in rows for a in c])),
+        "checkpoint": str(run), "reward": load_checkpoint(run)["reward"], "episodes": episodes,
+        "success_rate": float(np.mean([m.success for m in metrics])),
+        "t_total_s": float(np.mean([m.t_total_s for m in metrics])),
+        "final_error_m": float(np.mean([m.final_error_m for m in metrics])),
+        "n_osc": float(np.mean([m.n_osc for m in metrics])),
+        "share_e_small": float(np.mean([i == 2 for _, i, _ in choices])),
+        "share_all_small_steps": float(np.mean([j == 1 for _, _, j in choices])),
     }  # fmt: skip
 
 
