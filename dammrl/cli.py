@@ -73,7 +73,8 @@ def _parser() -> argparse.ArgumentParser:
         "--episodes", type=int, help="run this many episodes, then stop (default: until Ctrl-C)"
     )
     up.add_argument("--seed", type=int, default=0, help="seed of the first episode")
-    up.add_argument("--model", type=_model_arg, default=(1, 1), metavar="I,J")
+    up.add_argument("--model", type=_model_arg, metavar="I,J",
+                    help="a fixed M_ij (default: the learned DAMMRL policy)")  # fmt: skip
     up.add_argument("--trigger", choices=["event", "fixed"], default="event")
     up.add_argument("--port", type=int, default=7447, help="loopback port of the stack's endpoint")
     up.add_argument("--namespace", default="dammrl")

@@ -37,7 +37,7 @@ class StackOptions:
     mode: str = "virtual"
     episodes: int | None = None
     seed: int = 0
-    model: tuple[int, int] = (1, 1)
+    model: tuple[int, int] | None = None  # a fixed M_ij; None: the learned policy
     trigger: str = "event"
     port: int = 7447
     namespace: str = "dammrl"
@@ -90,12 +90,17 @@ class Stack:
             DAMMRL_BUS_CONNECT=json.dumps([self.endpoint]),
             DAMMRL_BUS_NAMESPACE=o.namespace,
             DAMMRL_TASK_SEED=str(o.seed),
-            DAMMRL_POLICY_HUMAN_MODEL=str(o.model[0]),
-            DAMMRL_POLICY_ROBOT_MODEL=str(o.model[1]),
-            DAMMRL_CONTROLLER_HUMAN_MODEL=str(o.model[0]),
-            DAMMRL_CONTROLLER_ROBOT_MODEL=str(o.model[1]),
             DAMMRL_CONTROLLER_TRIGGER=o.trigger,
         )
+        if o.model is not None:
+            i, j = (str(v) for v in o.model)
+            env.update(
+                DAMMRL_POLICY_KIND="fixed",
+                DAMMRL_POLICY_HUMAN_MODEL=i,
+                DAMMRL_POLICY_ROBOT_MODEL=j,
+                DAMMRL_CONTROLLER_HUMAN_MODEL=i,
+                DAMMRL_CONTROLLER_ROBOT_MODEL=j,
+            )
         if o.episodes is not None:
             env["DAMMRL_TASK_EPISODES"] = str(o.episodes)
         env.setdefault("DAMMRL_LOG_LEVEL", "WARNING")  # progress comes from the launcher

@@ -97,8 +97,15 @@ class Intent(Message):
 
 
 class ModelChoice(Message):
-    """The multi-model M_ij in force: human radius i and robot step vector j."""
+    """The multi-model M_ij in force: human radius i and robot step vector j.
 
+    The policy answers each DecisionRequest with a choice carrying its ``request``
+    number (the human and the controller wait for it), and repeats the latest choice
+    with ``request = -1`` for services that join late.
+    """
+
+    episode: int = Field(0, ge=0)
+    request: int = Field(-1, ge=-1, description="DecisionRequest answered, -1 when periodic")
     human_model: HumanModel
     robot_model: RobotModel
     radius_m: Finite = Field(gt=0, le=0.1)

@@ -246,9 +246,12 @@ def plot_training(logs: list[EpisodeLog], path: Path, reward: int) -> None:
     episodes = np.array([r.episode for r in logs])
 
     def smooth(values: list[float], width: int = 25) -> np.ndarray:
+        """Centred moving mean that averages only over the samples it has at the edges."""
         v = np.asarray(values, dtype=float)
-        kernel = np.ones(min(width, len(v))) / min(width, len(v))
-        return np.convolve(np.nan_to_num(v), kernel, mode="same")
+        kernel = np.ones(min(width, len(v)))
+        return np.convolve(v, kernel, mode="same") / np.convolve(
+            np.ones_like(v), kernel, mode="same"
+        )
 
     fig, axes = plt.subplots(2, 2, figsize=(11, 7), constrained_layout=True)
     axes[0, 0].plot(episodes, [r.ret for r in logs], alpha=0.3)

@@ -96,8 +96,15 @@ class ControllerNode:
         elif isinstance(message, Intent):
             self._on_intent(message)
         elif isinstance(message, ModelChoice):
-            self.choice = (message.human_model, message.robot_model)
-            self.controller.set_steps(np.array(message.steps_m))
+            self._on_choice(message)
+
+    def _on_choice(self, message: ModelChoice) -> None:
+        """The policy's answer to the open request, or its periodic repeat between steps."""
+        answers_open = message.request == self.request and self.request_open
+        if message.request >= 0 and not answers_open:
+            return  # an answer to an older request
+        self.choice = (message.human_model, message.robot_model)
+        self.controller.set_steps(np.array(message.steps_m))
 
     def _on_state(self, message: RobotState) -> None:
         episode = self.episode

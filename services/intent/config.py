@@ -32,4 +32,6 @@ class HumanSettings(BaseSettings):
     """Log-standard deviation of the decision time."""
     decision_min_s: float = Field(0.1, ge=0)
     """Shortest possible decision [s]."""
+    policy_wait_s: float = Field(0.2, gt=0)
+    """How long a decision request waits for the policy's ModelChoice [s]."""
     models: ModelSet = ModelSet()

@@ -2,23 +2,37 @@
 
 from __future__ import annotations
 
+from importlib import resources
+from pathlib import Path
+from typing import Literal
+
 from pydantic import Field
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from dammrl.models import ModelSet
 
+SHIPPED_POLICY = Path(str(resources.files("dammrl").joinpath("policies/reward2/checkpoint.pt")))
+
 
 class PolicySettings(BaseSettings):
-    """The fixed multi-model M_ij published until the learned policy exists."""
+    """Which policy chooses the multi-model M_ij at each decision."""
 
     model_config = SettingsConfigDict(
         env_prefix="DAMMRL_POLICY_", env_nested_delimiter="__", frozen=True, extra="forbid"
     )
 
+    kind: Literal["learned", "fixed"] = "learned"
+    """'learned': the DQN of ``checkpoint``; 'fixed': always M_{human_model,robot_model}."""
+    checkpoint: Path = SHIPPED_POLICY
+    """Training run directory or checkpoint file (default: the shipped Reward 2 policy)."""
     human_model: int = Field(1, ge=1, le=2)
-    """i: 1 = E_big, 2 = E_small."""
+    """i of the fixed policy: 1 = E_big, 2 = E_small."""
     robot_model: int = Field(1, ge=1, le=8)
-    """j: the step vector (see dammrl.models)."""
+    """j of the fixed policy (see dammrl.models)."""
+    fallback_human_model: int = Field(2, ge=1, le=2)
+    fallback_robot_model: int = Field(1, ge=1, le=8)
+    """The safe fixed model used when the checkpoint cannot be loaded: M_2,1, the careful
+    human's small sphere with all-small steps (the most accurate, never large moves)."""
     publish_period_s: float = Field(0.5, gt=0)
-    """ModelChoice is repeated this often, so late joiners learn it [s]."""
+    """The latest ModelChoice is repeated this often, so late joiners learn it [s]."""
     models: ModelSet = ModelSet()

@@ -6,6 +6,7 @@ Until the learned DAMMRL policy exists, a fixed choice from settings.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -24,13 +25,53 @@ class ModelChoice:
         return f"M_{self.human_model},{self.robot_model} ({radius_name(self.human_model)})"
 
 
+def model_choice(models: ModelSet, human_model: int, robot_model: int) -> ModelChoice:
+    return ModelChoice(
+        human_model, robot_model, models.radius_m(human_model), models.steps_m(robot_model)
+    )
+
+
 class FixedPolicy:
     """Always the same M_ij."""
 
     def __init__(self, models: ModelSet, human_model: int, robot_model: int) -> None:
-        self.choice = ModelChoice(
-            human_model, robot_model, models.radius_m(human_model), models.steps_m(robot_model)
-        )
+        self.choice = model_choice(models, human_model, robot_model)
 
     def choose(self) -> ModelChoice:
         return self.choice
+
+    def decide(self, ee_pos: np.ndarray, goal: np.ndarray) -> ModelChoice:
+        return self.choice
+
+
+class LearnedPolicy:
+    """The greedy dual-agent DQN of a training run: s = [x; x_g; M_ij in force] -> (i, j)."""
+
+    def __init__(self, models: ModelSet, checkpoint: Path) -> None:
+        import torch  # imported here: the fixed policy and the other services need no torch
+
+        from dammrl.rl.config import TrainSettings
+        from dammrl.rl.dqn import DualAgentDQN
+        from dammrl.rl.env import ACTIONS, OBSERVATION_SIZE
+        from dammrl.rl.train import load_checkpoint
+
+        state = load_checkpoint(checkpoint)  # CheckpointError names what is wrong
+        self.reward = int(state["reward"])
+        self.agent = DualAgentDQN(
+            OBSERVATION_SIZE, ACTIONS, TrainSettings(**state["settings"]), torch.device("cpu")
+        )
+        self.agent.load_state_dict(state["agent"])
+        self.models = models
+        self.previous: tuple[int, int] | None = None
+        self.rng = np.random.default_rng(0)
+
+    def decide(self, ee_pos: np.ndarray, goal: np.ndarray) -> ModelChoice:
+        from dammrl.rl.env import observe
+
+        i, j = self.agent.act(observe(ee_pos, goal, self.previous), 0.0, self.rng)
+        self.previous = (i + 1, j + 1)
+        return model_choice(self.models, i + 1, j + 1)
+
+    def reset(self) -> None:
+        """A new episode: no model in force yet."""
+        self.previous = None

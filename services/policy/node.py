@@ -1,43 +1,93 @@
-"""The policy node: publishes the ModelChoice M_ij in force (fixed from settings)."""
+"""The policy node: answers each DecisionRequest with the ModelChoice M_ij.
+
+The learned policy (a DAMMRL checkpoint) sees the end-effector, the goal and the model in
+force; if its checkpoint is missing, corrupt or made for another layout, the node says so
+(log and Health "degraded") and falls back to the safe fixed model of the settings.
+"""
 
 from __future__ import annotations
 
+import logging
 import threading
 from collections.abc import Sequence
 
-from schemas import ModelChoice
+import numpy as np
+
+from dammrl.errors import DammrlError
+from schemas import DecisionRequest, ModelChoice, TaskGoal
 from services.common.bus import Bus
 from services.common.entry import run_service
 from services.policy.config import PolicySettings
-from services.policy.core import FixedPolicy
+from services.policy.core import FixedPolicy, LearnedPolicy
+from services.policy.core import ModelChoice as CoreChoice
+
+log = logging.getLogger("dammrl.policy")
+
+
+def load_policy(settings: PolicySettings) -> tuple[FixedPolicy | LearnedPolicy, str, str]:
+    """(policy, health state, description); never raises for a bad checkpoint."""
+    if settings.kind == "fixed":
+        policy = FixedPolicy(settings.models, settings.human_model, settings.robot_model)
+        return policy, "ok", f"fixed M_{settings.human_model},{settings.robot_model}"
+    try:
+        learned = LearnedPolicy(settings.models, settings.checkpoint)
+    except DammrlError as exc:
+        i, j = settings.fallback_human_model, settings.fallback_robot_model
+        log.error(
+            "cannot use the learned policy (%s); falling back to the fixed M_%d,%d", exc, i, j
+        )
+        return FixedPolicy(settings.models, i, j), "degraded", f"fallback M_{i},{j}: {exc}"
+    return learned, "ok", f"learned (Reward {learned.reward}) from {settings.checkpoint}"
 
 
 class PolicyNode:
     def __init__(self, settings: PolicySettings, bus: Bus) -> None:
         self.settings = settings
         self.bus = bus
-        self.policy = FixedPolicy(settings.models, settings.human_model, settings.robot_model)
+        self.policy, self.health, self.description = load_policy(settings)
+        log.info("policy: %s", self.description)
+        self.latest: CoreChoice = self.policy.decide(np.zeros(3), np.zeros(3))
+        self.episode = 0
         self.publisher = bus.publisher(ModelChoice)
+        bus.subscribe(DecisionRequest, TaskGoal)
+        bus.expect(DecisionRequest, "controller")
+        bus.expect(TaskGoal, "controller")
 
     def run(self, stop: threading.Event) -> None:
+        self._publish(-1)
         while not stop.is_set():
-            choice = self.policy.choose()
-            self.publisher.publish(
-                human_model=choice.human_model,
-                robot_model=choice.robot_model,
-                radius_m=choice.radius_m,
-                steps_m=tuple(float(v) for v in choice.steps_m),
-            )
-            self.bus.report_health()
-            stop.wait(self.settings.publish_period_s)
+            message = self.bus.receive(self.settings.publish_period_s)
+            if isinstance(message, DecisionRequest):
+                self.episode = message.episode
+                ee, goal = np.array(message.ee_pos_m), np.array(message.goal_m)
+                self.latest = self.policy.decide(ee, goal)
+                self._publish(message.request)
+            elif isinstance(message, TaskGoal):
+                self.episode = message.episode
+                if isinstance(self.policy, LearnedPolicy):
+                    self.policy.reset()
+            else:
+                self._publish(-1)
+            self.bus.report_health(self.health, self.description)
+
+    def _publish(self, request: int) -> None:
+        choice = self.latest
+        self.publisher.publish(
+            episode=self.episode,
+            request=request,
+            human_model=choice.human_model,
+            robot_model=choice.robot_model,
+            radius_m=choice.radius_m,
+            steps_m=tuple(float(v) for v in choice.steps_m),
+        )
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Policy service: publishes the multi-model choice M_ij."""
+    """Policy service: answers decision requests with the multi-model choice M_ij."""
     return run_service(
         "policy",
-        "Policy service: publishes the multi-model choice M_ij.",
-        "DAMMRL_POLICY_*",
+        "Policy service: answers decision requests with the multi-model choice M_ij.",
+        "DAMMRL_POLICY_* (KIND, CHECKPOINT, HUMAN_MODEL, ROBOT_MODEL, FALLBACK_*)",
         lambda bus, _: PolicyNode(PolicySettings(), bus),
         argv,
     )
