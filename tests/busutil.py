@@ -59,10 +59,16 @@ def wait_for(condition: Callable[[], bool], timeout_s: float, what: str) -> None
 class Observer:
     """A test's own session: listens on the endpoint and collects decoded messages."""
 
-    def __init__(self, port: int, namespace: str = "dammrl") -> None:
+    def __init__(self, port: int, namespace: str = "dammrl", connect: bool = False) -> None:
         self.namespace = namespace
-        # a router, like the launcher: it brokers for peers until they are linked directly
-        self.session = zenoh.open(zenoh_config(listener_settings(port, namespace, "router")))
+        # a router hub, like the launcher: it brokers for peers until they are linked
+        # directly; or (connect) one more peer joining a stack that listens on ``port``
+        settings = (
+            client_settings(port, namespace)
+            if connect
+            else listener_settings(port, namespace, "router")
+        )
+        self.session = zenoh.open(zenoh_config(settings))
         self.received: list[Message] = []
         self._subscriber = self.session.declare_subscriber(f"{namespace}/**", self._on_sample)
 

@@ -6,6 +6,7 @@ import json
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 from typing import Any
 
@@ -66,16 +67,17 @@ def _local(environment: dict[str, str], port: int) -> dict[str, str]:
 
 def test_the_virtual_profile_comes_up_and_runs_an_episode_with_its_own_commands() -> None:
     port = free_port()
-    observer_port = free_port()
-    observer = Observer(observer_port)
     processes = []
+    observer = None
     try:
-        for name, service in _profile("virtual").items():
+        for service in _profile("virtual").values():
             env = _path_env() | _local(service["environment"], port)
-            if name == "sim":  # the test also listens in, through the sim's endpoint
-                env["DAMMRL_BUS_CONNECT"] = json.dumps([endpoint(observer_port)])
             env["DAMMRL_TASK_EPISODES"] = "1"
             processes.append(subprocess.Popen(service["command"], env=env))
+            if observer is None:  # the sim listens: the test joins as one more peer
+                time.sleep(1.0)
+                observer = Observer(port, connect=True)
+        assert observer is not None
         wait_for(lambda: bool(observer.of(EpisodeResult)), 90, "an EpisodeResult")
         assert all(p.poll() is None for p in processes)
     finally:
@@ -83,4 +85,5 @@ def test_the_virtual_profile_comes_up_and_runs_an_episode_with_its_own_commands(
             process.terminate()
         for process in processes:
             process.wait(15)
-        observer.close()
+        if observer is not None:
+            observer.close()

@@ -146,3 +146,33 @@ def test_posterior_from_commands_alone_needs_many_more_decisions() -> None:
     assert _posterior_right_after(8, 2, seeds=200, use_time=False) < 0.95
     assert _posterior_right_after(200, 2, seeds=200, use_time=False) >= 0.95
     assert _posterior_right_after(200, 1, seeds=200, use_time=False) >= 0.95
+
+
+def test_policy_service_falls_back_to_the_safe_fixed_model(tmp_path: Path) -> None:
+    from services.policy.config import PolicySettings
+    from services.policy.core import FixedPolicy, LearnedPolicy
+    from services.policy.node import load_policy
+
+    policy, health, description = load_policy(PolicySettings(checkpoint=tmp_path / "none"))
+    assert isinstance(policy, FixedPolicy) and health == "degraded"
+    assert "fallback M_2,1" in description and "no checkpoint" in description
+    (tmp_path / "checkpoint.pt").write_bytes(b"garbage")
+    policy, health, description = load_policy(PolicySettings(checkpoint=tmp_path))
+    assert isinstance(policy, FixedPolicy) and "corrupt" in description
+    shipped, health, _ = load_policy(PolicySettings())
+    assert isinstance(shipped, LearnedPolicy) and health == "ok" and shipped.reward == 2
+
+
+def test_shipped_reward_1_policy_takes_smaller_steps_near_the_goal_than_reward_2() -> None:
+    from dammrl.models import ModelSet
+    from dammrl.rl.train import greedy_rollouts
+    from services.policy.config import SHIPPED_POLICY
+
+    models, near = ModelSet(), {}
+    for reward in (1, 2):
+        rollouts = greedy_rollouts(SHIPPED_POLICY.parent.parent / f"reward{reward}", 20)
+        assert np.mean([r.metrics.success for r in rollouts]) >= 0.9
+        near[reward] = np.mean(
+            [models.steps_m(j).mean() for r in rollouts for d, _, j in r.decisions if d < 0.04]
+        )
+    assert near[1] < near[2]
