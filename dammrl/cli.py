@@ -161,6 +161,11 @@ def _add_recording_commands(commands: argparse._SubParsersAction[argparse.Argume
     replay.add_argument("--connect", action="append", metavar="ENDPOINT",
                         help="default tcp/127.0.0.1:7447")  # fmt: skip
     replay.add_argument("--force", action="store_true", help="replay commands even to a live arm")
+    replay.add_argument("--into-policy", type=Path, metavar="RUN",
+                        help="offline, no bus: a trained policy's choice at every recorded "
+                             "decision, next to the recorded one")  # fmt: skip
+    replay.add_argument("-o", "--out", type=Path, default=Path("decisions.csv"),
+                        help="with --into-policy: the CSV of decisions")  # fmt: skip
     replay.set_defaults(handler=_replay)
 
 
@@ -227,6 +232,12 @@ def _replay(args: argparse.Namespace) -> int:
     from services.common.config import BusSettings
 
     recording = read_recording(args.file)
+    if args.into_policy is not None:
+        from dammrl.replay import into_policy, write_decisions
+
+        summary = write_decisions(into_policy(recording, args.into_policy), args.out)
+        print(json.dumps(summary | {"csv": str(args.out)}))
+        return 0
     options = ReplayOptions(
         rate=args.rate, topics=tuple(filter(None, (args.topics or "").split(","))),
         start_s=args.start, end_s=args.end, loop=args.loop, force=args.force,

@@ -6,14 +6,19 @@ topics into a namespace where a sim (or robot) is alive needs ``force``.
 
 from __future__ import annotations
 
+import csv
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 
+import numpy as np
 import zenoh
 
 from dammrl.errors import DammrlError
+from dammrl.models import ModelSet
 from dammrl.recording import Recording
+from schemas import DecisionRequest, DecodeError, ModelChoice, decode, type_of
 from services.common.bus import zenoh_config
 from services.common.config import BusSettings
 
@@ -65,7 +70,7 @@ def replay(
     commands = sorted({t for t, _, _ in messages if t.startswith(COMMAND_TOPICS)})
     sent = 0
     with zenoh.open(zenoh_config(settings)) as session:
-        time.sleep(0.5)  # let the session connect before publishing
+        time.sleep(1.0)  # let the session connect (and learn who is alive) before publishing
         if commands and not options.force:
             _refuse_if_an_arm_listens(session, settings.namespace, commands)
         publishers = {
@@ -98,10 +103,87 @@ def _play_once(
 
 def _refuse_if_an_arm_listens(session: zenoh.Session, namespace: str, commands: list[str]) -> None:
     for service in ARM_SERVICES:
-        replies = session.liveliness().get(f"{namespace}/alive/{service}", timeout=1.0)
+        replies = session.liveliness().get(f"{namespace}/alive/{service}", timeout=2.0)
         if any(r.ok is not None for r in replies):
             raise DammrlError(
                 f"refusing to replay {', '.join(commands)} into namespace {namespace!r}: a "
                 f"{service} is alive there and would move. Use --namespace to replay elsewhere, "
                 "--topics to leave the commands out, or --force if you mean it."
             )
+
+
+@dataclass(frozen=True)
+class PolicyDecision:
+    episode: int
+    request: int
+    t_s: float
+    distance_m: float
+    recorded: tuple[int, int] | None  # the M_ij the recorded policy answered with
+    proposed: tuple[int, int]  # what the policy under test chooses
+
+
+def into_policy(recording: Recording, checkpoint: Path) -> list[PolicyDecision]:
+    """Offline, no bus: the policy's choice for every recorded decision request.
+
+    The policy sees the recorded end-effector and goal of each request and, as in the
+    live stack, its own previous choice as the model in force; its choices sit next to
+    the recorded policy's answers (ModelChoice messages carrying the request number).
+    """
+    from services.policy.core import LearnedPolicy
+
+    policy = LearnedPolicy(ModelSet(), checkpoint)
+    namespace = recording.namespace()
+    answers: dict[tuple[int, int], tuple[int, int]] = {}
+    requests: list[DecisionRequest] = []
+    for message in recording.messages:
+        message_type = type_of(namespace, recording.topic(message))
+        if message_type not in (DecisionRequest, ModelChoice):
+            continue
+        try:
+            decoded = decode(message_type, message.data)
+        except DecodeError:
+            continue
+        if isinstance(decoded, DecisionRequest):
+            requests.append(decoded)
+        elif isinstance(decoded, ModelChoice) and decoded.request >= 0:
+            answers[(decoded.episode, decoded.request)] = (decoded.human_model, decoded.robot_model)
+    decisions, episode = [], None
+    for request in requests:
+        if request.episode != episode:
+            episode = request.episode
+            policy.reset()
+        ee, goal = np.array(request.ee_pos_m), np.array(request.goal_m)
+        choice = policy.decide(ee, goal)
+        decisions.append(
+            PolicyDecision(
+                episode=request.episode,
+                request=request.request,
+                t_s=request.t_s,
+                distance_m=float(np.linalg.norm(goal - ee)),
+                recorded=answers.get((request.episode, request.request)),
+                proposed=(choice.human_model, choice.robot_model),
+            )
+        )
+    return decisions
+
+
+def write_decisions(decisions: list[PolicyDecision], out: Path) -> dict[str, float]:
+    """CSV of the decisions next to the recorded ones; returns the agreement summary."""
+    with open(out, "w", newline="") as handle:
+        writer = csv.writer(handle)
+        writer.writerow(["episode", "request", "t_s", "distance_m", "recorded_i", "recorded_j",
+                         "policy_i", "policy_j"])  # fmt: skip
+        for d in decisions:
+            recorded = d.recorded or ("", "")
+            writer.writerow([d.episode, d.request, f"{d.t_s:.3f}", f"{d.distance_m:.4f}",
+                             *recorded, *d.proposed])  # fmt: skip
+    compared = [d for d in decisions if d.recorded is not None]
+    if not compared:
+        return {"decisions": len(decisions), "compared": 0}
+    return {
+        "decisions": len(decisions),
+        "compared": len(compared),
+        "agree_i": float(np.mean([d.recorded[0] == d.proposed[0] for d in compared if d.recorded])),
+        "agree_j": float(np.mean([d.recorded[1] == d.proposed[1] for d in compared if d.recorded])),
+        "agree_both": float(np.mean([d.recorded == d.proposed for d in compared])),
+    }

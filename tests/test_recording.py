@@ -193,3 +193,20 @@ def test_replaying_commands_to_a_live_sim_needs_force(
     finally:
         _stop([sim])
         observer.close()
+
+
+def test_replay_into_the_recorded_policy_reproduces_its_decisions(
+    session_recording: tuple[Path, Counter[str]], tmp_path: Path
+) -> None:
+    from dammrl.replay import into_policy, write_decisions
+    from services.policy.config import SHIPPED_POLICY
+
+    recording = read_recording(session_recording[0])
+    summary = write_decisions(into_policy(recording, SHIPPED_POLICY), tmp_path / "d.csv")
+    assert summary["compared"] >= 5 and summary["agree_both"] == 1.0
+    other = write_decisions(
+        into_policy(recording, SHIPPED_POLICY.parent.parent / "reward1"), tmp_path / "d1.csv"
+    )
+    assert other["compared"] == summary["compared"] and other["agree_both"] < 1.0
+    rows = (tmp_path / "d.csv").read_text().splitlines()
+    assert rows[0].startswith("episode,request") and len(rows) == summary["decisions"] + 1

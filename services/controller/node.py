@@ -81,6 +81,7 @@ class ControllerNode:
         bus.expect(ModelChoice, "policy")
 
     def run(self, stop: threading.Event) -> None:
+        self._wait_for_policy(stop)
         self._next_episode()
         while not stop.is_set():
             message = self.bus.receive(0.02)
@@ -88,6 +89,18 @@ class ControllerNode:
                 self._dispatch(message)
             self._watch()
             self.bus.report_health("holding" if self.controller.hold_reason else "ok")
+
+    def _wait_for_policy(self, stop: threading.Event) -> None:
+        """Start the first episode once the policy speaks (its first ModelChoice), so every
+        decision is the policy's; after ``policy_wait_s`` go on with the configured model."""
+        deadline = time.monotonic() + self.settings.policy_wait_s
+        while not stop.is_set() and time.monotonic() < deadline:
+            message = self.bus.receive(0.1)
+            if isinstance(message, ModelChoice):
+                self._dispatch(message)
+                return
+            self.bus.report_health("holding", "waiting for the policy")
+        log.warning("no ModelChoice from the policy: starting with M_%d,%d", *self.choice)
 
     # ---- messages -----------------------------------------------------------------
     def _dispatch(self, message: Message) -> None:

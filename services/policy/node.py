@@ -48,6 +48,7 @@ class PolicyNode:
         log.info("policy: %s", self.description)
         self.latest: CoreChoice = self.policy.decide(np.zeros(3), np.zeros(3))
         self.episode = 0
+        self._new_episode(0)
         self.publisher = bus.publisher(ModelChoice)
         bus.subscribe(DecisionRequest, TaskGoal)
         bus.expect(DecisionRequest, "controller")
@@ -58,17 +59,22 @@ class PolicyNode:
         while not stop.is_set():
             message = self.bus.receive(self.settings.publish_period_s)
             if isinstance(message, DecisionRequest):
-                self.episode = message.episode
+                self._new_episode(message.episode)
                 ee, goal = np.array(message.ee_pos_m), np.array(message.goal_m)
                 self.latest = self.policy.decide(ee, goal)
                 self._publish(message.request)
             elif isinstance(message, TaskGoal):
-                self.episode = message.episode
-                if isinstance(self.policy, LearnedPolicy):
-                    self.policy.reset()
+                self._new_episode(message.episode)
             else:
                 self._publish(-1)
             self.bus.report_health(self.health, self.description)
+
+    def _new_episode(self, episode: int) -> None:
+        """A new episode starts with no model in force (as in training)."""
+        if episode != self.episode or episode == 0:
+            self.episode = episode
+            if isinstance(self.policy, LearnedPolicy):
+                self.policy.reset()
 
     def _publish(self, request: int) -> None:
         choice = self.latest
