@@ -210,3 +210,25 @@ def test_replay_into_the_recorded_policy_reproduces_its_decisions(
     assert other["compared"] == summary["compared"] and other["agree_both"] < 1.0
     rows = (tmp_path / "d.csv").read_text().splitlines()
     assert rows[0].startswith("episode,request") and len(rows) == summary["decisions"] + 1
+
+
+def test_recordings_rotate_by_duration(tmp_path: Path) -> None:
+    port = free_port()
+    observer = Observer(port)
+    out = tmp_path / "rotating.mcap"
+    recorder = start_service("recorder", port, DAMMRL_RECORDER_OUT=str(out),
+                             DAMMRL_RECORDER_MAX_DURATION_S="1.5")  # fmt: skip
+    sim = start_service("sim", port)
+    try:
+        wait_for(lambda: len(list(tmp_path.glob("rotating*.mcap"))) >= 3, 30, "two rotations")
+    finally:
+        _stop([sim])
+        recorder.send_signal(signal.SIGINT)
+        recorder.wait(15)
+        observer.close()
+    names = {f.name for f in tmp_path.glob("rotating*.mcap")}
+    assert {"rotating.mcap", "rotating-001.mcap", "rotating-002.mcap"} <= names
+    files = [out] + sorted(tmp_path.glob("rotating-*.mcap"))
+    summaries = [info(f) for f in files]
+    assert all(s["complete"] for s in summaries)
+    assert all(s["topics"]["dammrl/robot/state"]["count"] > 50 for s in summaries[:-1])

@@ -11,6 +11,7 @@ Per-publisher sequence numbers are checked and gaps counted; the counts go into 
 from __future__ import annotations
 
 import json
+import logging
 import socket
 from collections import Counter
 from dataclasses import dataclass, field
@@ -24,6 +25,7 @@ from dammrl import __version__
 from schemas import Message, type_of
 
 PROFILE = "dammrl"
+log = logging.getLogger("dammrl.recorder")
 
 
 @dataclass
@@ -90,7 +92,9 @@ class McapRecorder:
             self.writer.add_message(channel, log_time_ns, payload, log_time_ns)
             return
         seq = header["seq"]
-        self.loss.see(key, str(header.get("source")), seq)
+        missing = self.loss.see(key, str(header.get("source")), seq)
+        if missing:
+            log.warning("%d message(s) missing on %s before seq %d", missing, key, seq)
         channel = self._channel(key, message_type)
         publish_ns = header["stamp_ns"] if header["stamp_ns"] >= 0 else log_time_ns
         self.writer.add_message(channel, log_time_ns, payload, publish_ns, seq % 2**32)
