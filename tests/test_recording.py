@@ -228,7 +228,7 @@ def test_recordings_rotate_by_duration(tmp_path: Path) -> None:
         observer.close()
     names = {f.name for f in tmp_path.glob("rotating*.mcap")}
     assert {"rotating.mcap", "rotating-001.mcap", "rotating-002.mcap"} <= names
-    files = [out] + sorted(tmp_path.glob("rotating-*.mcap"))
+    files = [out, *sorted(tmp_path.glob("rotating-*.mcap"))]
     summaries = [info(f) for f in files]
     assert all(s["complete"] for s in summaries)
     assert all(s["topics"]["dammrl/robot/state"]["count"] > 50 for s in summaries[:-1])
