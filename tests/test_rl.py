@@ -97,6 +97,7 @@ def test_environment_steps_one_decision_at_a_time() -> None:
 def test_training_writes_a_checkpoint_that_resumes_and_evaluates(tmp_path: Path) -> None:
     logs = train(1, tmp_path, SMALL, "cpu", progress=lambda _: None)
     assert len(logs) == 4 and (tmp_path / "training.png").exists()
+    assert list((tmp_path / "tensorboard").glob("events.out.tfevents.*"))
     checkpoint = load_checkpoint(tmp_path)
     assert checkpoint["reward"] == 1 and checkpoint["settings"]["episodes"] == 4
     more = train(

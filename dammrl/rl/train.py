@@ -1,8 +1,9 @@
 """``dammrl train`` and ``dammrl evaluate``: the dual-agent DQN on the reach environment.
 
 A run directory holds ``checkpoint.pt`` (networks, optimiser, counters and the settings
-that produced them; training resumes from it), ``training.csv`` (one row per episode)
-and ``training.png`` (returns, success rate, Q-values and losses of both agents).
+that produced them; training resumes from it), ``training.csv`` (one row per episode),
+``training.png`` (returns, success rate, Q-values and losses of both agents) and
+``tensorboard/`` (``tensorboard --logdir DIR``).
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ from typing import Any, Literal
 
 import numpy as np
 import torch
+from torch.utils.tensorboard import SummaryWriter
 
 from dammrl.episode import ReachRunner
 from dammrl.errors import DammrlError
@@ -78,15 +80,25 @@ def train(
     buffer = ReplayBuffer(settings.buffer_size, OBSERVATION_SIZE, settings.seed)
     logs, decisions = _resume(out, agent, reward, settings)
     started = time.monotonic()
+    board = SummaryWriter(str(out / "tensorboard"), purge_step=len(logs) + 1)
     for episode in range(len(logs), settings.episodes):
         log, decisions = _run_episode(env, agent, buffer, rng, episode, decisions, settings)
         logs.append(log)
+        _to_tensorboard(board, log)
         if (episode + 1) % 10 == 0 or episode + 1 == settings.episodes:
             progress(_progress_line(logs, settings, time.monotonic() - started))
         if (episode + 1) % 50 == 0 or episode + 1 == settings.episodes:
             save(out, agent, reward, settings, logs, decisions)
+    board.close()
     plot_training(logs, out / "training.png", reward)
     return logs
+
+
+def _to_tensorboard(board: SummaryWriter, log: EpisodeLog) -> None:
+    """The per-episode figures, under the names of the curves in training.png."""
+    for name, value in asdict(log).items():
+        if name != "episode" and np.isfinite(float(value)):
+            board.add_scalar(f"train/{name}", float(value), log.episode)
 
 
 def _run_episode(
