@@ -177,3 +177,49 @@ def test_shipped_reward_1_policy_takes_smaller_steps_near_the_goal_than_reward_2
             [models.steps_m(j).mean() for r in rollouts for d, _, j in r.decisions if d < 0.04]
         )
     assert near[1] < near[2]
+
+
+def test_policy_service_estimates_a_real_humans_model_and_publishes_the_posterior() -> None:
+    import threading
+    import time
+
+    from schemas import DecisionRequest, Intent, ModelChoice
+    from services.common.bus import Bus
+    from services.intent.config import HumanSettings
+    from services.intent.core import SimulatedHuman
+    from services.policy.config import PolicySettings
+    from services.policy.node import PolicyNode
+    from tests.busutil import client_settings, free_port, listener_settings
+
+    port, stop = free_port(), threading.Event()
+    with (
+        Bus(listener_settings(port), "controller") as controller,
+        Bus(client_settings(port), "intent") as sensor,
+        Bus(client_settings(port), "policy") as policy_bus,
+    ):
+        node = PolicyNode(PolicySettings(), policy_bus)
+        thread = threading.Thread(target=node.run, args=(stop,))
+        thread.start()
+        controller.subscribe(ModelChoice)
+        time.sleep(0.5)
+        human = SimulatedHuman(HumanSettings(), seed=3)  # a careful human: E_small, i = 2
+        requests, intents = controller.publisher(DecisionRequest), sensor.publisher(Intent)
+        goal, choices = (0.5, 0.0, -0.2), []
+        for k in range(1, 13):
+            ee = (0.4, 0.0, -0.1)
+            requests.publish(episode=1, request=k, t_s=k * 0.5, ee_pos_m=ee, goal_m=goal,
+                             primary_axis=0, human_model=1)  # fmt: skip
+            time.sleep(0.05)
+            decision = human.decide(0.0, np.array(ee), np.array(goal), 0, 2)
+            intents.publish(episode=1, request=k, u_h=decision.intent.u_h, human_model=1,
+                            radius_m=0.01, confidence=1.0, source="sensor",
+                            decision_s=decision.decision_s)  # fmt: skip
+            time.sleep(0.05)
+        time.sleep(0.3)
+        while (message := controller.receive(0)) is not None:
+            if isinstance(message, ModelChoice) and message.request > 0:
+                choices.append(message)
+        stop.set()
+        thread.join(5)
+    assert choices[-1].posterior is not None and choices[-1].posterior[1] > 0.95
+    assert choices[-1].human_model == 2

@@ -86,7 +86,7 @@ class DualAgentDQN:
         self.target_human.load_state_dict(self.q_human.state_dict())
         self.target_robot.load_state_dict(self.q_robot.state_dict())
 
-    def _robot_input(self, obs: torch.Tensor, human: torch.Tensor) -> torch.Tensor:
+    def robot_input(self, obs: torch.Tensor, human: torch.Tensor) -> torch.Tensor:
         one_hot = nn.functional.one_hot(human, self.actions[0]).float()
         return torch.cat([obs, one_hot], dim=1)
 
@@ -99,7 +99,7 @@ class DualAgentDQN:
         )  # fmt: skip
         if rng.random() < epsilon:
             return human, int(rng.integers(self.actions[1]))
-        q = self.q_robot(self._robot_input(x, torch.tensor([human], device=self.device)))
+        q = self.q_robot(self.robot_input(x, torch.tensor([human], device=self.device)))
         return human, int(q.argmax(1).item())
 
     def update(self, batch: tuple[np.ndarray, ...]) -> UpdateStats:
@@ -110,12 +110,12 @@ class DualAgentDQN:
         with torch.no_grad():
             next_human = self.q_human(next_obs).argmax(1)
             target_h = self.target_human(next_obs).max(1).values
-            target_r = self.target_robot(self._robot_input(next_obs, next_human)).max(1).values
+            target_r = self.target_robot(self.robot_input(next_obs, next_human)).max(1).values
             y_h = rewards + gamma * (1 - dones) * target_h
             y_r = rewards + gamma * (1 - dones) * target_r
         q_h = self.q_human(obs).gather(1, actions[:, :1]).squeeze(1)
         q_r = (
-            self.q_robot(self._robot_input(obs, actions[:, 0])).gather(1, actions[:, 1:]).squeeze(1)
+            self.q_robot(self.robot_input(obs, actions[:, 0])).gather(1, actions[:, 1:]).squeeze(1)
         )
         loss_h = nn.functional.smooth_l1_loss(q_h, y_h)
         loss_r = nn.functional.smooth_l1_loss(q_r, y_r)

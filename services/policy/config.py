@@ -33,6 +33,9 @@ class PolicySettings(BaseSettings):
     fallback_robot_model: int = Field(1, ge=1, le=8)
     """The safe fixed model used when the checkpoint cannot be loaded: M_2,1, the careful
     human's small sphere with all-small steps (the most accurate, never large moves)."""
+    estimate_human: Literal["auto", "always", "never"] = "auto"
+    """Estimate the human sub-model from their decisions (posterior) and use its MAP
+    radius: 'auto' when the intents come from a real sensor, or always, or never."""
     publish_period_s: float = Field(0.5, gt=0)
     """The latest ModelChoice is repeated this often, so late joiners learn it [s]."""
     models: ModelSet = ModelSet()

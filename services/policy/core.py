@@ -40,8 +40,15 @@ class FixedPolicy:
     def choose(self) -> ModelChoice:
         return self.choice
 
-    def decide(self, ee_pos: np.ndarray, goal: np.ndarray) -> ModelChoice:
-        return self.choice
+    def decide(
+        self, ee_pos: np.ndarray, goal: np.ndarray, human_model: int | None = None
+    ) -> ModelChoice:
+        """The fixed model (with ``human_model`` as i when the human's radius is known)."""
+        if human_model is None:
+            return self.choice
+        return ModelChoice(
+            human_model, self.choice.robot_model, self.choice.radius_m, self.choice.steps_m
+        )
 
 
 class LearnedPolicy:
@@ -65,10 +72,23 @@ class LearnedPolicy:
         self.previous: tuple[int, int] | None = None
         self.rng = np.random.default_rng(0)
 
-    def decide(self, ee_pos: np.ndarray, goal: np.ndarray) -> ModelChoice:
+    def decide(
+        self, ee_pos: np.ndarray, goal: np.ndarray, human_model: int | None = None
+    ) -> ModelChoice:
+        """Greedy (i, j); with ``human_model`` (a real human's estimated radius) Agent_1
+        chooses j for that i instead of Agent_0's choice."""
+        import torch
+
         from dammrl.rl.env import observe
 
-        i, j = self.agent.act(observe(ee_pos, goal, self.previous), 0.0, self.rng)
+        obs = observe(ee_pos, goal, self.previous)
+        i, j = self.agent.act(obs, 0.0, self.rng)
+        if human_model is not None:
+            i = human_model - 1
+            with torch.no_grad():
+                x = torch.as_tensor(obs).unsqueeze(0)
+                q = self.agent.q_robot(self.agent.robot_input(x, torch.tensor([i])))
+            j = int(q.argmax(1).item())
         self.previous = (i + 1, j + 1)
         return model_choice(self.models, i + 1, j + 1)
 

@@ -3,6 +3,9 @@
 The learned policy (a DAMMRL checkpoint) sees the end-effector, the goal and the model in
 force; if its checkpoint is missing, corrupt or made for another layout, the node says so
 (log and Health "degraded") and falls back to the safe fixed model of the settings.
+When the human is real (intents from a sensor), their sub-model is not given: the node
+scores each of their commands against the request it answered, updates the Bayesian
+posterior, uses its MAP radius as i and publishes the posterior with every choice.
 """
 
 from __future__ import annotations
@@ -14,9 +17,11 @@ from collections.abc import Sequence
 import numpy as np
 
 from dammrl.errors import DammrlError
-from schemas import DecisionRequest, ModelChoice, TaskGoal
+from dammrl.rl.posterior import HumanModelPosterior
+from schemas import DecisionRequest, Intent, ModelChoice, TaskGoal
 from services.common.bus import Bus
 from services.common.entry import run_service
+from services.intent.config import HumanSettings
 from services.policy.config import PolicySettings
 from services.policy.core import FixedPolicy, LearnedPolicy
 from services.policy.core import ModelChoice as CoreChoice
@@ -48,11 +53,15 @@ class PolicyNode:
         log.info("policy: %s", self.description)
         self.latest: CoreChoice = self.policy.decide(np.zeros(3), np.zeros(3))
         self.episode = 0
+        self.real_human = False
         self._new_episode(0)
         self.publisher = bus.publisher(ModelChoice)
-        bus.subscribe(DecisionRequest, TaskGoal)
+        self.posterior = HumanModelPosterior(HumanSettings())
+        self.requests: dict[tuple[int, int], DecisionRequest] = {}
+        bus.subscribe(DecisionRequest, TaskGoal, Intent)
         bus.expect(DecisionRequest, "controller")
         bus.expect(TaskGoal, "controller")
+        bus.expect(Intent, "intent")
 
     def run(self, stop: threading.Event) -> None:
         self._publish(-1)
@@ -60,14 +69,33 @@ class PolicyNode:
             message = self.bus.receive(self.settings.publish_period_s)
             if isinstance(message, DecisionRequest):
                 self._new_episode(message.episode)
+                self.requests[(message.episode, message.request)] = message
                 ee, goal = np.array(message.ee_pos_m), np.array(message.goal_m)
-                self.latest = self.policy.decide(ee, goal)
+                human = self.posterior.map_model if self.estimating else None
+                self.latest = self.policy.decide(ee, goal, human)
                 self._publish(message.request)
+            elif isinstance(message, Intent):
+                self._observe_human(message)
             elif isinstance(message, TaskGoal):
                 self._new_episode(message.episode)
             else:
                 self._publish(-1)
             self.bus.report_health(self.health, self.description)
+
+    @property
+    def estimating(self) -> bool:
+        mode = self.settings.estimate_human
+        return mode == "always" or (mode == "auto" and self.real_human)
+
+    def _observe_human(self, intent: Intent) -> None:
+        """Score a command against the request it answered; update the posterior."""
+        self.real_human = self.real_human or intent.source == "sensor"
+        request = self.requests.pop((intent.episode, intent.request), None)
+        if request is None or not self.estimating:
+            return
+        axis = request.primary_axis
+        toward = 1 if request.goal_m[axis] - request.ee_pos_m[axis] >= 0 else -1
+        self.posterior.update(intent.u_h == toward, intent.decision_s)
 
     def _new_episode(self, episode: int) -> None:
         """A new episode starts with no model in force (as in training)."""
@@ -85,6 +113,9 @@ class PolicyNode:
             robot_model=choice.robot_model,
             radius_m=choice.radius_m,
             steps_m=tuple(float(v) for v in choice.steps_m),
+            posterior=tuple(float(p) for p in self.posterior.probabilities)
+            if self.estimating
+            else None,
         )
 
 
