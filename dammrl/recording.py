@@ -11,6 +11,7 @@ import csv
 import json
 import struct
 from collections import Counter, defaultdict
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -24,6 +25,7 @@ from mcap.writer import CompressionType, Writer
 
 from dammrl.errors import DammrlError
 from schemas import DecisionRequest, DecodeError, Intent, decode, type_of
+from schemas import Message as BusMessage
 
 
 class RecordingError(DammrlError):
@@ -47,6 +49,18 @@ class Recording:
 
     def namespace(self) -> str:
         return self.metadata.get("dammrl.session", {}).get("namespace", "dammrl")
+
+    def decoded(self, *types: type[BusMessage]) -> Iterator[tuple[int, BusMessage]]:
+        """(log time ns, message) of the recorded messages of these types that decode."""
+        namespace = self.namespace()
+        for record in self.messages:
+            message_type = type_of(namespace, self.topic(record))
+            if message_type not in types:
+                continue
+            try:
+                yield record.log_time, decode(message_type, record.data)
+            except DecodeError:
+                continue
 
 
 def read_recording(path: Path) -> Recording:
@@ -238,21 +252,13 @@ def human_statistics(path: Path) -> dict[str, Any]:
     the request showed it (so real sensor decisions are scored like simulated ones).
     """
     recording = read_recording(path)
-    namespace = recording.namespace()
     requests: dict[tuple[int, int], DecisionRequest] = {}
     intents: list[tuple[int, Intent]] = []
-    for m in recording.messages:
-        message_type = type_of(namespace, recording.topic(m))
-        if message_type not in (DecisionRequest, Intent):
-            continue
-        try:
-            message = decode(message_type, m.data)
-        except DecodeError:
-            continue
+    for log_time, message in recording.decoded(DecisionRequest, Intent):
         if isinstance(message, DecisionRequest):
             requests[(message.episode, message.request)] = message
         elif isinstance(message, Intent):
-            intents.append((m.log_time, message))
+            intents.append((log_time, message))
     per_radius: dict[str, list[bool]] = defaultdict(list)
     decision_times: dict[str, list[float]] = defaultdict(list)
     for _, intent in intents:

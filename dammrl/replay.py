@@ -18,7 +18,7 @@ import zenoh
 from dammrl.errors import DammrlError
 from dammrl.models import ModelSet
 from dammrl.recording import Recording
-from schemas import DecisionRequest, DecodeError, ModelChoice, decode, type_of
+from schemas import DecisionRequest, ModelChoice
 from services.common.bus import zenoh_config
 from services.common.config import BusSettings
 
@@ -132,17 +132,9 @@ def into_policy(recording: Recording, checkpoint: Path) -> list[PolicyDecision]:
     from services.policy.core import LearnedPolicy
 
     policy = LearnedPolicy(ModelSet(), checkpoint)
-    namespace = recording.namespace()
     answers: dict[tuple[int, int], tuple[int, int]] = {}
     requests: list[DecisionRequest] = []
-    for message in recording.messages:
-        message_type = type_of(namespace, recording.topic(message))
-        if message_type not in (DecisionRequest, ModelChoice):
-            continue
-        try:
-            decoded = decode(message_type, message.data)
-        except DecodeError:
-            continue
+    for _, decoded in recording.decoded(DecisionRequest, ModelChoice):
         if isinstance(decoded, DecisionRequest):
             requests.append(decoded)
         elif isinstance(decoded, ModelChoice) and decoded.request >= 0:

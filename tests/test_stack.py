@@ -84,7 +84,8 @@ def test_dammrl_up_runs_episodes_and_exits_zero(port: int) -> None:
     assert {"t_total_s", "n_osc", "jerk_isj", "human_error_rate", "seed"} <= result.keys()
 
 
-def test_dammrl_up_stops_every_service_on_sigterm(port: int) -> None:
+def _launch_until_alive(port: int) -> tuple[subprocess.Popen[str], list[str]]:
+    """`dammrl up` until it reports every service alive; its child pids."""
     launcher = subprocess.Popen(
         [sys.executable, "-m", "dammrl.cli", "up", "--port", str(port)],
         stderr=subprocess.PIPE, text=True,
@@ -96,6 +97,11 @@ def test_dammrl_up_stops_every_service_on_sigterm(port: int) -> None:
     children = subprocess.run(
         ["pgrep", "-P", str(launcher.pid)], capture_output=True, text=True, check=False
     ).stdout.split()
+    return launcher, children
+
+
+def test_dammrl_up_stops_every_service_on_sigterm(port: int) -> None:
+    launcher, children = _launch_until_alive(port)
     assert len(children) == 4
     launcher.send_signal(signal.SIGTERM)
     assert launcher.wait(30) == 0
@@ -204,19 +210,9 @@ def test_status_lists_every_service_and_echo_decodes_a_topic(
 
 
 def test_dammrl_up_exits_non_zero_when_a_service_dies(port: int) -> None:
-    launcher = subprocess.Popen(
-        [sys.executable, "-m", "dammrl.cli", "up", "--port", str(port)],
-        stderr=subprocess.PIPE, text=True,
-    )  # fmt: skip
-    assert launcher.stderr is not None
-    deadline = time.monotonic() + 60
-    while "all services alive" not in launcher.stderr.readline():
-        assert time.monotonic() < deadline and launcher.poll() is None
-    children = subprocess.run(
-        ["pgrep", "-P", str(launcher.pid)], capture_output=True, text=True, check=False
-    ).stdout.split()
+    launcher, children = _launch_until_alive(port)
     os.kill(int(children[0]), signal.SIGKILL)
     assert launcher.wait(30) != 0
-    assert "exited unexpectedly" in launcher.stderr.read()
+    assert launcher.stderr is not None and "exited unexpectedly" in launcher.stderr.read()
     time.sleep(0.5)
     assert not [pid for pid in children[1:] if os.path.exists(f"/proc/{pid}")]
