@@ -1,0 +1,107 @@
+"""A virtual pressure sensor on a pseudo-terminal: the semi-virtual path without hardware.
+
+It opens a pty pair, links the slave side to a path (e.g. /tmp/ttySENSOR) that any
+serial client (pyserial, the intent service) opens like a real port, and writes frames
+of the wire protocol at the sensor's rate from a press script, with ADC noise, and on
+demand drop-outs and corrupted bytes.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+import tty
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from services.intent.decoder import Calibration
+from services.intent.protocol import RAW_MAX, SAMPLE_RATE_HZ, encode_frame
+
+DEFAULT_CALIBRATION = Calibration(rest_raw=400, light_raw=1200, firm_raw=3000)
+
+
+@dataclass(frozen=True)
+class Press:
+    start_s: float  # from the start of the script
+    duration_s: float
+    level: float  # 0 rest .. 1 firm (normalised)
+
+
+def press_level(presses: Sequence[Press], t_s: float, ramp_s: float = 0.05) -> float:
+    """Normalised pressure of a press script at ``t_s`` (trapezoid presses)."""
+    level = 0.0
+    for p in presses:
+        rise = min(t_s - p.start_s, p.start_s + p.duration_s - t_s) / ramp_s
+        level = max(level, p.level * min(max(rise, 0.0), 1.0))
+    return level
+
+
+class SensorEmulator:
+    """Writes frames into a pty until stopped (a context manager)."""
+
+    def __init__(
+        self,
+        link: Path,
+        presses: Sequence[Press],
+        calibration: Calibration = DEFAULT_CALIBRATION,
+        noise_raw: float = 12.0,
+        seed: int = 0,
+        loop_s: float | None = None,
+    ) -> None:
+        self.link = Path(link)
+        self.presses = list(presses)
+        self.calibration = calibration
+        self.noise_raw = noise_raw
+        self.loop_s = loop_s
+        self.rng = np.random.default_rng(seed)
+        self.silent = threading.Event()  # set: a drop-out, nothing is sent
+        self.corrupt_next = 0  # frames still to corrupt
+        self.sent = 0
+        self._stop = threading.Event()
+        self._master, self._slave = os.openpty()
+        tty.setraw(self._slave)  # no echo, no line discipline: bytes as they are
+        if self.link.is_symlink() or self.link.exists():
+            self.link.unlink()
+        self.link.symlink_to(os.ttyname(self._slave))
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def __enter__(self) -> SensorEmulator:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(2)
+        self.link.unlink(missing_ok=True)
+        for fd in (self._master, self._slave):
+            os.close(fd)
+
+    def raw_at(self, t_s: float) -> int:
+        level = press_level(self.presses, t_s)
+        c = self.calibration
+        raw = c.rest_raw + level * (c.firm_raw - c.rest_raw) + self.rng.normal(0, self.noise_raw)
+        return int(min(max(raw, 0), RAW_MAX))
+
+    def _run(self) -> None:
+        period, start, seq = 1.0 / SAMPLE_RATE_HZ, time.monotonic(), 0
+        while not self._stop.is_set():
+            t = seq * period
+            script_t = t % self.loop_s if self.loop_s else t
+            frame = encode_frame(seq, self.raw_at(script_t))
+            if self.corrupt_next > 0:
+                self.corrupt_next -= 1
+                frame = frame[:4] + b"\x07" + frame[5:]  # one bad byte: the checksum fails
+            if not self.silent.is_set():
+                os.write(self._master, frame)
+                self.sent += 1
+            seq += 1
+            delay = start + seq * period - time.monotonic()
+            if delay > 0:
+                time.sleep(delay)
