@@ -76,7 +76,10 @@ def _parser() -> argparse.ArgumentParser:
     up.add_argument("--model", type=_model_arg, metavar="I,J",
                     help="a fixed M_ij (default: the learned DAMMRL policy)")  # fmt: skip
     up.add_argument("--trigger", choices=["event", "fixed"], default="event")
-    up.add_argument("--port", type=int, default=7447, help="loopback port of the stack's endpoint")
+    up.add_argument("--port", help="semi-virtual: the pressure sensor's serial device")
+    up.add_argument(
+        "--bus-port", type=int, default=7447, help="loopback port of the stack's endpoint"
+    )
     up.add_argument("--namespace", default="dammrl")
     up.add_argument("--json", action="store_true", help="one JSON object per episode")
     up.add_argument(
@@ -315,7 +318,8 @@ def _up(args: argparse.Namespace) -> int:
 
     options = StackOptions(
         mode=args.mode, episodes=args.episodes, seed=args.seed, model=args.model,
-        trigger=args.trigger, port=args.port, namespace=args.namespace, json=args.json,
+        trigger=args.trigger, port=args.bus_port, namespace=args.namespace, json=args.json,
+        serial_port=args.port,
         record=args.record,
     )  # fmt: skip
     return Stack(options, out=_print, info=_print_err).run()

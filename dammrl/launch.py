@@ -27,7 +27,10 @@ from schemas import EpisodeResult, decode, key
 from services.common.bus import zenoh_config
 from services.common.config import BusSettings
 
-MODES = {"virtual": ("sim", "policy", "intent", "controller")}
+MODES = {
+    "virtual": ("sim", "policy", "intent", "controller"),
+    "semi-virtual": ("sim", "policy", "intent", "controller"),  # intent reads the sensor
+}
 START_TIMEOUT_S = 60.0
 STOP_TIMEOUT_S = 5.0
 
@@ -43,6 +46,7 @@ class StackOptions:
     namespace: str = "dammrl"
     json: bool = False
     record: Path | None = None  # also run the recorder into this MCAP file
+    serial_port: str | None = None  # semi-virtual: the pressure sensor's serial device
 
 
 def free_port(preferred: int) -> int:
@@ -73,8 +77,11 @@ class Stack:
         """``out`` receives the episode results, ``info`` the progress lines."""
         if options.mode not in MODES:
             raise DammrlError(
-                f"mode {options.mode!r} is not available; choose from {sorted(MODES)} "
-                "(semi-virtual arrives with the pressure-sensor service)"
+                f"mode {options.mode!r} is not available; choose from {sorted(MODES)}"
+            )
+        if options.mode == "semi-virtual" and not options.serial_port:
+            raise DammrlError(
+                "semi-virtual mode needs --port (the pressure sensor's serial device)"
             )
         self.options = options
         self.out = out
@@ -104,6 +111,8 @@ class Stack:
         if o.episodes is not None:
             env["DAMMRL_TASK_EPISODES"] = str(o.episodes)
         env.setdefault("DAMMRL_LOG_LEVEL", "WARNING")  # progress comes from the launcher
+        if o.mode == "semi-virtual":
+            env.update(DAMMRL_INTENT_SOURCE="serial", DAMMRL_INTENT_PORT=str(o.serial_port))
         if o.record is not None:
             env.update(DAMMRL_RECORDER_OUT=str(o.record), DAMMRL_RECORDER_MODE=o.mode)
         return env

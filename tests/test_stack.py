@@ -76,7 +76,7 @@ def _steps(observer: Observer) -> int:
 
 def test_dammrl_up_runs_episodes_and_exits_zero(port: int) -> None:
     command = [sys.executable, "-m", "dammrl.cli", "up", "--episodes", "1", "--json",
-               "--port", str(port), "--model", "2,1"]  # fmt: skip
+               "--bus-port", str(port), "--model", "2,1"]  # fmt: skip
     done = subprocess.run(command, capture_output=True, text=True, timeout=180, check=False)
     assert done.returncode == 0, done.stderr
     result = json.loads(done.stdout.strip().splitlines()[-1])
@@ -87,7 +87,7 @@ def test_dammrl_up_runs_episodes_and_exits_zero(port: int) -> None:
 def _launch_until_alive(port: int) -> tuple[subprocess.Popen[str], list[str]]:
     """`dammrl up` until it reports every service alive; its child pids."""
     launcher = subprocess.Popen(
-        [sys.executable, "-m", "dammrl.cli", "up", "--port", str(port)],
+        [sys.executable, "-m", "dammrl.cli", "up", "--bus-port", str(port)],
         stderr=subprocess.PIPE, text=True,
     )  # fmt: skip
     assert launcher.stderr is not None

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+from typing import Literal
+
 from pydantic import Field
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
@@ -32,6 +35,17 @@ class HumanSettings(BaseSettings):
     """Log-standard deviation of the decision time."""
     decision_min_s: float = Field(0.1, ge=0)
     """Shortest possible decision [s]."""
+    source: Literal["simulated", "serial"] = "simulated"
+    """Who decides: the simulated human (virtual mode) or a pressure sensor (semi-virtual)."""
+    port: str | None = None
+    """Serial device of the pressure sensor (semi-virtual), e.g. /dev/ttyUSB0."""
+    baud_rate: int = Field(115_200, gt=0)
+    calibration_file: Path | None = None
+    """JSON from `dammrl sensor calibrate`; None: the emulator's default calibration."""
+    sensor_stale_s: float = Field(0.5, gt=0)
+    """No valid frame for this long: the sensor is reported silent [s]."""
+    reconnect_max_s: float = Field(5.0, gt=0)
+    """Longest wait between attempts to reopen a lost serial device [s]."""
     policy_wait_s: float = Field(0.2, gt=0)
     """How long a decision request waits for the policy's ModelChoice [s]."""
     models: ModelSet = ModelSet()

@@ -14,7 +14,7 @@ import logging
 import threading
 import time
 from collections.abc import Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -24,6 +24,9 @@ from services.common.bus import Bus
 from services.common.entry import run_service
 from services.intent.config import HumanSettings
 from services.intent.core import SimulatedHuman
+
+if TYPE_CHECKING:
+    from services.intent.sensor_node import SensorIntentNode
 
 log = logging.getLogger("dammrl.intent")
 
@@ -100,6 +103,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         "intent",
         "Intent service: the simulated human answers decision requests.",
         "DAMMRL_INTENT_*",
-        lambda bus, _: IntentNode(HumanSettings(), bus),
+        lambda bus, _: _node(HumanSettings(), bus),
         argv,
     )
+
+
+def _node(settings: HumanSettings, bus: Bus) -> IntentNode | SensorIntentNode:
+    """The simulated human (virtual mode) or the pressure sensor (semi-virtual mode)."""
+    if settings.source == "serial":
+        from services.intent.sensor_node import SensorIntentNode
+
+        return SensorIntentNode(settings, bus)
+    return IntentNode(settings, bus)
