@@ -108,6 +108,20 @@ def _parser() -> argparse.ArgumentParser:
 
     _add_recording_commands(commands)
 
+    sensor = commands.add_parser("sensor", help="the pressure sensor (semi-virtual mode)")
+    sensor_actions = sensor.add_subparsers(required=True, metavar="ACTION")
+    listing = sensor_actions.add_parser("list", help="serial ports found, with descriptions")
+    listing.set_defaults(handler=_sensor_list)
+    emulate = sensor_actions.add_parser(
+        "emulate", help="a virtual sensor on a pseudo-terminal (until Ctrl-C)"
+    )
+    emulate.add_argument("--link", type=Path, default=Path("/tmp/ttySENSOR"),
+                         help="path the emulated port appears at")  # fmt: skip
+    emulate.add_argument("--period", type=float, default=1.0,
+                         help="a quick firm press every PERIOD seconds [s]")  # fmt: skip
+    emulate.add_argument("--seconds", type=float, help="stop after this long")
+    emulate.set_defaults(handler=_sensor_emulate)
+
     train = commands.add_parser("train", help="train the dual-agent DQN (DAMMRL)")
     train.add_argument("--reward", type=int, choices=[1, 2], required=True,
                        help="1: accuracy focus (beta = 0); 2: speed and accuracy")  # fmt: skip
@@ -274,6 +288,34 @@ def _evaluate(args: argparse.Namespace) -> int:
         print(json.dumps(result))
     else:
         print("\n".join(f"{k:22s} {v}" for k, v in result.items()))
+    return 0
+
+
+def _sensor_list(args: argparse.Namespace) -> int:
+    from serial.tools import list_ports
+
+    ports = sorted(list_ports.comports(), key=lambda p: p.device)
+    if not ports:
+        print("no serial port found (a USB sensor appears as /dev/ttyUSB* or /dev/ttyACM*)")
+    for port in ports:
+        print(f"{port.device:20s} {port.description}  [{port.hwid}]")
+    return 0
+
+
+def _sensor_emulate(args: argparse.Namespace) -> int:
+    import signal
+    import threading
+
+    from services.intent.emulator import Press, SensorEmulator
+
+    stop = threading.Event()
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, lambda *_: stop.set())
+    script = [Press(0.2, 0.2, 1.0)]  # quick firm presses: +1 with E_big
+    with SensorEmulator(args.link, script, loop_s=args.period) as sensor:
+        print(f"sensor on {args.link}: a quick firm press every {args.period} s (Ctrl-C stops)")
+        stop.wait(args.seconds)
+        print(f"sent {sensor.sent} frames")
     return 0
 
 

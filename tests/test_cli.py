@@ -52,3 +52,39 @@ def test_bad_setting_from_the_environment_is_a_clear_error(
     monkeypatch.setenv("DAMMRL_CONTROLLER_FIXED_PERIOD_S", "-1")
     assert main(["reach"]) == 2
     assert "fixed_period_s" in capsys.readouterr().err
+
+
+def test_sensor_list_prints_ports_or_says_none(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["sensor", "list"]) == 0
+    out = capsys.readouterr().out
+    assert out.strip()
+
+
+def test_sensor_emulate_serves_frames_on_its_link(tmp_path: Path) -> None:
+    import subprocess
+    import sys
+    import time
+
+    import serial
+
+    from services.intent.protocol import FrameParser
+
+    link = tmp_path / "ttyEMU"
+    emulator = subprocess.Popen(
+        [sys.executable, "-m", "dammrl.cli", "sensor", "emulate", "--link", str(link),
+         "--seconds", "5"], stdout=subprocess.PIPE,
+    )  # fmt: skip
+    try:
+        deadline = time.monotonic() + 10
+        while not link.exists():
+            assert time.monotonic() < deadline
+            time.sleep(0.05)
+        parser = FrameParser()
+        with serial.Serial(str(link), timeout=0.5) as port:
+            frames = []
+            while len(frames) < 20 and time.monotonic() < deadline:
+                frames += parser.feed(port.read(64))
+        assert len(frames) >= 20 and not parser.errors
+    finally:
+        emulator.terminate()
+        emulator.wait(10)
