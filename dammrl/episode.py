@@ -197,7 +197,6 @@ class Episode:
         self.hold_s: float | None = None  # when the controller entered a hold
         self.hold_until: float | None = None  # end of the observation after a hold
         self.last_state: RobotState  # the last state observed (set by the loop)
-        self.choice: ModelChoice | None = None  # the model in force
         self.button_pressed = False
         self.log = np.full((capacity, 3 + 3 + 6 + 6 + 3 + 1 + 1), np.nan)
         self.n = 0
@@ -259,7 +258,6 @@ class Episode:
         return False
 
     def _ask_human(self, state: RobotState, choice: ModelChoice) -> None:
-        self.choice = choice
         self.controller.set_steps(choice.steps_m)
         axis = self.controller.settings.primary_axis
         self.pending = self.human.decide(

@@ -26,6 +26,7 @@ from mcap.writer import CompressionType, Writer
 from dammrl.errors import DammrlError
 from schemas import DecisionRequest, DecodeError, Intent, decode, type_of
 from schemas import Message as BusMessage
+from services.intent.core import direction_to_goal
 
 
 class RecordingError(DammrlError):
@@ -139,24 +140,29 @@ def sequence_gaps(recording: Recording) -> dict[str, int]:
     return dict(gaps)
 
 
+def _copy_schemas_and_metadata(recording: Recording, writer: Writer) -> dict[int, int]:
+    """Register the recording's schemas and metadata in ``writer``; old -> new schema ids."""
+    for name, data in recording.metadata.items():
+        writer.add_metadata(name, data)
+    return {
+        sid: writer.register_schema(s.name, s.encoding, s.data)
+        for sid, s in recording.schemas.items()
+    }
+
+
 def repair(path: Path, out: Path) -> dict[str, Any]:
     """Rewrite the readable part of ``path`` as a complete MCAP ``out``."""
     recording = read_recording(path)
     with open(out, "wb") as stream:
         writer = Writer(stream, compression=CompressionType.ZSTD)
         writer.start(profile="dammrl", library="dammrl recording repair")
-        schema_ids = {
-            sid: writer.register_schema(s.name, s.encoding, s.data)
-            for sid, s in recording.schemas.items()
-        }
+        schema_ids = _copy_schemas_and_metadata(recording, writer)
         channel_ids = {
             cid: writer.register_channel(
                 c.topic, c.message_encoding, schema_ids.get(c.schema_id, 0), c.metadata
             )
             for cid, c in recording.channels.items()
         }
-        for name, data in recording.metadata.items():
-            writer.add_metadata(name, data)
         for m in recording.messages:
             writer.add_message(
                 channel_ids[m.channel_id], m.log_time, m.data, m.publish_time, m.sequence
@@ -174,10 +180,7 @@ def export_json(path: Path, out: Path) -> int:
     with open(out, "wb") as stream:
         writer = Writer(stream, compression=CompressionType.ZSTD)
         writer.start(profile="", library="dammrl recording export")
-        schema_ids = {
-            sid: writer.register_schema(s.name, s.encoding, s.data)
-            for sid, s in recording.schemas.items()
-        }
+        schema_ids = _copy_schemas_and_metadata(recording, writer)
         channel_ids = {}
         for cid, c in recording.channels.items():
             if c.metadata.get("dammrl.invalid") or c.schema_id not in schema_ids:
@@ -185,8 +188,6 @@ def export_json(path: Path, out: Path) -> int:
             channel_ids[cid] = writer.register_channel(
                 c.topic, "json", schema_ids[c.schema_id], c.metadata
             )
-        for name, data in recording.metadata.items():
-            writer.add_metadata(name, data)
         for m in recording.messages:
             if m.channel_id not in channel_ids:
                 continue
@@ -265,8 +266,7 @@ def human_statistics(path: Path) -> dict[str, Any]:
         request = requests.get((intent.episode, intent.request))
         if request is None:
             continue
-        axis = request.primary_axis
-        toward = 1 if request.goal_m[axis] - request.ee_pos_m[axis] >= 0 else -1
+        toward = direction_to_goal(request.ee_pos_m, request.goal_m, request.primary_axis)
         radius = "E_big" if intent.human_model == 1 else "E_small"
         per_radius[radius].append(intent.u_h == toward)
         decision_times[radius].append(intent.decision_s)

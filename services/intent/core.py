@@ -7,6 +7,7 @@ makes the decision available only after that time.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -20,6 +21,13 @@ class Decision:
     intent: Intent  # t_s of the intent is when the decision becomes available
     correct: bool  # whether u_h points toward the goal (known only in simulation)
     decision_s: float  # how long the human took [s]
+
+
+def direction_to_goal(
+    ee_pos: Sequence[float] | np.ndarray, goal: Sequence[float] | np.ndarray, axis: int
+) -> int:
+    """The correct binary command: +1 when the goal lies ahead along ``axis``, else -1."""
+    return 1 if goal[axis] - ee_pos[axis] >= 0 else -1
 
 
 class SimulatedHuman:
@@ -44,7 +52,7 @@ class SimulatedHuman:
         self, t_s: float, ee_pos: np.ndarray, goal: np.ndarray, axis: int, human_model: int
     ) -> Decision:
         """Decide at ``t_s`` from the perceived error along the primary ``axis``."""
-        toward_goal = 1 if goal[axis] - ee_pos[axis] >= 0 else -1
+        toward_goal = direction_to_goal(ee_pos, goal, axis)
         correct = bool(self.rng.random() < self.accuracy(human_model))
         decision_s = self.decision_time_s(human_model)
         intent = Intent(

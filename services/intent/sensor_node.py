@@ -17,6 +17,7 @@ import time
 
 import serial
 
+from dammrl.errors import ConfigurationError
 from schemas import DecisionRequest, Intent, Message, SensorSample, TaskGoal
 from services.common.bus import Bus
 from services.intent.config import HumanSettings
@@ -28,15 +29,19 @@ log = logging.getLogger("dammrl.intent")
 
 
 def load_calibration(settings: HumanSettings) -> Calibration:
-    if settings.calibration_file is None:
+    path = settings.calibration_file
+    if path is None:
         return DEFAULT_CALIBRATION
-    return Calibration.model_validate_json(settings.calibration_file.read_text())
+    try:
+        return Calibration.model_validate_json(path.read_text())
+    except OSError as exc:
+        raise ConfigurationError(f"cannot read the calibration file {path}: {exc}") from exc
 
 
 class SensorIntentNode:
     def __init__(self, settings: HumanSettings, bus: Bus) -> None:
         if settings.port is None:
-            raise ValueError("DAMMRL_INTENT_PORT (the sensor's serial device) is not set")
+            raise ConfigurationError("DAMMRL_INTENT_PORT (the sensor's serial device) is not set")
         self.settings = settings
         self.bus = bus
         self.calibration = load_calibration(settings)

@@ -22,6 +22,7 @@ from schemas import DecisionRequest, Intent, ModelChoice, TaskGoal
 from services.common.bus import Bus
 from services.common.entry import run_service
 from services.intent.config import HumanSettings
+from services.intent.core import direction_to_goal
 from services.policy.config import PolicySettings
 from services.policy.core import FixedPolicy, LearnedPolicy
 from services.policy.core import ModelChoice as CoreChoice
@@ -93,8 +94,7 @@ class PolicyNode:
         request = self.requests.pop((intent.episode, intent.request), None)
         if request is None or not self.estimating:
             return
-        axis = request.primary_axis
-        toward = 1 if request.goal_m[axis] - request.ee_pos_m[axis] >= 0 else -1
+        toward = direction_to_goal(request.ee_pos_m, request.goal_m, request.primary_axis)
         self.posterior.update(intent.u_h == toward, intent.decision_s)
 
     def _new_episode(self, episode: int) -> None:

@@ -22,6 +22,7 @@ import msgpack
 from mcap.writer import CompressionType, Writer
 
 from dammrl import __version__
+from dammrl.errors import DammrlError
 from schemas import Message, type_of
 
 PROFILE = "dammrl"
@@ -67,7 +68,10 @@ class McapRecorder:
     def __init__(self, path: Path, namespace: str, metadata: dict[str, str], chunk_bytes: int):
         self.path = path
         self.namespace = namespace
-        self._stream: IO[bytes] = open(path, "wb")  # noqa: SIM115 - closed in finish()
+        try:
+            self._stream: IO[bytes] = open(path, "wb")  # noqa: SIM115 - closed in finish()
+        except OSError as exc:
+            raise DammrlError(f"cannot record to {path}: {exc}") from exc
         self.writer = Writer(self._stream, chunk_size=chunk_bytes, compression=CompressionType.ZSTD)
         self.writer.start(profile=PROFILE, library=f"dammrl {__version__}")
         self.writer.add_metadata(

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import zenoh
 
+from dammrl.errors import DammrlError
 from services.common.bus import Bus
 from services.common.entry import run_service
 from services.recorder.config import RecorderSettings
@@ -84,9 +85,11 @@ class RecorderNode:
                 out if not self.files else out.with_name(f"{out.stem}-{len(self.files):03d}.mcap")
             )
         else:
-            out.mkdir(parents=True, exist_ok=True)
             path = out / f"session-{datetime.now(UTC):%Y%m%d-%H%M%S-%f}.mcap"
-        path.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise DammrlError(f"cannot create {path.parent}: {exc}") from exc
         self.files.append(path)
         log.info("recording to %s", path)
         metadata = {"mode": self.settings.mode, "settings": self.settings.model_dump_json()}
