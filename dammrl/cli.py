@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import threading
 from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -15,6 +16,7 @@ from dammrl.errors import DammrlError
 
 if TYPE_CHECKING:
     from services.common.config import BusSettings
+    from services.intent.emulator import SensorEmulator
 from dammrl.models import parse_model
 
 
@@ -108,19 +110,7 @@ def _parser() -> argparse.ArgumentParser:
 
     _add_recording_commands(commands)
 
-    sensor = commands.add_parser("sensor", help="the pressure sensor (semi-virtual mode)")
-    sensor_actions = sensor.add_subparsers(required=True, metavar="ACTION")
-    listing = sensor_actions.add_parser("list", help="serial ports found, with descriptions")
-    listing.set_defaults(handler=_sensor_list)
-    emulate = sensor_actions.add_parser(
-        "emulate", help="a virtual sensor on a pseudo-terminal (until Ctrl-C)"
-    )
-    emulate.add_argument("--link", type=Path, default=Path("/tmp/ttySENSOR"),
-                         help="path the emulated port appears at")  # fmt: skip
-    emulate.add_argument("--period", type=float, default=1.0,
-                         help="a quick firm press every PERIOD seconds [s]")  # fmt: skip
-    emulate.add_argument("--seconds", type=float, help="stop after this long")
-    emulate.set_defaults(handler=_sensor_emulate)
+    _add_sensor_commands(commands)
 
     train = commands.add_parser("train", help="train the dual-agent DQN (DAMMRL)")
     train.add_argument("--reward", type=int, choices=[1, 2], required=True,
@@ -140,6 +130,68 @@ def _parser() -> argparse.ArgumentParser:
     schemas.add_argument("--out", type=Path, required=True, metavar="DIR")
     schemas.set_defaults(handler=_schemas)
     return parser
+
+
+def _add_sensor_commands(commands: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    sensor = commands.add_parser("sensor", help="the pressure sensor (semi-virtual mode)")
+    actions = sensor.add_subparsers(required=True, metavar="ACTION")
+    listing = actions.add_parser("list", help="serial ports found, with descriptions")
+    listing.set_defaults(handler=_sensor_list)
+
+    calibrate = actions.add_parser(
+        "calibrate",
+        help="guided: rest, light press, firm press; saves a calibration file",
+        description="Record the pad at rest, under a light and under a firm press, and save "
+        "the calibration the intent service reads (DAMMRL_INTENT_CALIBRATION_FILE).",
+    )
+    calibrate.add_argument("--port", required=True, help="serial device, e.g. /dev/ttyUSB0")
+    calibrate.add_argument("--out", type=Path, default=Path("sensor_calibration.json"),
+                           help="where to save it (default sensor_calibration.json)")  # fmt: skip
+    calibrate.add_argument("--seconds", type=float, default=3.0, help="recording per step [s]")
+    calibrate.add_argument("--yes", action="store_true",
+                           help="do not wait for Enter before each step (scripts)")  # fmt: skip
+    calibrate.set_defaults(handler=_sensor_calibrate)
+
+    monitor = actions.add_parser(
+        "monitor", help="live pressure, decoded command and radius choice (until Ctrl-C)"
+    )
+    monitor.add_argument("--port", required=True, help="serial device, e.g. /dev/ttyUSB0")
+    monitor.add_argument(
+        "--calibration", type=Path, help="calibration file (default DAMMRL_INTENT_CALIBRATION_FILE)"
+    )
+    monitor.add_argument("--seconds", type=float, help="stop after this long")
+    monitor.set_defaults(handler=_sensor_monitor)
+
+    emulate = actions.add_parser(
+        "emulate",
+        help="a virtual sensor on a pseudo-terminal (until Ctrl-C)",
+        description="A virtual pressure sensor: frames of the wire protocol on a "
+        "pseudo-terminal linked at --link, which the stack opens like a real port.",
+    )
+    emulate.add_argument("--link", type=Path, default=Path("/tmp/ttySENSOR"),
+                         help="path the emulated port appears at")  # fmt: skip
+    emulate.add_argument(
+        "--pattern",
+        choices=["taps", "keyboard", "patient"],
+        default="taps",
+        help="taps: a quick firm press every --period s; keyboard: you press keys; "
+        "patient: a simulated patient answers the stack's decision requests",
+    )
+    emulate.add_argument("--period", type=float, default=1.0, help="taps: seconds between presses")
+    emulate.add_argument("--patient-model", type=int, choices=[1, 2], default=2,
+                         help="patient: 1 hurried (quick presses, E_big), 2 careful (held, "
+                         "E_small)")  # fmt: skip
+    emulate.add_argument("--seed", type=int, default=0, help="patient's decisions, ADC noise")
+    emulate.add_argument(
+        "--connect",
+        action="append",
+        metavar="ENDPOINT",
+        help="patient: the stack's endpoint (default tcp/127.0.0.1:7447)",
+    )
+    emulate.add_argument("--namespace", default="dammrl")
+    emulate.add_argument("--rate", type=float, default=100.0, help="frames per second")
+    emulate.add_argument("--seconds", type=float, help="stop after this long")
+    emulate.set_defaults(handler=_sensor_emulate)
 
 
 def _add_recording_commands(commands: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -302,21 +354,97 @@ def _sensor_list(args: argparse.Namespace) -> int:
     return 0
 
 
-def _sensor_emulate(args: argparse.Namespace) -> int:
-    import signal
-    import threading
+def _sensor_calibrate(args: argparse.Namespace) -> int:
+    from dammrl.sensor import calibrate, quiet_reader
+    from services.intent.serial_sensor import SerialSensor
 
+    quiet_reader()
+
+    def ready(step: str) -> None:
+        print(f"\n{step}")
+        if not args.yes:
+            input(f"  Press Enter to start the {args.seconds:.0f} s recording... ")
+
+    def show(line: str) -> None:
+        end = "\r" if line.startswith("  recording") else "\n"
+        print(f"\x1b[2K{line}" if sys.stdout.isatty() else line, end=end, flush=True)
+
+    print(f"Calibrating the pressure sensor on {args.port}: three {args.seconds:.0f} s recordings.")
+    try:
+        with SerialSensor(args.port, reconnect_max_s=1.0) as sensor:
+            calibration = calibrate(sensor, args.seconds, ready, show)
+    except (KeyboardInterrupt, EOFError):
+        print("\ncalibration cancelled; nothing saved (--yes runs without Enter)")
+        return 130
+    args.out.write_text(calibration.model_dump_json(indent=2) + "\n")
+    print(
+        f"\nSaved {args.out}: rest {calibration.rest_raw:.0f}, light {calibration.light_raw:.0f},"
+        f" firm {calibration.firm_raw:.0f} raw.\nCheck it:   dammrl sensor monitor --port "
+        f"{args.port} --calibration {args.out}\nUse it:     DAMMRL_INTENT_CALIBRATION_FILE="
+        f"{args.out.resolve()} dammrl up --mode semi-virtual --port {args.port}"
+    )
+    return 0
+
+
+def _sensor_monitor(args: argparse.Namespace) -> int:
+    from dammrl.models import ModelSet
+    from dammrl.sensor import Monitor, quiet_reader, wait_for_frames
+    from services.common.runtime import stop_on_signals
+    from services.intent.calibration import load_calibration
+    from services.intent.config import HumanSettings
+    from services.intent.decoder import PressDecoder
+    from services.intent.serial_sensor import SerialSensor
+
+    quiet_reader()
+    calibration = load_calibration(args.calibration or HumanSettings().calibration_file)
+    stop = stop_on_signals()
+    with SerialSensor(args.port, reconnect_max_s=1.0) as sensor:
+        wait_for_frames(sensor)
+        _stop_after(stop, args.seconds)
+        Monitor(sensor, PressDecoder(calibration), ModelSet()).run(stop)
+    return 0
+
+
+def _sensor_emulate(args: argparse.Namespace) -> int:
+    from dammrl.sensor import KEYS, keyboard
+    from services.common.runtime import stop_on_signals
     from services.intent.emulator import Press, SensorEmulator
 
-    stop = threading.Event()
-    for signum in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(signum, lambda *_: stop.set())
-    script = [Press(0.2, 0.2, 1.0)]  # quick firm presses: +1 with E_big
-    with SensorEmulator(args.link, script, loop_s=args.period) as sensor:
-        print(f"sensor on {args.link}: a quick firm press every {args.period} s (Ctrl-C stops)")
-        stop.wait(args.seconds)
-        print(f"sent {sensor.sent} frames")
+    stop = stop_on_signals()
+    _stop_after(stop, args.seconds)
+    script = [Press(0.2, 0.2, 1.0)] if args.pattern == "taps" else []
+    loop_s = args.period if args.pattern == "taps" else None
+    with SensorEmulator(args.link, script, loop_s=loop_s, seed=args.seed, rate_hz=args.rate) as pad:
+        print(f"emulated sensor on {args.link} ({args.rate:.0f} frames/s); Ctrl-C stops")
+        if args.pattern == "taps":
+            print(f"a quick firm press (+1, E_big) every {args.period} s")
+            stop.wait()
+        elif args.pattern == "keyboard":
+            print(KEYS, flush=True)
+            keyboard(pad, stop)
+        else:
+            _patient(args, pad, stop)
+        print(f"\nsent {pad.sent} frames")
     return 0
+
+
+def _stop_after(stop: threading.Event, seconds: float | None) -> None:
+    if seconds is not None:
+        timer = threading.Timer(seconds, stop.set)
+        timer.daemon = True
+        timer.start()
+
+
+def _patient(args: argparse.Namespace, pad: SensorEmulator, stop: threading.Event) -> None:
+    from services.common.bus import Bus
+    from services.intent.patient import SimulatedPatient
+
+    patient = SimulatedPatient(pad, args.patient_model, seed=args.seed)
+    kind = "hurried: quick presses, E_big" if args.patient_model == 1 else "careful: held, E_small"
+    print(f"simulated patient (M_{args.patient_model}, {kind}) answering decision requests")
+    with Bus(_client_settings(args), "patient") as bus:
+        patient.run(bus, stop)
+    print(f"answered {patient.answered} requests")
 
 
 def _model_arg(text: str) -> tuple[int, int]:

@@ -176,6 +176,10 @@ class SensorSample(Message):
     device_seq: int = Field(ge=0, description="sequence number sent by the device")
     raw: int = Field(description="ADC counts as sent by the device")
     pressure_kpa: Finite | None = Field(None, description="calibrated pressure [kPa]")
+    level: Finite | None = Field(
+        None, description="filtered pressure normalised by the calibration: 0 rest, 1 firm"
+    )
+    pressed: bool | None = Field(None, description="inside a press (hysteresis on)")
 
 
 class Health(Message):

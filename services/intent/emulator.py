@@ -3,7 +3,9 @@
 It opens a pty pair, links the slave side to a path (e.g. /tmp/ttySENSOR) that any
 serial client (pyserial, the intent service) opens like a real port, and writes frames
 of the wire protocol at the sensor's rate from a press script, with ADC noise, and on
-demand drop-outs and corrupted bytes.
+demand drop-outs and corrupted bytes. Presses can also be added while it runs
+(:meth:`SensorEmulator.press`, :meth:`SensorEmulator.hold`): from the keyboard or from a
+simulated patient (``services/intent/patient.py``).
 """
 
 from __future__ import annotations
@@ -51,12 +53,19 @@ class SensorEmulator:
         noise_raw: float = 12.0,
         seed: int = 0,
         loop_s: float | None = None,
+        rate_hz: float = SAMPLE_RATE_HZ,
+        record_write_times: bool = False,
     ) -> None:
         self.link = Path(link)
         self.presses = list(presses)
         self.calibration = calibration
         self.noise_raw = noise_raw
         self.loop_s = loop_s
+        self.rate_hz = rate_hz
+        self.live: list[Press] = []  # presses added while running, on the emulator's clock
+        self.held_level = 0.0  # a press held until released (keyboard)
+        self.write_times: dict[int, float] | None = {} if record_write_times else None
+        """When each frame (by absolute sequence number) was written (benchmarks)."""
         self.rng = np.random.default_rng(seed)
         self.silent = threading.Event()  # set: a drop-out, nothing is sent
         self.corrupt_next = 0  # frames still to corrupt
@@ -68,8 +77,10 @@ class SensorEmulator:
             self.link.unlink()
         self.link.symlink_to(os.ttyname(self._slave))
         self._thread = threading.Thread(target=self._run, daemon=True)
+        self._start = time.monotonic()
 
     def __enter__(self) -> SensorEmulator:
+        self._start = time.monotonic()
         self._thread.start()
         return self
 
@@ -83,25 +94,46 @@ class SensorEmulator:
         for fd in (self._master, self._slave):
             os.close(fd)
 
-    def raw_at(self, t_s: float) -> int:
-        level = press_level(self.presses, t_s)
+    @property
+    def clock_s(self) -> float:
+        """Seconds since the emulator started (the time of its next frame)."""
+        return time.monotonic() - self._start
+
+    def press(self, level: float, duration_s: float, delay_s: float = 0.0) -> None:
+        """Add one press starting ``delay_s`` from now."""
+        now = self.clock_s
+        recent = [p for p in self.live if p.start_s + p.duration_s > now - 1.0]
+        self.live = [*recent, Press(now + delay_s, duration_s, level)]  # one atomic swap
+
+    def hold(self, level: float) -> None:
+        """Press at ``level`` until :meth:`hold` is called again (0 releases)."""
+        self.held_level = level
+
+    def level_at(self, script_t_s: float, t_s: float) -> float:
+        scripted = press_level(self.presses, script_t_s)
+        return max(scripted, press_level(self.live, t_s), self.held_level)
+
+    def raw_at(self, t_s: float, level: float | None = None) -> int:
+        level = press_level(self.presses, t_s) if level is None else level
         c = self.calibration
         raw = c.rest_raw + level * (c.firm_raw - c.rest_raw) + self.rng.normal(0, self.noise_raw)
         return int(min(max(raw, 0), RAW_MAX))
 
     def _run(self) -> None:
-        period, start, seq = 1.0 / SAMPLE_RATE_HZ, time.monotonic(), 0
+        period, seq = 1.0 / self.rate_hz, 0
         while not self._stop.is_set():
             t = seq * period
             script_t = t % self.loop_s if self.loop_s else t
-            frame = encode_frame(seq, self.raw_at(script_t))
+            frame = encode_frame(seq, self.raw_at(t, self.level_at(script_t, t)))
             if self.corrupt_next > 0:
                 self.corrupt_next -= 1
                 frame = frame[:4] + b"\x07" + frame[5:]  # one bad byte: the checksum fails
             if not self.silent.is_set():
                 os.write(self._master, frame)
+                if self.write_times is not None:
+                    self.write_times[seq] = time.monotonic()
                 self.sent += 1
             seq += 1
-            delay = start + seq * period - time.monotonic()
-            if delay > 0:
+            delay = self._start + seq * period - time.monotonic()
+            if delay > 0:  # behind schedule: the next frames go out back to back
                 time.sleep(delay)

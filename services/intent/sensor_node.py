@@ -10,32 +10,16 @@ takes no step: it holds.
 
 from __future__ import annotations
 
-import contextlib
-import logging
 import threading
 import time
-
-import serial
 
 from dammrl.errors import ConfigurationError
 from schemas import DecisionRequest, Intent, Message, SensorSample, TaskGoal
 from services.common.bus import Bus
+from services.intent.calibration import load_calibration
 from services.intent.config import HumanSettings
-from services.intent.decoder import Calibration, PressDecision, PressDecoder
-from services.intent.emulator import DEFAULT_CALIBRATION
-from services.intent.protocol import FrameParser
-
-log = logging.getLogger("dammrl.intent")
-
-
-def load_calibration(settings: HumanSettings) -> Calibration:
-    path = settings.calibration_file
-    if path is None:
-        return DEFAULT_CALIBRATION
-    try:
-        return Calibration.model_validate_json(path.read_text())
-    except OSError as exc:
-        raise ConfigurationError(f"cannot read the calibration file {path}: {exc}") from exc
+from services.intent.decoder import PressDecision, PressDecoder
+from services.intent.serial_sensor import Arrival, SerialSensor
 
 
 class SensorIntentNode:
@@ -44,12 +28,9 @@ class SensorIntentNode:
             raise ConfigurationError("DAMMRL_INTENT_PORT (the sensor's serial device) is not set")
         self.settings = settings
         self.bus = bus
-        self.calibration = load_calibration(settings)
+        self.calibration = load_calibration(settings.calibration_file)
         self.decoder = PressDecoder(self.calibration)
-        self.parser = FrameParser()
-        self.port: serial.Serial | None = None
-        self.retry_at, self.backoff_s = 0.0, 0.5
-        self.last_frame_s = 0.0
+        self.sensor = SerialSensor(settings.port, settings.baud_rate, settings.reconnect_max_s)
         self.request: DecisionRequest | None = None
         self.request_wall_s = 0.0
         self.ignored_presses = 0
@@ -60,15 +41,13 @@ class SensorIntentNode:
         bus.expect(TaskGoal, "controller")
 
     def run(self, stop: threading.Event) -> None:
-        try:
+        with self.sensor:
             while not stop.is_set():
                 while (message := self.bus.receive(0)) is not None:
                     self._dispatch(message)
-                self._read_sensor()
+                for arrival in self.sensor.read():  # waits a few ms for bytes
+                    self._sample(arrival)
                 self._report()
-                time.sleep(0.002)
-        finally:
-            self._close()
 
     def _dispatch(self, message: Message) -> None:
         if isinstance(message, DecisionRequest):
@@ -76,23 +55,16 @@ class SensorIntentNode:
         elif isinstance(message, TaskGoal):
             self.request = None
 
-    def _read_sensor(self) -> None:
-        port = self._open()
-        if port is None:
-            return
-        try:
-            data = port.read(port.in_waiting or 1)
-        except (serial.SerialException, OSError) as exc:
-            log.warning("sensor lost (%s): reconnecting", exc)
-            self._close()
-            return
-        now = time.monotonic()
-        for frame in self.parser.feed(data):
-            self.last_frame_s = now
-            self.samples.publish(device_seq=frame.seq, raw=frame.raw, pressure_kpa=None)
-            decision = self.decoder.update(now, frame.raw)
-            if decision is not None:
-                self._answer(decision)
+    def _sample(self, arrival: Arrival) -> None:
+        decision = self.decoder.update(arrival.t_s, arrival.frame.raw)
+        self.samples.publish(
+            device_seq=arrival.frame.seq,
+            raw=arrival.frame.raw,
+            level=self.decoder.level,
+            pressed=self.decoder.pressing_since is not None,
+        )
+        if decision is not None:
+            self._answer(decision)
 
     def _answer(self, decision: PressDecision) -> None:
         request = self.request
@@ -101,6 +73,7 @@ class SensorIntentNode:
             return
         self.request = None
         models = self.settings.models
+        onset_s = decision.t_s - decision.duration_s  # the decision is made when pressing starts
         self.intents.publish(
             episode=request.episode,
             request=request.request,
@@ -109,39 +82,16 @@ class SensorIntentNode:
             radius_m=models.radius_m(decision.human_model),
             confidence=decision.confidence,
             source="sensor",
-            decision_s=max(0.0, decision.t_s - self.request_wall_s),
+            decision_s=max(0.0, onset_s - self.request_wall_s),
         )
 
-    def _open(self) -> serial.Serial | None:
-        if self.port is not None:
-            return self.port
-        now = time.monotonic()
-        if now < self.retry_at:
-            return None
-        try:
-            self.port = serial.Serial(self.settings.port, self.settings.baud_rate, timeout=0)
-        except (serial.SerialException, OSError) as exc:
-            self.retry_at = now + self.backoff_s
-            log.warning(
-                "cannot open %s (%s); next try in %.1f s", self.settings.port, exc, self.backoff_s
-            )
-            self.backoff_s = min(self.backoff_s * 2, self.settings.reconnect_max_s)
-            return None
-        log.info("sensor connected on %s", self.settings.port)
-        self.backoff_s, self.last_frame_s = 0.5, now
-        return self.port
-
-    def _close(self) -> None:
-        if self.port is not None:
-            with contextlib.suppress(serial.SerialException, OSError):
-                self.port.close()
-        self.port = None
-
     def _report(self) -> None:
-        if self.port is None:
-            self.bus.report_health("degraded", f"sensor {self.settings.port} not connected")
-        elif time.monotonic() - self.last_frame_s > self.settings.sensor_stale_s:
+        sensor = self.sensor
+        if not sensor.connected:
+            detail = f"sensor {sensor.device} not connected: {sensor.last_error}"
+            self.bus.report_health("degraded", detail)
+        elif sensor.silent_for() > self.settings.sensor_stale_s:
             self.bus.report_health("degraded", "sensor silent: no valid frame")
         else:
-            errors = sum(self.parser.errors.values())
-            self.bus.report_health("ok", f"{self.parser.frames} frames, {errors} bad")
+            errors = sum(sensor.parser.errors.values())
+            self.bus.report_health("ok", f"{sensor.parser.frames} frames, {errors} bad")
