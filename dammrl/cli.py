@@ -217,6 +217,14 @@ def _add_recording_commands(commands: argparse._SubParsersAction[argparse.Argume
     human.add_argument("--json", action="store_true")
     human.set_defaults(handler=_recording_human)
 
+    plot = actions.add_parser(
+        "plot", help="pressure trace above the end-effector error (the paper's S2 figure)"
+    )
+    plot.add_argument("file", type=Path)
+    plot.add_argument("-o", "--out", type=Path, required=True, metavar="PNG")
+    plot.add_argument("--episode", type=int, help="only this episode")
+    plot.set_defaults(handler=_recording_plot)
+
     replay = commands.add_parser("replay", help="publish a recording onto the bus")
     replay.add_argument("file", type=Path)
     replay.add_argument(
@@ -278,6 +286,17 @@ def _recording_export(args: argparse.Namespace) -> int:
     else:
         for topic, rows in export_csv(args.file, args.out).items():
             print(f"{topic}: {rows} rows")
+    return 0
+
+
+def _recording_plot(args: argparse.Namespace) -> int:
+    from dammrl.plots import plot_session
+    from dammrl.recording import session_traces
+    from dammrl.task import TaskSettings
+
+    traces = session_traces(args.file, args.episode)
+    title = f"{args.file.name}: {len(traces.decisions)} decisions, {len(traces.pressure)} samples"
+    print(plot_session(traces, TaskSettings().goal_tolerance_m, title, args.out))
     return 0
 
 

@@ -13,6 +13,7 @@ from matplotlib.axes import Axes
 from matplotlib.patches import Circle
 
 from dammrl.episode import ReachResult
+from dammrl.recording import SessionTraces
 
 COLORS = {"fixed": "black", "event": "tab:red"}  # the paper's colours
 LABELS = {"fixed": "fixed-frequency", "event": "event-triggered"}
@@ -182,3 +183,70 @@ def _title(results: list[ReachResult]) -> str:
             f"$N_{{osc}}$ = {m.n_osc}, final error {m.final_error_m * MM:.1f} mm"
         )
     return "   |   ".join(parts)
+
+
+def plot_session(traces: SessionTraces, goal_tolerance_m: float, title: str, path: Path) -> Path:
+    """The paper's S2 figure: the human's pressure input above the end-effector error."""
+    fig, (top, bottom) = plt.subplots(2, 1, figsize=(13, 6.5), sharex=True)
+    _plot_pressure(top, traces)
+    _plot_error(bottom, traces, goal_tolerance_m)
+    for ax in (top, bottom):
+        for t, number in traces.episodes:
+            ax.axvline(t, color="0.6", lw=0.8, ls=":")
+            if ax is top:
+                ax.annotate(f"episode {number}", (t, 1), xycoords=("data", "axes fraction"),
+                            fontsize=7, color="0.4", va="top", ha="left")  # fmt: skip
+        ax.grid(alpha=0.3)
+    bottom.set_xlabel("time [s]")
+    outcomes = ", ".join(f"{r.episode}: {r.outcome} {r.t_total_s:.1f} s" for _, r in traces.results)
+    fig.suptitle(f"{title}\n{outcomes}" if outcomes else title, fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=130)
+    plt.close(fig)
+    return path
+
+
+DECISION_STYLES = {  # (u_h, human model) -> marker, colour, fill, label
+    (1, 1): ("^", "tab:red", "full", "+1 firm, quick (E_big)"),
+    (1, 2): ("^", "tab:red", "none", "+1 firm, held (E_small)"),
+    (-1, 1): ("v", "black", "full", "-1 light, quick (E_big)"),
+    (-1, 2): ("v", "black", "none", "-1 light, held (E_small)"),
+}
+
+
+def _plot_pressure(ax: Axes, traces: SessionTraces) -> None:
+    if len(traces.pressure):
+        ax.plot(traces.pressure_t, traces.pressure, color="tab:blue", lw=0.9, label="pressure")
+        unit = "normalised (0 rest, 1 firm)" if traces.pressure_normalised else "raw ADC counts"
+        ax.set_ylabel(f"pressure\n{unit}")
+    else:
+        ax.set_ylabel("decisions")
+        note = "no pressure sensor in this recording: the decisions only"
+        ax.text(0.5, 0.5, note, transform=ax.transAxes, ha="center", color="0.5")
+    marker_y = float(np.max(traces.pressure)) * 1.12 if len(traces.pressure) else 1.0
+    for (u_h, model), (marker, color, fill, label) in DECISION_STYLES.items():
+        times = [t for t, i in traces.decisions if (i.u_h, i.human_model) == (u_h, model)]
+        if times:
+            y = [marker_y] * len(times)
+            ax.plot(times, y, marker, color=color, fillstyle=fill, ms=7, mew=1.3, ls="none",
+                    label=label)  # fmt: skip
+    ax.set_ylim(top=marker_y * 1.1)
+    ax.set_title("primary-axis input: one press = one decision (marked as the press ends)")
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1), fontsize=8)
+
+
+def _plot_error(ax: Axes, traces: SessionTraces, goal_tolerance_m: float) -> None:
+    t, e = traces.error_t, traces.error_m * MM
+    starts = [start for start, _ in traces.episodes]
+    breaks = np.searchsorted(t, starts)  # no line across the jump to the next goal
+    t, e = np.insert(t, breaks, np.nan), np.insert(e, breaks, np.nan, axis=0)
+    if len(t):
+        for axis, color in zip(range(3), ("tab:red", "tab:green", "tab:blue"), strict=True):
+            label = f"{'xyz'[axis]} error" + (" (primary)" if axis == 0 else "")
+            ax.plot(t, e[:, axis], color=color, lw=1.0, label=label)
+        ax.plot(t, np.linalg.norm(e, axis=1), color="k", lw=1.2, label="|error|")
+    ax.axhspan(-goal_tolerance_m * MM, goal_tolerance_m * MM, color="tab:green", alpha=0.12,
+               label=f"goal tolerance {goal_tolerance_m * MM:.0f} mm")  # fmt: skip
+    ax.set_ylabel("end-effector - goal [mm]")
+    ax.set_title("spatial error between the end-effector and the target")
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1), fontsize=8)

@@ -24,7 +24,17 @@ from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
 from dammrl.errors import DammrlError
-from schemas import DecisionRequest, DecodeError, Intent, decode, type_of
+from schemas import (
+    DecisionRequest,
+    DecodeError,
+    EpisodeResult,
+    Intent,
+    RobotState,
+    SensorSample,
+    TaskGoal,
+    decode,
+    type_of,
+)
 from schemas import Message as BusMessage
 from services.intent.core import direction_to_goal
 
@@ -284,3 +294,60 @@ def human_statistics(path: Path) -> dict[str, Any]:
             for radius, flags in sorted(per_radius.items())
         },
     }
+
+
+@dataclass
+class SessionTraces:
+    """Time series of a recording for the S2 figure; times in s from the first message."""
+
+    pressure_t: np.ndarray  # SensorSample arrivals
+    pressure: np.ndarray  # normalised level (raw counts when the level was not recorded)
+    pressure_normalised: bool
+    error_t: np.ndarray  # RobotState arrivals during an episode
+    error_m: np.ndarray  # (n, 3) end-effector minus goal
+    decisions: list[tuple[float, Intent]]
+    episodes: list[tuple[float, int]]  # (start time, episode number)
+    results: list[tuple[float, EpisodeResult]]
+
+
+def session_traces(path: Path, episode: int | None = None) -> SessionTraces:
+    """Pressure, end-effector error and decisions of a recording (optionally one episode)."""
+    recording = read_recording(path)
+    types = (SensorSample, RobotState, TaskGoal, Intent, EpisodeResult)
+    decoded = list(recording.decoded(*types))
+    if not decoded:
+        raise RecordingError(f"{path} holds no sensor, robot or task message to plot")
+    t0 = decoded[0][0]
+    goals: dict[int, np.ndarray] = {}
+    pressure: list[tuple[float, float, bool]] = []
+    error: list[tuple[float, np.ndarray]] = []
+    traces = SessionTraces(*(np.empty(0),) * 2, True, np.empty(0), np.empty((0, 3)), [], [], [])
+    current = 0  # the episode in progress
+    for log_time, message in decoded:
+        t = (log_time - t0) * 1e-9
+        if isinstance(message, TaskGoal):
+            goals[message.episode], current = np.array(message.goal_m), message.episode
+            traces.episodes.append((t, message.episode))
+        elif episode is not None and current != episode:
+            continue
+        elif isinstance(message, SensorSample):
+            level = message.level
+            pressure.append((t, message.raw if level is None else level, level is not None))
+        elif isinstance(message, RobotState) and message.episode in goals:
+            error.append((t, np.array(message.ee_pos_m) - goals[message.episode]))
+        elif isinstance(message, Intent):
+            traces.decisions.append((t, message))
+        elif isinstance(message, EpisodeResult):
+            traces.results.append((t, message))
+    if episode is not None:
+        traces.episodes = [(t, n) for t, n in traces.episodes if n == episode]
+        if not traces.episodes:
+            raise RecordingError(f"{path} has no episode {episode}")
+    if pressure:
+        traces.pressure_t = np.array([p[0] for p in pressure])
+        traces.pressure = np.array([p[1] for p in pressure])
+        traces.pressure_normalised = all(p[2] for p in pressure)
+    if error:
+        traces.error_t = np.array([e[0] for e in error])
+        traces.error_m = np.array([e[1] for e in error])
+    return traces

@@ -2,10 +2,15 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
 import time
 from pathlib import Path
 
-from schemas import EpisodeResult, Health, Intent, SensorSample
+import numpy as np
+
+from dammrl.recording import session_traces
+from schemas import EpisodeResult, Health, Intent, ModelChoice, SensorSample
 from services.intent.emulator import Press, SensorEmulator
 from tests.busutil import Observer, free_port, start_service, wait_for
 
@@ -71,3 +76,62 @@ def test_the_intent_service_survives_an_unplugged_sensor_and_reconnects(tmp_path
         intent.wait(15)
         observer.close()
     time.sleep(0.1)
+
+
+def test_a_simulated_patient_at_the_pad_is_recognised_by_the_policys_posterior(
+    tmp_path: Path,
+) -> None:
+    """The careful patient (held presses, 90 % correct, slow) through the whole semi-virtual
+    path: pty frames, decoder, intent service, learned policy estimating the human; the
+    session is recorded and drawn as the paper's S2 figure."""
+    link, port, mcap = tmp_path / "ttySENSOR", free_port(), tmp_path / "s2.mcap"
+    observer = Observer(port)
+    recorder = start_service("recorder", port, DAMMRL_RECORDER_OUT=str(mcap))
+    wait_for(lambda: any(getattr(h, "service", "") == "recorder" for h in observer.of(Health)),
+             30, "the recorder")  # fmt: skip
+    patient = subprocess.Popen(
+        [
+            *(sys.executable, "-m", "dammrl", "sensor", "emulate", "--pattern", "patient"),
+            *("--patient-model", "2", "--link", str(link), "--connect", f"tcp/127.0.0.1:{port}"),
+        ],
+        stdin=subprocess.DEVNULL,
+    )
+    wait_for(link.exists, 30, "the emulated port")
+    processes = [
+        patient,
+        start_service("sim", port),
+        start_service("policy", port),
+        start_service("intent", port, DAMMRL_INTENT_SOURCE="serial", DAMMRL_INTENT_PORT=str(link)),
+        start_service("controller", port, DAMMRL_TASK_EPISODES="1", DAMMRL_TASK_SEED="3"),
+    ]
+    try:
+        wait_for(lambda: bool(observer.of(EpisodeResult)), 150, "the episode to end")
+    finally:
+        for process in [*processes, recorder]:
+            process.terminate()
+        for process in [*processes, recorder]:
+            process.wait(15)
+        observer.close()
+    intents = [i for i in observer.of(Intent) if isinstance(i, Intent)]
+    assert len(intents) >= 6 and all(i.source == "sensor" for i in intents)
+    assert all(i.human_model == 2 for i in intents), "held presses decode as E_small"
+    answers = [c for c in observer.of(ModelChoice) if isinstance(c, ModelChoice) and c.request > 6]
+    assert answers and all(c.posterior is not None for c in answers)
+    careful = [c.posterior[1] > 0.5 for c in answers if c.posterior is not None]
+    assert sum(careful) >= 0.9 * len(careful), "the posterior finds the careful sub-model"
+    result = observer.of(EpisodeResult)[0]
+    assert isinstance(result, EpisodeResult) and result.success, result.reason
+
+    png = tmp_path / "s2.png"
+    plotted = subprocess.run(
+        [sys.executable, "-m", "dammrl", "recording", "plot", str(mcap), "-o", str(png)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert plotted.returncode == 0, plotted.stderr
+    traces = session_traces(mcap)
+    assert traces.pressure_normalised and traces.pressure.max() > 0.8  # firm presses seen
+    assert len(traces.decisions) == len(intents) and len(traces.error_t) > 100
+    final_error = float(np.linalg.norm(traces.error_m[-1]))
+    assert final_error < 0.02 and png.stat().st_size > 20_000
