@@ -10,13 +10,20 @@ import time
 from pathlib import Path
 from typing import Any
 
+import pytest
 import yaml
 
-from schemas import EpisodeResult
+from schemas import EpisodeResult, Intent
+from services.intent.emulator import DEFAULT_CALIBRATION, Press, SensorEmulator
 from tests.busutil import Observer, endpoint, free_port, wait_for
 
 COMPOSE = Path(__file__).resolve().parent.parent / "compose.yaml"
 SERVICES = {"sim", "policy", "intent", "controller"}
+CONTAINER_PATHS = ("DAMMRL_INTENT_PORT", "DAMMRL_INTENT_CALIBRATION_FILE", "DAMMRL_RECORDER_OUT")
+PROFILES = {
+    "virtual": {"sim", "policy", "intent", "controller", "recorder"},
+    "semi-virtual": {"sim", "policy", "intent-sensor", "controller", "recorder-sensor"},
+}
 
 
 def _compose() -> dict[str, Any]:
@@ -30,13 +37,28 @@ def _profile(name: str) -> dict[str, dict[str, Any]]:
     return {k: v for k, v in services.items() if name in v.get("profiles", [])}
 
 
-def test_virtual_profile_has_one_container_per_service_from_one_image() -> None:
-    services = _profile("virtual")
-    assert set(services) == SERVICES
+@pytest.mark.parametrize("profile", PROFILES)
+def test_each_profile_has_one_container_per_service_from_one_image(profile: str) -> None:
+    services = _profile(profile)
+    assert set(services) == PROFILES[profile]
     assert {s["image"] for s in services.values()} == {"dammrl:latest"}
     for name, service in services.items():
-        assert service["command"] == ["python", "-m", f"services.{name}"]
+        module = name.removesuffix("-sensor")
+        assert service["command"] == ["python", "-m", f"services.{module}"]
         assert all(k.startswith("DAMMRL_") for k in service["environment"])
+        assert set(service.get("depends_on", [])) <= set(services), "compose refuses this"
+
+
+def test_semi_virtual_profile_passes_the_sensor_and_its_calibration_to_the_intent() -> None:
+    intent = _profile("semi-virtual")["intent-sensor"]
+    env = intent["environment"]
+    assert env["DAMMRL_INTENT_SOURCE"] == "serial"
+    host, container = intent["devices"][0].rsplit(":", 1)
+    assert container == env["DAMMRL_INTENT_PORT"] and "DAMMRL_SENSOR_DEVICE" in host
+    mount = intent["volumes"][0].split(":")[1]
+    assert env["DAMMRL_INTENT_CALIBRATION_FILE"].startswith(mount + "/")
+    recorder = _profile("semi-virtual")["recorder-sensor"]["environment"]
+    assert recorder["DAMMRL_RECORDER_MODE"] == "semi-virtual"
 
 
 def test_every_service_answers_help() -> None:
@@ -55,31 +77,39 @@ def _path_env() -> dict[str, str]:
     }
 
 
-def _local(environment: dict[str, str], port: int) -> dict[str, str]:
-    """The container environment with the stack's endpoints moved to loopback."""
+def _local(environment: dict[str, str], port: int, tmp_path: Path) -> dict[str, str]:
+    """The container environment on this machine: endpoints on loopback, paths in tmp."""
     local = {}
     for name, value in environment.items():
         if name in ("DAMMRL_BUS_CONNECT", "DAMMRL_BUS_LISTEN"):
             value = json.dumps([endpoint(port)])
+        elif name in (
+            "DAMMRL_INTENT_PORT",
+            "DAMMRL_INTENT_CALIBRATION_FILE",
+            "DAMMRL_RECORDER_OUT",
+        ):
+            value = str(tmp_path / Path(value).name)
         local[name] = str(value)
     return local
 
 
-def test_the_virtual_profile_comes_up_and_runs_an_episode_with_its_own_commands() -> None:
+def _run_profile(profile: str, tmp_path: Path, **overrides: str) -> Observer:
+    """Start every container command of the profile as a process; run one episode."""
     port = free_port()
     processes = []
     observer = None
     try:
-        for service in _profile("virtual").values():
-            env = _path_env() | _local(service["environment"], port)
-            env["DAMMRL_TASK_EPISODES"] = "1"
+        for service in _profile(profile).values():
+            env = _path_env() | _local(service["environment"], port, tmp_path)
+            env |= {"DAMMRL_TASK_EPISODES": "1", **overrides}
             processes.append(subprocess.Popen(service["command"], env=env))
             if observer is None:  # the sim listens: the test joins as one more peer
                 time.sleep(1.0)
                 observer = Observer(port, connect=True)
         assert observer is not None
-        wait_for(lambda: bool(observer.of(EpisodeResult)), 90, "an EpisodeResult")
+        wait_for(lambda: bool(observer.of(EpisodeResult)), 120, "an EpisodeResult")
         assert all(p.poll() is None for p in processes)
+        return observer
     finally:
         for process in processes:
             process.terminate()
@@ -87,3 +117,25 @@ def test_the_virtual_profile_comes_up_and_runs_an_episode_with_its_own_commands(
             process.wait(15)
         if observer is not None:
             observer.close()
+
+
+def test_the_virtual_profile_comes_up_and_runs_an_episode_with_its_own_commands(
+    tmp_path: Path,
+) -> None:
+    _run_profile("virtual", tmp_path)
+    assert list((tmp_path / "sessions").glob("*.mcap")), "the recorder wrote the session"
+
+
+def test_the_semi_virtual_profile_runs_an_episode_from_the_passed_through_sensor(
+    tmp_path: Path,
+) -> None:
+    (tmp_path / "sensor_calibration.json").write_text(DEFAULT_CALIBRATION.model_dump_json())
+    quick_firm_presses = [Press(0.1, 0.2, 1.0)]
+    with SensorEmulator(tmp_path / "ttySENSOR", quick_firm_presses, loop_s=0.5):
+        # seed 8: pressing "forward" every time reaches the button (see test_semi_virtual)
+        observer = _run_profile(
+            "semi-virtual", tmp_path, DAMMRL_TASK_SEED="8", DAMMRL_POLICY_KIND="fixed"
+        )
+    result = observer.of(EpisodeResult)[0]
+    assert isinstance(result, EpisodeResult) and result.success, result.reason
+    assert all(isinstance(i, Intent) and i.source == "sensor" for i in observer.of(Intent))
