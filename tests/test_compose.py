@@ -18,7 +18,7 @@ from services.intent.emulator import DEFAULT_CALIBRATION, Press, SensorEmulator
 from tests.busutil import Observer, endpoint, free_port, wait_for
 
 COMPOSE = Path(__file__).resolve().parent.parent / "compose.yaml"
-SERVICES = {"sim", "policy", "intent", "controller"}
+SERVICES = {"sim", "policy", "intent", "controller", "recorder"}
 CONTAINER_PATHS = ("DAMMRL_INTENT_PORT", "DAMMRL_INTENT_CALIBRATION_FILE", "DAMMRL_RECORDER_OUT")
 PROFILES = {
     "virtual": {"sim", "policy", "intent", "controller", "recorder"},

@@ -87,11 +87,12 @@ class SensorIntentNode:
 
     def _report(self) -> None:
         sensor = self.sensor
+        counts = f"{sensor.parser.frames} frames, {sum(sensor.parser.errors.values())} bad"
         if not sensor.connected:
             detail = f"sensor {sensor.device} not connected: {sensor.last_error}"
-            self.bus.report_health("degraded", detail)
+            self.bus.report_health("degraded", f"{counts}; {detail}")
         elif sensor.silent_for() > self.settings.sensor_stale_s:
-            self.bus.report_health("degraded", "sensor silent: no valid frame")
+            silent = f"sensor silent: no valid frame for {sensor.silent_for():.1f} s"
+            self.bus.report_health("degraded", f"{counts}; {silent}")
         else:
-            errors = sum(sensor.parser.errors.values())
-            self.bus.report_health("ok", f"{sensor.parser.frames} frames, {errors} bad")
+            self.bus.report_health("ok", counts)
