@@ -79,6 +79,8 @@ def _parser() -> argparse.ArgumentParser:
                     help="a fixed M_ij (default: the learned DAMMRL policy)")  # fmt: skip
     up.add_argument("--trigger", choices=["event", "fixed"], default="event")
     up.add_argument("--port", help="semi-virtual: the pressure sensor's serial device")
+    up.add_argument("--calibration", type=Path,
+                    help="semi-virtual: file from `dammrl sensor calibrate`")  # fmt: skip
     up.add_argument(
         "--bus-port", type=int, default=7447, help="loopback port of the stack's endpoint"
     )
@@ -509,6 +511,7 @@ def _up(args: argparse.Namespace) -> int:
         mode=args.mode, episodes=args.episodes, seed=args.seed, model=args.model,
         trigger=args.trigger, port=args.bus_port, namespace=args.namespace, json=args.json,
         serial_port=args.port,
+        calibration=args.calibration,
         record=args.record,
     )  # fmt: skip
     return Stack(options, out=_print, info=_print_err).run()

@@ -8,6 +8,7 @@ when the requested episodes are done, or (exit 1) when a service dies on its own
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import json
 import os
@@ -23,7 +24,16 @@ from pathlib import Path
 import zenoh
 
 from dammrl.errors import DammrlError
-from schemas import EpisodeResult, decode, key
+from schemas import (
+    DecisionRequest,
+    DecodeError,
+    EpisodeResult,
+    Intent,
+    Message,
+    ModelChoice,
+    decode,
+    key,
+)
 from services.common.bus import zenoh_config
 from services.common.config import BusSettings
 
@@ -47,6 +57,7 @@ class StackOptions:
     json: bool = False
     record: Path | None = None  # also run the recorder into this MCAP file
     serial_port: str | None = None  # semi-virtual: the pressure sensor's serial device
+    calibration: Path | None = None  # semi-virtual: from `dammrl sensor calibrate`
 
 
 def free_port(preferred: int) -> int:
@@ -83,12 +94,17 @@ class Stack:
             raise DammrlError(
                 "semi-virtual mode needs --port (the pressure sensor's serial device)"
             )
+        if options.calibration is not None:
+            from services.intent.calibration import load_calibration
+
+            load_calibration(options.calibration)  # a clear error now, not a dead service
         self.options = options
         self.out = out
         self.info = info
         self.endpoint = f"tcp/127.0.0.1:{free_port(options.port)}"
         self.children: dict[str, subprocess.Popen[bytes]] = {}
         self.results: list[EpisodeResult] = []
+        self.prompts: PatientPrompts | None = None
 
     def environment(self) -> dict[str, str]:
         o = self.options
@@ -113,6 +129,8 @@ class Stack:
         env.setdefault("DAMMRL_LOG_LEVEL", "WARNING")  # progress comes from the launcher
         if o.mode == "semi-virtual":
             env.update(DAMMRL_INTENT_SOURCE="serial", DAMMRL_INTENT_PORT=str(o.serial_port))
+            if o.calibration is not None:
+                env["DAMMRL_INTENT_CALIBRATION_FILE"] = str(o.calibration.resolve())
         if o.record is not None:
             env.update(DAMMRL_RECORDER_OUT=str(o.record), DAMMRL_RECORDER_MODE=o.mode)
         return env
@@ -133,6 +151,8 @@ class Stack:
         session = zenoh.open(zenoh_config(settings))
         try:
             results = session.declare_subscriber(key(self.options.namespace, EpisodeResult))
+            if self.options.mode == "semi-virtual" and not self.options.json:
+                self.prompts = PatientPrompts(session, self.options.namespace, self.info)
             self._start_children(session, stop)
             self._wait_alive(session, stop)
             return self._watch(results, stop)
@@ -183,6 +203,8 @@ class Stack:
         total = self.options.episodes
         while not stop["signal"]:
             self._check_children()
+            if self.prompts is not None:
+                self.prompts.show()
             sample = results.try_recv()
             if sample is None:
                 time.sleep(0.02)
@@ -224,6 +246,44 @@ class Stack:
             except subprocess.TimeoutExpired:
                 child.kill()
                 child.wait()
+
+
+class PatientPrompts:
+    """Semi-virtual: tell the person at the pad when the arm waits for them, where the goal
+    is, what their press was read as, and which sub-model the policy thinks they follow."""
+
+    def __init__(self, session: zenoh.Session, namespace: str, out: Callable[[str], None]):
+        self.out = out
+        self.subscribers = [
+            (t, session.declare_subscriber(key(namespace, t)))
+            for t in (DecisionRequest, ModelChoice, Intent)
+        ]
+        self.estimate = ""
+
+    def show(self) -> None:
+        for message_type, subscriber in self.subscribers:
+            while (sample := subscriber.try_recv()) is not None:
+                with contextlib.suppress(DecodeError):  # the services count bad messages
+                    self._say(decode(message_type, sample.payload.to_bytes()))
+
+    def _say(self, message: Message) -> None:
+        if isinstance(message, ModelChoice) and message.posterior and message.request >= 0:
+            p_small = message.posterior[1]
+            likely, p = ("E_small", p_small) if p_small >= 0.5 else ("E_big", 1 - p_small)
+            self.estimate = f"  [policy: you decide like {likely}, p {p:.2f}]"
+        elif isinstance(message, DecisionRequest):
+            axis = "xyz"[message.primary_axis]
+            ahead_mm = (
+                message.goal_m[message.primary_axis] - message.ee_pos_m[message.primary_axis]
+            ) * 1000
+            where = f"{abs(ahead_mm):.0f} mm {'ahead' if ahead_mm >= 0 else 'behind'} on {axis}"
+            self.out(f"  request {message.request}: press now - the goal is {where} "
+                     "(firm = forward, light = back)")  # fmt: skip
+        elif isinstance(message, Intent) and message.source == "sensor":
+            direction = "+1 forward" if message.u_h > 0 else "-1 back"
+            radius = "quick -> E_big" if message.human_model == 1 else "held -> E_small"
+            self.out(f"  read {direction}, {radius}, after {message.decision_s:.2f} s"
+                     f"{self.estimate}")  # fmt: skip
 
 
 def result_dict(result: EpisodeResult) -> dict[str, object]:

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from dammrl.recording import session_traces
-from schemas import EpisodeResult, Health, Intent, ModelChoice, SensorSample
+from schemas import DecisionRequest, EpisodeResult, Health, Intent, ModelChoice, SensorSample
 from services.intent.emulator import Press, SensorEmulator
 from tests.busutil import Observer, free_port, start_service, wait_for
 
@@ -135,3 +135,55 @@ def test_a_simulated_patient_at_the_pad_is_recognised_by_the_policys_posterior(
     assert len(traces.decisions) == len(intents) and len(traces.error_t) > 100
     final_error = float(np.linalg.norm(traces.error_m[-1]))
     assert final_error < 0.02 and png.stat().st_size > 20_000
+
+
+def test_the_intent_service_survives_every_wire_fault_and_still_answers(tmp_path: Path) -> None:
+    link, port = tmp_path / "ttySENSOR", free_port()
+    observer = Observer(port)
+    serial_env = {"DAMMRL_INTENT_SOURCE": "serial", "DAMMRL_INTENT_PORT": str(link)}
+    intent = start_service("intent", port, **serial_env)
+    faults = [
+        bytes(range(256)) * 4,  # binary garbage
+        b"$P,12,3456" * 10 + b"\r\n",  # an overlong line
+        b"$P,12,",  # a cut frame (the next frame starts before it ends)
+        b"$P,1,99999*00\r\n",  # out of range and a wrong checksum
+    ]
+    try:
+        with SensorEmulator(link, []) as pad:
+            wait_for(lambda: len(observer.of(SensorSample)) > 20, 30, "samples")
+            for fault in faults:
+                pad.inject(fault)
+            pad.corrupt_next = 5
+            pad.silent.set()  # the sensor stops sending
+            wait_for(lambda: _health_says(observer, "silent"), 10, "a silent-sensor report")
+            pad.silent.clear()
+            count = len(observer.of(SensorSample))
+            wait_for(lambda: len(observer.of(SensorSample)) > count + 20, 10, "samples again")
+            assert intent.poll() is None
+            observer.session.put("dammrl/intent/request", _request())
+            pad.press(1.0, 0.2)
+            wait_for(lambda: bool(observer.of(Intent)), 10, "the press to answer the request")
+            wait_for(lambda: _health_says(observer, "frames, "), 5, "a health report")
+    finally:
+        intent.terminate()
+        intent.wait(15)
+        observer.close()
+    reports = [h for h in observer.of(Health) if isinstance(h, Health) and h.service == "intent"]
+    bad = int(reports[-1].detail.split(" frames, ")[1].split()[0])
+    assert bad >= 8, reports[-1].detail  # garbage, overlong, cut, range/checksum, 5 corrupted
+
+
+def _health_says(observer: Observer, text: str) -> bool:
+    return any(isinstance(h, Health) and text in h.detail for h in observer.of(Health))
+
+
+def _request() -> bytes:
+    from schemas import Header, encode
+
+    return encode(
+        DecisionRequest(
+            header=Header(stamp_ns=time.time_ns(), seq=0, source="controller"),
+            episode=1, request=0, t_s=0.0, ee_pos_m=(0.0, 0.0, 0.0), goal_m=(0.3, 0.0, 0.0),
+            primary_axis=0, human_model=1,
+        )
+    )  # fmt: skip

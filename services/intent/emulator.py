@@ -109,6 +109,10 @@ class SensorEmulator:
         """Press at ``level`` until :meth:`hold` is called again (0 releases)."""
         self.held_level = level
 
+    def inject(self, data: bytes) -> None:
+        """Write arbitrary bytes into the line (garbage, cut or overlong frames)."""
+        os.write(self._master, data)
+
     def level_at(self, script_t_s: float, t_s: float) -> float:
         scripted = press_level(self.presses, script_t_s)
         return max(scripted, press_level(self.live, t_s), self.held_level)
