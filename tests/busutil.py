@@ -10,6 +10,7 @@ import subprocess
 import sys
 import time
 from collections.abc import Callable
+from pathlib import Path
 
 import zenoh
 
@@ -45,6 +46,18 @@ def start_service(name: str, port: int, **env: str) -> subprocess.Popen[bytes]:
         env=environment,
         stdin=subprocess.DEVNULL,
     )
+
+
+def start_patient(link: Path, port: int, human_model: int) -> subprocess.Popen[bytes]:
+    """An emulated pad at ``link`` pressed by a simulated patient answering the stack's
+    decision requests (``dammrl sensor emulate --pattern patient``); waits for the pty."""
+    patient = subprocess.Popen(
+        [*(sys.executable, "-m", "dammrl", "sensor", "emulate", "--pattern", "patient"),
+         *("--patient-model", str(human_model), "--link", str(link), "--connect", endpoint(port))],
+        stdin=subprocess.DEVNULL,
+    )  # fmt: skip
+    wait_for(link.exists, 30, "the emulated port")
+    return patient
 
 
 def wait_for(condition: Callable[[], bool], timeout_s: float, what: str) -> None:

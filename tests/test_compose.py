@@ -14,8 +14,8 @@ import pytest
 import yaml
 
 from schemas import EpisodeResult, Intent
-from services.intent.emulator import DEFAULT_CALIBRATION, Press, SensorEmulator
-from tests.busutil import Observer, endpoint, free_port, wait_for
+from services.intent.emulator import DEFAULT_CALIBRATION
+from tests.busutil import Observer, endpoint, free_port, start_patient, wait_for
 
 COMPOSE = Path(__file__).resolve().parent.parent / "compose.yaml"
 SERVICES = {"sim", "policy", "intent", "controller", "recorder"}
@@ -93,15 +93,16 @@ def _local(environment: dict[str, str], port: int, tmp_path: Path) -> dict[str, 
     return local
 
 
-def _run_profile(profile: str, tmp_path: Path, **overrides: str) -> Observer:
-    """Start every container command of the profile as a process; run one episode."""
+def _run_profile(profile: str, tmp_path: Path, patient: bool = False) -> Observer:
+    """Start every container command of the profile as a process; run one episode (with a
+    simulated patient at an emulated pad for the sensor)."""
     port = free_port()
-    processes = []
+    processes = [start_patient(tmp_path / "ttySENSOR", port, 2)] if patient else []
     observer = None
     try:
         for service in _profile(profile).values():
             env = _path_env() | _local(service["environment"], port, tmp_path)
-            env |= {"DAMMRL_TASK_EPISODES": "1", **overrides}
+            env["DAMMRL_TASK_EPISODES"] = "1"
             processes.append(subprocess.Popen(service["command"], env=env))
             if observer is None:  # the sim listens: the test joins as one more peer
                 time.sleep(1.0)
@@ -130,12 +131,7 @@ def test_the_semi_virtual_profile_runs_an_episode_from_the_passed_through_sensor
     tmp_path: Path,
 ) -> None:
     (tmp_path / "sensor_calibration.json").write_text(DEFAULT_CALIBRATION.model_dump_json())
-    quick_firm_presses = [Press(0.1, 0.2, 1.0)]
-    with SensorEmulator(tmp_path / "ttySENSOR", quick_firm_presses, loop_s=0.5):
-        # seed 8: pressing "forward" every time reaches the button (see test_semi_virtual)
-        observer = _run_profile(
-            "semi-virtual", tmp_path, DAMMRL_TASK_SEED="8", DAMMRL_POLICY_KIND="fixed"
-        )
+    observer = _run_profile("semi-virtual", tmp_path, patient=True)
     result = observer.of(EpisodeResult)[0]
     assert isinstance(result, EpisodeResult) and result.success, result.reason
     assert all(isinstance(i, Intent) and i.source == "sensor" for i in observer.of(Intent))
