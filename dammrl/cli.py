@@ -149,7 +149,7 @@ def _add_sensor_commands(commands: argparse._SubParsersAction[argparse.ArgumentP
     calibrate.add_argument("--port", required=True, help="serial device, e.g. /dev/ttyUSB0")
     calibrate.add_argument("--out", type=Path, default=Path("sensor_calibration.json"),
                            help="where to save it (default sensor_calibration.json)")  # fmt: skip
-    calibrate.add_argument("--seconds", type=float, default=3.0, help="recording per step [s]")
+    calibrate.add_argument("--seconds", type=_positive, default=3.0, help="recording per step [s]")
     calibrate.add_argument("--yes", action="store_true",
                            help="do not wait for Enter before each step (scripts)")  # fmt: skip
     calibrate.set_defaults(handler=_sensor_calibrate)
@@ -161,7 +161,7 @@ def _add_sensor_commands(commands: argparse._SubParsersAction[argparse.ArgumentP
     monitor.add_argument(
         "--calibration", type=Path, help="calibration file (default DAMMRL_INTENT_CALIBRATION_FILE)"
     )
-    monitor.add_argument("--seconds", type=float, help="stop after this long")
+    monitor.add_argument("--seconds", type=_positive, help="stop after this long")
     monitor.set_defaults(handler=_sensor_monitor)
 
     emulate = actions.add_parser(
@@ -179,7 +179,9 @@ def _add_sensor_commands(commands: argparse._SubParsersAction[argparse.ArgumentP
         help="taps: a quick firm press every --period s; keyboard: you press keys; "
         "patient: a simulated patient answers the stack's decision requests",
     )
-    emulate.add_argument("--period", type=float, default=1.0, help="taps: seconds between presses")
+    emulate.add_argument(
+        "--period", type=_positive, default=1.0, help="taps: seconds between presses"
+    )
     emulate.add_argument("--patient-model", type=int, choices=[1, 2], default=2,
                          help="patient: 1 hurried (quick presses, E_big), 2 careful (held, "
                          "E_small)")  # fmt: skip
@@ -191,8 +193,8 @@ def _add_sensor_commands(commands: argparse._SubParsersAction[argparse.ArgumentP
         help="patient: the stack's endpoint (default tcp/127.0.0.1:7447)",
     )
     emulate.add_argument("--namespace", default="dammrl")
-    emulate.add_argument("--rate", type=float, default=100.0, help="frames per second")
-    emulate.add_argument("--seconds", type=float, help="stop after this long")
+    emulate.add_argument("--rate", type=_positive, default=100.0, help="frames per second")
+    emulate.add_argument("--seconds", type=_positive, help="stop after this long")
     emulate.set_defaults(handler=_sensor_emulate)
 
 
@@ -431,6 +433,8 @@ def _sensor_emulate(args: argparse.Namespace) -> int:
     from services.common.runtime import stop_on_signals
     from services.intent.emulator import Press, SensorEmulator
 
+    if args.pattern == "keyboard" and not sys.stdin.isatty():
+        raise DammrlError("the keyboard pattern needs a terminal (run it in its own tmux pane)")
     stop = stop_on_signals()
     _stop_after(stop, args.seconds)
     script = [Press(0.2, 0.2, 1.0)] if args.pattern == "taps" else []
@@ -466,6 +470,16 @@ def _patient(args: argparse.Namespace, pad: SensorEmulator, stop: threading.Even
     with Bus(_client_settings(args), "patient") as bus:
         patient.run(bus, stop)
     print(f"answered {patient.answered} requests")
+
+
+def _positive(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not value > 0 or value == float("inf"):
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}")
+    return value
 
 
 def _model_arg(text: str) -> tuple[int, int]:

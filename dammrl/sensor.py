@@ -223,8 +223,6 @@ KEYS = """keys:  f / l   quick FIRM / LIGHT press (+1 / -1, E_big)
 
 def keyboard(sensor: SensorEmulator, stop: threading.Event) -> None:
     """Drive the emulated pad from the keyboard until ``q`` or ``stop``."""
-    if not sys.stdin.isatty():
-        raise DammrlError("the keyboard pattern needs a terminal (run it in its own tmux pane)")
     with raw_keys() as read_key:
         while not stop.is_set():
             key = read_key(0.1)
