@@ -410,7 +410,6 @@ def _sensor_calibrate(args: argparse.Namespace) -> int:
 
 
 def _sensor_monitor(args: argparse.Namespace) -> int:
-    from dammrl.models import ModelSet
     from dammrl.sensor import Monitor, quiet_reader, wait_for_frames
     from services.common.runtime import stop_on_signals
     from services.intent.calibration import load_calibration
@@ -419,12 +418,13 @@ def _sensor_monitor(args: argparse.Namespace) -> int:
     from services.intent.serial_sensor import SerialSensor
 
     quiet_reader()
-    calibration = load_calibration(args.calibration or HumanSettings().calibration_file)
+    settings = HumanSettings()  # the intent service's settings: the same thresholds
+    calibration = load_calibration(args.calibration or settings.calibration_file)
     stop = stop_on_signals()
     with SerialSensor(args.port, reconnect_max_s=1.0) as sensor:
         wait_for_frames(sensor)
         _stop_after(stop, args.seconds)
-        Monitor(sensor, PressDecoder(calibration), ModelSet()).run(stop)
+        Monitor(sensor, PressDecoder(calibration, settings.decoder), settings.models).run(stop)
     return 0
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -95,9 +96,10 @@ def test_a_bad_calibration_file_is_a_clear_error(tmp_path: Path) -> None:
         load_calibration(tmp_path / "missing.json")
 
 
-def _dammrl(*args: str, timeout: float = 30) -> subprocess.CompletedProcess[str]:
+def _dammrl(*args: str, **env: str) -> subprocess.CompletedProcess[str]:
     command = [sys.executable, "-m", "dammrl", *args]
-    return subprocess.run(command, capture_output=True, text=True, timeout=timeout)
+    environment = os.environ | env
+    return subprocess.run(command, capture_output=True, text=True, timeout=30, env=environment)
 
 
 def test_monitor_prints_each_decoded_press(tmp_path: Path) -> None:
@@ -109,6 +111,16 @@ def test_monitor_prints_each_decoded_press(tmp_path: Path) -> None:
     assert "+1 forward (firm)  quick" in done.stdout
     assert "-1 back (light)    held" in done.stdout and "E_small" in done.stdout
     assert "frames/s" in done.stdout
+
+
+def test_monitor_uses_the_intent_services_decoder_settings(tmp_path: Path) -> None:
+    link = tmp_path / "ttySENSOR"
+    with SensorEmulator(link, [Press(0.3, 0.8, 0.35)], loop_s=1.5):
+        done = _dammrl(
+            "sensor", "monitor", "--port", str(link), "--seconds", "2.5",
+            DAMMRL_INTENT_DECODER__LONG_PRESS_S="1.2",
+        )  # fmt: skip
+    assert "-1 back (light)    quick" in done.stdout, done.stdout + done.stderr
 
 
 def test_monitor_and_calibrate_say_when_no_sensor_answers(tmp_path: Path) -> None:

@@ -9,6 +9,7 @@ from pydantic import Field
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from dammrl.models import ModelSet
+from services.intent.decoder import DecoderSettings
 
 
 class HumanSettings(BaseSettings):
@@ -40,6 +41,8 @@ class HumanSettings(BaseSettings):
     port: str | None = None
     """Serial device of the pressure sensor (semi-virtual), e.g. /dev/ttyUSB0."""
     baud_rate: int = Field(115_200, gt=0)
+    decoder: DecoderSettings = DecoderSettings()
+    """Press thresholds, filter and timing, e.g. DAMMRL_INTENT_DECODER__LONG_PRESS_S=0.7."""
     calibration_file: Path | None = None
     """JSON from `dammrl sensor calibrate`; None: the emulator's default calibration."""
     sensor_stale_s: float = Field(0.5, gt=0)

@@ -58,6 +58,12 @@ class DecoderSettings(BaseModel):
     firm_level: float | None = Field(None, gt=0, lt=1.5)
     """Peak above which a press is firm; None: halfway between light and firm calibration."""
 
+    @model_validator(mode="after")
+    def _hysteresis(self) -> DecoderSettings:
+        if not self.off_level < self.on_level:
+            raise ValueError(f"off_level {self.off_level} must be below on_level {self.on_level}")
+        return self
+
 
 @dataclass(frozen=True)
 class PressDecision:

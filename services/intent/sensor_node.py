@@ -29,7 +29,7 @@ class SensorIntentNode:
         self.settings = settings
         self.bus = bus
         self.calibration = load_calibration(settings.calibration_file)
-        self.decoder = PressDecoder(self.calibration)
+        self.decoder = PressDecoder(self.calibration, settings.decoder)
         self.sensor = SerialSensor(settings.port, settings.baud_rate, settings.reconnect_max_s)
         self.request: DecisionRequest | None = None
         self.request_wall_s = 0.0
