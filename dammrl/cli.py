@@ -31,6 +31,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ValidationError as exc:  # a setting (flag or DAMMRL_* variable) out of range
         print(f"dammrl: invalid settings: {exc}", file=sys.stderr)
         return 2
+    except OSError as exc:  # a path given on the command line: unwritable, missing, busy
+        print(f"dammrl: error: {exc}", file=sys.stderr)
+        return 2
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -382,6 +385,8 @@ def _sensor_calibrate(args: argparse.Namespace) -> int:
     from services.intent.serial_sensor import SerialSensor
 
     quiet_reader()
+    if not args.out.parent.is_dir():  # say so before the person does three recordings
+        raise DammrlError(f"cannot save the calibration: {args.out.parent} is not a directory")
 
     def ready(step: str) -> None:
         print(f"\n{step}")

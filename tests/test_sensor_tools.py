@@ -146,3 +146,15 @@ def test_calibrate_command_guides_a_person_and_saves_a_file(tmp_path: Path) -> N
                 break
         assert person.wait(30) == 0, person.stderr.read() if person.stderr else ""
     assert load_calibration(out).firm_raw > load_calibration(out).light_raw
+
+
+def test_paths_that_cannot_be_used_are_clear_errors(tmp_path: Path) -> None:
+    missing = tmp_path / "no" / "such"
+    for args in (
+        ["sensor", "emulate", "--link", str(missing / "tty"), "--seconds", "1"],
+        ["sensor", "calibrate", "--port", "/dev/null", "--out", str(missing / "c.json")],
+        ["recording", "plot", str(tmp_path / "none.mcap"), "-o", str(missing / "s2.png")],
+    ):
+        done = _dammrl(*args)
+        assert done.returncode == 2 and "dammrl: error" in done.stderr, done.stderr
+        assert "Traceback" not in done.stderr

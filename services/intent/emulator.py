@@ -117,8 +117,8 @@ class SensorEmulator:
         scripted = press_level(self.presses, script_t_s)
         return max(scripted, press_level(self.live, t_s), self.held_level)
 
-    def raw_at(self, t_s: float, level: float | None = None) -> int:
-        level = press_level(self.presses, t_s) if level is None else level
+    def raw_of(self, level: float) -> int:
+        """The ADC reading of a normalised pressure, with noise."""
         c = self.calibration
         raw = c.rest_raw + level * (c.firm_raw - c.rest_raw) + self.rng.normal(0, self.noise_raw)
         return int(min(max(raw, 0), RAW_MAX))
@@ -128,7 +128,7 @@ class SensorEmulator:
         while not self._stop.is_set():
             t = seq * period
             script_t = t % self.loop_s if self.loop_s else t
-            frame = encode_frame(seq, self.raw_at(t, self.level_at(script_t, t)))
+            frame = encode_frame(seq, self.raw_of(self.level_at(script_t, t)))
             if self.corrupt_next > 0:
                 self.corrupt_next -= 1
                 frame = frame[:4] + b"\x07" + frame[5:]  # one bad byte: the checksum fails
