@@ -26,7 +26,7 @@ import time
 import numpy as np
 import zenoh
 
-from dammrl.task import TaskSettings
+from dammrl.core.task import TaskSettings
 from services.common.bus import Bus, zenoh_config
 from services.common.config import BusSettings
 from services.sim.config import SimSettings

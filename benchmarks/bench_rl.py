@@ -12,10 +12,10 @@ from pathlib import Path
 
 import numpy as np
 
-from dammrl.episode import ReachRunner
 from dammrl.rl.config import RewardWeights, TrainSettings
 from dammrl.rl.env import ACTIONS, ReachEnv
 from dammrl.rl.train import train
+from dammrl.runner import ReachRunner
 
 
 def decisions_per_second(n: int) -> float:

@@ -20,10 +20,10 @@ import gymnasium as gym
 import numpy as np
 from stable_baselines3 import DQN
 
-from dammrl.episode import ReachRunner
 from dammrl.rl.config import RewardWeights, TrainSettings
 from dammrl.rl.env import ACTIONS, OBSERVATION_SIZE, ReachEnv
 from dammrl.rl.train import EVAL_SEED_OFFSET, evaluate, train
+from dammrl.runner import ReachRunner
 
 
 class JointActionEnv(gym.Env):  # type: ignore[misc]

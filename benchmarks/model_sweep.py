@@ -14,9 +14,9 @@ import time
 
 import numpy as np
 
-from dammrl.episode import ReachRunner
-from dammrl.metrics import ReachMetrics
-from dammrl.models import HUMAN_MODELS, ROBOT_MODELS, parse_model
+from dammrl.core.metrics import ReachMetrics
+from dammrl.core.models import HUMAN_MODELS, ROBOT_MODELS, parse_model
+from dammrl.runner import ReachRunner
 
 
 def wilson(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:

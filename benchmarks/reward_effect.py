@@ -20,7 +20,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
-from dammrl.models import ModelSet
+from dammrl.core.models import ModelSet
 from dammrl.rl.train import Rollout, greedy_rollouts
 
 BINS_M = np.array([0.0, 0.01, 0.02, 0.04, 0.08, 0.16, 0.5])

@@ -12,12 +12,12 @@ from typing import TYPE_CHECKING
 
 from pydantic import ValidationError
 
-from dammrl.errors import DammrlError
+from dammrl.core.errors import DammrlError
 
 if TYPE_CHECKING:
     from services.common.config import BusSettings
     from services.intent.emulator import SensorEmulator
-from dammrl.models import parse_model
+from dammrl.core.models import parse_model
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -297,9 +297,9 @@ def _recording_export(args: argparse.Namespace) -> int:
 
 
 def _recording_plot(args: argparse.Namespace) -> int:
+    from dammrl.core.task import TaskSettings
     from dammrl.plots import plot_session
     from dammrl.recording import session_traces
-    from dammrl.task import TaskSettings
 
     traces = session_traces(args.file, args.episode)
     title = f"{args.file.name}: {len(traces.decisions)} decisions, {len(traces.pressure)} samples"
@@ -415,21 +415,22 @@ def _sensor_calibrate(args: argparse.Namespace) -> int:
 
 
 def _sensor_monitor(args: argparse.Namespace) -> int:
+    from dammrl.core.models import ModelSet
     from dammrl.sensor import Monitor, quiet_reader, wait_for_frames
     from services.common.runtime import stop_on_signals
     from services.intent.calibration import load_calibration
-    from services.intent.config import HumanSettings
+    from services.intent.config import IntentSettings
     from services.intent.decoder import PressDecoder
     from services.intent.serial_sensor import SerialSensor
 
     quiet_reader()
-    settings = HumanSettings()  # the intent service's settings: the same thresholds
+    settings = IntentSettings()  # the intent service's settings: the same thresholds
     calibration = load_calibration(args.calibration or settings.calibration_file)
     stop = stop_on_signals()
     with SerialSensor(args.port, reconnect_max_s=1.0) as sensor:
         wait_for_frames(sensor)
         _stop_after(stop, args.seconds)
-        Monitor(sensor, PressDecoder(calibration, settings.decoder), settings.models).run(stop)
+        Monitor(sensor, PressDecoder(calibration, settings.decoder), ModelSet()).run(stop)
     return 0
 
 
@@ -495,7 +496,7 @@ def _model_arg(text: str) -> tuple[int, int]:
 
 
 def _reach(args: argparse.Namespace) -> int:
-    from dammrl.episode import ReachRunner, ReachSettings
+    from dammrl.runner import ReachRunner, ReachSettings
     from services.controller.config import ControllerSettings
     from services.sim.config import DomainRandomization, SimSettings
 

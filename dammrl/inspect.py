@@ -8,7 +8,7 @@ from collections.abc import Callable
 
 import zenoh
 
-from dammrl.errors import DammrlError
+from dammrl.core.errors import DammrlError
 from schemas import DecodeError, Health, decode, type_of
 from services.common.bus import zenoh_config
 from services.common.config import BusSettings

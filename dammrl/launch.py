@@ -23,7 +23,7 @@ from pathlib import Path
 
 import zenoh
 
-from dammrl.errors import DammrlError
+from dammrl.core.errors import DammrlError
 from schemas import (
     DecisionRequest,
     DecodeError,

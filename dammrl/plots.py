@@ -12,8 +12,8 @@ import numpy as np
 from matplotlib.axes import Axes
 from matplotlib.patches import Circle
 
-from dammrl.episode import ReachResult
 from dammrl.recording import SessionTraces
+from dammrl.runner import ReachResult
 
 COLORS = {"fixed": "black", "event": "tab:red"}  # the paper's colours
 LABELS = {"fixed": "fixed-frequency", "event": "event-triggered"}

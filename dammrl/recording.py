@@ -23,7 +23,8 @@ from mcap.records import Channel, Footer, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
-from dammrl.errors import DammrlError
+from dammrl.core.errors import DammrlError
+from dammrl.core.human import direction_to_goal
 from schemas import (
     DecisionRequest,
     DecodeError,
@@ -36,7 +37,6 @@ from schemas import (
     type_of,
 )
 from schemas import Message as BusMessage
-from services.intent.core import direction_to_goal
 
 
 class RecordingError(DammrlError):

@@ -15,8 +15,8 @@ from pathlib import Path
 import numpy as np
 import zenoh
 
-from dammrl.errors import DammrlError
-from dammrl.models import ModelSet
+from dammrl.core.errors import DammrlError
+from dammrl.core.models import ModelSet
 from dammrl.recording import Recording
 from schemas import DecisionRequest, ModelChoice
 from services.common.bus import zenoh_config
@@ -129,7 +129,7 @@ def into_policy(recording: Recording, checkpoint: Path) -> list[PolicyDecision]:
     live stack, its own previous choice as the model in force; its choices sit next to
     the recorded policy's answers (ModelChoice messages carrying the request number).
     """
-    from services.policy.core import LearnedPolicy
+    from services.policy.learned import LearnedPolicy
 
     policy = LearnedPolicy(ModelSet(), checkpoint)
     answers: dict[tuple[int, int], tuple[int, int]] = {}

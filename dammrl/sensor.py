@@ -18,8 +18,8 @@ import tty
 from collections import deque
 from collections.abc import Callable, Iterator
 
-from dammrl.errors import DammrlError
-from dammrl.models import ModelSet
+from dammrl.core.errors import DammrlError
+from dammrl.core.models import ModelSet
 from services.intent.calibration import (
     CalibrationError,
     Rest,

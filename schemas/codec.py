@@ -11,14 +11,14 @@ from typing import TypeVar
 import msgpack
 from pydantic import ValidationError
 
-from dammrl.errors import DammrlError
 from schemas.messages import Message
 
 M = TypeVar("M", bound=Message)
 
 
-class DecodeError(DammrlError):
-    """Bytes that are not a valid message of the expected type."""
+class DecodeError(ValueError):
+    """Bytes that are not a valid message of the expected type (the wire contract is a
+    leaf: its one error type belongs to it, not to any library above it)."""
 
 
 def encode(message: Message) -> bytes:

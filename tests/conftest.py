@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from dammrl.episode import ReachRunner
-from dammrl.robot import RobotDescription
-from services.controller.dynamics import ArmModel
+from dammrl.core.dynamics import ArmModel
+from dammrl.core.robot import RobotDescription
+from dammrl.runner import ReachRunner
 from services.sim.config import SimSettings
 from services.sim.core import Simulation
 

@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from dammrl.robot import RobotDescription
-from dammrl.state import Intent, RobotState
+from dammrl.core.dynamics import ArmModel, joint_limit_avoidance
+from dammrl.core.robot import RobotDescription
+from dammrl.core.state import Intent, RobotState
 from services.controller.config import ControllerSettings
 from services.controller.core import Controller
-from services.controller.dynamics import ArmModel, joint_limit_avoidance
 from tests.conftest import HOME_Q, random_postures
 
 

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from dammrl.episode import ReachRunner, ReachSettings
-from dammrl.task import ReachTask
+from dammrl.core.task import ReachTask
+from dammrl.runner import ReachRunner, ReachSettings
 from services.controller.config import ControllerSettings
 
 

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from dammrl.robot import RobotDescription
-from services.controller.dynamics import ArmModel
-from services.controller.ik import DampedLeastSquaresIK, IKLatency, IkpyIK
+from dammrl.core.dynamics import ArmModel
+from dammrl.core.ik import DampedLeastSquaresIK, IKLatency, IkpyIK
+from dammrl.core.robot import RobotDescription
 from tests.conftest import HOME_Q, random_postures
 
 

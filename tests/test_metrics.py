@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from dammrl.metrics import (
+from dammrl.core.metrics import (
     GoalMonitor,
     dimensionless_jerk,
     human_error_rate,

@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 import torch
 
-from dammrl.episode import ReachRunner
 from dammrl.rl.config import RewardWeights, TrainSettings
 from dammrl.rl.dqn import DualAgentDQN, ReplayBuffer
 from dammrl.rl.env import ACTIONS, OBSERVATION_SIZE, ReachEnv, RewardTerms, accuracy_term
 from dammrl.rl.train import CheckpointError, evaluate, load_checkpoint, train
+from dammrl.runner import ReachRunner
 
 SMALL = TrainSettings(episodes=4, learning_starts=8, batch_size=8, buffer_size=500,
                       target_update_every=5, epsilon_decay_decisions=50)  # fmt: skip
@@ -123,6 +123,7 @@ def test_missing_or_corrupt_checkpoints_are_clear_errors(tmp_path: Path) -> None
 
 def _posterior_right_after(n: int, true_model: int, seeds: int, use_time: bool) -> float:
     from dammrl.rl.posterior import HumanModelPosterior
+
     from services.intent.config import HumanSettings
     from services.intent.core import SimulatedHuman
 
@@ -165,7 +166,7 @@ def test_policy_service_falls_back_to_the_safe_fixed_model(tmp_path: Path) -> No
 
 
 def test_shipped_reward_1_policy_takes_smaller_steps_near_the_goal_than_reward_2() -> None:
-    from dammrl.models import ModelSet
+    from dammrl.core.models import ModelSet
     from dammrl.rl.train import greedy_rollouts
     from services.policy.config import SHIPPED_POLICY
 

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from dammrl.errors import ConfigurationError
+from dammrl.core.errors import ConfigurationError
 from dammrl.sensor import calibrate
 from services.intent.calibration import (
     CalibrationError,

@@ -5,8 +5,8 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 
-from dammrl.state import JointCommand
-from services.controller.dynamics import ArmModel
+from dammrl.core.dynamics import ArmModel
+from dammrl.core.state import JointCommand
 from services.sim.config import DomainRandomization, SimSettings
 from services.sim.core import Simulation
 from tests.conftest import HOME_Q, random_postures

@@ -16,7 +16,7 @@ import msgpack
 import numpy as np
 import pytest
 
-from dammrl.robot import RobotDescription
+from dammrl.core.robot import RobotDescription
 from schemas import TOPICS, EpisodeResult, Health, RobotState, StepEvent, encode
 from tests.busutil import Observer, free_port, start_service, wait_for
 from tests.test_schemas import EXAMPLES

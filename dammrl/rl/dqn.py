@@ -15,6 +15,7 @@ import torch
 from torch import nn
 
 from dammrl.rl.config import TrainSettings
+from services.policy.learned import DualQNetwork
 
 
 class ReplayBuffer:
@@ -51,13 +52,6 @@ class ReplayBuffer:
         )
 
 
-def mlp(inputs: int, outputs: int, hidden: int) -> nn.Module:
-    return nn.Sequential(
-        nn.Linear(inputs, hidden), nn.ReLU(), nn.Linear(hidden, hidden), nn.ReLU(),
-        nn.Linear(hidden, outputs),
-    )  # fmt: skip
-
-
 @dataclass
 class UpdateStats:
     loss_human: float
@@ -72,11 +66,10 @@ class DualAgentDQN:
     def __init__(self, obs_size: int, actions: tuple[int, int], settings: TrainSettings,
                  device: torch.device) -> None:  # fmt: skip
         self.settings, self.device, self.actions = settings, device, actions
-        h = settings.hidden
-        self.q_human = mlp(obs_size, actions[0], h).to(device)
-        self.q_robot = mlp(obs_size + actions[0], actions[1], h).to(device)
-        self.target_human = mlp(obs_size, actions[0], h).to(device)
-        self.target_robot = mlp(obs_size + actions[0], actions[1], h).to(device)
+        self.online = DualQNetwork(settings.hidden, device)
+        self.target = DualQNetwork(settings.hidden, device)
+        self.q_human, self.q_robot = self.online.human, self.online.robot
+        self.target_human, self.target_robot = self.target.human, self.target.robot
         self.sync_targets()
         params = list(self.q_human.parameters()) + list(self.q_robot.parameters())
         self.optimizer = torch.optim.Adam(params, lr=settings.learning_rate)
@@ -87,20 +80,17 @@ class DualAgentDQN:
         self.target_robot.load_state_dict(self.q_robot.state_dict())
 
     def robot_input(self, obs: torch.Tensor, human: torch.Tensor) -> torch.Tensor:
-        one_hot = nn.functional.one_hot(human, self.actions[0]).float()
-        return torch.cat([obs, one_hot], dim=1)
+        return self.online.robot_input(obs, human)
 
     @torch.no_grad()
     def act(self, obs: np.ndarray, epsilon: float, rng: np.random.Generator) -> tuple[int, int]:
         """Epsilon-greedy for each agent; Agent_1 sees Agent_0's choice."""
-        x = torch.as_tensor(obs, device=self.device).unsqueeze(0)
-        human = int(rng.integers(self.actions[0])) if rng.random() < epsilon else int(
-            self.q_human(x).argmax(1).item()
-        )  # fmt: skip
+        explore_human = rng.random() < epsilon
+        human = int(rng.integers(self.actions[0])) if explore_human else None
         if rng.random() < epsilon:
+            human = self.online.greedy(obs)[0] if human is None else human
             return human, int(rng.integers(self.actions[1]))
-        q = self.q_robot(self.robot_input(x, torch.tensor([human], device=self.device)))
-        return human, int(q.argmax(1).item())
+        return self.online.greedy(obs, human)
 
     def update(self, batch: tuple[np.ndarray, ...]) -> UpdateStats:
         obs, actions, rewards, next_obs, dones = (

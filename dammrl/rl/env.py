@@ -1,7 +1,6 @@
 """The reach as a Gymnasium-style environment: one step per human decision (event trigger).
 
-Observation (16,): the end-effector position and the goal, normalised to the workspace
-([-1, 1] per axis), and the model in force as one-hots (i: 2, j: 8). Action (i, j) as
+Observation: the policy's (``services.policy.learned.observe``). Action (i, j) as
 0-based indices: Agent_0 picks the admission radius i, Agent_1 the step vector j. The
 reward of a step is the composite reward over the stretch until the next decision.
 """
@@ -14,17 +13,14 @@ from typing import Any
 
 import numpy as np
 
-from dammrl.episode import Episode, ReachRunner
-from dammrl.metrics import n_oscillations
-from dammrl.models import HUMAN_MODELS, ROBOT_MODELS
+from dammrl.core.metrics import n_oscillations
+from dammrl.core.policy import ModelChoice, model_choice
+from dammrl.core.state import RobotState
 from dammrl.rl.config import RewardWeights
-from dammrl.state import RobotState
-from services.policy.core import ModelChoice
+from dammrl.runner import Episode, ReachRunner
+from services.policy.learned import ACTIONS, OBSERVATION_SIZE, observe
 
-OBSERVATION_SIZE = 3 + 3 + len(HUMAN_MODELS) + len(ROBOT_MODELS)
-ACTIONS = (len(HUMAN_MODELS), len(ROBOT_MODELS))
-WORKSPACE_CENTRE = np.array([0.45, 0.0, -0.10])
-WORKSPACE_HALF = np.array([0.25, 0.25, 0.20])
+__all__ = ["ACTIONS", "OBSERVATION_SIZE", "ReachEnv", "RewardTerms", "accuracy_term"]
 
 
 @dataclass(frozen=True)
@@ -50,16 +46,6 @@ def accuracy_term(error_m: float) -> float:
     return 1.0 / ((error_m * 100.0) ** 2 + 0.5)
 
 
-def observe(x: np.ndarray, goal: np.ndarray, model: tuple[int, int] | None) -> np.ndarray:
-    obs = np.zeros(OBSERVATION_SIZE, dtype=np.float32)
-    obs[0:3] = (x - WORKSPACE_CENTRE) / WORKSPACE_HALF
-    obs[3:6] = (goal - WORKSPACE_CENTRE) / WORKSPACE_HALF
-    if model is not None:
-        obs[6 + model[0] - 1] = 1.0
-        obs[8 + model[1] - 1] = 1.0
-    return obs
-
-
 class ReachEnv:
     """``reset(seed) -> (obs, info)``, ``step((i, j)) -> (obs, r, terminated, truncated, info)``."""
 
@@ -67,7 +53,7 @@ class ReachEnv:
         self.runner = runner
         self.weights = weights
         self.max_decisions = max_decisions
-        self.models = runner.settings.human.models
+        self.models = runner.settings.models
         self.episode: Episode
         self._loop: Generator[RobotState, ModelChoice, None]
         self._state: RobotState
@@ -85,7 +71,7 @@ class ReachEnv:
     def step(self, action: tuple[int, int]) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         i, j = int(action[0]) + 1, int(action[1]) + 1
         self._model = (i, j)
-        choice = ModelChoice(i, j, self.models.radius_m(i), self.models.steps_m(j))
+        choice = model_choice(self.models, i, j)
         self._decisions += 1
         try:
             self._state = self._loop.send(choice)

@@ -20,19 +20,21 @@ import numpy as np
 import torch
 from torch.utils.tensorboard import SummaryWriter
 
-from dammrl.episode import ReachRunner
-from dammrl.errors import DammrlError
+from dammrl.core.errors import DammrlError
 from dammrl.rl.config import RewardWeights, TrainSettings
 from dammrl.rl.dqn import DualAgentDQN, ReplayBuffer, UpdateStats
 from dammrl.rl.env import ACTIONS, OBSERVATION_SIZE, ReachEnv
+from dammrl.runner import ReachRunner
+from services.policy.learned import (
+    CHECKPOINT,
+    FORMAT,
+    CheckpointError,
+    LearnedPolicy,
+    load_checkpoint,
+)
 
-CHECKPOINT = "checkpoint.pt"
-FORMAT = 1
+__all__ = ["CheckpointError", "evaluate", "load_checkpoint", "train"]
 EVAL_SEED_OFFSET = 1_000_000  # evaluation seeds never seen in training
-
-
-class CheckpointError(DammrlError):
-    """A checkpoint that is missing, corrupt or made for something else."""
 
 
 @dataclass
@@ -183,25 +185,6 @@ def _typed(row: dict[str, str]) -> dict[str, Any]:
             for k, v in row.items()}  # fmt: skip
 
 
-def load_checkpoint(run: Path) -> dict[str, Any]:
-    """The checkpoint of a run directory (or file), checked for format and shapes."""
-    path = run / CHECKPOINT if run.is_dir() else run
-    if not path.is_file():
-        raise CheckpointError(f"no checkpoint at {path}")
-    try:
-        checkpoint = torch.load(path, map_location="cpu", weights_only=False)
-    except Exception as exc:  # torch raises many types for a damaged file
-        raise CheckpointError(f"checkpoint {path} is corrupt: {exc}") from exc
-    if not isinstance(checkpoint, dict) or checkpoint.get("format") != FORMAT:
-        raise CheckpointError(f"{path} is not a dammrl checkpoint (format {FORMAT})")
-    if (
-        checkpoint.get("observation_size") != OBSERVATION_SIZE
-        or tuple(checkpoint.get("actions", ())) != ACTIONS
-    ):
-        raise CheckpointError(f"{path} was trained for another observation/action layout")
-    return checkpoint
-
-
 @dataclass(frozen=True)
 class Rollout:
     """One greedy episode: its metrics and, per decision, (distance to goal [m], i, j)."""
@@ -214,19 +197,20 @@ def greedy_rollouts(run: Path, episodes: int) -> list[Rollout]:
     """The run's greedy policy on ``episodes`` unseen seeds, stochastic human."""
     checkpoint = load_checkpoint(run)
     settings = TrainSettings(**checkpoint["settings"])
-    agent = DualAgentDQN(OBSERVATION_SIZE, ACTIONS, settings, torch.device("cpu"))
-    agent.load_state_dict(checkpoint["agent"])
-    env = ReachEnv(ReachRunner(), RewardWeights(**checkpoint["weights"]), settings.max_decisions)
-    rng = np.random.default_rng(0)
+    runner = ReachRunner()
+    policy = LearnedPolicy(runner.settings.models, run)
+    env = ReachEnv(runner, RewardWeights(**checkpoint["weights"]), settings.max_decisions)
     rollouts = []
     for k in range(episodes):
-        obs, _ = env.reset(seed=EVAL_SEED_OFFSET + k)
+        env.reset(seed=EVAL_SEED_OFFSET + k)
+        policy.reset()
         decisions = []
         while True:
-            distance = float(np.linalg.norm(env.episode.last_state.ee_pos - env.episode.task.goal))
-            i, j = agent.act(obs, 0.0, rng)
-            decisions.append((distance, i + 1, j + 1))
-            obs, _, terminated, truncated, info = env.step((i, j))
+            x, goal = env.episode.last_state.ee_pos, env.episode.task.goal
+            choice = policy.decide(x, goal)
+            i, j = choice.human_model, choice.robot_model
+            decisions.append((float(np.linalg.norm(x - goal)), i, j))
+            _, _, terminated, truncated, info = env.step((i - 1, j - 1))
             if terminated or truncated:
                 break
         rollouts.append(Rollout(info["metrics"], decisions))

@@ -31,5 +31,13 @@ class BusSettings(BaseSettings):
     """Key-expression prefix: stacks with different namespaces share a network unseen."""
     health_period_s: float = Field(1.0, gt=0)
     """How often the service publishes its Health [s]."""
-    inbox_size: int = Field(4096, ge=16)
+    inbox_size: int = Field(4096, ge=16, le=1_000_000)
     """Messages buffered between the Zenoh callback and the service loop."""
+    lockstep: bool = False
+    """Run the stack on the robot clock instead of in real time: the sim steps only once
+    the controller answered its last state, and the controller answers a state that asked
+    for a decision only once the human did. Deterministic (the in-process runner's exact
+    twin) and as fast as the bus allows; for simulation only, never for an arm."""
+    lockstep_timeout_s: float = Field(1.0, gt=0, le=60)
+    """Lockstep: the longest wait for an answer before going on without it (the sim then
+    holds the arm as for a stale command) [s]."""

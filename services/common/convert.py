@@ -6,7 +6,7 @@ from typing import Any
 
 import numpy as np
 
-from dammrl import state as core
+from dammrl.core import state as core
 from schemas import messages as wire
 
 

@@ -9,7 +9,7 @@ from typing import Protocol
 
 from pydantic import ValidationError
 
-from dammrl.errors import DammrlError
+from dammrl.core.errors import DammrlError
 from services.common.bus import Bus
 from services.common.config import BusSettings
 from services.common.logs import setup_logging

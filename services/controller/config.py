@@ -7,9 +7,9 @@ from typing import Literal
 from pydantic import Field
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from dammrl.core.ik import IKSolverName, LatencyMode
+
 Trigger = Literal["event", "fixed"]
-IKSolverName = Literal["ikpy", "pinocchio"]
-LatencyMode = Literal["model", "measured", "zero"]
 Feedforward = Literal["inverse_dynamics", "resolved_acceleration"]
 
 

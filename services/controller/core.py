@@ -18,12 +18,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from dammrl.robot import RobotDescription
-from dammrl.state import Intent, JointCommand, RobotState, StepEvent
-from services.controller import safety
+from dammrl.core import safety
+from dammrl.core.dynamics import ArmModel, joint_limit_avoidance
+from dammrl.core.ik import IKLatency, IKSolver, make_ik_solver
+from dammrl.core.robot import RobotDescription
+from dammrl.core.state import Intent, JointCommand, RobotState, StepEvent
 from services.controller.config import ControllerSettings
-from services.controller.dynamics import ArmModel, joint_limit_avoidance
-from services.controller.ik import IKLatency, IKSolver, make_ik_solver
 from services.controller.stepping import event_trigger, fixed_timer_due, micro_step
 from services.controller.trajectory import QuinticSegment, segment_duration
 

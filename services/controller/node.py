@@ -1,10 +1,15 @@
-"""The controller node: the controller core and the episode supervisor on the bus.
+"""The controller node: the reach supervisor (``Reach``) and its controller on the bus.
 
-Loop: take the next message; a RobotState of the running episode ticks the core and
-sends the JointCommand (plus StepEvents and, when the core wants a decision, one
-DecisionRequest); an Intent answering the open request goes to the core; a ModelChoice
-sets the step vector. Without RobotState for ``state_stale_s`` the core holds its last
-reference and the episode ends (the sim holds the arm by itself once commands stop).
+Each RobotState of the running episode is one ``Reach.tick``: its JointCommand (and
+StepEvents) go out; when the reach asks for a decision, a DecisionRequest goes out, the
+policy answers it with a ModelChoice and the human with an Intent, which becomes due at
+the request time plus the human's decision time on the robot clock (a late answer is due
+on arrival). Without RobotState for ``state_stale_s`` the episode ends in a hold (the
+sim holds the arm by itself once commands stop).
+
+In lockstep (``DAMMRL_BUS_LOCKSTEP``) the command answering a state that asked for a
+decision waits for the human's answer, so the robot clock never runs past a due time
+before the answer is known: the stack then reproduces the in-process runner exactly.
 """
 
 from __future__ import annotations
@@ -13,12 +18,17 @@ import logging
 import threading
 import time
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 
-from dammrl.robot import RobotDescription
-from dammrl.robot.scene import SceneLayout
-from dammrl.task import TaskSettings, seed_streams
+from dammrl.core.dynamics import ArmModel
+from dammrl.core.ik import make_ik_solver
+from dammrl.core.metrics import episode_summary
+from dammrl.core.models import ModelSet
+from dammrl.core.robot import RobotSettings
+from dammrl.core.state import Intent as CoreIntent
+from dammrl.core.task import ReachTask, TaskSettings, seed_streams, start_posture, task_for_seed
 from schemas import (
     DecisionRequest,
     EpisodeResult,
@@ -35,14 +45,18 @@ from services.common.bus import Bus
 from services.common.entry import run_service
 from services.controller.config import ControllerSettings
 from services.controller.core import Controller
-from services.controller.dynamics import ArmModel
-from services.controller.ik import DampedLeastSquaresIK
-from services.controller.supervisor import Episode, Supervisor
-from services.intent.config import HumanSettings
-from services.sim.config import SimSettings
+from services.controller.reach import Answer, Reach
 
 log = logging.getLogger("dammrl.controller")
 ANNOUNCE_PERIOD_S = 0.5  # TaskGoal is repeated until the sim answers with the new episode
+
+
+@dataclass(frozen=True)
+class Episode:
+    number: int
+    seed: int
+    task: ReachTask
+    q_start: np.ndarray
 
 
 class ControllerNode:
@@ -50,27 +64,31 @@ class ControllerNode:
         self,
         settings: ControllerSettings,
         task: TaskSettings,
-        sim: SimSettings,
+        robot: RobotSettings,
+        models: ModelSet,
         bus: Bus,
     ) -> None:
         self.settings = settings
         self.task_settings = task
+        self.models = models
         self.bus = bus
-        robot = RobotDescription.from_urdf(sim.urdf_path, sim.ee_frame, sim.armature_kgm2)
-        arm = ArmModel(robot)
-        layout = SceneLayout(table_top_z_m=sim.table_top_z_m)
-        self.supervisor = Supervisor(task, DampedLeastSquaresIK(arm), layout.goal_z_m)
-        self.controller = Controller(robot, settings, np.random.default_rng(task.seed), arm)
-        models = HumanSettings().models
-        self.choice = (settings.human_model, settings.robot_model)
-        self.controller.set_steps(models.steps_m(settings.robot_model))
+        self.robot = robot.load()
+        self.arm = ArmModel(self.robot)
+        self.ik = make_ik_solver(
+            settings.ik_solver, self.arm, settings.joint_limit_margin_rad,
+            settings.max_joint_step_rad,
+        )  # fmt: skip
+        self.control_dt_s = 1.0 / settings.control_rate_hz
+        self.choice = (settings.human_model, settings.robot_model)  # until the policy speaks
         self.episode: Episode | None = None
+        self.reach: Reach | None = None
         self.started = False  # the sim has answered the episode's TaskGoal
         self.announced_s = 0.0
         self.last_state_s = time.monotonic()
         self.last_t = 0.0
         self.request = 0
-        self.request_open = False
+        self.request_t_s = 0.0
+        self.choices: dict[int, ModelChoice] = {}  # the policy's answer per request
         self.publish = {
             t: bus.publisher(t)
             for t in (JointCommand, StepEvent, DecisionRequest, TaskGoal, EpisodeResult)
@@ -88,7 +106,8 @@ class ControllerNode:
             if message is not None:
                 self._dispatch(message)
             self._watch()
-            self.bus.report_health("holding" if self.controller.hold_reason else "ok")
+            holding = self.reach is not None and self.reach.controller.hold_reason is not None
+            self.bus.report_health("holding" if holding else "ok")
 
     def _wait_for_policy(self, stop: threading.Event) -> None:
         """Start the first episode once the policy speaks (its first ModelChoice), so every
@@ -97,7 +116,7 @@ class ControllerNode:
         while not stop.is_set() and time.monotonic() < deadline:
             message = self.bus.receive(0.1)
             if isinstance(message, ModelChoice):
-                self._dispatch(message)
+                self.choice = (message.human_model, message.robot_model)
                 return
             self.bus.report_health("holding", "waiting for the policy")
         log.warning("no ModelChoice from the policy: starting with M_%d,%d", *self.choice)
@@ -112,44 +131,39 @@ class ControllerNode:
             self._on_choice(message)
 
     def _on_choice(self, message: ModelChoice) -> None:
-        """The policy's answer to the open request, or its periodic repeat between steps."""
-        answers_open = message.request == self.request and self.request_open
-        if message.request >= 0 and not answers_open:
-            return  # an answer to an older request
-        self.choice = (message.human_model, message.robot_model)
-        self.controller.set_steps(np.array(message.steps_m))
+        """Keep the policy's answer to a request of this episode (periodic repeats only
+        say the policy is alive)."""
+        episode = self.episode
+        if episode is not None and message.episode == episode.number and message.request > 0:
+            self.choices[message.request] = message
 
     def _on_state(self, message: RobotState) -> None:
-        episode = self.episode
-        if episode is None or message.episode != episode.number:
+        episode, reach = self.episode, self.reach
+        if episode is None or reach is None or message.episode != episode.number:
             return
-        self.last_state_s = time.monotonic()
         state = convert.robot_state(message)
         self.last_t = state.t_s
         if not self.started:
             self.started = True
-            self.controller.reset(state, episode.task.goal)
-            self.controller.latency.rng = seed_streams(episode.seed)[2]
             log.info("episode %d started (seed %d)", episode.number, episode.seed)
-        episode.record(state)
-        if (ended := self.supervisor.finished(episode, state)) is not None:
-            self._finish(*ended)
-            return
-        output = self.controller.tick(state)
-        self.publish[JointCommand].publish(
-            **convert.command_fields(output.command, episode.number, message.header.stamp_ns)
-        )
-        for step in output.steps:
-            episode.steps.append(step)
-            self.publish[StepEvent].publish(**convert.step_fields(step, episode.number))
-        if output.hold_reason is not None:
-            self._finish("hold", output.hold_reason)
-        elif self.controller.wants_intent and not self.request_open:
+        tick = reach.tick(state)
+        if tick.ask:
             self._request_decision(state.ee_pos, episode)
+            if self.bus.settings.lockstep:
+                self._await_answer()
+        if tick.command is not None:
+            self.publish[JointCommand].publish(
+                **convert.command_fields(tick.command, episode.number, message.header.stamp_ns)
+            )
+        for step in tick.steps:
+            self.publish[StepEvent].publish(**convert.step_fields(step, episode.number))
+        self.last_state_s = time.monotonic()
+        if tick.ended is not None:
+            self._finish()
 
     def _request_decision(self, ee_pos: np.ndarray, episode: Episode) -> None:
         self.request += 1
-        self.request_open = True
+        self.request_t_s = self.last_t
         self.publish[DecisionRequest].publish(
             episode=episode.number,
             request=self.request,
@@ -160,14 +174,33 @@ class ControllerNode:
             human_model=self.choice[0],
         )
 
+    def _await_answer(self) -> None:
+        """Lockstep: take messages until the human answered the open request (bounded)."""
+        deadline = time.monotonic() + self.bus.settings.lockstep_timeout_s / 2
+        while self.reach is not None and self.reach.asked:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                log.warning("lockstep: no answer to request %d in time", self.request)
+                return
+            message = self.bus.receive(remaining)
+            if isinstance(message, Intent | ModelChoice):
+                self._dispatch(message)
+
     def _on_intent(self, message: Intent) -> None:
-        episode = self.episode
-        if episode is None or message.episode != episode.number or message.request != self.request:
+        episode, reach = self.episode, self.reach
+        stale = message.request != self.request or reach is None or not reach.asked
+        if episode is None or message.episode != episode.number or stale:
             return  # an answer to an older request
-        self.request_open = False
-        self.controller.on_intent(convert.intent(message, self.last_t))
-        if message.correct is not None:
-            episode.decisions.append(message.correct)
+        assert reach is not None
+        choice = self.choices.get(message.request)
+        if choice is not None:
+            self.choice = (choice.human_model, choice.robot_model)
+        due_s = self.request_t_s + message.decision_s  # a late answer is due on arrival
+        intent = CoreIntent(
+            due_s, message.u_h, message.radius_m, message.human_model, message.confidence
+        )
+        steps = None if choice is None else np.array(choice.steps_m)
+        reach.answer(Answer(intent, steps, message.correct))
 
     # ---- episodes -----------------------------------------------------------------
     def _watch(self) -> None:
@@ -180,19 +213,27 @@ class ControllerNode:
         ):
             self._announce(self.episode)
         stale = now - self.last_state_s > self.settings.state_stale_s
-        if self.episode is not None and self.started and stale:
-            self._finish("hold", f"robot state stale: none for {self.settings.state_stale_s:.2f} s")
+        if self.reach is not None and self.started and stale:
+            reason = f"robot state stale: none for {self.settings.state_stale_s:.2f} s"
+            self.reach.end("hold", reason, self.last_t)
+            self._finish()
 
     def _next_episode(self) -> None:
         number = 1 if self.episode is None else self.episode.number + 1
         total = self.task_settings.episodes
         if total is not None and number > total:
-            self.episode = None
+            self.episode = self.reach = None
             log.info("all %d episodes done", total)
             return
-        self.episode = self.supervisor.episode(number)
+        seed = self.task_settings.seed + number - 1
+        task = task_for_seed(self.task_settings, seed)
+        q_start = start_posture(self.arm, self.task_settings, task.start)
+        self.episode = Episode(number, seed, task, q_start)
+        streams = seed_streams(seed)
+        controller = Controller(self.robot, self.settings, streams.ik_latency, self.arm, self.ik)
+        self.reach = Reach(controller, task, self.task_settings, self.control_dt_s)
         self.started = False
-        self.request_open = False
+        self.request, self.choices = 0, {}
         self._announce(self.episode)
 
     def _announce(self, episode: Episode) -> None:
@@ -205,26 +246,18 @@ class ControllerNode:
             q_start_rad=tuple(float(v) for v in episode.q_start),
         )
 
-    def _finish(self, outcome: str, reason: str) -> None:
-        episode = self.episode
-        assert episode is not None
-        self.controller.hold(reason, self.last_t)
-        metrics = episode.metrics(outcome, reason)
-        fields = metrics.as_dict()
-        if fields["t_step_mean_s"] != fields["t_step_mean_s"]:  # NaN: no step taken
-            fields["t_step_mean_s"] = None
-        self.publish[EpisodeResult].publish(
-            episode=episode.number,
-            seed=episode.seed,
-            trigger=self.settings.trigger,
-            model=self.choice,
-            start_m=tuple(float(v) for v in episode.task.start),
-            goal_m=tuple(float(v) for v in episode.task.goal),
-            **fields,
+    def _finish(self) -> None:
+        episode, reach = self.episode, self.reach
+        assert episode is not None and reach is not None
+        metrics = reach.metrics()
+        summary = episode_summary(
+            metrics, self.settings.trigger, self.choice, episode.seed, episode.task
         )
+        self.publish[EpisodeResult].publish(episode=episode.number, **summary)
         log.info(
-            "episode %d: %s (%s) in %.1f s", episode.number, outcome, reason, metrics.t_total_s
-        )
+            "episode %d: %s (%s) in %.1f s",
+            episode.number, metrics.outcome, metrics.reason, metrics.t_total_s,
+        )  # fmt: skip
         self._next_episode()
 
 
@@ -233,7 +266,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     return run_service(
         "controller",
         "Controller service: micro-steps, trigger, IK, joint commands, episodes.",
-        "DAMMRL_CONTROLLER_*, DAMMRL_TASK_*, DAMMRL_SIM_* (robot)",
-        lambda bus, _: ControllerNode(ControllerSettings(), TaskSettings(), SimSettings(), bus),
+        "DAMMRL_CONTROLLER_*, DAMMRL_TASK_*, DAMMRL_ROBOT_*, DAMMRL_MODELS_*",
+        lambda bus, _: ControllerNode(
+            ControllerSettings(), TaskSettings(), RobotSettings(), ModelSet(), bus
+        ),
         argv,
     )

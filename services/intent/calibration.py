@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 from pydantic import ValidationError
 
-from dammrl.errors import ConfigurationError, DammrlError
+from dammrl.core.errors import ConfigurationError, DammrlError
 from services.intent.decoder import Calibration
 from services.intent.emulator import DEFAULT_CALIBRATION
 

@@ -2,27 +2,31 @@
 
 Each DecisionRequest is decided from what it shows (end-effector and goal) as soon as the
 policy's ModelChoice for that request arrives (its i is the admission radius the human
-works with; after ``policy_wait_s`` without an answer the request's own i is used), and
-published after the decision time the human took, in real time. A TaskGoal reseeds the
-human with the episode's seed, so a seed draws the same decisions as in-process.
+works with; after ``policy_wait_s`` without an answer the request's own i is used). The
+Intent is published at once with the decision time the human took: the controller
+applies it when its robot clock reaches the request time plus that decision time, as the
+in-process runner does, so the human is timed by the robot clock, not by bus latency.
+A TaskGoal reseeds the human with the episode's seed, so a seed draws the same decisions
+as in-process.
 """
 
 from __future__ import annotations
 
-import heapq
 import logging
 import threading
 import time
 from collections.abc import Sequence
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from dammrl.task import seed_streams
+from dammrl.core.human import HumanModel
+from dammrl.core.models import ModelSet
+from dammrl.core.task import seed_streams
 from schemas import DecisionRequest, Intent, Message, ModelChoice, TaskGoal
 from services.common.bus import Bus
 from services.common.entry import run_service
-from services.intent.config import HumanSettings
+from services.intent.config import IntentSettings
 from services.intent.core import SimulatedHuman
 
 if TYPE_CHECKING:
@@ -32,11 +36,12 @@ log = logging.getLogger("dammrl.intent")
 
 
 class IntentNode:
-    def __init__(self, settings: HumanSettings, bus: Bus) -> None:
+    def __init__(
+        self, settings: IntentSettings, human: HumanModel, models: ModelSet, bus: Bus
+    ) -> None:
         self.bus = bus
-        self.human = SimulatedHuman(settings)
+        self.human = SimulatedHuman(human, models)
         self.policy_wait_s = settings.policy_wait_s
-        self.due: list[tuple[float, int, dict[str, Any]]] = []  # (wall time, tiebreak, fields)
         self.waiting: dict[tuple[int, int], tuple[float, DecisionRequest]] = {}
         self.publisher = bus.publisher(Intent)
         bus.subscribe(DecisionRequest, TaskGoal, ModelChoice)
@@ -46,19 +51,15 @@ class IntentNode:
 
     def run(self, stop: threading.Event) -> None:
         while not stop.is_set():
-            wait = 0.01 if not self.due else max(0.0, min(0.01, self.due[0][0] - time.monotonic()))
-            message = self.bus.receive(wait)
+            message = self.bus.receive(0.01)
             if message is not None:
                 self._dispatch(message)
             self._decide_unanswered()
-            while self.due and self.due[0][0] <= time.monotonic():
-                self.publisher.publish(**heapq.heappop(self.due)[2])
             self.bus.report_health()
 
     def _dispatch(self, message: Message) -> None:
         if isinstance(message, TaskGoal):
-            self.human.rng = seed_streams(message.seed)[1]
-            self.due.clear()
+            self.human.rng = seed_streams(message.seed).human
             self.waiting.clear()
         elif isinstance(message, DecisionRequest):
             self.waiting[(message.episode, message.request)] = (time.monotonic(), message)
@@ -83,18 +84,17 @@ class IntentNode:
             request.primary_axis,
             human_model,
         )
-        fields = {
-            "episode": request.episode,
-            "request": request.request,
-            "u_h": decision.intent.u_h,
-            "human_model": human_model,
-            "radius_m": decision.intent.radius_m,
-            "confidence": 1.0,
-            "source": "simulated",
-            "decision_s": decision.decision_s,
-            "correct": decision.correct,
-        }
-        heapq.heappush(self.due, (time.monotonic() + decision.decision_s, request.request, fields))
+        self.publisher.publish(
+            episode=request.episode,
+            request=request.request,
+            u_h=decision.intent.u_h,
+            human_model=human_model,
+            radius_m=decision.intent.radius_m,
+            confidence=1.0,
+            source="simulated",
+            decision_s=decision.decision_s,
+            correct=decision.correct,
+        )
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -102,16 +102,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     return run_service(
         "intent",
         "Intent service: the simulated human answers decision requests.",
-        "DAMMRL_INTENT_*",
-        lambda bus, _: _node(HumanSettings(), bus),
+        "DAMMRL_INTENT_*, DAMMRL_HUMAN_*, DAMMRL_MODELS_*",
+        lambda bus, _: _node(IntentSettings(), bus),
         argv,
     )
 
 
-def _node(settings: HumanSettings, bus: Bus) -> IntentNode | SensorIntentNode:
+def _node(settings: IntentSettings, bus: Bus) -> IntentNode | SensorIntentNode:
     """The simulated human (virtual mode) or the pressure sensor (semi-virtual mode)."""
     if settings.source == "serial":
         from services.intent.sensor_node import SensorIntentNode
 
-        return SensorIntentNode(settings, bus)
-    return IntentNode(settings, bus)
+        return SensorIntentNode(settings, ModelSet(), bus)
+    return IntentNode(settings, HumanModel(), ModelSet(), bus)

@@ -15,9 +15,10 @@ import threading
 
 import numpy as np
 
+from dammrl.core.human import HumanModel
+from dammrl.core.models import ModelSet
 from schemas import DecisionRequest
 from services.common.bus import Bus
-from services.intent.config import HumanSettings
 from services.intent.core import Decision, SimulatedHuman
 from services.intent.emulator import SensorEmulator
 
@@ -34,12 +35,12 @@ class SimulatedPatient:
         self,
         sensor: SensorEmulator,
         human_model: int,
-        settings: HumanSettings | None = None,
+        human: HumanModel | None = None,
         seed: int = 0,
     ) -> None:
         self.sensor = sensor
         self.human_model = human_model
-        self.human = SimulatedHuman(settings or HumanSettings(), seed)
+        self.human = SimulatedHuman(human or HumanModel(), ModelSet(), seed)
         self.answered = 0
 
     def answer(self, request: DecisionRequest) -> Decision:

@@ -13,20 +13,22 @@ from __future__ import annotations
 import threading
 import time
 
-from dammrl.errors import ConfigurationError
+from dammrl.core.errors import ConfigurationError
+from dammrl.core.models import ModelSet
 from schemas import DecisionRequest, Intent, Message, SensorSample, TaskGoal
 from services.common.bus import Bus
 from services.intent.calibration import load_calibration
-from services.intent.config import HumanSettings
+from services.intent.config import IntentSettings
 from services.intent.decoder import PressDecision, PressDecoder
 from services.intent.serial_sensor import Arrival, SerialSensor
 
 
 class SensorIntentNode:
-    def __init__(self, settings: HumanSettings, bus: Bus) -> None:
+    def __init__(self, settings: IntentSettings, models: ModelSet, bus: Bus) -> None:
         if settings.port is None:
             raise ConfigurationError("DAMMRL_INTENT_PORT (the sensor's serial device) is not set")
         self.settings = settings
+        self.models = models
         self.bus = bus
         self.calibration = load_calibration(settings.calibration_file)
         self.decoder = PressDecoder(self.calibration, settings.decoder)
@@ -72,7 +74,7 @@ class SensorIntentNode:
             self.ignored_presses += 1
             return
         self.request = None
-        models = self.settings.models
+        models = self.models
         onset_s = decision.t_s - decision.duration_s  # the decision is made when pressing starts
         self.intents.publish(
             episode=request.episode,

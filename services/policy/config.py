@@ -9,8 +9,6 @@ from typing import Literal
 from pydantic import Field
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
-from dammrl.models import ModelSet
-
 SHIPPED_POLICY = Path(str(resources.files("dammrl").joinpath("policies/reward2/checkpoint.pt")))
 
 
@@ -24,11 +22,12 @@ class PolicySettings(BaseSettings):
     kind: Literal["learned", "fixed"] = "learned"
     """'learned': the DQN of ``checkpoint``; 'fixed': always M_{human_model,robot_model}."""
     checkpoint: Path = SHIPPED_POLICY
-    """Training run directory or checkpoint file (default: the shipped Reward 2 policy)."""
+    """Training run directory or checkpoint file (default: the shipped Reward 2 policy).
+    The model set M_ij is the stack's one ``DAMMRL_MODELS_*`` setting."""
     human_model: int = Field(1, ge=1, le=2)
     """i of the fixed policy: 1 = E_big, 2 = E_small."""
     robot_model: int = Field(1, ge=1, le=8)
-    """j of the fixed policy (see dammrl.models)."""
+    """j of the fixed policy (see dammrl.core.models)."""
     fallback_human_model: int = Field(2, ge=1, le=2)
     fallback_robot_model: int = Field(1, ge=1, le=8)
     """The safe fixed model used when the checkpoint cannot be loaded: M_2,1, the careful
@@ -38,4 +37,3 @@ class PolicySettings(BaseSettings):
     radius: 'auto' when the intents come from a real sensor, or always, or never."""
     publish_period_s: float = Field(0.5, gt=0)
     """The latest ModelChoice is repeated this often, so late joiners learn it [s]."""
-    models: ModelSet = ModelSet()

@@ -16,48 +16,33 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from dammrl.errors import DammrlError
-from dammrl.rl.posterior import HumanModelPosterior
+from dammrl.core.human import HumanModel, direction_to_goal
+from dammrl.core.models import ModelSet
+from dammrl.core.policy import ModelChoice as CoreChoice
+from dammrl.core.posterior import HumanModelPosterior
 from schemas import DecisionRequest, Intent, ModelChoice, TaskGoal
 from services.common.bus import Bus
 from services.common.entry import run_service
-from services.intent.config import HumanSettings
-from services.intent.core import direction_to_goal
 from services.policy.config import PolicySettings
-from services.policy.core import FixedPolicy, LearnedPolicy
-from services.policy.core import ModelChoice as CoreChoice
+from services.policy.core import load_policy
 
 log = logging.getLogger("dammrl.policy")
 
 
-def load_policy(settings: PolicySettings) -> tuple[FixedPolicy | LearnedPolicy, str, str]:
-    """(policy, health state, description); never raises for a bad checkpoint."""
-    if settings.kind == "fixed":
-        policy = FixedPolicy(settings.models, settings.human_model, settings.robot_model)
-        return policy, "ok", f"fixed M_{settings.human_model},{settings.robot_model}"
-    try:
-        learned = LearnedPolicy(settings.models, settings.checkpoint)
-    except DammrlError as exc:
-        i, j = settings.fallback_human_model, settings.fallback_robot_model
-        log.error(
-            "cannot use the learned policy (%s); falling back to the fixed M_%d,%d", exc, i, j
-        )
-        return FixedPolicy(settings.models, i, j), "degraded", f"fallback M_{i},{j}: {exc}"
-    return learned, "ok", f"learned (Reward {learned.reward}) from {settings.checkpoint}"
-
-
 class PolicyNode:
-    def __init__(self, settings: PolicySettings, bus: Bus) -> None:
+    def __init__(
+        self, settings: PolicySettings, human: HumanModel, models: ModelSet, bus: Bus
+    ) -> None:
         self.settings = settings
         self.bus = bus
-        self.policy, self.health, self.description = load_policy(settings)
+        self.policy, self.health, self.description = load_policy(settings, models)
         log.info("policy: %s", self.description)
         self.latest: CoreChoice = self.policy.decide(np.zeros(3), np.zeros(3))
         self.episode = 0
         self.real_human = False
         self._new_episode(0)
         self.publisher = bus.publisher(ModelChoice)
-        self.posterior = HumanModelPosterior(HumanSettings())
+        self.posterior = HumanModelPosterior(human)
         self.requests: dict[tuple[int, int], DecisionRequest] = {}
         bus.subscribe(DecisionRequest, TaskGoal, Intent)
         bus.expect(DecisionRequest, "controller")
@@ -101,8 +86,7 @@ class PolicyNode:
         """A new episode starts with no model in force (as in training)."""
         if episode != self.episode or episode == 0:
             self.episode = episode
-            if isinstance(self.policy, LearnedPolicy):
-                self.policy.reset()
+            self.policy.reset()
 
     def _publish(self, request: int) -> None:
         choice = self.latest
@@ -124,7 +108,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     return run_service(
         "policy",
         "Policy service: answers decision requests with the multi-model choice M_ij.",
-        "DAMMRL_POLICY_* (KIND, CHECKPOINT, HUMAN_MODEL, ROBOT_MODEL, FALLBACK_*)",
-        lambda bus, _: PolicyNode(PolicySettings(), bus),
+        "DAMMRL_POLICY_* (KIND, CHECKPOINT, HUMAN_MODEL, ROBOT_MODEL, FALLBACK_*), "
+        "DAMMRL_HUMAN_*, DAMMRL_MODELS_*",
+        lambda bus, _: PolicyNode(PolicySettings(), HumanModel(), ModelSet(), bus),
         argv,
     )

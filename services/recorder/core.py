@@ -22,7 +22,7 @@ import msgpack
 from mcap.writer import CompressionType, Writer
 
 from dammrl import __version__
-from dammrl.errors import DammrlError
+from dammrl.core.errors import DammrlError
 from schemas import Message, type_of
 
 PROFILE = "dammrl"

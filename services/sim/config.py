@@ -2,12 +2,8 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 from pydantic import BaseModel, ConfigDict, Field
 from pydantic_settings import BaseSettings, SettingsConfigDict
-
-from dammrl.robot import DEFAULT_URDF
 
 
 class DomainRandomization(BaseModel):
@@ -31,27 +27,18 @@ class DomainRandomization(BaseModel):
 
 
 class SimSettings(BaseSettings):
-    """The simulated arm and its scene."""
+    """The simulated arm's physics (the arm itself is ``DAMMRL_ROBOT_*``, the table
+    ``DAMMRL_TASK_*``)."""
 
     model_config = SettingsConfigDict(
         env_prefix="DAMMRL_SIM_", env_nested_delimiter="__", frozen=True, extra="forbid"
     )
 
-    urdf_path: Path = DEFAULT_URDF
-    """Any 6-DoF URDF; the default is the dammrl reference rehabilitation arm."""
-    ee_frame: str = "fingertip"
-    """URDF link whose origin is the end-effector point x."""
-    armature_kgm2: tuple[float, ...] = (0.05, 0.05, 0.03, 0.03, 0.01, 0.01)
-    """Reflected rotor inertia per joint [kg m^2] (no URDF tag exists for it)."""
     timestep_s: float = Field(0.001, gt=0, le=0.005)
     """Physics step [s]."""
-    table_top_z_m: float = -0.25
-    """Table height in the robot base frame [m] (the shoulder is the origin)."""
     button_press_travel_m: float = Field(0.003, gt=0)
     """Cap travel at which the button counts as pressed [m]."""
     randomization: DomainRandomization = DomainRandomization()
-    seed: int | None = None
-    """Seed of the domain randomisation and sensor noise (None: fresh entropy)."""
 
     # --- the node (bus) ---
     state_rate_hz: float = Field(100.0, gt=0, le=1000)

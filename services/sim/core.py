@@ -9,27 +9,33 @@ The latest command is held between commands.
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import mujoco
 import numpy as np
 from mujoco import rollout
 
-from dammrl.robot import RobotDescription
-from dammrl.robot.scene import SENSOR_LAYOUT, SceneLayout, build_scene
-from dammrl.state import JointCommand, RobotState
+from dammrl.core.robot import RobotDescription
+from dammrl.core.robot.scene import SENSOR_LAYOUT, SceneLayout, build_scene
+from dammrl.core.state import JointCommand, RobotState
 from services.sim.config import SimSettings
 
 
 class Simulation:
     """A MuJoCo scene of the arm, a table and the goal button."""
 
-    def __init__(self, settings: SimSettings, seed: int | None = None) -> None:
+    def __init__(
+        self,
+        settings: SimSettings,
+        robot: RobotDescription,
+        layout: SceneLayout,
+        seed: int | np.random.Generator | None = None,
+    ) -> None:
+        """``layout.timestep_s`` is replaced by ``settings.timestep_s``; ``seed`` seeds the
+        randomisation and the sensor noise (each episode reseeds ``rng``, see ``reset``)."""
         self.settings = settings
-        self.robot = RobotDescription.from_urdf(
-            settings.urdf_path, settings.ee_frame, settings.armature_kgm2
-        )
-        self.layout = SceneLayout(
-            table_top_z_m=settings.table_top_z_m, timestep_s=settings.timestep_s
-        )
+        self.robot = robot
+        self.layout = replace(layout, timestep_s=settings.timestep_s)
         self.model = build_scene(self.robot, self.layout)
         self.data = mujoco.MjData(self.model)
         self.rng = np.random.default_rng(seed)
@@ -55,8 +61,19 @@ class Simulation:
     def t_s(self) -> float:
         return float(self.data.time)
 
-    def reset(self, q: np.ndarray, button_xy: tuple[float, float]) -> RobotState:
-        """Arm at rest at ``q`` [rad], button centred under ``button_xy`` [m], time 0."""
+    def reset(
+        self,
+        q: np.ndarray,
+        button_xy: tuple[float, float],
+        rng: np.random.Generator | None = None,
+    ) -> RobotState:
+        """Arm at rest at ``q`` [rad], button centred under ``button_xy`` [m], time 0.
+
+        ``rng`` (an episode's ``seed_streams(seed).sim``) draws this episode's arm and
+        sensor noise: every composition reseeds here, so a seed gives the same arm.
+        """
+        if rng is not None:
+            self.rng = rng
         mujoco.mj_resetData(self.model, self.data)
         self._last_command = None
         self._randomize()

@@ -15,19 +15,27 @@ from __future__ import annotations
 from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
+from pydantic_settings import BaseSettings, SettingsConfigDict
 
-from dammrl.errors import ConfigurationError
+from dammrl.core.errors import ConfigurationError
 
 HUMAN_MODELS = (1, 2)
 ROBOT_MODELS = tuple(range(1, 9))
 RadiusName = Literal["E_big", "E_small"]
 
 
-class ModelSet(BaseModel):
-    """Numbers behind each M_ij: admission radii [m] and step magnitudes [m] per axis."""
+class ModelSet(BaseSettings):
+    """Numbers behind each M_ij: admission radii [m] and step magnitudes [m] per axis.
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
+    One setting for the whole stack (environment prefix ``DAMMRL_MODELS_``): the human,
+    the policy and the controller all read it, so the radius the policy plans with is
+    the one the trigger uses.
+    """
+
+    model_config = SettingsConfigDict(
+        env_prefix="DAMMRL_MODELS_", env_nested_delimiter="__", frozen=True, extra="forbid"
+    )
 
     e_big_m: float = Field(0.010, gt=0, description="admission radius E_big [m]")
     e_small_m: float = Field(0.004, gt=0, description="admission radius E_small [m]")

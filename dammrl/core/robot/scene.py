@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import mujoco
 
-from dammrl.robot.description import RobotDescription
+from dammrl.core.robot.description import RobotDescription
 
 CONTACT_GROUP = 2  # contype/conaffinity bit shared by the fingertip and the button cap
 

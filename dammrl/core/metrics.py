@@ -6,6 +6,7 @@ the control rate (``t`` of shape (N,), positions and velocities of shape (N, 3))
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass
 from typing import Any
 
@@ -31,7 +32,35 @@ class ReachMetrics:
     button_pressed: bool  # the goal button was pushed past its detection travel
 
     def as_dict(self) -> dict[str, Any]:
-        return asdict(self)
+        """The fields as a JSON-safe dict: a number that is not finite becomes None."""
+        return {k: _finite_or_none(v) for k, v in asdict(self).items()}
+
+
+def _finite_or_none(value: Any) -> Any:
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
+def episode_summary(
+    metrics: ReachMetrics,
+    trigger: str,
+    model: tuple[int, int],
+    seed: int,
+    task: Any,
+) -> dict[str, Any]:
+    """One finished reach as reported everywhere (``reach --json``, ``up --json``,
+    EpisodeResult): the metrics plus what identifies the run. ``task`` has ``start`` and
+    ``goal`` (3,) [m]. Valid JSON: no NaN (a reach without a step has no mean step time).
+    """
+    return {
+        **metrics.as_dict(),
+        "trigger": trigger,
+        "model": [int(model[0]), int(model[1])],
+        "seed": int(seed),
+        "start_m": np.round(task.start, 4).tolist(),
+        "goal_m": np.round(task.goal, 4).tolist(),
+    }
 
 
 def reach_metrics(

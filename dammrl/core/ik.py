@@ -14,12 +14,14 @@ from __future__ import annotations
 import time
 import warnings
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Literal, Protocol
 
 import numpy as np
 
-from services.controller.config import IKSolverName, LatencyMode
-from services.controller.dynamics import ArmModel
+from dammrl.core.dynamics import ArmModel
+
+IKSolverName = Literal["ikpy", "pinocchio"]
+LatencyMode = Literal["model", "measured", "zero"]
 
 # (median [s], log-sigma) of solve times fitted by benchmarks/bench_core.py
 FITTED_LATENCY: dict[IKSolverName, tuple[float, float]] = {

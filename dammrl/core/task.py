@@ -15,7 +15,12 @@ import numpy as np
 from pydantic import Field
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
-from dammrl.errors import ConfigurationError
+from dammrl.core.dynamics import ArmModel
+from dammrl.core.errors import ConfigurationError, IKError
+from dammrl.core.ik import DampedLeastSquaresIK
+from dammrl.core.robot.scene import SceneLayout
+
+START_ACCEPT_ERROR_M = 1e-4  # a start posture farther than this from x_s is refused
 
 
 class TaskSettings(BaseSettings):
@@ -39,8 +44,12 @@ class TaskSettings(BaseSettings):
     """Box of button positions on the table [m]; the goal height follows the table."""
     reach_distance_m: tuple[float, float] = (0.2, 0.4)
     """Allowed ||x_g - x_s|| [m]."""
-    home_q_rad: tuple[float, ...] = (0.0, 1.0, 0.0, 1.6, 0.0, 0.3)
+    table_top_z_m: float = -0.25
+    """Table height in the robot base frame [m] (the shoulder is the origin)."""
+    home_q_rad: tuple[float, float, float, float, float, float] = (0.0, 1.0, 0.0, 1.6, 0.0, 0.3)
     """Posture from which the start posture is solved [rad]."""
+    start_limit_margin_rad: float = Field(0.02, ge=0, le=0.2)
+    """The start posture stays this far inside the joint limits [rad]."""
     episodes: int | None = Field(None, ge=1)
     """Episodes the bus supervisor runs (None: until stopped)."""
     seed: int = Field(0, ge=0)
@@ -53,18 +62,47 @@ class ReachTask:
     goal: np.ndarray  # x_g (3,) [m]
 
 
-def seed_streams(seed: int) -> list[np.random.Generator]:
-    """Independent random streams of one episode seed: task, human, IK latency, simulation.
+@dataclass(frozen=True)
+class SeedStreams:
+    """Independent random streams of one episode seed, one per consumer.
 
-    Every runner (in-process or on the bus) draws each from its own stream, so one seed
-    gives the same start, goal, human decisions and latencies wherever it runs.
+    Every composition (in-process or on the bus) draws each from its own stream, so one
+    seed gives the same start, goal, human decisions, IK latencies and simulated arm
+    wherever it runs.
     """
-    return [np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(4)]
+
+    task: np.random.Generator  # start and goal
+    human: np.random.Generator  # the simulated human's decisions and decision times
+    ik_latency: np.random.Generator  # the controller's IK latency model
+    sim: np.random.Generator  # domain randomisation and sensor noise
 
 
-def task_for_seed(settings: TaskSettings, goal_z_m: float, seed: int) -> ReachTask:
+def seed_streams(seed: int) -> SeedStreams:
+    """The named streams of episode ``seed`` (spawned in this order: keep it)."""
+    task, human, ik_latency, sim = (
+        np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(4)
+    )
+    return SeedStreams(task=task, human=human, ik_latency=ik_latency, sim=sim)
+
+
+def scene_layout(settings: TaskSettings, timestep_s: float = 0.001) -> SceneLayout:
+    """The table and button geometry of the task."""
+    return SceneLayout(table_top_z_m=settings.table_top_z_m, timestep_s=timestep_s)
+
+
+def task_for_seed(settings: TaskSettings, seed: int) -> ReachTask:
     """The start and goal of ``seed``."""
-    return sample_task(settings, goal_z_m, seed_streams(seed)[0])
+    return sample_task(settings, scene_layout(settings).goal_z_m, seed_streams(seed).task)
+
+
+def start_posture(arm: ArmModel, settings: TaskSettings, start: np.ndarray) -> np.ndarray:
+    """Joint positions [rad] (6,) placing the end-effector at ``start`` [m], solved from
+    the home posture inside the joint limits (less ``start_limit_margin_rad``)."""
+    ik = DampedLeastSquaresIK(arm, limit_margin_rad=settings.start_limit_margin_rad)
+    result = ik.solve(np.asarray(start, dtype=float), np.array(settings.home_q_rad))
+    if result.error_m > START_ACCEPT_ERROR_M:
+        raise IKError(f"start position {np.round(start, 3).tolist()} m is not reachable")
+    return result.q
 
 
 def sample_task(settings: TaskSettings, goal_z_m: float, rng: np.random.Generator) -> ReachTask:

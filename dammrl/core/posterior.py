@@ -8,18 +8,17 @@ like when their admission radius is not given.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from dammrl.models import HUMAN_MODELS
-from services.intent.config import HumanSettings
+from dammrl.core.human import HumanModel
+from dammrl.core.models import HUMAN_MODELS
 
 
 @dataclass
 class HumanModelPosterior:
-    settings: HumanSettings
+    human: HumanModel
     use_decision_time: bool = True
     log_probability: np.ndarray = field(default_factory=lambda: np.zeros(len(HUMAN_MODELS)))
     decisions: int = 0
@@ -28,21 +27,12 @@ class HumanModelPosterior:
     def update(self, correct: bool, decision_s: float | None = None) -> np.ndarray:
         """Fold in one decision; return the posterior probabilities (one per model)."""
         for k, model in enumerate(HUMAN_MODELS):
-            self.log_probability[k] += self._log_likelihood(model, correct, decision_s)
+            time_s = decision_s if self.use_decision_time else None
+            self.log_probability[k] += self.human.log_likelihood(model, correct, time_s)
         self.log_probability -= self.log_probability.max()  # keep the numbers tame
         self.decisions += 1
         self.map_history.append(self.map_model)
         return self.probabilities
-
-    def _log_likelihood(self, model: int, correct: bool, decision_s: float | None) -> float:
-        s = self.settings
-        accuracy = s.accuracy_big if model == 1 else s.accuracy_small
-        log_l = math.log(accuracy if correct else 1.0 - accuracy)
-        if self.use_decision_time and decision_s is not None and decision_s > s.decision_min_s:
-            median = s.decision_median_big_s if model == 1 else s.decision_median_small_s
-            z = (math.log(decision_s) - math.log(median)) / s.decision_sigma
-            log_l += -0.5 * z * z - math.log(decision_s * s.decision_sigma)
-        return log_l
 
     @property
     def probabilities(self) -> np.ndarray:

@@ -1,7 +1,7 @@
 """Read a 6-DoF arm from its URDF: joint names, limits and the models built from it.
 
 The URDF is the single source of the kinematics and dynamics. pinocchio parses it here
-for the controller's model; :mod:`dammrl.robot.scene` hands the same file to MuJoCo and
+for the controller's model; :mod:`dammrl.core.robot.scene` hands the same file to MuJoCo and
 :meth:`RobotDescription.ikpy_chain` to ikpy. Armature (reflected rotor inertia) has no
 URDF tag, so it is a setting applied identically to MuJoCo and pinocchio.
 """
@@ -17,12 +17,12 @@ from typing import TYPE_CHECKING
 import numpy as np
 import pinocchio as pin
 
-from dammrl.errors import RobotDescriptionError
+from dammrl.core.errors import RobotDescriptionError
 
 if TYPE_CHECKING:
     import ikpy.chain
 
-DEFAULT_URDF = Path(str(resources.files("dammrl.robot").joinpath("rehab_arm_6dof.urdf")))
+DEFAULT_URDF = Path(str(resources.files("dammrl.core.robot").joinpath("rehab_arm_6dof.urdf")))
 N_JOINTS = 6
 
 

@@ -1,10 +1,15 @@
-"""Safety checks as pure functions: workspace box, joint limits, effort saturation."""
+"""Safety checks as pure functions: workspace box, joint limits, effort saturation, and
+the arm side's checks of what arrives (commands, episode resets)."""
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 
-from dammrl.robot import RobotDescription
+from dammrl.core.robot import RobotDescription
+from dammrl.core.robot.scene import SceneLayout
+from dammrl.core.state import JointCommand
 
 
 def outside_workspace(x: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> str | None:
@@ -81,3 +86,51 @@ class LimitMonitor:
 def saturate_torque(tau: np.ndarray, tau_max: np.ndarray) -> np.ndarray:
     """``tau`` [N m] clipped to the effort limits +-tau_max."""
     return np.asarray(np.minimum(np.maximum(tau, -tau_max), tau_max))
+
+
+def command_violation(
+    command: JointCommand,
+    robot: RobotDescription,
+    limit_tolerance_rad: float,
+    max_kp_nm_per_rad: float,
+    max_kd_nms_per_rad: float,
+) -> str | None:
+    """Why a joint command must not reach the arm, or None (the arm side's check)."""
+    q_ref = command.q_ref
+    outside = (q_ref < robot.q_min - limit_tolerance_rad) | (
+        q_ref > robot.q_max + limit_tolerance_rad
+    )
+    if outside.any():
+        i = int(np.argmax(outside))
+        return (
+            f"q_ref of {robot.joint_names[i]} = {q_ref[i]:.3f} rad outside "
+            f"[{robot.q_min[i]:.3f}, {robot.q_max[i]:.3f}] rad"
+        )
+    tau = np.abs(command.tau_ff)
+    if (tau > robot.tau_max).any():
+        i = int(np.argmax(tau - robot.tau_max))
+        name, limit = robot.joint_names[i], robot.tau_max[i]
+        return f"tau_ff of {name} = {tau[i]:.1f} N m beyond its effort limit {limit:.1f} N m"
+    kp, kd = float(np.max(command.kp)), float(np.max(command.kd))
+    if kp > max_kp_nm_per_rad:
+        return f"kp {kp:.0f} N m/rad above the allowed {max_kp_nm_per_rad:.0f}"
+    if kd > max_kd_nms_per_rad:
+        return f"kd {kd:.0f} N m s/rad above the allowed {max_kd_nms_per_rad:.0f}"
+    return None
+
+
+def goal_violation(
+    q_start: np.ndarray,
+    goal_m: Sequence[float],
+    robot: RobotDescription,
+    layout: SceneLayout,
+    limit_tolerance_rad: float,
+) -> str | None:
+    """Why a new episode's start posture and goal must not reset the arm, or None."""
+    if not robot.within_limits(q_start, limit_tolerance_rad):
+        return f"start posture {np.round(q_start, 3).tolist()} rad outside the joint limits"
+    (cx, cy), (hx, hy) = layout.table_center_xy_m, layout.table_half_size_xy_m
+    x, y = goal_m[0], goal_m[1]
+    if abs(x - cx) > hx or abs(y - cy) > hy:
+        return f"button position ({x:.3f}, {y:.3f}) m is not on the table"
+    return None

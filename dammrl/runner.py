@@ -1,0 +1,311 @@
+"""The in-process composition: sim, simulated human, policy and the controller's reach
+supervisor, called directly without a bus and run as fast as the machine allows.
+
+This is what ``dammrl reach``, training, evaluation and the studies use. Every decision
+the episode takes goes through the same objects the bus stack runs (``Reach`` for the
+per-tick logic, ``SimulatedHuman``, the ``Policy`` protocol, ``Simulation``), and every
+random draw comes from the seed's named streams, so a seed gives the same reach here and
+on the bus. One control tick: ``Reach.tick`` on the state; when it asks, the policy
+chooses M_ij and the human decides (due after their decision time); the command is
+latched and the physics advances one control period inside MuJoCo.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Generator
+from dataclasses import dataclass, field
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict
+
+from dammrl.core.dynamics import ArmModel
+from dammrl.core.human import HumanModel
+from dammrl.core.ik import IKSolver, make_ik_solver
+from dammrl.core.metrics import ReachMetrics, episode_summary
+from dammrl.core.models import ModelSet
+from dammrl.core.policy import FixedPolicy, ModelChoice, Policy
+from dammrl.core.robot import RobotSettings
+from dammrl.core.robot.scene import SENSOR_LAYOUT
+from dammrl.core.state import RobotState, StepEvent
+from dammrl.core.task import (
+    ReachTask,
+    TaskSettings,
+    scene_layout,
+    seed_streams,
+    start_posture,
+    task_for_seed,
+)
+from services.controller.config import ControllerSettings
+from services.controller.core import Controller
+from services.controller.reach import HOLD_OBSERVATION_S, Answer, Reach, Trajectory
+from services.intent.core import Decision, SimulatedHuman
+from services.sim.config import SimSettings
+from services.sim.core import Simulation
+
+
+class ReachSettings(BaseModel):
+    """Everything one in-process reach needs (the same settings the services read)."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    fast_forward: bool = True
+    """Step idle stretches (controller waiting for the human) in one MuJoCo rollout."""
+    sim: SimSettings = SimSettings()
+    controller: ControllerSettings = ControllerSettings()
+    human: HumanModel = HumanModel()
+    models: ModelSet = ModelSet()
+    robot: RobotSettings = RobotSettings()
+    task: TaskSettings = TaskSettings()
+
+
+@dataclass
+class ReachResult:
+    seed: int
+    trigger: str
+    model: tuple[int, int]
+    task: ReachTask
+    metrics: ReachMetrics
+    trajectory: Trajectory
+    steps: list[StepEvent] = field(default_factory=list)
+    decisions: list[Decision] = field(default_factory=list)
+    choices: list[ModelChoice] = field(default_factory=list)
+
+    def summary(self) -> dict[str, object]:
+        """The metrics plus what identifies the run (the ``--json`` object)."""
+        return episode_summary(self.metrics, self.trigger, self.model, self.seed, self.task)
+
+
+class ReachRunner:
+    """Builds the cores once (MuJoCo compile, IK chain) and runs reaches on demand."""
+
+    def __init__(self, settings: ReachSettings | None = None) -> None:
+        self.settings = settings or ReachSettings()
+        robot = self.settings.robot.load()
+        self.sim = Simulation(self.settings.sim, robot, scene_layout(self.settings.task))
+        self.robot = robot
+        self.arm = ArmModel(robot)
+        self._solvers: dict[str, IKSolver] = {}
+        rate = self.settings.controller.control_rate_hz
+        self.substeps = max(1, round(1.0 / (rate * self.sim.timestep_s)))
+        self.control_dt_s = self.substeps * self.sim.timestep_s
+
+    def solver(self, controller: ControllerSettings) -> IKSolver:
+        if controller.ik_solver not in self._solvers:
+            self._solvers[controller.ik_solver] = make_ik_solver(
+                controller.ik_solver,
+                self.arm,
+                controller.joint_limit_margin_rad,
+                controller.max_joint_step_rad,
+            )
+        return self._solvers[controller.ik_solver]
+
+    def sample(self, seed: int) -> ReachTask:
+        """The start and goal a given seed draws."""
+        return task_for_seed(self.settings.task, seed)
+
+    def start_posture(self, start: np.ndarray) -> np.ndarray:
+        """Joint positions placing the end-effector at ``start`` (the one definition)."""
+        return start_posture(self.arm, self.settings.task, start)
+
+    def run(
+        self,
+        seed: int,
+        model: tuple[int, int] = (1, 1),
+        trigger: str | None = None,
+        task: ReachTask | None = None,
+        policy: Policy | None = None,
+    ) -> ReachResult:
+        """One reach. ``trigger`` overrides the controller setting ('event' or 'fixed');
+        ``policy`` (default: the fixed ``model``) chooses M_ij at every decision."""
+        policy = policy or FixedPolicy(self.settings.models, *model)
+        episode = self.episode(seed, trigger, task)
+        metrics, trajectory = episode.run(policy)
+        if episode.choices:  # the model in force at the end
+            model = (episode.choices[-1].human_model, episode.choices[-1].robot_model)
+        return ReachResult(
+            seed=seed,
+            trigger=episode.controller.settings.trigger,
+            model=model,
+            task=episode.task,
+            metrics=metrics,
+            trajectory=trajectory,
+            steps=episode.reach.steps,
+            decisions=episode.decisions,
+            choices=episode.choices,
+        )
+
+    def episode(
+        self, seed: int, trigger: str | None = None, task: ReachTask | None = None
+    ) -> Episode:
+        """A fresh episode of ``seed``, ready to run (or to be stepped, see Episode.loop)."""
+        settings = self.settings.controller
+        if trigger is not None:
+            settings = settings.model_copy(update={"trigger": trigger})
+        streams = seed_streams(seed)
+        task = task or self.sample(seed)
+        controller = Controller(
+            self.robot, settings, streams.ik_latency, self.arm, self.solver(settings)
+        )
+        reach = Reach(controller, task, self.settings.task, self.control_dt_s)
+        human = SimulatedHuman(self.settings.human, self.settings.models, streams.human)
+        return Episode(self, reach, human, streams.sim)
+
+
+class Episode:
+    """The tick loop of one reach."""
+
+    def __init__(
+        self,
+        runner: ReachRunner,
+        reach: Reach,
+        human: SimulatedHuman,
+        sim_rng: np.random.Generator,
+    ) -> None:
+        self.runner = runner
+        self.sim = runner.sim
+        self.reach = reach
+        self.controller = reach.controller
+        self.task = reach.task
+        self.human = human
+        self.sim_rng = sim_rng
+        self.decisions: list[Decision] = []
+        self.choices: list[ModelChoice] = []
+        self.hold_until: float | None = None  # end of the observation after a hold
+        self.last_state: RobotState  # the last state observed (set by the loop)
+
+    # ---- what the RL environment reads ----------------------------------------------
+    @property
+    def steps(self) -> list[StepEvent]:
+        return self.reach.steps
+
+    @property
+    def n(self) -> int:
+        """Rows logged so far."""
+        return self.reach.log.n
+
+    @property
+    def outcome(self) -> str:
+        return self.reach.ended[0] if self.reach.ended else "timeout"
+
+    def segment(self, start: int) -> Trajectory:
+        """What was logged since row ``start``."""
+        return self.reach.log.trajectory(start)
+
+    def result(self) -> tuple[ReachMetrics, Trajectory]:
+        """Metrics and trajectory once the loop has ended."""
+        return self.reach.metrics(), self.reach.log.trajectory()
+
+    # ---- the loop -------------------------------------------------------------------
+    def run(self, policy: Policy) -> tuple[ReachMetrics, Trajectory]:
+        """The whole reach, ``policy`` choosing the model at every decision."""
+        policy.reset()
+        loop = self.loop()
+        try:
+            state = next(loop)
+            while True:
+                state = loop.send(policy.decide(state.ee_pos, self.task.goal))
+        except StopIteration:
+            pass
+        return self.result()
+
+    def loop(self) -> Generator[RobotState, ModelChoice, None]:
+        """The tick loop as a generator: it yields the state whenever the human is asked
+        for a decision and takes the ModelChoice in force for that decision."""
+        task = self.task
+        q_start = self.runner.start_posture(task.start)
+        state = self.sim.reset(q_start, (task.goal[0], task.goal[1]), rng=self.sim_rng)
+        while True:
+            self.last_state = state
+            tick = self.reach.tick(state)
+            if tick.ask:
+                self._ask_human(state, (yield state))
+            if tick.command is None or self._observed_enough(state):
+                return
+            self.sim.apply(tick.command)
+            next_state = self._advance(state.t_s)
+            if next_state is None:
+                return
+            state = next_state
+
+    def _ask_human(self, state: RobotState, choice: ModelChoice) -> None:
+        axis = self.controller.settings.primary_axis
+        decision = self.human.decide(
+            state.t_s, state.ee_pos, self.task.goal, axis, choice.human_model
+        )
+        self.decisions.append(decision)
+        self.choices.append(choice)
+        self.reach.answer(Answer(decision.intent, choice.steps_m, decision.correct))
+
+    def _observed_enough(self, state: RobotState) -> bool:
+        """After a hold the arm is logged for ``HOLD_OBSERVATION_S`` more (plots)."""
+        if self.reach.ended is None or self.reach.end_s is None:
+            return False
+        if self.hold_until is None:
+            self.hold_until = self.reach.end_s + HOLD_OBSERVATION_S
+        return state.t_s >= self.hold_until - 1e-9
+
+    def _advance(self, t_s: float) -> RobotState | None:
+        """The next tick's state: one control period, or an idle stretch in one rollout
+        (None when the reach ended inside it)."""
+        idle = self._idle_periods(t_s)
+        if idle > 1:
+            return self._fast_forward(idle)
+        self.sim.step(self.runner.substeps)
+        return self.sim.read()
+
+    def _idle_periods(self, t_s: float) -> int:
+        """Control periods until something can change while the controller is idle."""
+        if not self.runner.settings.fast_forward or not self.controller.idle:
+            return 0
+        if self.hold_until is not None:
+            until = self.hold_until
+        elif self.reach.pending is not None:
+            until = min(self.reach.pending.intent.t_s, self.reach.timeout_s)
+        else:
+            return 0
+        return math.ceil((until - t_s - 1e-9) / self.runner.control_dt_s)
+
+    def _fast_forward(self, periods: int) -> RobotState | None:
+        """Advance ``periods`` idle control periods in one MuJoCo rollout.
+
+        Ticks at which nothing can happen (far from the goal, inside the limits, before
+        any deadline) are only logged, in bulk; from the first that might matter on, each
+        tick runs exactly as in the loop. The last period's state is returned for the
+        loop; None when the reach ended inside the stretch.
+        """
+        times, rows = self.sim.advance(periods, self.runner.substeps)
+        quiet = self._quiet_ticks(times[:-1], rows[:-1])
+        controller = self.controller
+        self.reach.log.record_many(
+            times[:quiet],
+            rows[:quiet],
+            controller.subgoal,
+            controller.radius_m,
+            self.sim.settings.button_press_travel_m,
+        )
+        for t_s, row in zip(times[quiet:-1], rows[quiet:-1], strict=True):
+            state = self.sim.state_from_sensors(float(t_s), row)
+            self.last_state = state
+            tick = self.reach.tick(state)  # idle: no decision can be due in the stretch
+            if tick.command is None or self._observed_enough(state):
+                return None
+            self.sim.apply(tick.command)
+        return self.sim.state_from_sensors(float(times[-1]), rows[-1])
+
+    def _quiet_ticks(self, times: np.ndarray, rows: np.ndarray) -> int:
+        """How many leading ticks need no more than logging (see ``_fast_forward``)."""
+        reach = self.reach
+        if reach.goal_monitor.entered_s is not None:
+            return 0
+        deadline = reach.timeout_s if self.hold_until is None else self.hold_until
+        eventful = times >= deadline - 1e-9
+        if self.hold_until is None:
+            distance = np.linalg.norm(rows[:, SENSOR_LAYOUT["ee_pos"]] - self.task.goal, axis=1)
+            eventful |= distance <= reach.goal_monitor.tolerance_m
+            violation = self.controller.limits.first_violation(
+                rows[:, SENSOR_LAYOUT["q"]], rows[:, SENSOR_LAYOUT["dq"]]
+            )
+            if violation is not None:
+                eventful[violation] = True
+        return int(np.argmax(eventful)) if eventful.any() else len(times)
