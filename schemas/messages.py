@@ -23,7 +23,7 @@ NonNegativeJoints = tuple[
     Annotated[float, Field(ge=0, allow_inf_nan=False)],
 ]
 HumanModel = Annotated[int, Field(ge=1, le=2)]  # i: 1 = E_big, 2 = E_small
-RobotModel = Annotated[int, Field(ge=1, le=8)]  # j: step vector, see dammrl.core.models
+RobotModel = Annotated[int, Field(ge=1, le=8)]  # j: step vector (see the model set)
 Trigger = Literal["event", "fixed"]
 
 

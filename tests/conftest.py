@@ -7,6 +7,7 @@ import pytest
 
 from dammrl.core.dynamics import ArmModel
 from dammrl.core.robot import RobotDescription
+from dammrl.core.robot.scene import SceneLayout
 from dammrl.runner import ReachRunner
 from services.sim.config import SimSettings
 from services.sim.core import Simulation
@@ -25,8 +26,8 @@ def arm(robot: RobotDescription) -> ArmModel:
 
 
 @pytest.fixture()
-def sim() -> Simulation:
-    return Simulation(SimSettings())
+def sim(robot: RobotDescription) -> Simulation:
+    return Simulation(SimSettings(), robot, SceneLayout())
 
 
 @pytest.fixture(scope="session")

@@ -94,7 +94,7 @@ def test_csv_export_has_one_file_per_topic(
 ) -> None:
     path, _ = session_recording
     counts = export_csv(path, tmp_path / "csv")
-    state_csv = tmp_path / "csv" / "dammrl.core.robot.state.csv"
+    state_csv = tmp_path / "csv" / "dammrl.robot.state.csv"
     header = state_csv.read_text().splitlines()[0].split(",")
     assert "q_rad.0" in header and "ee_pos_m.2" in header
     assert counts["dammrl/robot/state"] == len(state_csv.read_text().splitlines()) - 1

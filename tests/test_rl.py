@@ -122,16 +122,16 @@ def test_missing_or_corrupt_checkpoints_are_clear_errors(tmp_path: Path) -> None
 
 
 def _posterior_right_after(n: int, true_model: int, seeds: int, use_time: bool) -> float:
-    from dammrl.rl.posterior import HumanModelPosterior
-
-    from services.intent.config import HumanSettings
+    from dammrl.core.human import HumanModel
+    from dammrl.core.models import ModelSet
+    from dammrl.core.posterior import HumanModelPosterior
     from services.intent.core import SimulatedHuman
 
-    settings = HumanSettings()
+    model = HumanModel()
     goal, right = np.array([0.5, 0.0, -0.2]), 0
     for seed in range(seeds):
-        human = SimulatedHuman(settings, seed)
-        posterior = HumanModelPosterior(settings, use_decision_time=use_time)
+        human = SimulatedHuman(model, ModelSet(), seed)
+        posterior = HumanModelPosterior(model, use_decision_time=use_time)
         for _ in range(n):
             decision = human.decide(0.0, np.zeros(3), goal, 0, true_model)
             posterior.update(decision.correct, decision.decision_s)
@@ -151,17 +151,20 @@ def test_posterior_from_commands_alone_needs_many_more_decisions() -> None:
 
 
 def test_policy_service_falls_back_to_the_safe_fixed_model(tmp_path: Path) -> None:
+    from dammrl.core.models import ModelSet
+    from dammrl.core.policy import FixedPolicy
     from services.policy.config import PolicySettings
-    from services.policy.core import FixedPolicy, LearnedPolicy
-    from services.policy.node import load_policy
+    from services.policy.core import load_policy
+    from services.policy.learned import LearnedPolicy
 
-    policy, health, description = load_policy(PolicySettings(checkpoint=tmp_path / "none"))
+    models = ModelSet()
+    policy, health, description = load_policy(PolicySettings(checkpoint=tmp_path / "none"), models)
     assert isinstance(policy, FixedPolicy) and health == "degraded"
     assert "fallback M_2,1" in description and "no checkpoint" in description
     (tmp_path / "checkpoint.pt").write_bytes(b"garbage")
-    policy, health, description = load_policy(PolicySettings(checkpoint=tmp_path))
+    policy, health, description = load_policy(PolicySettings(checkpoint=tmp_path), models)
     assert isinstance(policy, FixedPolicy) and "corrupt" in description
-    shipped, health, _ = load_policy(PolicySettings())
+    shipped, health, _ = load_policy(PolicySettings(), models)
     assert isinstance(shipped, LearnedPolicy) and health == "ok" and shipped.reward == 2
 
 
@@ -184,9 +187,10 @@ def test_policy_service_estimates_a_real_humans_model_and_publishes_the_posterio
     import threading
     import time
 
+    from dammrl.core.human import HumanModel
+    from dammrl.core.models import ModelSet
     from schemas import DecisionRequest, Intent, ModelChoice
     from services.common.bus import Bus
-    from services.intent.config import HumanSettings
     from services.intent.core import SimulatedHuman
     from services.policy.config import PolicySettings
     from services.policy.node import PolicyNode
@@ -198,12 +202,12 @@ def test_policy_service_estimates_a_real_humans_model_and_publishes_the_posterio
         Bus(client_settings(port), "intent") as sensor,
         Bus(client_settings(port), "policy") as policy_bus,
     ):
-        node = PolicyNode(PolicySettings(), policy_bus)
+        node = PolicyNode(PolicySettings(), HumanModel(), ModelSet(), policy_bus)
         thread = threading.Thread(target=node.run, args=(stop,))
         thread.start()
         controller.subscribe(ModelChoice)
         time.sleep(0.5)
-        human = SimulatedHuman(HumanSettings(), seed=3)  # a careful human: E_small, i = 2
+        human = SimulatedHuman(HumanModel(), ModelSet(), seed=3)  # a careful human: E_small, i = 2
         requests, intents = controller.publisher(DecisionRequest), sensor.publisher(Intent)
         goal, choices = (0.5, 0.0, -0.2), []
         for k in range(1, 13):

@@ -77,9 +77,8 @@ def test_urdf_with_wrong_joint_count_is_refused(tmp_path: Path) -> None:
 
 def test_another_urdf_with_other_names_runs_a_reach(tmp_path: Path) -> None:
     """Nothing depends on the reference arm's names: rename every joint and the tool."""
-    from dammrl.core.robot import DEFAULT_URDF
+    from dammrl.core.robot import DEFAULT_URDF, RobotSettings
     from dammrl.runner import ReachRunner, ReachSettings
-    from services.sim.config import SimSettings
 
     text = DEFAULT_URDF.read_text()
     for name in RobotDescription.from_urdf().joint_names:
@@ -87,6 +86,6 @@ def test_another_urdf_with_other_names_runs_a_reach(tmp_path: Path) -> None:
     text = text.replace('"fingertip"', '"tool0"')
     urdf = tmp_path / "renamed.urdf"
     urdf.write_text(text)
-    runner = ReachRunner(ReachSettings(sim=SimSettings(urdf_path=urdf, ee_frame="tool0")))
+    runner = ReachRunner(ReachSettings(robot=RobotSettings(urdf_path=urdf, ee_frame="tool0")))
     assert runner.robot.joint_names[0] == "r_shoulder_yaw"
     assert runner.run(seed=1, model=(2, 1)).metrics.success

@@ -6,6 +6,8 @@ import mujoco
 import numpy as np
 
 from dammrl.core.dynamics import ArmModel
+from dammrl.core.robot import RobotDescription
+from dammrl.core.robot.scene import SceneLayout
 from dammrl.core.state import JointCommand
 from services.sim.config import DomainRandomization, SimSettings
 from services.sim.core import Simulation
@@ -82,11 +84,15 @@ def test_button_spring_returns_the_cap(sim: Simulation) -> None:
     assert abs(sim.data.qpos[6]) < 1e-3
 
 
+def _sim(settings: SimSettings, seed: int | None = None) -> Simulation:
+    return Simulation(settings, RobotDescription.from_urdf(), SceneLayout(), seed)
+
+
 def test_domain_randomization_is_seeded_and_off_by_default() -> None:
-    nominal = Simulation(SimSettings())
+    nominal = _sim(SimSettings())
     nominal.reset(HOME_Q, (0.5, 0.0))
     settings = SimSettings(randomization=DomainRandomization(enabled=True))
-    a, b = Simulation(settings, seed=4), Simulation(settings, seed=4)
+    a, b = _sim(settings, seed=4), _sim(settings, seed=4)
     a.reset(HOME_Q, (0.5, 0.0))
     b.reset(HOME_Q, (0.5, 0.0))
     np.testing.assert_array_equal(a.model.body_mass, b.model.body_mass)
@@ -97,8 +103,8 @@ def test_domain_randomization_is_seeded_and_off_by_default() -> None:
 
 
 def test_reset_restores_the_nominal_model() -> None:
-    sim = Simulation(SimSettings(randomization=DomainRandomization(enabled=True)), seed=1)
-    nominal = Simulation(SimSettings())
+    sim = _sim(SimSettings(randomization=DomainRandomization(enabled=True)), seed=1)
+    nominal = _sim(SimSettings())
     sim.reset(HOME_Q, (0.5, 0.0))
     sim.settings = SimSettings()
     sim.reset(HOME_Q, (0.5, 0.0))

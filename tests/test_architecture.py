@@ -1,0 +1,91 @@
+"""The layers hold: no import cycle anywhere, and no service imports another.
+
+import-linter (run by CI with the contracts in pyproject.toml) checks the layers; these
+tests check the whole module graph for cycles, imports inside functions included.
+"""
+
+from __future__ import annotations
+
+import grimp
+
+PACKAGES = ("dammrl", "services", "schemas")
+SERVICES = ("sim", "intent", "policy", "controller", "recorder")
+
+
+def _graph() -> grimp.ImportGraph:
+    return grimp.build_graph(*PACKAGES, cache_dir=None)
+
+
+def _cycles(graph: grimp.ImportGraph) -> list[list[str]]:
+    """Strongly connected components of more than one module (Tarjan, iterative)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    components: list[list[str]] = []
+    for root in sorted(graph.modules):
+        if root in index:
+            continue
+        work = [(root, iter(sorted(graph.find_modules_directly_imported_by(root))))]
+        index[root] = low[root] = len(index)
+        stack.append(root)
+        on_stack.add(root)
+        while work:
+            node, children = work[-1]
+            child = next(children, None)
+            if child is not None:
+                if child not in index:
+                    index[child] = low[child] = len(index)
+                    stack.append(child)
+                    on_stack.add(child)
+                    work.append(
+                        (child, iter(sorted(graph.find_modules_directly_imported_by(child))))
+                    )
+                elif child in on_stack:
+                    low[node] = min(low[node], index[child])
+                continue
+            work.pop()
+            if work:
+                low[work[-1][0]] = min(low[work[-1][0]], low[node])
+            if low[node] == index[node]:
+                component = []
+                while True:
+                    member = stack.pop()
+                    on_stack.discard(member)
+                    component.append(member)
+                    if member == node:
+                        break
+                if len(component) > 1:
+                    components.append(sorted(component))
+    return components
+
+
+def test_no_module_imports_itself_through_others() -> None:
+    assert _cycles(_graph()) == []
+
+
+def test_no_service_imports_another_service() -> None:
+    graph = _graph()
+    crossings = [
+        (a, b)
+        for a in SERVICES
+        for b in SERVICES
+        if a != b and graph.chain_exists(f"services.{a}", f"services.{b}", as_packages=True)
+    ]
+    assert crossings == []
+
+
+def test_the_core_library_and_the_schemas_import_nothing_above_them() -> None:
+    graph = _graph()
+    above = [m for m in graph.modules if not m.startswith(("dammrl.core", "schemas"))]
+    for leaf in ("dammrl.core", "schemas"):
+        imported = graph.find_upstream_modules(leaf, as_package=True)
+        assert sorted(imported & set(above)) == [], leaf
+    assert not graph.chain_exists("schemas", "dammrl.core", as_packages=True)
+
+
+def test_the_cycle_finder_finds_a_cycle_hidden_in_a_longer_chain() -> None:
+    graph = grimp.ImportGraph()
+    for importer, imported in [("p.a", "p.b"), ("p.b", "p.c"), ("p.c", "p.a"), ("p.c", "p.d")]:
+        graph.add_import(importer=importer, imported=imported)
+    assert _cycles(graph) == [["p.a", "p.b", "p.c"]]
