@@ -36,6 +36,7 @@ from schemas import (
 )
 from services.common.bus import zenoh_config
 from services.common.config import BusSettings
+from services.common.runtime import SignalStop, stopping_on_signals
 
 MODES = {
     "virtual": ("sim", "policy", "intent", "controller"),
@@ -58,6 +59,7 @@ class StackOptions:
     record: Path | None = None  # also run the recorder into this MCAP file
     serial_port: str | None = None  # semi-virtual: the pressure sensor's serial device
     calibration: Path | None = None  # semi-virtual: from `dammrl sensor calibrate`
+    lockstep: bool = False  # every service on the robot clock (DAMMRL_BUS_LOCKSTEP); sim only
 
 
 def free_port(preferred: int) -> int:
@@ -70,6 +72,23 @@ def free_port(preferred: int) -> int:
                 continue
             return int(sock.getsockname()[1])
     raise DammrlError("no free TCP port on 127.0.0.1")
+
+
+def check_options(options: StackOptions) -> None:
+    """Refuse options that cannot run, before anything starts."""
+    if options.mode not in MODES:
+        raise DammrlError(f"mode {options.mode!r} is not available; choose from {sorted(MODES)}")
+    if options.mode == "semi-virtual" and options.lockstep:
+        raise DammrlError(
+            "--lockstep is for simulation only: in semi-virtual mode a person at the sensor "
+            "needs real time"
+        )
+    if options.mode == "semi-virtual" and not options.serial_port:
+        raise DammrlError("semi-virtual mode needs --port (the pressure sensor's serial device)")
+    if options.calibration is not None:
+        from services.intent.calibration import load_calibration
+
+        load_calibration(options.calibration)  # a clear error now, not a dead service
 
 
 def _die_with_parent() -> None:
@@ -86,18 +105,7 @@ class Stack:
         info: Callable[[str], None] = print,
     ) -> None:
         """``out`` receives the episode results, ``info`` the progress lines."""
-        if options.mode not in MODES:
-            raise DammrlError(
-                f"mode {options.mode!r} is not available; choose from {sorted(MODES)}"
-            )
-        if options.mode == "semi-virtual" and not options.serial_port:
-            raise DammrlError(
-                "semi-virtual mode needs --port (the pressure sensor's serial device)"
-            )
-        if options.calibration is not None:
-            from services.intent.calibration import load_calibration
-
-            load_calibration(options.calibration)  # a clear error now, not a dead service
+        check_options(options)
         self.options = options
         self.out = out
         self.info = info
@@ -133,6 +141,8 @@ class Stack:
                 env["DAMMRL_INTENT_CALIBRATION_FILE"] = str(o.calibration.resolve())
         if o.record is not None:
             env.update(DAMMRL_RECORDER_OUT=str(o.record), DAMMRL_RECORDER_MODE=o.mode)
+        if o.lockstep:
+            env["DAMMRL_BUS_LOCKSTEP"] = "true"
         return env
 
     def run(self) -> int:
@@ -142,31 +152,24 @@ class Stack:
         settings = BusSettings(
             listen=[self.endpoint], namespace=self.options.namespace, mode="router"
         )
-        stop = {"signal": 0}
-
-        def on_signal(signum: int, frame: object) -> None:
-            stop["signal"] = signum
-
-        previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
-        session = zenoh.open(zenoh_config(settings))
-        try:
-            results = session.declare_subscriber(key(self.options.namespace, EpisodeResult))
-            if self.options.mode == "semi-virtual" and not self.options.json:
-                self.prompts = PatientPrompts(session, self.options.namespace, self.info)
-            self._start_children(session, stop)
-            self._wait_alive(session, stop)
-            return self._watch(results, stop)
-        finally:
-            self._stop_children()
-            session.close()  # type: ignore[no-untyped-call]
-            for s, handler in previous.items():
-                signal.signal(s, handler)
+        with stopping_on_signals() as stop:
+            session = zenoh.open(zenoh_config(settings))
+            try:
+                results = session.declare_subscriber(key(self.options.namespace, EpisodeResult))
+                if self.options.mode == "semi-virtual" and not self.options.json:
+                    self.prompts = PatientPrompts(session, self.options.namespace, self.info)
+                self._start_children(session, stop)
+                self._wait_alive(session, stop)
+                return self._watch(results, stop)
+            finally:
+                self._stop_children()
+                session.close()  # type: ignore[no-untyped-call]
 
     def services(self) -> tuple[str, ...]:
         recorder = ("recorder",) if self.options.record is not None else ()
         return recorder + MODES[self.options.mode]  # the recorder first: it sees everything
 
-    def _start_children(self, session: zenoh.Session, stop: dict[str, int]) -> None:
+    def _start_children(self, session: zenoh.Session, stop: SignalStop) -> None:
         env = self.environment()
         for name in self.services():
             self.children[name] = subprocess.Popen(
@@ -180,12 +183,10 @@ class Stack:
                 self._wait_alive(session, stop, quiet=True)
         self.info(f"started {', '.join(self.children)} on {self.endpoint}")
 
-    def _wait_alive(
-        self, session: zenoh.Session, stop: dict[str, int], quiet: bool = False
-    ) -> None:
+    def _wait_alive(self, session: zenoh.Session, stop: SignalStop, quiet: bool = False) -> None:
         deadline = time.monotonic() + START_TIMEOUT_S
         wanted = set(self.children)
-        while time.monotonic() < deadline and not stop["signal"]:
+        while time.monotonic() < deadline and not stop.is_set():
             self._check_children()
             replies = session.liveliness().get(f"{self.options.namespace}/alive/*", timeout=1.0)
             alive = {str(r.ok.key_expr).rsplit("/", 1)[-1] for r in replies if r.ok is not None}
@@ -194,14 +195,14 @@ class Stack:
                     self.info(f"all services alive: {', '.join(sorted(wanted))}")
                 return
             time.sleep(0.2)
-        if not stop["signal"]:
+        if not stop.is_set():
             raise DammrlError(f"services not alive after {START_TIMEOUT_S:.0f} s")
 
     def _watch(
-        self, results: zenoh.Subscriber[zenoh.handlers.Handler[zenoh.Sample]], stop: dict[str, int]
+        self, results: zenoh.Subscriber[zenoh.handlers.Handler[zenoh.Sample]], stop: SignalStop
     ) -> int:
         total = self.options.episodes
-        while not stop["signal"]:
+        while not stop.is_set():
             self._check_children()
             if self.prompts is not None:
                 self.prompts.show()
@@ -215,7 +216,7 @@ class Stack:
             if total is not None and len(self.results) >= total:
                 self.info(summary(self.results))
                 return 0
-        self.info(f"stopping on signal {stop['signal']}")
+        self.info(f"stopping on signal {stop.signum}")
         return 0
 
     def _report(self, result: EpisodeResult) -> None:

@@ -5,18 +5,42 @@ from __future__ import annotations
 import signal
 import threading
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
 
-def stop_on_signals() -> threading.Event:
+class SignalStop(threading.Event):
+    """An event set by SIGINT or SIGTERM; ``signum`` is the one that arrived (0: none)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.signum = 0
+
+    def handle(self, signum: int, frame: object) -> None:
+        """The signal handler: remember the signal and set the event."""
+        self.signum = signum
+        self.set()
+
+
+def stop_on_signals() -> SignalStop:
     """An event set by SIGINT or SIGTERM, so loops end cleanly and ``finally`` runs."""
-    stop = threading.Event()
-
-    def handler(signum: int, frame: object) -> None:
-        stop.set()
-
-    signal.signal(signal.SIGINT, handler)
-    signal.signal(signal.SIGTERM, handler)
+    stop = SignalStop()
+    for signum in SIGNALS:
+        signal.signal(signum, stop.handle)
     return stop
+
+
+@contextmanager
+def stopping_on_signals() -> Iterator[SignalStop]:
+    """``stop_on_signals`` for a ``with`` block: the previous handlers return after it."""
+    previous = {signum: signal.getsignal(signum) for signum in SIGNALS}
+    try:
+        yield stop_on_signals()
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
 
 
 class Pacer:

@@ -1,0 +1,91 @@
+"""What the command groups share: argument types, the bus flags, printing, the metrics table."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from typing import TYPE_CHECKING, TypeAlias
+
+from dammrl.core.models import parse_model
+from schemas import DEFAULT_NAMESPACE
+
+if TYPE_CHECKING:
+    from services.common.config import BusSettings
+
+Commands: TypeAlias = "argparse._SubParsersAction[argparse.ArgumentParser]"
+"""The ``COMMAND`` (or ``ACTION``) subparsers a group adds its parsers to."""
+
+DEFAULT_CONNECT = "tcp/127.0.0.1:7447"
+"""Where a client looks for the stack: the default endpoint of ``dammrl up``."""
+
+UNITS = {"t_total_s": "s", "t_step_mean_s": "s", "final_error_m": "m", "jerk_isj": "m^2/s^5"}
+
+
+def positive(text: str) -> float:
+    """Argument type: a finite number above zero."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not value > 0 or value == float("inf"):
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}")
+    return value
+
+
+def model_arg(text: str) -> tuple[int, int]:
+    """Argument type: a multi-model index ``I,J``."""
+    try:
+        return parse_model(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from exc
+
+
+def add_bus_arguments(parser: argparse.ArgumentParser, connect_help: str) -> None:
+    """``--connect`` and ``--namespace``: where a client finds the stack."""
+    add_connect(parser, connect_help)
+    parser.add_argument("--namespace", default=DEFAULT_NAMESPACE)
+
+
+def add_connect(parser: argparse.ArgumentParser, helptext: str) -> None:
+    """``--connect ENDPOINT``, repeatable; none means ``DEFAULT_CONNECT``."""
+    parser.add_argument("--connect", action="append", metavar="ENDPOINT", help=helptext)
+
+
+def bus_settings(args: argparse.Namespace, namespace: str | None = None) -> BusSettings:
+    """A client's bus settings from the flags; ``namespace`` if ``--namespace`` is unset."""
+    from services.common.config import BusSettings
+
+    return BusSettings(
+        connect=args.connect or [DEFAULT_CONNECT], namespace=args.namespace or namespace
+    )
+
+
+def print_out(line: str) -> None:
+    """One line of results on stdout, at once (a pipe sees it live)."""
+    print(line, flush=True)
+
+
+def print_err(line: str) -> None:
+    """One line of progress on stderr, at once."""
+    print(line, file=sys.stderr, flush=True)
+
+
+def table(rows: list[dict[str, object]]) -> str:
+    """Metrics as aligned text, one column per reach."""
+    keys = [k for k in rows[0] if k not in ("start_m", "goal_m")] + ["start_m", "goal_m"]
+    header = ["metric"] + [str(r["trigger"]) for r in rows]
+    lines = [[f"{k} [{UNITS[k]}]" if k in UNITS else k] + [fmt(r[k]) for r in rows] for k in keys]
+    widths = [max(len(line[c]) for line in [header, *lines]) for c in range(len(header))]
+    out = ["  ".join(h.ljust(w) for h, w in zip(header, widths, strict=True))]
+    out.append("  ".join("-" * w for w in widths))
+    out += ["  ".join(c.ljust(w) for c, w in zip(line, widths, strict=True)) for line in lines]
+    return "\n".join(out)
+
+
+def fmt(value: object) -> str:
+    """A metric for the table: floats to 4 significant digits, lists as tuples."""
+    if isinstance(value, float):
+        return f"{value:.4g}"
+    if isinstance(value, list):
+        return "(" + ", ".join(fmt(v) for v in value) + ")"
+    return str(value)

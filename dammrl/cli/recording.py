@@ -1,0 +1,163 @@
+"""Recordings: ``dammrl recording info|repair|export|human|plot`` and ``dammrl replay``."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from dammrl.cli.common import DEFAULT_CONNECT, Commands, add_connect, bus_settings, print_err
+
+
+def register(commands: Commands) -> None:
+    """Add ``recording`` and its actions, then ``replay``."""
+    recording = commands.add_parser("recording", help="inspect, repair and export recordings")
+    actions = recording.add_subparsers(required=True, metavar="ACTION")
+    info = actions.add_parser("info", help="topics, counts, rates, duration, gaps, metadata")
+    info.add_argument("file", type=Path)
+    info.add_argument("--json", action="store_true")
+    info.set_defaults(handler=_info)
+    repair = actions.add_parser("repair", help="rewrite a cut recording as a complete MCAP")
+    repair.add_argument("file", type=Path)
+    repair.add_argument("-o", "--out", type=Path, help="default: <file>.repaired.mcap")
+    repair.set_defaults(handler=_repair)
+    _add_export(actions)
+    human = actions.add_parser("human", help="the human's error rate per radius, decision rate")
+    human.add_argument("file", type=Path)
+    human.add_argument("--json", action="store_true")
+    human.set_defaults(handler=_human)
+    _add_plot(actions)
+    _add_replay(commands)
+
+
+def _add_export(actions: Commands) -> None:
+    export = actions.add_parser("export", help="JSON-encoded MCAP (Foxglove) or CSV per topic")
+    export.add_argument("file", type=Path)
+    export.add_argument("--format", choices=["json", "csv"], required=True)
+    export.add_argument(
+        "-o", "--out", type=Path, required=True, help="file (json) or directory (csv)"
+    )
+    export.set_defaults(handler=_export)
+
+
+def _add_plot(actions: Commands) -> None:
+    plot = actions.add_parser(
+        "plot", help="pressure trace above the end-effector error (the paper's S2 figure)"
+    )
+    plot.add_argument("file", type=Path)
+    plot.add_argument("-o", "--out", type=Path, required=True, metavar="PNG")
+    plot.add_argument("--episode", type=int, help="only this episode")
+    plot.set_defaults(handler=_plot)
+
+
+def _add_replay(commands: Commands) -> None:
+    replay = commands.add_parser("replay", help="publish a recording onto the bus")
+    replay.add_argument("file", type=Path)
+    replay.add_argument(
+        "--rate", type=float, default=1.0, help="1 real time, 0 as fast as possible"
+    )
+    replay.add_argument("--topics", help="comma-separated topic prefixes, e.g. intent,robot/state")
+    replay.add_argument("--start", type=float, default=0.0, help="offset into the recording [s]")
+    replay.add_argument("--end", type=float, help="offset where to stop [s]")
+    replay.add_argument("--loop", action="store_true")
+    replay.add_argument("--namespace", help="publish under this namespace (default: recorded one)")
+    add_connect(replay, f"default {DEFAULT_CONNECT}")
+    replay.add_argument("--force", action="store_true", help="replay commands even to a live arm")
+    replay.add_argument("--into-policy", type=Path, metavar="RUN",
+                        help="offline, no bus: a trained policy's choice at every recorded "
+                             "decision, next to the recorded one")  # fmt: skip
+    replay.add_argument("-o", "--out", type=Path, default=Path("decisions.csv"),
+                        help="with --into-policy: the CSV of decisions")  # fmt: skip
+    replay.set_defaults(handler=_replay)
+
+
+def _info(args: argparse.Namespace) -> int:
+    """Topics, counts, rates, duration, gaps and metadata, as text or JSON."""
+    from dammrl.recording import info
+
+    summary = info(args.file)
+    if args.json:
+        print(json.dumps(summary, indent=2))
+        return 0
+    state = "complete" if summary["complete"] else f"NOT finished ({summary['truncated']})"
+    print(
+        f"{summary['file']}: {summary['messages']} messages, {summary['duration_s']:.1f} s, {state}"
+    )
+    for topic, t in summary["topics"].items():
+        print(f"  {topic:36s} {t['type']:16s} {t['count']:8d}  {t['rate_hz']:8.1f} Hz")
+    gaps = summary["sequence_gaps"]
+    print("  sequence gaps: " + (", ".join(f"{k} {v}" for k, v in gaps.items()) or "none"))
+    for name, data in summary["metadata"].items():
+        print(
+            f"  metadata {name}: "
+            + ", ".join(f"{k}={v}" for k, v in data.items() if k != "settings")
+        )
+    return 0
+
+
+def _repair(args: argparse.Namespace) -> int:
+    """Rewrite a cut recording as a complete MCAP."""
+    from dammrl.recording import repair
+
+    out = args.out or args.file.with_suffix(".repaired.mcap")
+    done = repair(args.file, out)
+    print(f"wrote {done['messages']} messages to {out} (source complete: {done['was_complete']})")
+    return 0
+
+
+def _export(args: argparse.Namespace) -> int:
+    """One JSON-encoded MCAP, or one CSV per topic."""
+    from dammrl.recording import export_csv, export_json
+
+    if args.format == "json":
+        print(f"wrote {export_json(args.file, args.out)} JSON messages to {args.out}")
+    else:
+        for topic, rows in export_csv(args.file, args.out).items():
+            print(f"{topic}: {rows} rows")
+    return 0
+
+
+def _plot(args: argparse.Namespace) -> int:
+    """The pressure trace above the end-effector error; prints the figure's path."""
+    from dammrl.core.task import TaskSettings
+    from dammrl.plots import plot_session
+    from dammrl.recording import session_traces
+
+    traces = session_traces(args.file, args.episode)
+    title = f"{args.file.name}: {len(traces.decisions)} decisions, {len(traces.pressure)} samples"
+    print(plot_session(traces, TaskSettings().goal_tolerance_m, title, args.out))
+    return 0
+
+
+def _human(args: argparse.Namespace) -> int:
+    """The human's decision rate and, per radius, error rate and decision time."""
+    from dammrl.recording import human_statistics
+
+    stats = human_statistics(args.file)
+    if args.json:
+        print(json.dumps(stats))
+        return 0
+    print(f"{stats['decisions']} decisions, {stats['decision_frequency_hz']:.2f} per second")
+    for radius, r in stats["per_radius"].items():
+        print(f"  {radius:8s} {r['decisions']:5d} decisions, error rate {r['error_rate']:.3f}, "
+              f"mean decision time {r['mean_decision_s']:.2f} s")  # fmt: skip
+    return 0
+
+
+def _replay(args: argparse.Namespace) -> int:
+    """Publish a recording onto the bus, or (``--into-policy``) compare a policy offline."""
+    from dammrl.recording import read_recording
+    from dammrl.replay import ReplayOptions, into_policy, replay, write_decisions
+
+    recording = read_recording(args.file)
+    if args.into_policy is not None:
+        summary = write_decisions(into_policy(recording, args.into_policy), args.out)
+        print(json.dumps(summary | {"csv": str(args.out)}))
+        return 0
+    options = ReplayOptions(
+        rate=args.rate, topics=tuple(filter(None, (args.topics or "").split(","))),
+        start_s=args.start, end_s=args.end, loop=args.loop, force=args.force,
+    )  # fmt: skip
+    settings = bus_settings(args, recording.namespace())
+    print(f"replayed {replay(recording, settings, options, info=print_err)} messages")
+    return 0

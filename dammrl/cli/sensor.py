@@ -1,0 +1,208 @@
+"""``dammrl sensor list|calibrate|monitor|emulate``: the pressure sensor (semi-virtual mode)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import threading
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from dammrl.cli.common import DEFAULT_CONNECT, Commands, add_bus_arguments, bus_settings, positive
+from dammrl.core.errors import DammrlError
+
+if TYPE_CHECKING:
+    from services.intent.decoder import Calibration
+    from services.intent.emulator import SensorEmulator
+
+PORT_HELP = "serial device, e.g. /dev/ttyUSB0"
+
+
+def register(commands: Commands) -> None:
+    """Add ``sensor`` and its actions."""
+    sensor = commands.add_parser("sensor", help="the pressure sensor (semi-virtual mode)")
+    actions = sensor.add_subparsers(required=True, metavar="ACTION")
+    listing = actions.add_parser("list", help="serial ports found, with descriptions")
+    listing.set_defaults(handler=_list)
+    _add_calibrate(actions)
+    _add_monitor(actions)
+    _add_emulate(actions)
+
+
+def _add_calibrate(actions: Commands) -> None:
+    calibrate = actions.add_parser(
+        "calibrate",
+        help="guided: rest, light press, firm press; saves a calibration file",
+        description="Record the pad at rest, under a light and under a firm press, and save "
+        "the calibration the intent service reads (DAMMRL_INTENT_CALIBRATION_FILE).",
+    )
+    calibrate.add_argument("--port", required=True, help=PORT_HELP)
+    calibrate.add_argument("--out", type=Path, default=Path("sensor_calibration.json"),
+                           help="where to save it (default sensor_calibration.json)")  # fmt: skip
+    calibrate.add_argument("--seconds", type=positive, default=3.0, help="recording per step [s]")
+    calibrate.add_argument("--yes", action="store_true",
+                           help="do not wait for Enter before each step (scripts)")  # fmt: skip
+    calibrate.set_defaults(handler=_calibrate)
+
+
+def _add_monitor(actions: Commands) -> None:
+    monitor = actions.add_parser(
+        "monitor", help="live pressure, decoded command and radius choice (until Ctrl-C)"
+    )
+    monitor.add_argument("--port", required=True, help=PORT_HELP)
+    monitor.add_argument(
+        "--calibration", type=Path, help="calibration file (default DAMMRL_INTENT_CALIBRATION_FILE)"
+    )
+    monitor.add_argument("--seconds", type=positive, help="stop after this long")
+    monitor.set_defaults(handler=_monitor)
+
+
+def _add_emulate(actions: Commands) -> None:
+    emulate = actions.add_parser(
+        "emulate",
+        help="a virtual sensor on a pseudo-terminal (until Ctrl-C)",
+        description="A virtual pressure sensor: frames of the wire protocol on a "
+        "pseudo-terminal linked at --link, which the stack opens like a real port.",
+    )
+    emulate.add_argument("--link", type=Path, default=Path("/tmp/ttySENSOR"),
+                         help="path the emulated port appears at")  # fmt: skip
+    emulate.add_argument(
+        "--pattern",
+        choices=["taps", "keyboard", "patient"],
+        default="taps",
+        help="taps: a quick firm press every --period s; keyboard: you press keys; "
+        "patient: a simulated patient answers the stack's decision requests",
+    )
+    emulate.add_argument(
+        "--period", type=positive, default=1.0, help="taps: seconds between presses"
+    )
+    emulate.add_argument("--patient-model", type=int, choices=[1, 2], default=2,
+                         help="patient: 1 hurried (quick presses, E_big), 2 careful (held, "
+                         "E_small)")  # fmt: skip
+    emulate.add_argument("--seed", type=int, default=0, help="patient's decisions, ADC noise")
+    add_bus_arguments(emulate, f"patient: the stack's endpoint (default {DEFAULT_CONNECT})")
+    emulate.add_argument("--rate", type=positive, default=100.0, help="frames per second")
+    emulate.add_argument("--seconds", type=positive, help="stop after this long")
+    emulate.set_defaults(handler=_emulate)
+
+
+def _list(args: argparse.Namespace) -> int:
+    """Print the serial ports, or where a USB sensor would appear."""
+    from serial.tools import list_ports
+
+    ports = sorted(list_ports.comports(), key=lambda p: p.device)
+    if not ports:
+        print("no serial port found (a USB sensor appears as /dev/ttyUSB* or /dev/ttyACM*)")
+    for port in ports:
+        print(f"{port.device:20s} {port.description}  [{port.hwid}]")
+    return 0
+
+
+def _calibrate(args: argparse.Namespace) -> int:
+    """Three guided recordings, then save the calibration; 130 if the person cancels."""
+    from dammrl.sensor import calibrate, quiet_reader
+    from services.intent.serial_sensor import SerialSensor
+
+    quiet_reader()
+    if not args.out.parent.is_dir():  # say so before the person does three recordings
+        raise DammrlError(f"cannot save the calibration: {args.out.parent} is not a directory")
+
+    def ready(step: str) -> None:
+        print(f"\n{step}")
+        if not args.yes:
+            input(f"  Press Enter to start the {args.seconds:.0f} s recording... ")
+
+    print(f"Calibrating the pressure sensor on {args.port}: three {args.seconds:.0f} s recordings.")
+    try:
+        with SerialSensor(args.port, reconnect_max_s=1.0) as sensor:
+            calibration = calibrate(sensor, args.seconds, ready, _show)
+    except (KeyboardInterrupt, EOFError):
+        print("\ncalibration cancelled; nothing saved (--yes runs without Enter)")
+        return 130
+    args.out.write_text(calibration.model_dump_json(indent=2) + "\n")
+    _say_saved(args, calibration)
+    return 0
+
+
+def _say_saved(args: argparse.Namespace, calibration: Calibration) -> None:
+    """The saved levels, and the commands that check and use the file."""
+    print(
+        f"\nSaved {args.out}: rest {calibration.rest_raw:.0f}, light {calibration.light_raw:.0f},"
+        f" firm {calibration.firm_raw:.0f} raw.\nCheck it:   dammrl sensor monitor --port "
+        f"{args.port} --calibration {args.out}\nUse it:     DAMMRL_INTENT_CALIBRATION_FILE="
+        f"{args.out.resolve()} dammrl up --mode semi-virtual --port {args.port}"
+    )
+
+
+def _show(line: str) -> None:
+    """A calibration progress line; on a terminal the recording line rewrites itself."""
+    end = "\r" if line.startswith("  recording") else "\n"
+    print(f"\x1b[2K{line}" if sys.stdout.isatty() else line, end=end, flush=True)
+
+
+def _monitor(args: argparse.Namespace) -> int:
+    """Live pressure, decoded command and radius choice, with the intent service's thresholds."""
+    from dammrl.core.models import ModelSet
+    from dammrl.sensor import Monitor, quiet_reader, wait_for_frames
+    from services.common.runtime import stop_on_signals
+    from services.intent.calibration import load_calibration
+    from services.intent.config import IntentSettings
+    from services.intent.decoder import PressDecoder
+    from services.intent.serial_sensor import SerialSensor
+
+    quiet_reader()
+    settings = IntentSettings()  # the intent service's settings: the same thresholds
+    calibration = load_calibration(args.calibration or settings.calibration_file)
+    stop = stop_on_signals()
+    with SerialSensor(args.port, reconnect_max_s=1.0) as sensor:
+        wait_for_frames(sensor)
+        _stop_after(stop, args.seconds)
+        Monitor(sensor, PressDecoder(calibration, settings.decoder), ModelSet()).run(stop)
+    return 0
+
+
+def _emulate(args: argparse.Namespace) -> int:
+    """Serve frames on a pseudo-terminal: taps, keys pressed, or a simulated patient."""
+    from dammrl.sensor import KEYS, keyboard
+    from services.common.runtime import stop_on_signals
+    from services.intent.emulator import Press, SensorEmulator
+
+    if args.pattern == "keyboard" and not sys.stdin.isatty():
+        raise DammrlError("the keyboard pattern needs a terminal (run it in its own tmux pane)")
+    stop = stop_on_signals()
+    _stop_after(stop, args.seconds)
+    script = [Press(0.2, 0.2, 1.0)] if args.pattern == "taps" else []
+    loop_s = args.period if args.pattern == "taps" else None
+    with SensorEmulator(args.link, script, loop_s=loop_s, seed=args.seed, rate_hz=args.rate) as pad:
+        print(f"emulated sensor on {args.link} ({args.rate:.0f} frames/s); Ctrl-C stops")
+        if args.pattern == "taps":
+            print(f"a quick firm press (+1, E_big) every {args.period} s")
+            stop.wait()
+        elif args.pattern == "keyboard":
+            print(KEYS, flush=True)
+            keyboard(pad, stop)
+        else:
+            _patient(args, pad, stop)
+        print(f"\nsent {pad.sent} frames")
+    return 0
+
+
+def _stop_after(stop: threading.Event, seconds: float | None) -> None:
+    """Set ``stop`` after ``seconds`` [s] (never if None), from a daemon timer."""
+    if seconds is not None:
+        timer = threading.Timer(seconds, stop.set)
+        timer.daemon = True
+        timer.start()
+
+
+def _patient(args: argparse.Namespace, pad: SensorEmulator, stop: threading.Event) -> None:
+    """A simulated patient pressing the emulated pad to answer the stack's requests."""
+    from services.common.bus import Bus
+    from services.intent.patient import SimulatedPatient
+
+    patient = SimulatedPatient(pad, args.patient_model, seed=args.seed)
+    kind = "hurried: quick presses, E_big" if args.patient_model == 1 else "careful: held, E_small"
+    print(f"simulated patient (M_{args.patient_model}, {kind}) answering decision requests")
+    with Bus(bus_settings(args), "patient") as bus:
+        patient.run(bus, stop)
+    print(f"answered {patient.answered} requests")

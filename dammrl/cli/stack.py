@@ -1,0 +1,118 @@
+"""The service stack on the bus: ``dammrl up``, ``status``, ``echo`` and ``schemas``."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from dammrl.cli.common import (
+    DEFAULT_CONNECT,
+    Commands,
+    add_bus_arguments,
+    bus_settings,
+    model_arg,
+    print_err,
+    print_out,
+)
+from schemas import DEFAULT_NAMESPACE, TOPICS
+
+CONNECT_HELP = f"where the stack listens (default {DEFAULT_CONNECT})"
+LOCKSTEP_HELP = (
+    "run on the robot clock: each state is answered before the next physics step and each "
+    "decision before it is due (deterministic, the in-process runner's exact twin; faster "
+    "than real time; simulation only)"
+)
+
+
+def register(commands: Commands) -> None:
+    """Add ``up``, ``status`` and ``echo``."""
+    _add_up(commands)
+    helptext = "services alive on the bus, their health and rates"
+    status = commands.add_parser("status", help=helptext, description=helptext)
+    add_bus_arguments(status, CONNECT_HELP)
+    status.set_defaults(handler=_status)
+    helptext = "print the decoded messages of one topic"
+    echo = commands.add_parser("echo", help=helptext, description=helptext)
+    add_bus_arguments(echo, CONNECT_HELP)
+    echo.add_argument("topic", help="e.g. robot/state, task/result, health/*")
+    echo.add_argument("--hz", action="store_true", help="print the rate instead")
+    echo.add_argument("--count", type=int, help="stop after this many messages")
+    echo.add_argument("--duration", type=float, help="stop after this many seconds")
+    echo.set_defaults(handler=_echo)
+
+
+def register_schemas(commands: Commands) -> None:
+    """Add ``schemas`` (last in ``dammrl --help``, hence apart from ``register``)."""
+    schemas = commands.add_parser("schemas", help="write the JSON Schema of every message")
+    schemas.add_argument("--out", type=Path, required=True, metavar="DIR")
+    schemas.set_defaults(handler=_schemas)
+
+
+def _add_up(commands: Commands) -> None:
+    up = commands.add_parser(
+        "up",
+        help="launch the service stack of a mode",
+        description="Start the services as processes on the bus; Ctrl-C stops them all.",
+    )
+    up.add_argument("--mode", choices=["virtual", "semi-virtual"], default="virtual")
+    up.add_argument(
+        "--episodes", type=int, help="run this many episodes, then stop (default: until Ctrl-C)"
+    )
+    up.add_argument("--seed", type=int, default=0, help="seed of the first episode")
+    up.add_argument("--model", type=model_arg, metavar="I,J",
+                    help="a fixed M_ij (default: the learned DAMMRL policy)")  # fmt: skip
+    up.add_argument("--trigger", choices=["event", "fixed"], default="event")
+    up.add_argument("--lockstep", action="store_true", help=LOCKSTEP_HELP)
+    up.add_argument("--port", help="semi-virtual: the pressure sensor's serial device")
+    up.add_argument("--calibration", type=Path,
+                    help="semi-virtual: file from `dammrl sensor calibrate`")  # fmt: skip
+    up.add_argument(
+        "--bus-port", type=int, default=7447, help="loopback port of the stack's endpoint"
+    )
+    up.add_argument("--namespace", default=DEFAULT_NAMESPACE)
+    up.add_argument("--json", action="store_true", help="one JSON object per episode")
+    up.add_argument(
+        "--record", type=Path, metavar="MCAP", help="also run the recorder into this file"
+    )
+    up.set_defaults(handler=_up)
+
+
+def _up(args: argparse.Namespace) -> int:
+    """Launch the stack; runs until the episodes are done, a signal, or a dead service."""
+    from dammrl.launch import Stack, StackOptions
+
+    options = StackOptions(
+        mode=args.mode, episodes=args.episodes, seed=args.seed, model=args.model,
+        trigger=args.trigger, port=args.bus_port, namespace=args.namespace, json=args.json,
+        serial_port=args.port, calibration=args.calibration, record=args.record,
+        lockstep=args.lockstep,
+    )  # fmt: skip
+    return Stack(options, out=print_out, info=print_err).run()
+
+
+def _status(args: argparse.Namespace) -> int:
+    """Print the services alive on the bus."""
+    from dammrl.inspect import status
+
+    print(status(bus_settings(args)))
+    return 0
+
+
+def _echo(args: argparse.Namespace) -> int:
+    """Print one topic's messages (or its rate) until a count, a duration or Ctrl-C."""
+    from dammrl.inspect import echo
+
+    echo(bus_settings(args), args.topic, hz=args.hz, count=args.count, duration_s=args.duration)
+    return 0
+
+
+def _schemas(args: argparse.Namespace) -> int:
+    """Write ``<Type>.json`` per message type, tagged with its topic."""
+    args.out.mkdir(parents=True, exist_ok=True)
+    for topic, message_type in TOPICS.items():
+        path = args.out / f"{message_type.__name__}.json"
+        schema = message_type.model_json_schema() | {"x-dammrl-topic": topic}
+        path.write_text(json.dumps(schema, indent=2) + "\n")
+        print(f"{topic:16s} -> {path}")
+    return 0
