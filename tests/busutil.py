@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import signal
 import socket
 import subprocess
 import sys
@@ -17,6 +18,8 @@ import zenoh
 from schemas import DecodeError, Message, decode, key, type_of
 from services.common.bus import zenoh_config
 from services.common.config import BusSettings
+
+SERVICES = ("sim", "policy", "intent", "controller")
 
 
 def free_port() -> int:
@@ -100,3 +103,31 @@ class Observer:
 
     def close(self) -> None:
         self.session.close()  # type: ignore[no-untyped-call]
+
+
+class Stack:
+    """The virtual stack's four services as processes, connected to ``port``."""
+
+    def __init__(self, port: int, **env: str) -> None:
+        self.port, self.env = port, env
+        self.processes = {name: start_service(name, port, **env) for name in SERVICES}
+
+    def kill(self, name: str) -> None:
+        self.processes[name].send_signal(signal.SIGKILL)
+        self.processes[name].wait()
+
+    def restart(self, name: str) -> None:
+        self.processes[name] = start_service(name, self.port, **self.env)
+
+    def alive(self) -> dict[str, bool]:
+        return {name: p.poll() is None for name, p in self.processes.items()}
+
+    def stop(self) -> None:
+        for process in self.processes.values():
+            if process.poll() is None:
+                process.terminate()
+        for process in self.processes.values():
+            try:
+                process.wait(10)
+            except subprocess.TimeoutExpired:
+                process.kill()

@@ -18,10 +18,9 @@ import pytest
 
 from dammrl.core.robot import RobotDescription
 from schemas import TOPICS, EpisodeResult, Health, RobotState, StepEvent, encode
-from tests.busutil import Observer, free_port, start_service, wait_for
+from tests.busutil import SERVICES, Observer, Stack, free_port, wait_for
 from tests.test_schemas import EXAMPLES
 
-SERVICES = ("sim", "policy", "intent", "controller")
 LONG_EPISODE = {"DAMMRL_TASK_EPISODES": "1", "DAMMRL_TASK_EPISODE_TIMEOUT_S": "120"}
 
 
@@ -35,32 +34,6 @@ def observer(port: int) -> Iterator[Observer]:
     observer = Observer(port)
     yield observer
     observer.close()
-
-
-class Stack:
-    def __init__(self, port: int, **env: str) -> None:
-        self.port, self.env = port, env
-        self.processes = {name: start_service(name, port, **env) for name in SERVICES}
-
-    def kill(self, name: str) -> None:
-        self.processes[name].send_signal(signal.SIGKILL)
-        self.processes[name].wait()
-
-    def restart(self, name: str) -> None:
-        self.processes[name] = start_service(name, self.port, **self.env)
-
-    def alive(self) -> dict[str, bool]:
-        return {name: p.poll() is None for name, p in self.processes.items()}
-
-    def stop(self) -> None:
-        for process in self.processes.values():
-            if process.poll() is None:
-                process.terminate()
-        for process in self.processes.values():
-            try:
-                process.wait(10)
-            except subprocess.TimeoutExpired:
-                process.kill()
 
 
 @pytest.fixture()

@@ -80,6 +80,8 @@ class ControllerSettings(BaseSettings):
     """No RobotState for this long: stop stepping and hold the last reference [s]."""
     policy_wait_s: float = Field(20.0, ge=0)
     """How long the first episode waits for the policy's first ModelChoice [s]."""
+    choice_wait_s: float = Field(0.2, gt=0, le=10)
+    """How long the human's answer waits for the policy's choice of the same request [s]."""
     human_model: int = Field(1, ge=1, le=2)
     """Model used until the policy's first ModelChoice arrives (i: 1 = E_big)."""
     robot_model: int = Field(1, ge=1, le=8)

@@ -89,6 +89,8 @@ class ControllerNode:
         self.request = 0
         self.request_t_s = 0.0
         self.choices: dict[int, ModelChoice] = {}  # the policy's answer per request
+        self.intent: Intent | None = None  # the human's answer, until matched with a choice
+        self.intent_wall_s = 0.0
         self.publish = {
             t: bus.publisher(t)
             for t in (JointCommand, StepEvent, DecisionRequest, TaskGoal, EpisodeResult)
@@ -132,10 +134,11 @@ class ControllerNode:
 
     def _on_choice(self, message: ModelChoice) -> None:
         """Keep the policy's answer to a request of this episode (periodic repeats only
-        say the policy is alive)."""
+        say the policy is alive); it may arrive before or after the human's."""
         episode = self.episode
         if episode is not None and message.episode == episode.number and message.request > 0:
             self.choices[message.request] = message
+            self._answer_if_complete()
 
     def _on_state(self, message: RobotState) -> None:
         episode, reach = self.episode, self.reach
@@ -182,17 +185,30 @@ class ControllerNode:
             if remaining <= 0:
                 log.warning("lockstep: no answer to request %d in time", self.request)
                 return
-            message = self.bus.receive(remaining)
+            message = self.bus.receive(min(remaining, 0.01))
             if isinstance(message, Intent | ModelChoice):
                 self._dispatch(message)
+            self._answer_if_complete()
 
     def _on_intent(self, message: Intent) -> None:
         episode, reach = self.episode, self.reach
         stale = message.request != self.request or reach is None or not reach.asked
         if episode is None or message.episode != episode.number or stale:
             return  # an answer to an older request
-        assert reach is not None
+        self.intent, self.intent_wall_s = message, time.monotonic()
+        self._answer_if_complete()
+
+    def _answer_if_complete(self) -> None:
+        """Hand the human's answer to the reach with the step vector the policy chose for
+        the same request; without the policy's choice after ``choice_wait_s``, the steps
+        in force stay (the human then decided under the request's own i)."""
+        message, reach = self.intent, self.reach
+        if message is None or reach is None:
+            return
         choice = self.choices.get(message.request)
+        waited = time.monotonic() - self.intent_wall_s > self.settings.choice_wait_s
+        if choice is None and not waited:
+            return
         if choice is not None:
             self.choice = (choice.human_model, choice.robot_model)
         due_s = self.request_t_s + message.decision_s  # a late answer is due on arrival
@@ -201,10 +217,12 @@ class ControllerNode:
         )
         steps = None if choice is None else np.array(choice.steps_m)
         reach.answer(Answer(intent, steps, message.correct))
+        self.intent = None
 
     # ---- episodes -----------------------------------------------------------------
     def _watch(self) -> None:
         """Announce the running episode until it starts; end it when the state is stale."""
+        self._answer_if_complete()
         now = time.monotonic()
         if (
             self.episode is not None
@@ -233,7 +251,7 @@ class ControllerNode:
         controller = Controller(self.robot, self.settings, streams.ik_latency, self.arm, self.ik)
         self.reach = Reach(controller, task, self.task_settings, self.control_dt_s)
         self.started = False
-        self.request, self.choices = 0, {}
+        self.request, self.choices, self.intent = 0, {}, None
         self._announce(self.episode)
 
     def _announce(self, episode: Episode) -> None:

@@ -43,6 +43,8 @@ class IntentNode:
         self.human = SimulatedHuman(human, models)
         self.policy_wait_s = settings.policy_wait_s
         self.waiting: dict[tuple[int, int], tuple[float, DecisionRequest]] = {}
+        self.choices: dict[tuple[int, int], int] = {}  # (episode, request) -> the policy's i
+        self.episode = 0
         self.publisher = bus.publisher(Intent)
         bus.subscribe(DecisionRequest, TaskGoal, ModelChoice)
         bus.expect(DecisionRequest, "controller")
@@ -58,15 +60,22 @@ class IntentNode:
             self.bus.report_health()
 
     def _dispatch(self, message: Message) -> None:
-        if isinstance(message, TaskGoal):
+        if isinstance(message, TaskGoal) and message.episode != self.episode:
+            self.episode = message.episode  # repeats of the announcement change nothing
             self.human.rng = seed_streams(message.seed).human
             self.waiting.clear()
+            self.choices.clear()
         elif isinstance(message, DecisionRequest):
             self.waiting[(message.episode, message.request)] = (time.monotonic(), message)
-        elif isinstance(message, ModelChoice) and message.request >= 0:
-            entry = self.waiting.pop((message.episode, message.request), None)
-            if entry is not None:
-                self._decide(entry[1], message.human_model)
+            self._decide_if_chosen((message.episode, message.request))
+        elif isinstance(message, ModelChoice) and message.request > 0:
+            # the policy's answer may overtake the request it answers: keep it
+            self.choices[(message.episode, message.request)] = message.human_model
+            self._decide_if_chosen((message.episode, message.request))
+
+    def _decide_if_chosen(self, key: tuple[int, int]) -> None:
+        if key in self.waiting and key in self.choices:
+            self._decide(self.waiting.pop(key)[1], self.choices.pop(key))
 
     def _decide_unanswered(self) -> None:
         """Requests the policy did not answer in time are decided with their own i."""

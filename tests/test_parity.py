@@ -1,0 +1,176 @@
+"""One core, two compositions: the bus stack reproduces the in-process runner.
+
+The same seeds run through the in-process runner and through the four services as real
+processes on a real Zenoh bus. In lockstep (``DAMMRL_BUS_LOCKSTEP``: the sim steps once
+the controller answered its state, the controller answers a decision-asking state once
+the human answered) the two compositions must agree exactly: the same task, start
+posture, randomised arm and sensor noise, human decisions, model choices, end-effector
+path and metrics. Tolerance: 1e-9 (m, rad, s) for floats that cross the bus as float64
+and are recomputed on the other side; counts and choices are compared exactly.
+
+In real time the stack's only freedom is timing: a command that reaches the sim after
+its next physics step is applied one period late. The last test measures that.
+"""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+
+import numpy as np
+import pytest
+
+from dammrl.core.policy import Policy
+from dammrl.runner import ReachResult, ReachRunner, ReachSettings
+from schemas import EpisodeResult, Intent, Message, ModelChoice, RobotState, TaskGoal
+from services.policy.config import SHIPPED_POLICY
+from services.policy.learned import LearnedPolicy
+from services.sim.config import DomainRandomization, SimSettings
+from tests.busutil import Observer, Stack, free_port, wait_for
+
+pytestmark = pytest.mark.slow
+SEEDS = range(7_000_100, 7_000_110)  # 10 seeds, none used in training (seeds < 150 000)
+EXACT = 1e-9
+METRICS_EXACT = ("success", "outcome", "reason", "n_osc", "n_steps", "n_decisions",
+                 "button_pressed", "trigger", "model", "seed")  # fmt: skip
+METRICS_CLOSE = ("t_total_s", "t_step_mean_s", "final_error_m", "jerk_isj",
+                 "jerk_dimensionless", "human_error_rate", "start_m", "goal_m")  # fmt: skip
+
+
+@dataclass
+class BusEpisode:
+    """What an observer saw of one episode on the bus."""
+
+    goal: TaskGoal | None = None
+    states: list[RobotState] = field(default_factory=list)
+    intents: list[Intent] = field(default_factory=list)
+    choices: list[ModelChoice] = field(default_factory=list)
+    result: EpisodeResult | None = None
+
+
+def _run_stack(seeds: range, **env: str) -> dict[int, BusEpisode]:
+    """The stack, in lockstep unless told otherwise, until every seed's episode ended."""
+    port = free_port()
+    observer = Observer(port)
+    stack = Stack(
+        port,
+        DAMMRL_TASK_SEED=str(seeds.start),
+        DAMMRL_TASK_EPISODES=str(len(seeds)),
+        DAMMRL_LOG_LEVEL="WARNING",
+        **{"DAMMRL_BUS_LOCKSTEP": "true", **env},
+    )
+    try:
+        done = lambda: len(observer.of(EpisodeResult)) >= len(seeds)  # noqa: E731
+        wait_for(done, 60 + 40 * len(seeds), f"{len(seeds)} episodes on the bus")
+        return _by_episode(observer.received, seeds)
+    finally:
+        stack.stop()
+        observer.close()
+
+
+def _by_episode(messages: list[Message], seeds: range) -> dict[int, BusEpisode]:
+    episodes: dict[int, BusEpisode] = defaultdict(BusEpisode)
+    for message in messages:
+        number = getattr(message, "episode", 0)
+        if not 1 <= number <= len(seeds):
+            continue
+        seen = episodes[seeds.start + number - 1]
+        if isinstance(message, TaskGoal):
+            seen.goal = message
+        elif isinstance(message, RobotState):
+            seen.states.append(message)
+        elif isinstance(message, Intent):
+            seen.intents.append(message)
+        elif isinstance(message, ModelChoice) and message.request > 0:
+            seen.choices.append(message)
+        elif isinstance(message, EpisodeResult):
+            seen.result = message
+    return episodes
+
+
+def _in_process(
+    runner: ReachRunner, seeds: range, trigger: str, policy: Policy | None
+) -> dict[int, ReachResult]:
+    return {s: runner.run(s, model=(2, 1), trigger=trigger, policy=policy) for s in seeds}
+
+
+def _assert_same(bus: BusEpisode, local: ReachResult, runner: ReachRunner) -> float:
+    """Every comparison of one seed; returns the largest path difference [m]."""
+    assert bus.goal is not None and bus.result is not None
+    np.testing.assert_array_equal(bus.goal.start_m, local.task.start)
+    np.testing.assert_array_equal(bus.goal.goal_m, local.task.goal)
+    q_start = runner.start_posture(local.task.start)
+    np.testing.assert_allclose(bus.goal.q_start_rad, q_start, atol=EXACT, rtol=0)
+    assert [(i.u_h, i.radius_m) for i in bus.intents] == [
+        (d.intent.u_h, d.intent.radius_m) for d in local.decisions
+    ]
+    assert [(c.human_model, c.robot_model) for c in bus.choices] == [
+        (c.human_model, c.robot_model) for c in local.choices
+    ]
+    summary = local.summary()
+    for name in METRICS_EXACT:
+        assert getattr(bus.result, name) == _wire(summary[name]), name
+    for name in METRICS_CLOSE:
+        expected = summary[name]
+        if expected is None:
+            assert getattr(bus.result, name) is None, name
+        else:
+            np.testing.assert_allclose(
+                getattr(bus.result, name), expected, atol=EXACT, err_msg=name
+            )
+    return _path_difference(bus.states, local)
+
+
+def _wire(value: object) -> object:
+    return tuple(value) if isinstance(value, list) else value
+
+
+def _path_difference(states: list[RobotState], local: ReachResult) -> float:
+    """Largest end-effector difference between the bus states and the in-process log at
+    the same robot times, over the reach (up to its end)."""
+    t_end = local.metrics.t_total_s
+    bus = {round(s.t_s, 6): np.array(s.ee_pos_m) for s in states if s.t_s <= t_end + 1e-9}
+    traj = local.trajectory
+    pairs = [
+        (bus[round(t, 6)], x) for t, x in zip(traj.t, traj.x, strict=True) if round(t, 6) in bus
+    ]
+    assert len(pairs) >= 0.99 * np.sum(traj.t <= t_end + 1e-9), "bus states missing"
+    return max(float(np.max(np.abs(a - b))) for a, b in pairs)
+
+
+@pytest.fixture(scope="module")
+def runner() -> Iterator[ReachRunner]:
+    yield ReachRunner()
+
+
+@pytest.mark.parametrize("trigger", ["event", "fixed"])
+@pytest.mark.parametrize("policy", ["fixed", "learned"])
+def test_lockstep_bus_stack_reproduces_the_in_process_runner(
+    runner: ReachRunner, trigger: str, policy: str
+) -> None:
+    env = {"DAMMRL_CONTROLLER_TRIGGER": trigger}
+    if policy == "fixed":
+        env.update(DAMMRL_POLICY_KIND="fixed", DAMMRL_POLICY_HUMAN_MODEL="2",
+                   DAMMRL_POLICY_ROBOT_MODEL="1")  # fmt: skip
+        local_policy = None
+    else:
+        local_policy = LearnedPolicy(runner.settings.models, SHIPPED_POLICY)
+    bus = _run_stack(SEEDS, **env)
+    local = _in_process(runner, SEEDS, trigger, local_policy)
+    worst = max(_assert_same(bus[s], local[s], runner) for s in SEEDS)
+    assert worst <= EXACT
+
+
+def test_lockstep_parity_holds_with_domain_randomisation() -> None:
+    settings = ReachSettings(sim=SimSettings(randomization=DomainRandomization(enabled=True)))
+    runner = ReachRunner(settings)
+    seeds = SEEDS[:5]
+    bus = _run_stack(seeds, DAMMRL_SIM_RANDOMIZATION__ENABLED="true",
+                     DAMMRL_POLICY_KIND="fixed", DAMMRL_POLICY_HUMAN_MODEL="2",
+                     DAMMRL_POLICY_ROBOT_MODEL="1")  # fmt: skip
+    local = _in_process(runner, seeds, "event", None)
+    for seed in seeds:
+        first = bus[seed].states[0]  # the reset state: its sensor noise is the first draw
+        np.testing.assert_array_equal(first.q_rad, local[seed].trajectory.q[0])
+        assert _assert_same(bus[seed], local[seed], runner) <= EXACT
