@@ -11,6 +11,7 @@ from dammrl.core.metrics import (
     human_error_rate,
     integrated_squared_jerk,
     n_oscillations,
+    reach_metrics,
 )
 
 
@@ -76,3 +77,20 @@ def test_goal_needs_a_dwell_not_a_fly_by() -> None:
     assert not monitor.update(0.08, np.array([0.02, 0, 0]))  # left: the dwell restarts
     assert not monitor.update(0.10, np.array([0.0, 0, 0]))
     assert monitor.update(0.20, np.array([0.0, 0, 0]))
+
+
+def test_an_episode_summary_is_strict_json_even_without_a_step() -> None:
+    import json
+
+    from dammrl.core.metrics import episode_summary
+    from dammrl.core.task import ReachTask
+
+    metrics = reach_metrics(
+        outcome="hold", reason="IK failed", t_end_s=0.5, t=np.arange(0, 0.5, 0.01),
+        x=np.zeros((50, 3)), v=np.zeros((50, 3)), goal=np.ones(3), subgoals=np.zeros((0, 3)),
+        radii=np.zeros(0), decisions_correct=[], button_pressed=False,
+    )  # fmt: skip
+    task = ReachTask(np.zeros(3), np.ones(3))
+    summary = episode_summary(metrics, "event", (2, 1), 7, task)
+    assert summary["t_step_mean_s"] is None
+    json.dumps(summary, allow_nan=False)  # raises on NaN or infinity

@@ -1,0 +1,76 @@
+"""Service nodes without a network: their message handling, driven by hand."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from dammrl.core.human import HumanModel
+from dammrl.core.models import ModelSet
+from schemas import DecisionRequest, Header, ModelChoice, TaskGoal
+from services.intent.config import IntentSettings
+from services.intent.node import IntentNode
+
+HEADER = Header(stamp_ns=1, seq=0, source="test")
+
+
+class FakeBus:
+    """Records what a node publishes; subscriptions and source checks are no-ops."""
+
+    def __init__(self) -> None:
+        self.published: list[dict[str, Any]] = []
+
+    def publisher(self, message_type: type) -> FakeBus:
+        return self
+
+    def publish(self, **fields: Any) -> None:
+        self.published.append(fields)
+
+    def subscribe(self, *message_types: type) -> None: ...
+
+    def expect(self, message_type: type, *sources: str) -> None: ...
+
+
+def _goal(episode: int, seed: int) -> TaskGoal:
+    return TaskGoal(header=HEADER, episode=episode, seed=seed, start_m=(0.3, 0, 0),
+                    goal_m=(0.5, 0, -0.2), q_start_rad=(0, 1, 0, 1.6, 0, 0.3))  # fmt: skip
+
+
+def _request(request: int) -> DecisionRequest:
+    return DecisionRequest(header=HEADER, episode=1, request=request, t_s=1.0,
+                           ee_pos_m=(0.3, 0, 0), goal_m=(0.5, 0, -0.2), primary_axis=0,
+                           human_model=1)  # fmt: skip
+
+
+def _choice(request: int, i: int) -> ModelChoice:
+    return ModelChoice(header=HEADER, episode=1, request=request, human_model=i, robot_model=1,
+                       radius_m=0.004, steps_m=(0.01, 0.01, 0.01))  # fmt: skip
+
+
+def _intent_node() -> tuple[IntentNode, FakeBus]:
+    bus = FakeBus()
+    node = IntentNode(IntentSettings(), HumanModel(), ModelSet(), bus)  # type: ignore[arg-type]
+    return node, bus
+
+
+def test_a_policy_choice_that_overtakes_its_request_is_used_when_the_request_arrives() -> None:
+    node, bus = _intent_node()
+    node._dispatch(_goal(1, 5))
+    node._dispatch(_choice(1, 2))
+    assert bus.published == []
+    node._dispatch(_request(1))
+    assert [(p["request"], p["human_model"]) for p in bus.published] == [(1, 2)]
+
+
+def test_a_repeated_task_goal_does_not_reseed_the_human_mid_episode() -> None:
+    reference, reference_bus = _intent_node()
+    node, bus = _intent_node()
+    for target in (reference, node):
+        target._dispatch(_goal(1, 5))
+        for request in (1, 2, 3):
+            if target is node and request == 3:
+                target._dispatch(_goal(1, 5))  # the announcement, repeated
+            target._dispatch(_choice(request, 1))
+            target._dispatch(_request(request))
+    assert [p["decision_s"] for p in bus.published] == [
+        p["decision_s"] for p in reference_bus.published
+    ]
