@@ -25,6 +25,7 @@ from mcap.writer import CompressionType, Writer
 
 from dammrl.core.errors import DammrlError
 from dammrl.core.human import direction_to_goal
+from dammrl.core.models import radius_name
 from schemas import (
     DecisionRequest,
     DecodeError,
@@ -277,7 +278,7 @@ def human_statistics(path: Path) -> dict[str, Any]:
         if request is None:
             continue
         toward = direction_to_goal(request.ee_pos_m, request.goal_m, request.primary_axis)
-        radius = "E_big" if intent.human_model == 1 else "E_small"
+        radius = radius_name(intent.human_model)
         per_radius[radius].append(intent.u_h == toward)
         decision_times[radius].append(intent.decision_s)
     times = [t for t, _ in intents]

@@ -19,7 +19,7 @@ from collections import deque
 from collections.abc import Callable, Iterator
 
 from dammrl.core.errors import DammrlError
-from dammrl.core.models import ModelSet
+from dammrl.core.models import ModelSet, radius_name
 from services.intent.calibration import (
     CalibrationError,
     Rest,
@@ -38,7 +38,7 @@ CHECK_S = 2.0  # how long to wait for the first valid frame
 
 def describe(decision: PressDecision, models: ModelSet) -> str:
     direction = "+1 forward (firm)" if decision.u_h > 0 else "-1 back (light)"
-    radius = "E_big" if decision.human_model == 1 else "E_small"
+    radius = radius_name(decision.human_model)
     kind = "quick" if decision.human_model == 1 else "held"
     radius_mm = models.radius_m(decision.human_model) * 1000
     return (

@@ -7,6 +7,7 @@ from typing import Any
 from dammrl.core.human import HumanModel
 from dammrl.core.models import ModelSet
 from schemas import DecisionRequest, Header, ModelChoice, TaskGoal
+from services.common.config import BusSettings
 from services.intent.config import IntentSettings
 from services.intent.node import IntentNode
 
@@ -17,6 +18,7 @@ class FakeBus:
     """Records what a node publishes; subscriptions and source checks are no-ops."""
 
     def __init__(self) -> None:
+        self.settings = BusSettings()
         self.published: list[dict[str, Any]] = []
 
     def publisher(self, message_type: type) -> FakeBus:

@@ -38,6 +38,7 @@ class BusSettings(BaseSettings):
     the controller answered its last state, and the controller answers a state that asked
     for a decision only once the human did. Deterministic (the in-process runner's exact
     twin) and as fast as the bus allows; for simulation only, never for an arm."""
-    lockstep_timeout_s: float = Field(1.0, gt=0, le=60)
-    """Lockstep: the longest wait for an answer before going on without it (the sim then
-    holds the arm as for a stale command) [s]."""
+    lockstep_timeout_s: float = Field(4.0, gt=0, le=60)
+    """Lockstep: the longest the sim waits for the controller's answer before holding the
+    arm as for a stale command; the controller waits half of it for the human, the human
+    a quarter for the policy (a bound for a dead service, not for a slow machine) [s]."""

@@ -79,6 +79,12 @@ class ControllerNode:
             settings.max_joint_step_rad,
         )  # fmt: skip
         self.control_dt_s = 1.0 / settings.control_rate_hz
+        # in lockstep the robot clock waits for us: only a dead sim leaves the state stale
+        lockstep = bus.settings.lockstep
+        self.stale_s = bus.settings.lockstep_timeout_s if lockstep else settings.state_stale_s
+        self.choice_wait_s = (
+            bus.settings.lockstep_timeout_s / 4 if lockstep else settings.choice_wait_s
+        )
         self.choice = (settings.human_model, settings.robot_model)  # until the policy speaks
         self.episode: Episode | None = None
         self.reach: Reach | None = None
@@ -206,7 +212,7 @@ class ControllerNode:
         if message is None or reach is None:
             return
         choice = self.choices.get(message.request)
-        waited = time.monotonic() - self.intent_wall_s > self.settings.choice_wait_s
+        waited = time.monotonic() - self.intent_wall_s > self.choice_wait_s
         if choice is None and not waited:
             return
         if choice is not None:
@@ -230,9 +236,9 @@ class ControllerNode:
             and now - self.announced_s > ANNOUNCE_PERIOD_S
         ):
             self._announce(self.episode)
-        stale = now - self.last_state_s > self.settings.state_stale_s
+        stale = now - self.last_state_s > self.stale_s
         if self.reach is not None and self.started and stale:
-            reason = f"robot state stale: none for {self.settings.state_stale_s:.2f} s"
+            reason = f"robot state stale: none for {self.stale_s:.2f} s"
             self.reach.end("hold", reason, self.last_t)
             self._finish()
 

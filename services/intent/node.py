@@ -41,7 +41,10 @@ class IntentNode:
     ) -> None:
         self.bus = bus
         self.human = SimulatedHuman(human, models)
-        self.policy_wait_s = settings.policy_wait_s
+        lockstep = bus.settings.lockstep  # then the robot clock waits: only a dead policy is late
+        self.policy_wait_s = (
+            bus.settings.lockstep_timeout_s / 4 if lockstep else settings.policy_wait_s
+        )
         self.waiting: dict[tuple[int, int], tuple[float, DecisionRequest]] = {}
         self.choices: dict[tuple[int, int], int] = {}  # (episode, request) -> the policy's i
         self.episode = 0
