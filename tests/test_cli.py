@@ -88,3 +88,18 @@ def test_sensor_emulate_serves_frames_on_its_link(tmp_path: Path) -> None:
     finally:
         emulator.terminate()
         emulator.wait(10)
+
+
+def test_lockstep_is_refused_with_a_person_at_the_sensor(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    code = main(["up", "--mode", "semi-virtual", "--port", "/dev/null", "--lockstep"])
+    assert code == 2
+    assert "--lockstep is for simulation only" in capsys.readouterr().err
+
+
+def test_lockstep_reaches_every_service() -> None:
+    from dammrl.launch import Stack, StackOptions
+
+    assert Stack(StackOptions(lockstep=True)).environment()["DAMMRL_BUS_LOCKSTEP"] == "true"
+    assert "DAMMRL_BUS_LOCKSTEP" not in Stack(StackOptions()).environment()

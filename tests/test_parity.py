@@ -14,6 +14,9 @@ its next physics step is applied one period late. The last test measures that.
 
 from __future__ import annotations
 
+import json
+import subprocess
+import sys
 from collections import defaultdict
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -196,3 +199,16 @@ def test_real_time_bus_stack_differs_from_the_in_process_runner_only_by_late_com
         np.testing.assert_allclose(seen.goal.q_start_rad, q_start, atol=EXACT, rtol=0)
         identical += _path_difference(seen.states, local[seed]) == 0.0
     assert identical >= len(seeds) // 2
+
+
+def test_dammrl_up_lockstep_prints_what_dammrl_reach_prints(runner: ReachRunner) -> None:
+    """The user's view of the promise: the same JSON lines from both commands."""
+    seed, episodes = SEEDS.start, 3
+    command = [sys.executable, "-m", "dammrl.cli", "up", "--lockstep", "--json",
+               "--model", "2,1", "--episodes", str(episodes), "--seed", str(seed),
+               "--bus-port", str(free_port())]  # fmt: skip
+    done = subprocess.run(command, capture_output=True, text=True, timeout=300, check=True)
+    on_bus = [json.loads(line) for line in done.stdout.splitlines() if line.startswith("{")]
+    in_process = [runner.run(s, model=(2, 1)).summary() for s in range(seed, seed + episodes)]
+    for bus, local in zip(on_bus, in_process, strict=True):
+        assert {k: bus[k] for k in local} == json.loads(json.dumps(local))
