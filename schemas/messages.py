@@ -56,6 +56,9 @@ class RobotState(Message):
     button_pressed: bool
     button_travel_m: Finite
     holding: bool = Field(description="commands are stale: the arm holds its position")
+    q_ref_applied_rad: Joints | None = Field(
+        None, description="joint reference the arm applies (after its own caps)"
+    )
 
 
 class JointCommand(Message):

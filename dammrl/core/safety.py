@@ -4,6 +4,7 @@ the arm side's checks of what arrives (commands, episode resets)."""
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -134,3 +135,57 @@ def goal_violation(
     if abs(x - cx) > hx or abs(y - cy) > hy:
         return f"button position ({x:.3f}, {y:.3f}) m is not on the table"
     return None
+
+
+@dataclass(frozen=True)
+class ArmCaps:
+    """What the arm side lets through, whatever the bus says (sim now, robot later)."""
+
+    limit_tolerance_rad: float  # q_ref may exceed the joint limits by this before rejection
+    max_kp_nm_per_rad: float  # stiffer commands are rejected
+    max_kd_nms_per_rad: float  # more damped commands are rejected
+    max_relative_target_rad: float  # |q_ref - q| is clamped to this per joint
+    speed_fraction: float  # |dq_ref| and the rate of change of q_ref: <= this x URDF limit
+
+
+@dataclass(frozen=True)
+class Guarded:
+    """The command the arm applies, or why none is applied."""
+
+    command: JointCommand | None  # None: rejected
+    reason: str | None  # why it was rejected, or which cap changed it
+    clamped: bool = False  # a cap changed the command (it is still applied)
+
+
+def guard_command(
+    command: JointCommand,
+    q: np.ndarray,
+    last_q_ref: np.ndarray | None,
+    dt_s: float,
+    robot: RobotDescription,
+    caps: ArmCaps,
+) -> Guarded:
+    """Reject a command that breaks a limit; clamp the reference so that it stays within
+    ``max_relative_target_rad`` of the measured posture ``q`` (6,) [rad], moves from the
+    last applied reference at most at the capped joint speed over ``dt_s`` [s], and asks
+    for no joint speed above it (LeRobot's ``max_relative_target``, ros2_control's joint
+    limiters). The genuine controller never meets a cap (measured: |q_ref - q| <= 0.054
+    rad, |dq_ref| <= 0.68 of the limit, q_ref moving <= 1.27 rad/s)."""
+    reason = command_violation(
+        command, robot, caps.limit_tolerance_rad, caps.max_kp_nm_per_rad, caps.max_kd_nms_per_rad
+    )
+    if reason is not None:
+        return Guarded(None, reason)
+    speed = caps.speed_fraction * robot.dq_max
+    q_ref = np.clip(
+        command.q_ref, q - caps.max_relative_target_rad, q + caps.max_relative_target_rad
+    )
+    if last_q_ref is not None:
+        q_ref = np.clip(q_ref, last_q_ref - speed * dt_s, last_q_ref + speed * dt_s)
+    dq_ref = np.clip(command.dq_ref, -speed, speed)
+    if np.array_equal(q_ref, command.q_ref) and np.array_equal(dq_ref, command.dq_ref):
+        return Guarded(command, None)
+    i = int(np.argmax(np.abs(q_ref - command.q_ref) + np.abs(dq_ref - command.dq_ref)))
+    why = f"reference of {robot.joint_names[i]} clamped by the arm's caps"
+    applied = JointCommand(q_ref, dq_ref, command.tau_ff, command.kp, command.kd)
+    return Guarded(applied, why, clamped=True)

@@ -14,8 +14,11 @@ def _floats(array: np.ndarray) -> tuple[float, ...]:
     return tuple(float(v) for v in array)
 
 
-def state_fields(state: core.RobotState, episode: int, holding: bool) -> dict[str, Any]:
+def state_fields(
+    state: core.RobotState, episode: int, holding: bool, q_ref: np.ndarray | None = None
+) -> dict[str, Any]:
     return {
+        "q_ref_applied_rad": None if q_ref is None else _floats(q_ref),
         "episode": episode,
         "t_s": state.t_s,
         "q_rad": _floats(state.q),

@@ -49,9 +49,18 @@ class SimSettings(BaseSettings):
     """Stiffness of a hold before any command arrived (then: the last command's) [N m/rad]."""
     hold_kd_nms_per_rad: float = Field(10.0, ge=0)
     """Damping of a hold before any command arrived (then: the last command's) [N m s/rad]."""
-    max_kp_nm_per_rad: float = Field(2000.0, gt=0)
+    max_kp_nm_per_rad: float = Field(2000.0, gt=0, le=10_000)
     """Commands asking for more stiffness are rejected [N m/rad]."""
-    max_kd_nms_per_rad: float = Field(200.0, gt=0)
+    max_kd_nms_per_rad: float = Field(200.0, gt=0, le=1_000)
     """Commands asking for more damping are rejected [N m s/rad]."""
-    limit_tolerance_rad: float = Field(0.05, ge=0)
+    limit_tolerance_rad: float = Field(0.05, ge=0, le=0.5)
     """Commanded q_ref may exceed the joint limits by this much before rejection [rad]."""
+    max_relative_target_rad: float = Field(0.15, gt=0, le=1.0)
+    """The applied q_ref stays this close to the measured posture, per joint [rad] (the
+    controller's own references stay within 0.054 rad)."""
+    reference_speed_fraction: float = Field(1.0, gt=0, le=1.0)
+    """The applied reference moves, and asks to move, at most this fraction of the URDF
+    velocity limits."""
+    command_max_age_s: float = Field(0.05, gt=0, le=1.0)
+    """A command must answer a state published at most this long ago (in state periods;
+    in lockstep the last state); older or out-of-order answers are rejected [s]."""

@@ -58,6 +58,11 @@ class Simulation:
         return float(self.model.opt.timestep)
 
     @property
+    def applied(self) -> JointCommand | None:
+        """The command MuJoCo is applying (after the arm's caps), None before any."""
+        return self._last_command
+
+    @property
     def t_s(self) -> float:
         return float(self.data.time)
 

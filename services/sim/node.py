@@ -23,7 +23,7 @@ import numpy as np
 
 from dammrl.core.dynamics import ArmModel
 from dammrl.core.robot import RobotSettings
-from dammrl.core.safety import command_violation, goal_violation
+from dammrl.core.safety import ArmCaps, goal_violation, guard_command
 from dammrl.core.state import JointCommand as CoreCommand
 from dammrl.core.task import TaskSettings, scene_layout, seed_streams
 from schemas import JointCommand, RobotState, TaskGoal
@@ -55,6 +55,15 @@ class SimNode:
         self.round_trips_s: deque[float] = deque(maxlen=100_000)  # state sent -> command in
         self.pacer = Pacer(self.substeps * self.sim.timestep_s)
         self.state_publisher = bus.publisher(RobotState)
+        self.caps = ArmCaps(
+            settings.limit_tolerance_rad, settings.max_kp_nm_per_rad, settings.max_kd_nms_per_rad,
+            settings.max_relative_target_rad, settings.reference_speed_fraction,
+        )  # fmt: skip
+        answerable = max(1, round(settings.command_max_age_s * settings.state_rate_hz))
+        self.recent_stamps: deque[int] = deque(maxlen=answerable)  # states a command may answer
+        self.last_answered_ns = -1  # the state the last applied command answered
+        self.last_apply_t_s = 0.0
+        self.clamped = 0  # commands the caps changed
         self.last_stamp_ns = -1
         bus.subscribe(JointCommand, TaskGoal)
         bus.expect(JointCommand, "controller")
@@ -88,11 +97,20 @@ class SimNode:
     def _publish_state(self) -> None:
         self.reset_pending = False
         message = self.state_publisher.publish(
-            **convert.state_fields(self.state, self.episode, self.holding)
+            **convert.state_fields(
+                self.state,
+                self.episode,
+                self.holding,
+                None if self.sim.applied is None else self.sim.applied.q_ref,
+            )
         )
         self.last_stamp_ns = message.header.stamp_ns
+        self.recent_stamps.append(self.last_stamp_ns)
         self.answered = False
-        detail = f"missed {self.pacer.missed} of {self.pacer.ticks} deadlines"
+        detail = (
+            f"missed {self.pacer.missed} of {self.pacer.ticks} deadlines, "
+            f"{self.clamped} commands clamped"
+        )
         self.bus.report_health("holding" if self.holding else "ok", detail)
 
     def _await_answer(self) -> None:
@@ -115,18 +133,27 @@ class SimNode:
             message = self.bus.receive(0)
 
     def _take_command(self, message: JointCommand) -> None:
-        command = convert.joint_command(message)
-        reason = command_violation(
-            command,
+        reason = self._stale(message.state_stamp_ns)
+        last = self.command
+        guarded = guard_command(
+            convert.joint_command(message),
+            self.state.q,
+            None if last is None else last.q_ref,
+            max(self.state.t_s - self.last_apply_t_s, self.pacer.period_s),
             self.sim.robot,
-            self.settings.limit_tolerance_rad,
-            self.settings.max_kp_nm_per_rad,
-            self.settings.max_kd_nms_per_rad,
+            self.caps,
         )
-        if reason is not None:
-            self.bus.reject(self.bus.key(JointCommand), reason)
+        reason = reason or (None if guarded.clamped else guarded.reason)
+        if reason is not None or guarded.command is None:
+            self.bus.reject(self.bus.key(JointCommand), reason or "rejected")
             return
-        self.command = command
+        if guarded.clamped:
+            self.clamped += 1
+            if self.clamped <= 5 or self.clamped % 100 == 0:
+                log.warning("command #%d clamped: %s", self.clamped, guarded.reason)
+        self.command = guarded.command
+        self.last_answered_ns = message.state_stamp_ns
+        self.last_apply_t_s = self.state.t_s
         self.command_wall_s = time.monotonic()
         self.answered |= message.state_stamp_ns == self.last_stamp_ns
         self.round_trips_s.append((self.bus.arrival_ns - message.state_stamp_ns) * 1e-9)
@@ -134,6 +161,14 @@ class SimNode:
         if self.holding:
             log.info("commands resumed: leaving the hold")
         self.holding = False
+
+    def _stale(self, state_stamp_ns: int) -> str | None:
+        """Why a command answering the state stamped ``state_stamp_ns`` is too old."""
+        if state_stamp_ns not in self.recent_stamps:
+            return "answers no recent state of this arm (stale or replayed)"
+        if state_stamp_ns < self.last_answered_ns:
+            return "answers an older state than the last applied command (out of order)"
+        return None
 
     def _hold_if_stale(self, lockstep: bool) -> None:
         if lockstep:
@@ -177,6 +212,7 @@ class SimNode:
         rng = seed_streams(goal.seed).sim
         self.state = self.sim.reset(q_start, (goal.goal_m[0], goal.goal_m[1]), rng=rng)
         self.command = None
+        self.last_apply_t_s = 0.0
         self._hold(self.state.q)
         self.reset_pending = True
         log.info("episode %d: arm at its start, button at %s", goal.episode, goal.goal_m)

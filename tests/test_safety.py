@@ -1,0 +1,49 @@
+"""The arm side's guard: whatever arrives, the applied reference stays near the posture,
+moves no faster than the joints may, and a command breaking a limit is not applied."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from dammrl.core.robot import RobotDescription
+from dammrl.core.safety import ArmCaps, guard_command
+from dammrl.core.state import JointCommand
+from tests.conftest import HOME_Q
+
+CAPS = ArmCaps(0.05, 2000.0, 200.0, max_relative_target_rad=0.15, speed_fraction=1.0)
+KP, KD = np.full(6, 400.0), np.full(6, 30.0)
+
+
+def _command(
+    q_ref: np.ndarray, dq_ref: np.ndarray | None = None, kp: np.ndarray = KP
+) -> JointCommand:
+    dq = np.zeros(6) if dq_ref is None else dq_ref
+    return JointCommand(q_ref, dq, np.zeros(6), kp, KD)
+
+
+def test_a_command_near_the_posture_passes_unchanged(robot: RobotDescription) -> None:
+    command = _command(HOME_Q + 0.05)  # a reference leading the arm, moving 1 rad/s
+    guarded = guard_command(command, HOME_Q, HOME_Q + 0.04, 0.01, robot, CAPS)
+    assert guarded.command is command and not guarded.clamped
+
+
+def test_a_far_target_is_clamped_to_the_relative_cap_and_the_joint_speed(
+    robot: RobotDescription,
+) -> None:
+    far = np.clip(HOME_Q + 1.0, robot.q_min, robot.q_max)
+    guarded = guard_command(_command(far, np.full(6, 10.0)), HOME_Q, HOME_Q, 0.01, robot, CAPS)
+    assert guarded.clamped and guarded.command is not None
+    step = np.abs(guarded.command.q_ref - HOME_Q)
+    assert np.all(step <= robot.dq_max * 0.01 + 1e-12)  # rate from the last reference
+    assert np.all(np.abs(guarded.command.dq_ref) <= robot.dq_max)
+    without_rate = guard_command(_command(far), HOME_Q, None, 0.01, robot, CAPS).command
+    assert without_rate is not None
+    np.testing.assert_allclose(np.abs(without_rate.q_ref - HOME_Q).max(), 0.15)
+
+
+def test_a_command_beyond_the_limits_or_the_gains_is_rejected(robot: RobotDescription) -> None:
+    beyond = robot.q_max + 0.2
+    assert guard_command(_command(beyond), HOME_Q, None, 0.01, robot, CAPS).command is None
+    stiff = _command(HOME_Q, kp=np.full(6, 5000.0))
+    rejected = guard_command(stiff, HOME_Q, None, 0.01, robot, CAPS)
+    assert rejected.command is None and rejected.reason is not None and "kp 5000" in rejected.reason
