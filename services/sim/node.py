@@ -134,12 +134,12 @@ class SimNode:
 
     def _take_command(self, message: JointCommand) -> None:
         reason = self._stale(message.state_stamp_ns)
-        last = self.command
+        applied = self.sim.applied  # the reference in force, a hold's included
         guarded = guard_command(
             convert.joint_command(message),
             self.state.q,
-            None if last is None else last.q_ref,
-            max(self.state.t_s - self.last_apply_t_s, self.pacer.period_s),
+            None if applied is None else applied.q_ref,
+            self._rate_allowance_s(),
             self.sim.robot,
             self.caps,
         )
@@ -161,6 +161,13 @@ class SimNode:
         if self.holding:
             log.info("commands resumed: leaving the hold")
         self.holding = False
+
+    def _rate_allowance_s(self) -> float:
+        """Robot time over which the reference may move: since the last applied reference,
+        at most two periods (one late command), so a reference that stood still (a hold)
+        cannot jump by the time it stood."""
+        since = self.state.t_s - self.last_apply_t_s
+        return min(max(since, 0.0), 2 * self.pacer.period_s)
 
     def _stale(self, state_stamp_ns: int) -> str | None:
         """Why a command answering the state stamped ``state_stamp_ns`` is too old."""
@@ -196,6 +203,7 @@ class SimNode:
                 kd=kd,
             )
         )
+        self.last_apply_t_s = self.sim.t_s
         self.holding = True
 
     def _reset(self, goal: TaskGoal) -> None:
@@ -212,7 +220,6 @@ class SimNode:
         rng = seed_streams(goal.seed).sim
         self.state = self.sim.reset(q_start, (goal.goal_m[0], goal.goal_m[1]), rng=rng)
         self.command = None
-        self.last_apply_t_s = 0.0
         self._hold(self.state.q)
         self.reset_pending = True
         log.info("episode %d: arm at its start, button at %s", goal.episode, goal.goal_m)

@@ -1,0 +1,74 @@
+"""Attacks on the arm through the bus, measured at the sim (a real process).
+
+Without transport identity (issue 11's TLS/ACL, not yet here) a foreign peer can still
+publish; what the arm side guarantees on its own is measured here: a command that answers
+no recent state of this arm (forged or replayed) is not applied, and one that does is
+clamped so the joints never exceed their velocity limits.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+from dammrl.core.robot import RobotDescription
+from schemas import Header, JointCommand, RobotState, encode, key
+from tests.busutil import Observer, free_port, start_service, wait_for
+
+pytestmark = pytest.mark.slow
+# the stack's own gains: with the sim's maximum (2000 N m/rad) the first clamped step still
+# drives a wrist joint to 2x its limit; only transport identity stops such a peer
+KP, KD = (400.0, 400.0, 200.0, 200.0, 50.0, 50.0), (30.0, 30.0, 12.0, 12.0, 1.5, 1.5)
+FAR = (0.6, 0.2, 0.5, 0.5, 0.6, 0.5)  # inside the limits, far from home
+
+
+def _command(seq: int, stamp_ns: int, q_ref: tuple[float, ...] = FAR) -> bytes:
+    header = Header(stamp_ns=time.time_ns(), seq=seq, source="controller")  # a lie
+    return encode(JointCommand(header=header, episode=0, state_stamp_ns=stamp_ns,
+                               q_ref_rad=q_ref, dq_ref_rad_s=(0.0,) * 6, tau_ff_nm=(0.0,) * 6,
+                               kp_nm_per_rad=KP,
+                               kd_nms_per_rad=KD))  # fmt: skip
+
+
+def _states(observer: Observer) -> list[RobotState]:
+    return [m for m in observer.of(RobotState) if isinstance(m, RobotState)]
+
+
+def _motion_mm(states: list[RobotState]) -> float:
+    x = np.array([s.ee_pos_m for s in states])
+    return float(np.max(np.linalg.norm(x - x[0], axis=1)) * 1000)
+
+
+def test_forged_and_replayed_commands_do_not_move_the_arm_and_answers_are_capped() -> None:
+    port = free_port()
+    observer = Observer(port)
+    sim = start_service("sim", port, DAMMRL_LOG_LEVEL="ERROR")
+    topic = key("dammrl", JointCommand)
+    try:
+        wait_for(lambda: len(_states(observer)) > 50, 60, "the sim's states")
+        old_stamps = [s.header.stamp_ns for s in _states(observer)[:20]]
+        before = len(_states(observer))
+        for seq in range(400):  # forged stamps, then replays of real but old ones
+            stamp = old_stamps[seq % 20] if seq % 2 else seq + 1
+            observer.session.put(topic, _command(seq, stamp))
+            time.sleep(0.001)
+        time.sleep(0.3)
+        assert _motion_mm(_states(observer)[before:]) < 0.01
+        robot = RobotDescription.from_urdf()
+        start = len(_states(observer))
+        deadline = time.monotonic() + 2.0
+        seq = 1000
+        while time.monotonic() < deadline:  # answer the newest state, as a controller would
+            newest = _states(observer)[-1]
+            observer.session.put(topic, _command(seq, newest.header.stamp_ns))
+            seq += 1
+            time.sleep(0.002)
+        answered = _states(observer)[start:]
+        speeds = np.max(np.abs([s.dq_rad_s for s in answered]) / robot.dq_max)
+        assert speeds <= 1.1  # the caps hold the joints at their velocity limits (measured 1.02)
+    finally:
+        sim.terminate()
+        sim.wait(10)
+        observer.close()
