@@ -62,16 +62,49 @@ class StackOptions:
     lockstep: bool = False  # every service on the robot clock (DAMMRL_BUS_LOCKSTEP); sim only
 
 
-def free_port(preferred: int) -> int:
-    """``preferred`` if nothing listens there on loopback, else any free port."""
-    for port in (preferred, 0):
-        with socket.socket() as sock:
-            try:
-                sock.bind(("127.0.0.1", port))
-            except OSError:
-                continue
-            return int(sock.getsockname()[1])
-    raise DammrlError("no free TCP port on 127.0.0.1")
+def check_port(port: int) -> int:
+    """``port`` if the stack can listen there on loopback, else a clear error naming what
+    holds it. Probed as Zenoh binds (SO_REUSEADDR), so a port left in TIME_WAIT by the
+    previous run is free; the stack never moves to another port behind the user's back
+    (tools that connect to it by default would never meet it)."""
+    with socket.socket() as sock:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            sock.bind(("127.0.0.1", port))
+            sock.listen()
+        except OSError as exc:
+            holder = port_holder(port)
+            raise DammrlError(
+                f"cannot listen on 127.0.0.1:{port} ({exc.strerror}): held by {holder}; "
+                "stop it or choose another --bus-port"
+            ) from exc
+    return port
+
+
+def port_holder(port: int) -> str:
+    """Which process listens on TCP ``port`` (from /proc on Linux), or 'another process'."""
+    inodes = set()
+    for table in ("/proc/net/tcp", "/proc/net/tcp6"):
+        with contextlib.suppress(OSError):
+            for line in Path(table).read_text().splitlines()[1:]:
+                fields = line.split()
+                if fields[3] == "0A" and int(fields[1].rsplit(":", 1)[1], 16) == port:
+                    inodes.add(fields[9])  # state 0A: LISTEN
+    sockets = {f"socket:[{inode}]" for inode in inodes}
+    for fd_dir in Path("/proc").glob("[0-9]*/fd") if sockets else ():
+        with contextlib.suppress(OSError):  # a process that ended, or not ours to read
+            if any(_link(fd) in sockets for fd in fd_dir.iterdir()):
+                name = (fd_dir.parent / "comm").read_text().strip()
+                return f"{name} (pid {fd_dir.parent.name})"
+    return "another process"
+
+
+def _link(path: Path) -> str:
+    """Where a /proc fd points ('' once it is gone)."""
+    try:
+        return os.readlink(path)
+    except OSError:
+        return ""
 
 
 def check_options(options: StackOptions) -> None:
@@ -109,7 +142,7 @@ class Stack:
         self.options = options
         self.out = out
         self.info = info
-        self.endpoint = f"tcp/127.0.0.1:{free_port(options.port)}"
+        self.endpoint = f"tcp/127.0.0.1:{check_port(options.port)}"
         self.children: dict[str, subprocess.Popen[bytes]] = {}
         self.results: list[EpisodeResult] = []
         self.prompts: PatientPrompts | None = None

@@ -103,3 +103,24 @@ def test_lockstep_reaches_every_service() -> None:
 
     assert Stack(StackOptions(lockstep=True)).environment()["DAMMRL_BUS_LOCKSTEP"] == "true"
     assert "DAMMRL_BUS_LOCKSTEP" not in Stack(StackOptions()).environment()
+
+
+def test_a_port_in_time_wait_is_reused_and_a_held_port_is_a_clear_error() -> None:
+    import socket
+
+    from dammrl.core.errors import DammrlError
+    from dammrl.launch import check_port
+
+    server = socket.socket()
+    server.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as Zenoh's listener (tokio)
+    server.bind(("127.0.0.1", 0))
+    server.listen()
+    port = server.getsockname()[1]
+    client = socket.create_connection(("127.0.0.1", port))
+    accepted, _ = server.accept()
+    with pytest.raises(DammrlError, match=rf"127.0.0.1:{port} .*held by python"):
+        check_port(port)
+    server.close()
+    accepted.close()  # the side that closes first keeps the port in TIME_WAIT
+    client.close()
+    assert check_port(port) == port
