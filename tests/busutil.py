@@ -43,7 +43,8 @@ def client_settings(port: int, namespace: str = "dammrl") -> BusSettings:
 def start_service(name: str, port: int, **env: str) -> subprocess.Popen[bytes]:
     """``python -m services.<name>`` connected to the test's endpoint."""
     environment = dict(os.environ)
-    environment.update(DAMMRL_BUS_CONNECT=json.dumps([endpoint(port)]), **env)
+    environment.update(DAMMRL_BUS_CONNECT=json.dumps([endpoint(port)]))
+    environment.update(env)  # the test's settings win (e.g. a TLS endpoint)
     return subprocess.Popen(
         [sys.executable, "-m", f"services.{name}"],
         env=environment,

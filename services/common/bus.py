@@ -20,19 +20,31 @@ import zenoh
 
 from schemas import DecodeError, Header, Health, Message, decode, encode, key, type_of
 from services.common.config import BusSettings
+from services.common.security import ROLES, secure_config_entries
 
 M = TypeVar("M", bound=Message)
 log = logging.getLogger("dammrl.bus")
 
 
-def zenoh_config(settings: BusSettings) -> zenoh.Config:
+def zenoh_config(settings: BusSettings, role: str = "tool") -> zenoh.Config:
+    """The session's Zenoh configuration; with ``settings.credentials``, mutual TLS as
+    ``role`` (``settings.role`` wins) and the stack's access control."""
     config = zenoh.Config()
     config.insert_json5("mode", json.dumps(settings.mode))
     config.insert_json5("scouting/multicast/enabled", json.dumps(settings.multicast_scouting))
     if settings.listen:
         config.insert_json5("listen/endpoints", json.dumps(settings.listen))
+    elif settings.credentials is not None and settings.mode == "peer":
+        # a peer listens for the others (Zenoh's default is tcp, which TLS-only refuses)
+        config.insert_json5("listen/endpoints", json.dumps(["tls/[::]:0"]))
     if settings.connect:
         config.insert_json5("connect/endpoints", json.dumps(settings.connect))
+    if settings.credentials is not None:
+        entries = secure_config_entries(
+            settings.credentials, settings.role or role, settings.namespace
+        )
+        for key_expr, value in entries.items():
+            config.insert_json5(key_expr, value)
     return config
 
 
@@ -84,7 +96,8 @@ class Bus:
         self._sources: dict[type[Message], frozenset[str]] = {}
 
     def __enter__(self) -> Bus:
-        self.session = zenoh.open(zenoh_config(self.settings))
+        role = self.service if self.service in ROLES else "tool"
+        self.session = zenoh.open(zenoh_config(self.settings, role))
         self._token = self.session.liveliness().declare_token(
             f"{self.namespace}/alive/{self.service}"
         )

@@ -6,9 +6,10 @@ Lists are JSON in the environment, e.g.
 
 from __future__ import annotations
 
-from typing import Literal
+from pathlib import Path
+from typing import Literal, Self
 
-from pydantic import Field
+from pydantic import Field, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from schemas import DEFAULT_NAMESPACE
@@ -33,6 +34,12 @@ class BusSettings(BaseSettings):
     """How often the service publishes its Health [s]."""
     inbox_size: int = Field(4096, ge=16, le=1_000_000)
     """Messages buffered between the Zenoh callback and the service loop."""
+    credentials: Path | None = None
+    """Folder from `dammrl bus init` (CA, one certificate per role): the session speaks only
+    mutual TLS (endpoints tls/HOST:PORT) as its role and enforces the stack's access
+    control. None: plain tcp, anyone who reaches the endpoint is on the bus."""
+    role: str | None = None
+    """Certificate role of this session (default: the service's name; tools: 'tool')."""
     lockstep: bool = False
     """Run the stack on the robot clock instead of in real time: the sim steps only once
     the controller answered its last state, and the controller answers a state that asked
@@ -42,3 +49,16 @@ class BusSettings(BaseSettings):
     """Lockstep: the longest the sim waits for the controller's answer before holding the
     arm as for a stale command; the controller waits half of it for the human, the human
     a quarter for the policy (a bound for a dead service, not for a slow machine) [s]."""
+
+    @model_validator(mode="after")
+    def _endpoints_match_the_transport(self) -> Self:
+        """With credentials every endpoint is TLS; without, none can be."""
+        for endpoint in (*self.listen, *self.connect):
+            secure = endpoint.startswith("tls/")
+            if self.credentials is not None and not secure:
+                raise ValueError(f"endpoint {endpoint!r} must be tls/HOST:PORT with credentials")
+            if self.credentials is None and secure:
+                raise ValueError(
+                    f"endpoint {endpoint!r} needs credentials (DAMMRL_BUS_CREDENTIALS)"
+                )
+        return self

@@ -1,0 +1,198 @@
+"""Identity on the bus from the transport: mutual TLS with one certificate per role, and a
+Zenoh access-control list that lets each role publish only its own keys.
+
+A lab creates its credentials once (``dammrl bus init``): a CA and, per role, a
+certificate whose Common Name is the role. Every session then proves its role with its
+certificate (mutual TLS: a peer without one from the lab CA cannot even connect), and
+every session enforces the same ACL on what its peers send it (peer mode links services
+directly, so an ACL held only by a router would be bypassed). The payload's
+``header.source`` stays as information; it decides nothing.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import ipaddress
+import json
+import os
+from collections.abc import Iterable
+from pathlib import Path
+from typing import Any
+
+from cryptography import x509
+from cryptography.hazmat.primitives import hashes, serialization
+from cryptography.hazmat.primitives.asymmetric import ec
+from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
+
+# the keys (under the namespace) each role may publish, besides its health and liveliness
+PUBLISHES: dict[str, tuple[str, ...]] = {
+    "sim": ("robot/state",),
+    "controller": (
+        "robot/command", "intent/request", "controller/step", "task/goal", "task/result",
+    ),
+    "intent": ("intent", "sensor/sample"),
+    "policy": ("policy/model",),
+    "recorder": (),
+    "tool": (),  # status, echo, the launcher, recorders of sessions: read only
+}  # fmt: skip
+ROLES = tuple(PUBLISHES)
+CA_FILE = "ca.pem"
+VALID_DAYS = 825
+_EVERY_MESSAGE = [
+    "put", "delete", "declare_subscriber", "query", "declare_queryable", "reply",
+    "liveliness_token", "declare_liveliness_subscriber", "liveliness_query",
+]  # fmt: skip
+
+
+class CredentialsError(ValueError):
+    """Credentials that are missing or unusable (the message names the file)."""
+
+
+# ---- credentials --------------------------------------------------------------------
+def create_credentials(out: Path, hosts: Iterable[str] = (), roles: Iterable[str] = ROLES) -> None:
+    """A lab CA and one certificate per role in ``out`` (keys 0600, the folder 0700).
+
+    Each certificate names ``localhost``, 127.0.0.1 and ``hosts`` (the addresses or names
+    the services listen on when they run on separate machines).
+    """
+    out.mkdir(parents=True, exist_ok=True)
+    out.chmod(0o700)
+    ca_key = ec.generate_private_key(ec.SECP256R1())
+    ca = _certificate("dammrl lab CA", ca_key, ca_key, None, [])
+    (out / CA_FILE).write_bytes(ca.public_bytes(serialization.Encoding.PEM))
+    names = ["localhost", "127.0.0.1", *hosts]
+    for role in roles:
+        key = ec.generate_private_key(ec.SECP256R1())
+        cert = _certificate(role, key, ca_key, ca, names)
+        _write_key(out / f"{role}.key", key)
+        (out / f"{role}.pem").write_bytes(cert.public_bytes(serialization.Encoding.PEM))
+
+
+def _certificate(
+    common_name: str,
+    key: ec.EllipticCurvePrivateKey,
+    issuer_key: ec.EllipticCurvePrivateKey,
+    issuer: x509.Certificate | None,
+    names: list[str],
+) -> x509.Certificate:
+    """The CA (``issuer`` None) or a role's certificate, as rustls accepts them."""
+    subject = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, common_name)])
+    now = dt.datetime.now(dt.UTC)
+    is_ca = issuer is None
+    builder = (
+        x509.CertificateBuilder()
+        .subject_name(subject)
+        .issuer_name(subject if issuer is None else issuer.subject)
+        .public_key(key.public_key())
+        .serial_number(x509.random_serial_number())
+        .not_valid_before(now - dt.timedelta(minutes=5))
+        .not_valid_after(now + dt.timedelta(days=VALID_DAYS * (4 if is_ca else 1)))
+        .add_extension(x509.BasicConstraints(ca=is_ca, path_length=0 if is_ca else None), True)
+        .add_extension(_key_usage(is_ca), critical=True)
+        .add_extension(x509.SubjectKeyIdentifier.from_public_key(key.public_key()), False)
+    )
+    if not is_ca:
+        usages = [ExtendedKeyUsageOID.SERVER_AUTH, ExtendedKeyUsageOID.CLIENT_AUTH]
+        builder = builder.add_extension(x509.ExtendedKeyUsage(usages), critical=False)
+        builder = builder.add_extension(x509.SubjectAlternativeName(_alt_names(names)), False)
+    return builder.sign(issuer_key, hashes.SHA256())
+
+
+def _key_usage(is_ca: bool) -> x509.KeyUsage:
+    return x509.KeyUsage(
+        digital_signature=True, key_cert_sign=is_ca, crl_sign=is_ca, content_commitment=False,
+        key_encipherment=False, data_encipherment=False, key_agreement=False,
+        encipher_only=False, decipher_only=False,
+    )  # fmt: skip
+
+
+def _alt_names(names: list[str]) -> list[x509.GeneralName]:
+    """rustls checks the peer's name against these only (never the Common Name)."""
+    alt: list[x509.GeneralName] = []
+    for name in dict.fromkeys(names):
+        try:
+            alt.append(x509.IPAddress(ipaddress.ip_address(name)))
+        except ValueError:
+            alt.append(x509.DNSName(name))
+    return alt
+
+
+def _write_key(path: Path, key: ec.EllipticCurvePrivateKey) -> None:
+    pem = key.private_bytes(
+        serialization.Encoding.PEM,
+        serialization.PrivateFormat.PKCS8,
+        serialization.NoEncryption(),
+    )
+    descriptor = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    with os.fdopen(descriptor, "wb") as handle:
+        handle.write(pem)
+
+
+# ---- Zenoh configuration ------------------------------------------------------------------
+def tls_settings(credentials: Path, role: str) -> dict[str, Any]:
+    """``transport/link/tls`` for ``role``: its certificate both ways, mutual TLS."""
+    files = {name: credentials / name for name in (CA_FILE, f"{role}.pem", f"{role}.key")}
+    for name, path in files.items():
+        if not path.is_file():
+            raise CredentialsError(
+                f"{path} is missing: {credentials} holds no credentials for role {role!r} "
+                f"({name}); create them with `dammrl bus init --out {credentials}`"
+            )
+    cert, key = str(files[f"{role}.pem"]), str(files[f"{role}.key"])
+    return {
+        "root_ca_certificate": str(files[CA_FILE]),
+        "listen_certificate": cert,
+        "listen_private_key": key,
+        "connect_certificate": cert,
+        "connect_private_key": key,
+        "enable_mtls": True,
+        # identity is the role certificate signed by the lab CA, not a host name: peers
+        # link to each other at whatever address gossip announces (LAN, loopback, IPv6)
+        "verify_name_on_connect": False,
+    }
+
+
+def access_control(namespace: str) -> dict[str, Any]:
+    """The stack's ACL: a role may publish only its own keys (and its health, liveliness);
+    every role may subscribe to and receive everything under the namespace."""
+    rules: list[dict[str, Any]] = [
+        _rule("read", ["ingress"], ["declare_subscriber", "declare_liveliness_subscriber",
+                                    "liveliness_query"], [f"{namespace}/**"]),
+        _rule("deliver", ["egress"], _EVERY_MESSAGE, [f"{namespace}/**"]),
+    ]  # fmt: skip
+    policies = []
+    for role, topics in PUBLISHES.items():
+        keys = [f"{namespace}/{t}" for t in (*topics, f"health/{role}")]
+        rules.append(_rule(f"publish_{role}", ["ingress"], ["put"], keys))
+        alive = [f"{namespace}/alive/{role}", f"{namespace}/alive/{role}/**"]
+        rules.append(_rule(f"alive_{role}", ["ingress"], ["liveliness_token", "reply"], alive))
+        rule_ids = ["read", "deliver", f"publish_{role}", f"alive_{role}"]
+        policies.append({"id": f"role_{role}", "rules": rule_ids, "subjects": [role]})
+    return {
+        "enabled": True,
+        "default_permission": "deny",
+        "rules": rules,
+        "subjects": [{"id": role, "cert_common_names": [role]} for role in ROLES],
+        "policies": policies,
+    }
+
+
+def _rule(
+    rule_id: str, flows: list[str], messages: list[str], key_exprs: list[str]
+) -> dict[str, Any]:
+    return {
+        "id": rule_id, "permission": "allow", "flows": flows, "messages": messages,
+        "key_exprs": key_exprs,
+    }  # fmt: skip
+
+
+def secure_config_entries(credentials: Path, role: str, namespace: str) -> dict[str, str]:
+    """The Zenoh config entries (key -> JSON) that make a session speak only mutual TLS as
+    ``role`` and enforce the ACL."""
+    if role not in PUBLISHES:
+        raise CredentialsError(f"role {role!r} is not one of {list(ROLES)}")
+    return {
+        "transport/link/protocols": json.dumps(["tls"]),
+        "transport/link/tls": json.dumps(tls_settings(credentials, role)),
+        "access_control": json.dumps(access_control(namespace)),
+    }

@@ -1,0 +1,150 @@
+"""Identity from the transport: only the stack's roles reach the bus, and each role may
+publish only its own keys (mutual TLS plus the ACL every session enforces).
+
+The sim runs alone (its arm holds still), so any motion is caused by the test's sessions;
+a session with the controller's certificate moving the arm shows the test can see motion.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zenoh
+
+from schemas import Header, JointCommand, RobotState, TaskGoal, decode, encode, key
+from services.common.bus import zenoh_config
+from services.common.config import BusSettings
+from services.common.security import create_credentials
+from tests.busutil import free_port, start_service, wait_for
+
+pytestmark = pytest.mark.slow
+NEAR_HOME = (0.05, 1.05, 0.05, 1.55, 0.05, 0.35)  # 0.05 rad from home: well inside the caps
+
+
+@pytest.fixture(scope="module")
+def credentials(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    folder = tmp_path_factory.mktemp("lab") / "bus"
+    create_credentials(folder)
+    return folder
+
+
+class Watcher:
+    """A 'tool' session listening on the stack's TLS endpoint, collecting RobotStates."""
+
+    def __init__(self, port: int, credentials: Path) -> None:
+        settings = BusSettings(listen=[f"tls/127.0.0.1:{port}"], mode="router",
+                               credentials=credentials)  # fmt: skip
+        self.session = zenoh.open(zenoh_config(settings, "tool"))
+        self.states: list[RobotState] = []
+        self._sub = self.session.declare_subscriber(key("dammrl", RobotState), self._on)
+
+    def _on(self, sample: zenoh.Sample) -> None:
+        self.states.append(decode(RobotState, sample.payload.to_bytes()))
+
+    def motion_mm(self, since: int) -> float:
+        x = np.array([s.ee_pos_m for s in self.states[since:]])
+        return float(np.max(np.linalg.norm(x - x[0], axis=1)) * 1000)
+
+
+@pytest.fixture()
+def secured_sim(credentials: Path) -> Iterator[tuple[Watcher, int]]:
+    port = free_port()
+    watcher = Watcher(port, credentials)
+    sim = start_service("sim", port, DAMMRL_BUS_CREDENTIALS=str(credentials),
+                        DAMMRL_BUS_CONNECT=json.dumps([f"tls/127.0.0.1:{port}"]),
+                        DAMMRL_LOG_LEVEL="ERROR")  # fmt: skip
+    try:
+        wait_for(lambda: len(watcher.states) > 30, 60, "the secured sim's states")
+        yield watcher, port
+    finally:
+        sim.terminate()
+        sim.wait(10)
+        watcher.session.close()  # type: ignore[no-untyped-call]
+
+
+def _drive(watcher: Watcher, session: zenoh.Session, seconds: float = 1.0) -> float:
+    """Answer the newest states with a command toward NEAR_HOME; the motion it caused [mm]."""
+    start, seq = len(watcher.states), 0
+    deadline = time.monotonic() + seconds
+    while time.monotonic() < deadline:
+        newest = watcher.states[-1]
+        header = Header(stamp_ns=time.time_ns(), seq=seq, source="controller")
+        command = JointCommand(header=header, episode=0, state_stamp_ns=newest.header.stamp_ns,
+                               q_ref_rad=NEAR_HOME, dq_ref_rad_s=(0.0,) * 6, tau_ff_nm=(0.0,) * 6,
+                               kp_nm_per_rad=(400.0,) * 6, kd_nms_per_rad=(30.0,) * 6)  # fmt: skip
+        session.put(key("dammrl", JointCommand), encode(command))
+        seq += 1
+        time.sleep(0.005)
+    time.sleep(0.2)
+    return watcher.motion_mm(start)
+
+
+def _session(port: int, credentials: Path | None, role: str) -> zenoh.Session:
+    scheme = "tls" if credentials is not None else "tcp"
+    settings = BusSettings(connect=[f"{scheme}/127.0.0.1:{port}"], credentials=credentials)
+    return zenoh.open(zenoh_config(settings, role))
+
+
+def test_the_controller_role_moves_the_arm(
+    secured_sim: tuple[Watcher, int], credentials: Path
+) -> None:
+    watcher, port = secured_sim
+    with _session(port, credentials, "controller") as controller:
+        time.sleep(0.5)
+        assert _drive(watcher, controller) > 5.0
+
+
+def test_another_role_cannot_move_the_arm(
+    secured_sim: tuple[Watcher, int], credentials: Path
+) -> None:
+    watcher, port = secured_sim
+    for role in ("intent", "policy", "tool"):
+        with _session(port, credentials, role) as session:
+            time.sleep(0.5)
+            assert _drive(watcher, session) < 0.01, role
+
+
+def test_a_peer_without_lab_credentials_cannot_join(
+    secured_sim: tuple[Watcher, int], tmp_path: Path
+) -> None:
+    watcher, port = secured_sim
+    with pytest.raises(zenoh.ZError):  # plain tcp to a TLS-only endpoint: no link at all
+        _client(f"tcp/127.0.0.1:{port}", None)
+    foreign = tmp_path / "foreign"
+    create_credentials(foreign)  # a CA the stack does not trust, with a 'controller' cert
+    with pytest.raises(zenoh.ZError):
+        _client(f"tls/127.0.0.1:{port}", foreign)
+    start = len(watcher.states)
+    time.sleep(0.5)
+    assert watcher.motion_mm(start) < 0.01
+
+
+def _client(endpoint: str, credentials: Path | None) -> None:
+    """A client session (which fails to open when it cannot link)."""
+    settings = BusSettings(connect=[endpoint], mode="client", credentials=credentials)
+    zenoh.open(zenoh_config(settings, "controller")).close()  # type: ignore[no-untyped-call]
+
+
+def test_only_the_controller_role_can_reset_the_arm(
+    secured_sim: tuple[Watcher, int], credentials: Path
+) -> None:
+    watcher, port = secured_sim
+    header = Header(stamp_ns=time.time_ns(), seq=0, source="controller")
+    goal = TaskGoal(header=header, episode=1, seed=0, start_m=(0.3, 0.0, -0.1),
+                    goal_m=(0.5, 0.0, -0.21),
+                    q_start_rad=(0.3, 0.7, 0.2, 1.2, 0.1, 0.2))  # fmt: skip
+    episode_of: Callable[[], int] = lambda: watcher.states[-1].episode  # noqa: E731
+    with _session(port, credentials, "intent") as intruder:
+        time.sleep(0.5)
+        intruder.put(key("dammrl", TaskGoal), encode(goal))
+        time.sleep(0.3)
+        assert episode_of() == 0
+    with _session(port, credentials, "controller") as controller:
+        time.sleep(0.5)
+        controller.put(key("dammrl", TaskGoal), encode(goal))
+        wait_for(lambda: episode_of() == 1, 5, "the reset by the controller")
