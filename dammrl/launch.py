@@ -60,6 +60,7 @@ class StackOptions:
     serial_port: str | None = None  # semi-virtual: the pressure sensor's serial device
     calibration: Path | None = None  # semi-virtual: from `dammrl sensor calibrate`
     lockstep: bool = False  # every service on the robot clock (DAMMRL_BUS_LOCKSTEP); sim only
+    credentials: Path | None = None  # from `dammrl bus init`: mutual TLS and the ACL
 
 
 def check_port(port: int) -> int:
@@ -142,16 +143,23 @@ class Stack:
         self.options = options
         self.out = out
         self.info = info
-        self.endpoint = f"tcp/127.0.0.1:{check_port(options.port)}"
+        scheme = "tcp" if options.credentials is None else "tls"
+        self.endpoint = f"{scheme}/127.0.0.1:{check_port(options.port)}"
         self.children: dict[str, subprocess.Popen[bytes]] = {}
         self.results: list[EpisodeResult] = []
         self.prompts: PatientPrompts | None = None
+
+    def _secured(self) -> dict[str, str]:
+        """The children's credentials (each proves its own role with them)."""
+        credentials = self.options.credentials
+        return {} if credentials is None else {"DAMMRL_BUS_CREDENTIALS": str(credentials.resolve())}
 
     def environment(self) -> dict[str, str]:
         o = self.options
         env = dict(os.environ)
         env.update(
             DAMMRL_BUS_CONNECT=json.dumps([self.endpoint]),
+            **self._secured(),
             DAMMRL_BUS_NAMESPACE=o.namespace,
             DAMMRL_TASK_SEED=str(o.seed),
             DAMMRL_CONTROLLER_TRIGGER=o.trigger,
@@ -183,7 +191,10 @@ class Stack:
         # a router: it brokers for the services until their direct peer links are up, so a
         # recorder misses nothing a service publishes in its first milliseconds
         settings = BusSettings(
-            listen=[self.endpoint], namespace=self.options.namespace, mode="router"
+            listen=[self.endpoint],
+            namespace=self.options.namespace,
+            mode="router",
+            credentials=self.options.credentials,
         )
         with stopping_on_signals() as stop:
             session = zenoh.open(zenoh_config(settings))

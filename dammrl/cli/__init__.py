@@ -12,7 +12,7 @@ from collections.abc import Sequence
 
 from pydantic import ValidationError
 
-from dammrl.cli import reach, recording, rl, sensor, stack
+from dammrl.cli import bus, reach, recording, rl, sensor, stack
 from dammrl.core.errors import DammrlError
 
 GROUPS = (
@@ -21,6 +21,7 @@ GROUPS = (
     recording.register,
     sensor.register,
     rl.register,
+    bus.register,
     stack.register_schemas,
 )
 """In the order of ``dammrl --help``."""

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 from typing import TYPE_CHECKING, TypeAlias
 
 from dammrl.core.models import parse_model
@@ -40,10 +41,22 @@ def model_arg(text: str) -> tuple[int, int]:
         raise argparse.ArgumentTypeError(str(exc)) from exc
 
 
+CREDENTIALS_HELP = (
+    "folder from `dammrl bus init`: join a secured stack over mutual TLS "
+    "(also DAMMRL_BUS_CREDENTIALS)"
+)
+
+
 def add_bus_arguments(parser: argparse.ArgumentParser, connect_help: str) -> None:
-    """``--connect`` and ``--namespace``: where a client finds the stack."""
+    """``--connect``, ``--namespace`` and ``--credentials``: where and how a client finds
+    the stack."""
     add_connect(parser, connect_help)
     parser.add_argument("--namespace", default=DEFAULT_NAMESPACE)
+    add_credentials(parser)
+
+
+def add_credentials(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--credentials", type=Path, metavar="DIR", help=CREDENTIALS_HELP)
 
 
 def add_connect(parser: argparse.ArgumentParser, helptext: str) -> None:
@@ -55,8 +68,12 @@ def bus_settings(args: argparse.Namespace, namespace: str | None = None) -> BusS
     """A client's bus settings from the flags; ``namespace`` if ``--namespace`` is unset."""
     from services.common.config import BusSettings
 
+    credentials = getattr(args, "credentials", None) or BusSettings().credentials
+    default = DEFAULT_CONNECT.replace("tcp/", "tls/") if credentials else DEFAULT_CONNECT
     return BusSettings(
-        connect=args.connect or [DEFAULT_CONNECT], namespace=args.namespace or namespace
+        connect=args.connect or [default],
+        namespace=args.namespace or namespace,
+        credentials=credentials,
     )
 
 

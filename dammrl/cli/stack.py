@@ -10,6 +10,7 @@ from dammrl.cli.common import (
     DEFAULT_CONNECT,
     Commands,
     add_bus_arguments,
+    add_credentials,
     bus_settings,
     model_arg,
     print_err,
@@ -71,6 +72,7 @@ def _add_up(commands: Commands) -> None:
         "--bus-port", type=int, default=7447, help="loopback port of the stack's endpoint"
     )
     up.add_argument("--namespace", default=DEFAULT_NAMESPACE)
+    add_credentials(up)
     up.add_argument("--json", action="store_true", help="one JSON object per episode")
     up.add_argument(
         "--record", type=Path, metavar="MCAP", help="also run the recorder into this file"
@@ -86,7 +88,7 @@ def _up(args: argparse.Namespace) -> int:
         mode=args.mode, episodes=args.episodes, seed=args.seed, model=args.model,
         trigger=args.trigger, port=args.bus_port, namespace=args.namespace, json=args.json,
         serial_port=args.port, calibration=args.calibration, record=args.record,
-        lockstep=args.lockstep,
+        lockstep=args.lockstep, credentials=args.credentials,
     )  # fmt: skip
     return Stack(options, out=print_out, info=print_err).run()
 
