@@ -68,10 +68,11 @@ def bus_settings(args: argparse.Namespace, namespace: str | None = None) -> BusS
     """A client's bus settings from the flags; ``namespace`` if ``--namespace`` is unset."""
     from services.common.config import BusSettings
 
-    credentials = getattr(args, "credentials", None) or BusSettings().credentials
+    environment = BusSettings()  # DAMMRL_BUS_* where the flags are silent
+    credentials = getattr(args, "credentials", None) or environment.credentials
     default = DEFAULT_CONNECT.replace("tcp/", "tls/") if credentials else DEFAULT_CONNECT
     return BusSettings(
-        connect=args.connect or [default],
+        connect=args.connect or environment.connect or [default],
         namespace=args.namespace or namespace,
         credentials=credentials,
     )
