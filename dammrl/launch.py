@@ -12,6 +12,7 @@ import contextlib
 import ctypes
 import json
 import os
+import shutil
 import signal
 import socket
 import subprocess
@@ -37,6 +38,7 @@ from schemas import (
 from services.common.bus import zenoh_config
 from services.common.config import BusSettings
 from services.common.runtime import SignalStop, stopping_on_signals
+from services.common.security import create_credentials, run_credentials
 
 MODES = {
     "virtual": ("sim", "policy", "intent", "controller"),
@@ -61,6 +63,7 @@ class StackOptions:
     calibration: Path | None = None  # semi-virtual: from `dammrl sensor calibrate`
     lockstep: bool = False  # every service on the robot clock (DAMMRL_BUS_LOCKSTEP); sim only
     credentials: Path | None = None  # from `dammrl bus init`: mutual TLS and the ACL
+    insecure: bool = False  # plain tcp on loopback instead of this run's own credentials
 
 
 def check_port(port: int) -> int:
@@ -143,16 +146,20 @@ class Stack:
         self.options = options
         self.out = out
         self.info = info
-        scheme = "tcp" if options.credentials is None else "tls"
-        self.endpoint = f"{scheme}/127.0.0.1:{check_port(options.port)}"
+        port = check_port(options.port)
+        self.own_credentials = options.credentials is None and not options.insecure
+        self.credentials = run_credentials(port) if self.own_credentials else options.credentials
+        scheme = "tcp" if self.credentials is None else "tls"
+        self.endpoint = f"{scheme}/127.0.0.1:{port}"
         self.children: dict[str, subprocess.Popen[bytes]] = {}
         self.results: list[EpisodeResult] = []
         self.prompts: PatientPrompts | None = None
 
     def _secured(self) -> dict[str, str]:
         """The children's credentials (each proves its own role with them)."""
-        credentials = self.options.credentials
-        return {} if credentials is None else {"DAMMRL_BUS_CREDENTIALS": str(credentials.resolve())}
+        if self.credentials is None:
+            return {}
+        return {"DAMMRL_BUS_CREDENTIALS": str(self.credentials.resolve())}
 
     def environment(self) -> dict[str, str]:
         o = self.options
@@ -194,8 +201,12 @@ class Stack:
             listen=[self.endpoint],
             namespace=self.options.namespace,
             mode="router",
-            credentials=self.options.credentials,
+            credentials=self.credentials,
         )
+        if self.own_credentials:  # this run's own: a peer without them cannot join
+            assert self.credentials is not None
+            shutil.rmtree(self.credentials, ignore_errors=True)
+            create_credentials(self.credentials)
         with stopping_on_signals() as stop:
             session = zenoh.open(zenoh_config(settings))
             try:
@@ -208,6 +219,8 @@ class Stack:
             finally:
                 self._stop_children()
                 session.close()  # type: ignore[no-untyped-call]
+                if self.own_credentials and self.credentials is not None:
+                    shutil.rmtree(self.credentials, ignore_errors=True)
 
     def services(self) -> tuple[str, ...]:
         recorder = ("recorder",) if self.options.record is not None else ()
@@ -254,7 +267,9 @@ class Stack:
             if sample is None:
                 time.sleep(0.02)
                 continue
-            result = decode(EpisodeResult, sample.payload.to_bytes())
+            result = self._accept(sample.payload.to_bytes())
+            if result is None:
+                continue
             self.results.append(result)
             self._report(result)
             if total is not None and len(self.results) >= total:
@@ -262,6 +277,22 @@ class Stack:
                 return 0
         self.info(f"stopping on signal {stop.signum}")
         return 0
+
+    def _accept(self, payload: bytes) -> EpisodeResult | None:
+        """An episode result to count, or None (logged): undecodable, not from the
+        controller (on a secured bus the ACL already drops those), or an episode already
+        counted (a replay)."""
+        try:
+            result = decode(EpisodeResult, payload)
+        except DecodeError as exc:
+            self.info(f"ignored a message on task/result: {exc}")
+            return None
+        counted = {r.episode for r in self.results}
+        if result.header.source != "controller" or result.episode in counted:
+            why = "a repeat" if result.episode in counted else f"from {result.header.source!r}"
+            self.info(f"ignored an episode result ({why})")
+            return None
+        return result
 
     def _report(self, result: EpisodeResult) -> None:
         if self.options.json:

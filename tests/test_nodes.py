@@ -31,6 +31,9 @@ class FakeBus:
 
     def expect(self, message_type: type, *sources: str) -> None: ...
 
+    def key(self, message_type: type) -> str:
+        return message_type.__name__
+
 
 def _goal(episode: int, seed: int) -> TaskGoal:
     return TaskGoal(header=HEADER, episode=episode, seed=seed, start_m=(0.3, 0, 0),
@@ -76,3 +79,41 @@ def test_a_repeated_task_goal_does_not_reseed_the_human_mid_episode() -> None:
     assert [p["decision_s"] for p in bus.published] == [
         p["decision_s"] for p in reference_bus.published
     ]
+
+
+def test_the_launcher_counts_only_the_controllers_new_results() -> None:
+    from dammrl.launch import Stack, StackOptions
+    from schemas import EpisodeResult, encode
+    from tests.busutil import free_port
+
+    stack = Stack(StackOptions(port=free_port(), insecure=True), info=lambda line: None)
+    fields = dict(episode=1, seed=0, trigger="event", model=(2, 1), success=True,
+                  outcome="success", reason="goal reached", t_total_s=5.0, t_step_mean_s=0.5,
+                  final_error_m=0.01, n_osc=1, jerk_isj=1.0, jerk_dimensionless=1.0,
+                  human_error_rate=0.1, n_steps=10, n_decisions=10, button_pressed=True,
+                  start_m=(0.3, 0, 0), goal_m=(0.5, 0, -0.2))  # fmt: skip
+    genuine = EpisodeResult(header=Header(stamp_ns=1, seq=0, source="controller"), **fields)
+    forged = EpisodeResult(header=Header(stamp_ns=1, seq=0, source="intruder"), **fields)
+    assert stack._accept(bytes(12)) is None  # garbage: ignored, never fatal
+    assert stack._accept(encode(forged)) is None
+    accepted = stack._accept(encode(genuine))
+    assert accepted is not None
+    stack.results.append(accepted)
+    assert stack._accept(encode(genuine)) is None  # the same episode again: a replay
+
+
+def test_the_controller_ignores_states_whose_time_runs_backwards_or_jumps() -> None:
+    from dammrl.core.models import ModelSet
+    from dammrl.core.robot import RobotSettings
+    from dammrl.core.task import TaskSettings
+    from services.controller.config import ControllerSettings
+    from services.controller.node import ControllerNode
+
+    bus = FakeBus()
+    node = ControllerNode(ControllerSettings(), TaskSettings(), RobotSettings(), ModelSet(),
+                          bus)  # type: ignore[arg-type]  # fmt: skip
+    assert node._implausible_time(1e6) is not None  # an episode cannot start there
+    node.started, node.last_t = True, 2.0
+    assert node._implausible_time(2.01) is None
+    assert node._implausible_time(1.99) is not None
+    assert node._implausible_time(1e6) is not None

@@ -70,12 +70,23 @@ def bus_settings(args: argparse.Namespace, namespace: str | None = None) -> BusS
 
     environment = BusSettings()  # DAMMRL_BUS_* where the flags are silent
     credentials = getattr(args, "credentials", None) or environment.credentials
+    connect = args.connect or environment.connect
+    if credentials is None and not connect:  # the local `dammrl up`'s own credentials
+        credentials = _local_stack_credentials()
     default = DEFAULT_CONNECT.replace("tcp/", "tls/") if credentials else DEFAULT_CONNECT
     return BusSettings(
-        connect=args.connect or environment.connect or [default],
+        connect=connect or [default],
         namespace=args.namespace or namespace,
         credentials=credentials,
     )
+
+
+def _local_stack_credentials() -> Path | None:
+    """The credentials of a `dammrl up` running on the default port, if there is one."""
+    from services.common.security import CA_FILE, run_credentials
+
+    folder = run_credentials(int(DEFAULT_CONNECT.rsplit(":", 1)[1]))
+    return folder if (folder / CA_FILE).is_file() else None
 
 
 def print_out(line: str) -> None:

@@ -73,6 +73,9 @@ def _add_up(commands: Commands) -> None:
     )
     up.add_argument("--namespace", default=DEFAULT_NAMESPACE)
     add_credentials(up)
+    up.add_argument("--insecure", action="store_true",
+                    help="plain tcp on loopback: any local process can join (default: this "
+                         "run's own credentials, found by status/echo)")  # fmt: skip
     up.add_argument("--json", action="store_true", help="one JSON object per episode")
     up.add_argument(
         "--record", type=Path, metavar="MCAP", help="also run the recorder into this file"
@@ -88,7 +91,7 @@ def _up(args: argparse.Namespace) -> int:
         mode=args.mode, episodes=args.episodes, seed=args.seed, model=args.model,
         trigger=args.trigger, port=args.bus_port, namespace=args.namespace, json=args.json,
         serial_port=args.port, calibration=args.calibration, record=args.record,
-        lockstep=args.lockstep, credentials=args.credentials,
+        lockstep=args.lockstep, credentials=args.credentials, insecure=args.insecure,
     )  # fmt: skip
     return Stack(options, out=print_out, info=print_err).run()
 

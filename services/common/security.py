@@ -15,6 +15,7 @@ import datetime as dt
 import ipaddress
 import json
 import os
+import tempfile
 from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
@@ -126,6 +127,17 @@ def _write_key(path: Path, key: ec.EllipticCurvePrivateKey) -> None:
     descriptor = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
     with os.fdopen(descriptor, "wb") as handle:
         handle.write(pem)
+
+
+def run_credentials(port: int) -> Path:
+    """Where ``dammrl up`` keeps the credentials of the stack on loopback ``port``: in the
+    user's private runtime folder, so only this user's tools find and read them."""
+    base = os.environ.get("XDG_RUNTIME_DIR") or os.path.join(
+        tempfile.gettempdir(), f"dammrl-{os.getuid()}"
+    )
+    folder = Path(base) / "dammrl" / f"bus-{port}"
+    folder.parent.mkdir(parents=True, exist_ok=True, mode=0o700)
+    return folder
 
 
 # ---- Zenoh configuration ------------------------------------------------------------------

@@ -48,6 +48,7 @@ from services.controller.core import Controller
 from services.controller.reach import Answer, Reach
 
 log = logging.getLogger("dammrl.controller")
+MAX_STATE_STEP_S = 0.5  # robot time between two states (10 ms at 100 Hz) can be no more
 ANNOUNCE_PERIOD_S = 0.5  # TaskGoal is repeated until the sim answers with the new episode
 
 
@@ -150,6 +151,9 @@ class ControllerNode:
         episode, reach = self.episode, self.reach
         if episode is None or reach is None or message.episode != episode.number:
             return
+        if (reason := self._implausible_time(message.t_s)) is not None:
+            self.bus.reject(self.bus.key(RobotState), reason)
+            return
         state = convert.robot_state(message)
         self.last_t = state.t_s
         if not self.started:
@@ -169,6 +173,14 @@ class ControllerNode:
         self.last_state_s = time.monotonic()
         if tick.ended is not None:
             self._finish()
+
+    def _implausible_time(self, t_s: float) -> str | None:
+        """Why a state's robot time cannot follow the last one (a forged or stray state)."""
+        if not self.started:
+            return None if t_s <= MAX_STATE_STEP_S else f"an episode starting at {t_s:.2f} s"
+        if not self.last_t < t_s <= self.last_t + MAX_STATE_STEP_S:
+            return f"robot time {t_s:.3f} s after {self.last_t:.3f} s (backwards or a jump)"
+        return None
 
     def _request_decision(self, ee_pos: np.ndarray, episode: Episode) -> None:
         self.request += 1
