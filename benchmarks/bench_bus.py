@@ -2,7 +2,8 @@
 
 (a) state -> command round trip through the real controller: the sim node runs in this
     process (instrumented), policy / intent / controller as their own processes; latency
-    from a RobotState's publication to the arrival of the JointCommand answering it;
+    from a RobotState's publication to the arrival of the JointCommand answering it, on a
+    plain tcp bus and on a secured one (mutual TLS + access control), side by side;
 (b) the floor of this machine: a raw UDP ping-pong between two processes on loopback at
     the same rate and payload size, and the same ping-pong over bare Zenoh (the transport
     without the services' work);
@@ -20,15 +21,19 @@ import os
 import socket
 import subprocess
 import sys
+import tempfile
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 import zenoh
 
+from dammrl.core.robot import RobotSettings
 from dammrl.core.task import TaskSettings
 from services.common.bus import Bus, zenoh_config
 from services.common.config import BusSettings
+from services.common.security import create_credentials
 from services.sim.config import SimSettings
 from services.sim.node import SimNode
 
@@ -47,12 +52,16 @@ def percentiles(samples_s: list[float] | np.ndarray) -> str:
     return f"p50 {p50:6.3f} ms  p99 {p99:6.3f} ms  p99.9 {p999:6.3f} ms  (n={len(ms)})"
 
 
-def bus_round_trip(seconds: float, rate_hz: float) -> tuple[SimNode, float]:
+def bus_round_trip(
+    seconds: float, rate_hz: float, credentials: Path | None = None
+) -> tuple[SimNode, float]:
     """Run the stack for ``seconds``; return the instrumented sim node and wall time."""
     port = free_port()
-    endpoint = f"tcp/127.0.0.1:{port}"
+    endpoint = f"{'tcp' if credentials is None else 'tls'}/127.0.0.1:{port}"
     env = {"DAMMRL_BUS_CONNECT": json.dumps([endpoint]), "DAMMRL_LOG_LEVEL": "WARNING",
            "DAMMRL_TASK_EPISODE_TIMEOUT_S": "1000"}  # fmt: skip
+    if credentials is not None:
+        env["DAMMRL_BUS_CREDENTIALS"] = str(credentials)
     children = [
         subprocess.Popen([sys.executable, "-m", f"services.{name}"], env=os.environ | env)
         for name in ("policy", "intent", "controller")
@@ -60,8 +69,8 @@ def bus_round_trip(seconds: float, rate_hz: float) -> tuple[SimNode, float]:
     stop = threading.Event()
     try:
         settings = SimSettings(state_rate_hz=rate_hz)
-        with Bus(BusSettings(listen=[endpoint]), "sim") as bus:
-            node = SimNode(settings, TaskSettings(), bus)
+        with Bus(BusSettings(listen=[endpoint], credentials=credentials), "sim") as bus:
+            node = SimNode(settings, TaskSettings(), RobotSettings(), bus)
             timer = threading.Timer(seconds, stop.set)
             timer.start()
             start = time.monotonic()
@@ -160,6 +169,9 @@ def main() -> None:
     args = parser.parse_args()
 
     node, wall = bus_round_trip(args.seconds, args.rate)
+    with tempfile.TemporaryDirectory() as folder:
+        create_credentials(Path(folder) / "bus")
+        secured, _ = bus_round_trip(args.seconds, args.rate, Path(folder) / "bus")
     udp = udp_round_trip(args.seconds, args.rate)
     bare = zenoh_round_trip(args.seconds, args.rate)
     trips = list(node.round_trips_s)[50:]  # skip the connection warm-up
@@ -169,6 +181,7 @@ def main() -> None:
         f"state rate {args.rate:.0f} Hz, {args.seconds:.0f} s each, UDP payload {PAYLOAD_BYTES} B"
     )
     print(f"(a) bus state->command round trip : {percentiles(trips)}")
+    print(f"(a') the same, mutual TLS + ACL    : {percentiles(list(secured.round_trips_s)[50:])}")
     print(f"(b) raw UDP ping-pong (2 processes): {percentiles(udp)}")
     print(f"(b') bare Zenoh ping-pong (same)   : {percentiles(bare)}")
     p99_ratio = np.percentile(trips, 99) / np.percentile(udp, 99)
