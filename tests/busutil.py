@@ -36,8 +36,13 @@ def listener_settings(port: int, namespace: str = "dammrl", mode: str = "peer") 
     return BusSettings(listen=[endpoint(port)], namespace=namespace, mode=mode)
 
 
-def client_settings(port: int, namespace: str = "dammrl") -> BusSettings:
-    return BusSettings(connect=[endpoint(port)], namespace=namespace)
+def client_settings(
+    port: int, namespace: str = "dammrl", credentials: Path | None = None
+) -> BusSettings:
+    scheme = "tcp" if credentials is None else "tls"
+    return BusSettings(
+        connect=[f"{scheme}/127.0.0.1:{port}"], namespace=namespace, credentials=credentials
+    )
 
 
 def start_service(name: str, port: int, **env: str) -> subprocess.Popen[bytes]:
@@ -52,12 +57,22 @@ def start_service(name: str, port: int, **env: str) -> subprocess.Popen[bytes]:
     )
 
 
-def start_patient(link: Path, port: int, human_model: int) -> subprocess.Popen[bytes]:
+def start_patient(
+    link: Path, port: int, human_model: int, credentials: Path | None = None
+) -> subprocess.Popen[bytes]:
     """An emulated pad at ``link`` pressed by a simulated patient answering the stack's
     decision requests (``dammrl sensor emulate --pattern patient``); waits for the pty."""
+    bus = ["--connect", endpoint(port)]
+    if credentials is not None:
+        bus = [
+            "--connect",
+            endpoint(port).replace("tcp/", "tls/"),
+            "--credentials",
+            str(credentials),
+        ]
     patient = subprocess.Popen(
         [*(sys.executable, "-m", "dammrl", "sensor", "emulate", "--pattern", "patient"),
-         *("--patient-model", str(human_model), "--link", str(link), "--connect", endpoint(port))],
+         *("--patient-model", str(human_model), "--link", str(link)), *bus],
         stdin=subprocess.DEVNULL,
     )  # fmt: skip
     wait_for(link.exists, 30, "the emulated port")
@@ -76,12 +91,18 @@ def wait_for(condition: Callable[[], bool], timeout_s: float, what: str) -> None
 class Observer:
     """A test's own session: listens on the endpoint and collects decoded messages."""
 
-    def __init__(self, port: int, namespace: str = "dammrl", connect: bool = False) -> None:
+    def __init__(
+        self,
+        port: int,
+        namespace: str = "dammrl",
+        connect: bool = False,
+        credentials: Path | None = None,
+    ) -> None:
         self.namespace = namespace
         # a router hub, like the launcher: it brokers for peers until they are linked
         # directly; or (connect) one more peer joining a stack that listens on ``port``
         settings = (
-            client_settings(port, namespace)
+            client_settings(port, namespace, credentials)
             if connect
             else listener_settings(port, namespace, "router")
         )

@@ -14,6 +14,7 @@ import pytest
 import yaml
 
 from schemas import EpisodeResult, Intent
+from services.common.security import create_credentials
 from services.intent.emulator import DEFAULT_CALIBRATION
 from tests.busutil import Observer, endpoint, free_port, start_patient, wait_for
 
@@ -49,14 +50,23 @@ def test_each_profile_has_one_container_per_service_from_one_image(profile: str)
         assert set(service.get("depends_on", [])) <= set(services), "compose refuses this"
 
 
+@pytest.mark.parametrize("profile", PROFILES)
+def test_every_container_joins_the_secured_bus_with_the_mounted_credentials(profile: str) -> None:
+    for name, service in _profile(profile).items():
+        env = service["environment"]
+        endpoints = json.loads(env.get("DAMMRL_BUS_CONNECT") or env["DAMMRL_BUS_LISTEN"])
+        assert all(e.startswith("tls/") for e in endpoints), name
+        assert f"./bus:{env['DAMMRL_BUS_CREDENTIALS']}:ro" in service["volumes"], name
+
+
 def test_semi_virtual_profile_passes_the_sensor_and_its_calibration_to_the_intent() -> None:
     intent = _profile("semi-virtual")["intent-sensor"]
     env = intent["environment"]
     assert env["DAMMRL_INTENT_SOURCE"] == "serial"
     host, container = intent["devices"][0].rsplit(":", 1)
     assert container == env["DAMMRL_INTENT_PORT"] and "DAMMRL_SENSOR_DEVICE" in host
-    mount = intent["volumes"][0].split(":")[1]
-    assert env["DAMMRL_INTENT_CALIBRATION_FILE"].startswith(mount + "/")
+    mounts = [volume.split(":")[1] for volume in intent["volumes"]]
+    assert any(env["DAMMRL_INTENT_CALIBRATION_FILE"].startswith(m + "/") for m in mounts)
     recorder = _profile("semi-virtual")["recorder-sensor"]["environment"]
     assert recorder["DAMMRL_RECORDER_MODE"] == "semi-virtual"
 
@@ -82,7 +92,10 @@ def _local(environment: dict[str, str], port: int, tmp_path: Path) -> dict[str, 
     local = {}
     for name, value in environment.items():
         if name in ("DAMMRL_BUS_CONNECT", "DAMMRL_BUS_LISTEN"):
-            value = json.dumps([endpoint(port)])
+            scheme = json.loads(value)[0].split("/")[0]
+            value = json.dumps([endpoint(port).replace("tcp/", f"{scheme}/")])
+        elif name == "DAMMRL_BUS_CREDENTIALS":
+            value = str(tmp_path / "bus")
         elif name in (
             "DAMMRL_INTENT_PORT",
             "DAMMRL_INTENT_CALIBRATION_FILE",
@@ -96,8 +109,9 @@ def _local(environment: dict[str, str], port: int, tmp_path: Path) -> dict[str, 
 def _run_profile(profile: str, tmp_path: Path, patient: bool = False) -> Observer:
     """Start every container command of the profile as a process; run one episode (with a
     simulated patient at an emulated pad for the sensor)."""
-    port = free_port()
-    processes = [start_patient(tmp_path / "ttySENSOR", port, 2)] if patient else []
+    port, credentials = free_port(), tmp_path / "bus"
+    create_credentials(credentials)  # what `dammrl bus init --out bus --host sim` makes
+    processes = [start_patient(tmp_path / "ttySENSOR", port, 2, credentials)] if patient else []
     observer = None
     try:
         for service in _profile(profile).values():
@@ -106,7 +120,7 @@ def _run_profile(profile: str, tmp_path: Path, patient: bool = False) -> Observe
             processes.append(subprocess.Popen(service["command"], env=env))
             if observer is None:  # the sim listens: the test joins as one more peer
                 time.sleep(1.0)
-                observer = Observer(port, connect=True)
+                observer = Observer(port, connect=True, credentials=credentials)
         assert observer is not None
         wait_for(lambda: bool(observer.of(EpisodeResult)), 120, "an EpisodeResult")
         assert all(p.poll() is None for p in processes)
