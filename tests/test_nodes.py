@@ -117,3 +117,31 @@ def test_the_controller_ignores_states_whose_time_runs_backwards_or_jumps() -> N
     assert node._implausible_time(2.01) is None
     assert node._implausible_time(1.99) is not None
     assert node._implausible_time(1e6) is not None
+
+
+def test_the_controller_takes_steps_and_radius_from_the_model_set_not_from_a_message() -> None:
+    import numpy as np
+
+    from dammrl.core.models import ModelSet
+    from dammrl.core.robot import RobotSettings
+    from dammrl.core.task import TaskSettings
+    from schemas import Intent
+    from services.controller.config import ControllerSettings
+    from services.controller.node import ControllerNode
+
+    node = ControllerNode(ControllerSettings(), TaskSettings(), RobotSettings(), ModelSet(),
+                          FakeBus())  # type: ignore[arg-type]  # fmt: skip
+    node._next_episode()
+    assert node.reach is not None
+    node.reach.asked, node.request = True, 1
+    huge = ModelChoice(header=HEADER, episode=1, request=1, human_model=2, robot_model=1,
+                       radius_m=0.1, steps_m=(0.1, 0.1, 0.1))  # fmt: skip
+    node._on_choice(huge)
+    answer_of_human = Intent(header=HEADER, episode=1, request=1, u_h=1, human_model=2,
+                             radius_m=0.1, confidence=1.0, source="sensor",
+                             decision_s=0.3)  # fmt: skip
+    node._on_intent(answer_of_human)
+    answer = node.reach.pending
+    assert answer is not None and answer.steps_m is not None
+    np.testing.assert_array_equal(answer.steps_m, ModelSet().steps_m(1))
+    assert answer.intent.radius_m == ModelSet().radius_m(2)

@@ -175,10 +175,9 @@ class ControllerNode:
             self._finish()
 
     def _implausible_time(self, t_s: float) -> str | None:
-        """Why a state's robot time cannot follow the last one (a forged or stray state)."""
-        if not self.started:
-            return None if t_s <= MAX_STATE_STEP_S else f"an episode starting at {t_s:.2f} s"
-        if not self.last_t < t_s <= self.last_t + MAX_STATE_STEP_S:
+        """Why a state's robot time cannot follow the last one (a forged or stray state).
+        The first state may come at any time: a restarted controller takes over a reach."""
+        if self.started and not self.last_t < t_s <= self.last_t + MAX_STATE_STEP_S:
             return f"robot time {t_s:.3f} s after {self.last_t:.3f} s (backwards or a jump)"
         return None
 
@@ -230,10 +229,11 @@ class ControllerNode:
         if choice is not None:
             self.choice = (choice.human_model, choice.robot_model)
         due_s = self.request_t_s + message.decision_s  # a late answer is due on arrival
-        intent = CoreIntent(
-            due_s, message.u_h, message.radius_m, message.human_model, message.confidence
-        )
-        steps = None if choice is None else np.array(choice.steps_m)
+        # radius and steps come from the stack's model set by index, never as free numbers
+        # from a message (the schema alone would allow 0.1 m steps)
+        radius_m = self.models.radius_m(message.human_model)
+        intent = CoreIntent(due_s, message.u_h, radius_m, message.human_model, message.confidence)
+        steps = None if choice is None else self.models.steps_m(choice.robot_model)
         reach.answer(Answer(intent, steps, message.correct))
         self.intent = None
 
