@@ -207,8 +207,10 @@ def test_dammrl_up_lockstep_prints_what_dammrl_reach_prints(runner: ReachRunner)
     command = [sys.executable, "-m", "dammrl.cli", "up", "--lockstep", "--json",
                "--model", "2,1", "--episodes", str(episodes), "--seed", str(seed),
                "--bus-port", str(free_port())]  # fmt: skip
-    done = subprocess.run(command, capture_output=True, text=True, timeout=300, check=True)
+    done = subprocess.run(command, capture_output=True, text=True, timeout=300, check=False)
+    assert done.returncode == 0, done.stderr[-3000:]
     on_bus = [json.loads(line) for line in done.stdout.splitlines() if line.startswith("{")]
     in_process = [runner.run(s, model=(2, 1)).summary() for s in range(seed, seed + episodes)]
+    assert len(on_bus) == episodes, (done.stdout, done.stderr[-3000:])
     for bus, local in zip(on_bus, in_process, strict=True):
-        assert {k: bus[k] for k in local} == json.loads(json.dumps(local))
+        assert {k: bus[k] for k in local} == json.loads(json.dumps(local)), done.stderr[-3000:]
