@@ -18,6 +18,8 @@ from services.common.security import create_credentials
 from services.intent.emulator import DEFAULT_CALIBRATION
 from tests.busutil import Observer, endpoint, free_port, start_patient, wait_for
 
+pytestmark = pytest.mark.slow  # real processes on a real bus
+
 COMPOSE = Path(__file__).resolve().parent.parent / "compose.yaml"
 SERVICES = {"sim", "policy", "intent", "controller", "recorder"}
 CONTAINER_PATHS = ("DAMMRL_INTENT_PORT", "DAMMRL_INTENT_CALIBRATION_FILE", "DAMMRL_RECORDER_OUT")

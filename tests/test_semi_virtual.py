@@ -8,11 +8,14 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from dammrl.recording import session_traces
 from schemas import DecisionRequest, EpisodeResult, Health, Intent, ModelChoice, SensorSample
 from services.intent.emulator import Press, SensorEmulator
 from tests.busutil import Observer, free_port, start_patient, start_service, wait_for
+
+pytestmark = pytest.mark.slow  # real processes on a real bus
 
 FIRM_QUICK_EVERY_HALF_SECOND = [Press(0.1, 0.2, 1.0)]  # +1, E_big, repeated
 

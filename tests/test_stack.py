@@ -21,6 +21,8 @@ from schemas import TOPICS, EpisodeResult, Health, RobotState, StepEvent, encode
 from tests.busutil import SERVICES, Observer, Stack, free_port, wait_for
 from tests.test_schemas import EXAMPLES
 
+pytestmark = pytest.mark.slow  # real processes on a real bus
+
 LONG_EPISODE = {"DAMMRL_TASK_EPISODES": "1", "DAMMRL_TASK_EPISODE_TIMEOUT_S": "120"}
 
 
