@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from dammrl.core.robot import RobotDescription
-from schemas import Header, JointCommand, RobotState, encode, key
+from schemas import Header, JointCommand, RobotState, TaskGoal, encode, key
 from tests.busutil import Observer, free_port, start_service, wait_for
 
 pytestmark = pytest.mark.slow
@@ -68,6 +68,36 @@ def test_forged_and_replayed_commands_do_not_move_the_arm_and_answers_are_capped
         answered = _states(observer)[start:]
         speeds = np.max(np.abs([s.dq_rad_s for s in answered]) / robot.dq_max)
         assert speeds <= 1.1  # the caps hold the joints at their velocity limits (measured 1.02)
+    finally:
+        sim.terminate()
+        sim.wait(10)
+        observer.close()
+
+
+def test_a_reset_waits_until_the_arm_rests() -> None:
+    port = free_port()
+    observer = Observer(port)
+    sim = start_service("sim", port, DAMMRL_LOG_LEVEL="ERROR")
+    header = Header(stamp_ns=1, seq=0, source="controller")
+    goal = encode(TaskGoal(header=header, episode=1, seed=0, start_m=(0.3, 0.0, -0.1),
+                           goal_m=(0.5, 0.0, -0.21),
+                           q_start_rad=(0.3, 0.7, 0.2, 1.2, 0.1, 0.2)))  # fmt: skip
+    try:
+        wait_for(lambda: len(_states(observer)) > 50, 60, "the sim's states")
+        deadline, seq, reset_tried = time.monotonic() + 1.0, 0, False
+        while time.monotonic() < deadline:  # keep the arm moving, and try a reset meanwhile
+            newest = _states(observer)[-1]
+            observer.session.put(key("dammrl", JointCommand), _command(seq, newest.header.stamp_ns))
+            moving = max(abs(v) for v in newest.dq_rad_s) > 0.2
+            if moving and not reset_tried:
+                observer.session.put(key("dammrl", TaskGoal), goal)
+                reset_tried = True
+            seq += 1
+            time.sleep(0.002)
+        assert reset_tried and _states(observer)[-1].episode == 0
+        time.sleep(1.0)  # no more commands: the sim holds and the arm comes to rest
+        observer.session.put(key("dammrl", TaskGoal), goal)
+        wait_for(lambda: _states(observer)[-1].episode == 1, 5, "the reset at rest")
     finally:
         sim.terminate()
         sim.wait(10)

@@ -148,3 +148,59 @@ def test_only_the_controller_role_can_reset_the_arm(
         time.sleep(0.5)
         controller.put(key("dammrl", TaskGoal), encode(goal))
         wait_for(lambda: episode_of() == 1, 5, "the reset by the controller")
+
+
+def test_spoofed_messages_from_another_role_leave_the_episode_exactly_as_in_process(
+    credentials: Path,
+) -> None:
+    from dammrl.runner import ReachRunner
+    from schemas import EpisodeResult, ModelChoice
+    from tests.busutil import Stack
+
+    seed, port = 7_000_500, free_port()
+    watcher = Watcher(port, credentials)
+    results: list[EpisodeResult] = []
+    sub = watcher.session.declare_subscriber(
+        key("dammrl", EpisodeResult),
+        lambda s: results.append(decode(EpisodeResult, s.payload.to_bytes())),
+    )
+    stack = Stack(port, DAMMRL_BUS_CREDENTIALS=str(credentials), DAMMRL_BUS_LOCKSTEP="true",
+                  DAMMRL_BUS_CONNECT=json.dumps([f"tls/127.0.0.1:{port}"]),
+                  DAMMRL_TASK_SEED=str(seed), DAMMRL_TASK_EPISODES="1", DAMMRL_LOG_LEVEL="ERROR",
+                  DAMMRL_POLICY_KIND="fixed", DAMMRL_POLICY_HUMAN_MODEL="2",
+                  DAMMRL_POLICY_ROBOT_MODEL="1")  # fmt: skip
+    header = Header(stamp_ns=1, seq=0, source="controller")
+    local = ReachRunner().run(seed, model=(2, 1))
+    fake_result = EpisodeResult(header=header, episode=1, **{
+        k: v for k, v in local.summary().items() if k not in ("episode",)
+    } | {"success": False, "outcome": "hold", "reason": "spoofed"})  # fmt: skip
+    fake_choice = ModelChoice(header=header.model_copy(update={"source": "policy"}), episode=1,
+                              request=1, human_model=1, robot_model=8, radius_m=0.01,
+                              steps_m=(0.1, 0.1, 0.1))  # fmt: skip
+    try:
+        with _session(port, credentials, "intent") as intruder:
+            deadline = time.monotonic() + 120
+            while not results and time.monotonic() < deadline:
+                newest = watcher.states[-1] if watcher.states else None
+                if newest is not None:  # a state from the future, a huge step, a result
+                    forged = newest.model_copy(
+                        update={"t_s": newest.t_s + 1e6, "ee_pos_m": (0.5, 0.0, -0.2)}
+                    )
+                    intruder.put(key("dammrl", RobotState), encode(forged))
+                intruder.put(key("dammrl", ModelChoice), encode(fake_choice))
+                intruder.put(key("dammrl", EpisodeResult), encode(fake_result))
+                time.sleep(0.01)
+        assert results, "no episode result"
+        bus = results[0]
+        expected = local.summary()
+        assert (bus.outcome, bus.reason, bus.n_steps) == (
+            expected["outcome"],
+            expected["reason"],
+            expected["n_steps"],
+        )
+        assert bus.t_total_s == pytest.approx(expected["t_total_s"], abs=1e-9)
+        assert len(results) == 1  # the spoofed results never arrived
+    finally:
+        stack.stop()
+        sub.undeclare()  # type: ignore[no-untyped-call]
+        watcher.session.close()  # type: ignore[no-untyped-call]

@@ -61,6 +61,8 @@ class SimSettings(BaseSettings):
     reference_speed_fraction: float = Field(1.0, gt=0, le=1.0)
     """The applied reference moves, and asks to move, at most this fraction of the URDF
     velocity limits."""
+    rest_speed_rad_s: float = Field(0.05, gt=0, le=1.0)
+    """A new episode (TaskGoal) resets the arm only when no joint moves faster [rad/s]."""
     command_max_age_s: float = Field(0.05, gt=0, le=1.0)
     """A command must answer a state published at most this long ago (in state periods;
     in lockstep the last state); older or out-of-order answers are rejected [s]."""

@@ -51,6 +51,7 @@ class SimNode:
         self.command_wall_s = 0.0
         self.answered = False  # lockstep: the controller answered the last state
         self.reset_pending = False  # a TaskGoal reset the arm: publish its state first
+        self.settling = False  # a reset was refused while the arm moved
         self.holding = False
         self.round_trips_s: deque[float] = deque(maxlen=100_000)  # state sent -> command in
         self.pacer = Pacer(self.substeps * self.sim.timestep_s)
@@ -83,9 +84,9 @@ class SimNode:
         )
         while not stop.is_set():
             self._publish_state()
-            if lockstep:
+            if lockstep and not self.settling:
                 self._await_answer()
-            else:
+            else:  # real time, or lockstep while the arm settles for a refused reset
                 self.pacer.wait()
                 self._take_messages(0)
             if self.reset_pending:
@@ -213,9 +214,14 @@ class SimNode:
         reason = goal_violation(
             q_start, goal.goal_m, self.sim.robot, self.sim.layout, self.settings.limit_tolerance_rad
         )
+        speed = float(np.max(np.abs(self.state.dq)))
+        if reason is None and speed > self.settings.rest_speed_rad_s:
+            reason = f"the arm is moving ({speed:.2f} rad/s): a reset waits until it rests"
+            self.settling = True  # lockstep: step on without waiting, so it comes to rest
         if reason is not None:
             self.bus.reject(self.bus.key(TaskGoal), reason)
             return
+        self.settling = False
         self.episode = goal.episode
         rng = seed_streams(goal.seed).sim
         self.state = self.sim.reset(q_start, (goal.goal_m[0], goal.goal_m[1]), rng=rng)
