@@ -3,7 +3,10 @@ moves no faster than the joints may, and a command breaking a limit is not appli
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
+import pytest
 
 from dammrl.core.robot import RobotDescription
 from dammrl.core.safety import ArmCaps, guard_command
@@ -47,3 +50,16 @@ def test_a_command_beyond_the_limits_or_the_gains_is_rejected(robot: RobotDescri
     stiff = _command(HOME_Q, kp=np.full(6, 5000.0))
     rejected = guard_command(stiff, HOME_Q, None, 0.01, robot, CAPS)
     assert rejected.command is None and rejected.reason is not None and "kp 5000" in rejected.reason
+
+
+def test_run_credentials_refuse_a_folder_others_may_write(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from services.common.security import CredentialsError, run_credentials
+
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path / "runtime"))
+    folder = run_credentials(7447)
+    assert folder.parent.stat().st_mode & 0o777 == 0o700
+    folder.parent.chmod(0o777)  # as if another user had prepared it
+    with pytest.raises(CredentialsError, match="not private to you"):
+        run_credentials(7447)

@@ -25,6 +25,8 @@ from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
+from dammrl.core.errors import DammrlError
+
 # the keys (under the namespace) each role may publish, besides its health and liveliness
 PUBLISHES: dict[str, tuple[str, ...]] = {
     "sim": ("robot/state",),
@@ -45,7 +47,7 @@ _EVERY_MESSAGE = [
 ]  # fmt: skip
 
 
-class CredentialsError(ValueError):
+class CredentialsError(DammrlError):
     """Credentials that are missing or unusable (the message names the file)."""
 
 
@@ -135,9 +137,21 @@ def run_credentials(port: int) -> Path:
     base = os.environ.get("XDG_RUNTIME_DIR") or os.path.join(
         tempfile.gettempdir(), f"dammrl-{os.getuid()}"
     )
-    folder = Path(base) / "dammrl" / f"bus-{port}"
-    folder.parent.mkdir(parents=True, exist_ok=True, mode=0o700)
-    return folder
+    private = Path(base) / "dammrl"
+    for folder in (Path(base), private):
+        folder.mkdir(exist_ok=True, mode=0o700)
+        _check_private(folder)
+    return private / f"bus-{port}"
+
+
+def _check_private(folder: Path) -> None:
+    """Refuse a folder another user owns or may write (it could swap our credentials)."""
+    info = folder.lstat()
+    if folder.is_symlink() or info.st_uid != os.getuid() or info.st_mode & 0o022:
+        raise CredentialsError(
+            f"{folder} is not private to you (owner uid {info.st_uid}, mode "
+            f"{oct(info.st_mode & 0o777)}): remove it or set XDG_RUNTIME_DIR"
+        )
 
 
 # ---- Zenoh configuration ------------------------------------------------------------------
