@@ -55,7 +55,8 @@ def test_dammrl_up_runs_episodes_and_exits_zero(port: int) -> None:
     done = subprocess.run(command, capture_output=True, text=True, timeout=180, check=False)
     assert done.returncode == 0, done.stderr
     result = json.loads(done.stdout.strip().splitlines()[-1])
-    assert result["success"] and result["model"] == [2, 1] and result["trigger"] == "event"
+    assert result["success"], (result, done.stderr[-3000:])
+    assert result["model"] == [2, 1] and result["trigger"] == "event"
     assert {"t_total_s", "n_osc", "jerk_isj", "human_error_rate", "seed"} <= result.keys()
 
 
