@@ -335,6 +335,7 @@ class PatientPrompts:
             for t in (DecisionRequest, ModelChoice, Intent)
         ]
         self.estimate = ""
+        self.prompted = -1
 
     def show(self) -> None:
         for message_type, subscriber in self.subscribers:
@@ -347,7 +348,8 @@ class PatientPrompts:
             p_small = message.posterior[1]
             likely, p = ("E_small", p_small) if p_small >= 0.5 else ("E_big", 1 - p_small)
             self.estimate = f"  [policy: you decide like {likely}, p {p:.2f}]"
-        elif isinstance(message, DecisionRequest):
+        elif isinstance(message, DecisionRequest) and message.request != self.prompted:
+            self.prompted = message.request  # a re-sent request is not a new prompt
             axis = "xyz"[message.primary_axis]
             ahead_mm = (
                 message.goal_m[message.primary_axis] - message.ee_pos_m[message.primary_axis]

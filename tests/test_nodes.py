@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import time
 from typing import Any
+
+import numpy as np
 
 from dammrl.core.human import HumanModel
 from dammrl.core.models import ModelSet
@@ -145,3 +148,36 @@ def test_the_controller_takes_steps_and_radius_from_the_model_set_not_from_a_mes
     assert answer is not None and answer.steps_m is not None
     np.testing.assert_array_equal(answer.steps_m, ModelSet().steps_m(1))
     assert answer.intent.radius_m == ModelSet().radius_m(2)
+
+
+def test_a_re_sent_request_gets_the_same_answer_from_the_simulated_human() -> None:
+    node, bus = _intent_node()
+    node._dispatch(_goal(1, 5))
+    node._dispatch(_choice(1, 2))
+    node._dispatch(_request(1))
+    node._dispatch(_request(1))  # the controller heard nothing and sent it again
+    assert len(bus.published) == 2 and bus.published[0] == bus.published[1]
+
+
+def test_the_controller_sends_an_unanswered_request_again() -> None:
+    from dammrl.core.models import ModelSet
+    from dammrl.core.robot import RobotSettings
+    from dammrl.core.task import TaskSettings
+    from services.controller.config import ControllerSettings
+    from services.controller.node import ControllerNode
+
+    bus = FakeBus()
+    settings = ControllerSettings(request_resend_s=0.05)
+    node = ControllerNode(settings, TaskSettings(), RobotSettings(), ModelSet(),
+                          bus)  # type: ignore[arg-type]  # fmt: skip
+    node._next_episode()
+    assert node.reach is not None and node.episode is not None
+    node.reach.asked = True
+    node._request_decision(np.zeros(3), node.episode)
+    sent = len(bus.published)
+    node._resend_if_unanswered()
+    assert len(bus.published) == sent  # not yet
+    time.sleep(0.06)
+    node._resend_if_unanswered()
+    assert len(bus.published) == sent + 1 and bus.published[-1]["request"] == 1
+    assert "waiting for the answer to request 1" in node._waiting_for()

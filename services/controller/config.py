@@ -80,6 +80,9 @@ class ControllerSettings(BaseSettings):
     """No RobotState for this long: stop stepping and hold the last reference [s]."""
     policy_wait_s: float = Field(20.0, ge=0)
     """How long the first episode waits for the policy's first ModelChoice [s]."""
+    request_resend_s: float = Field(2.0, gt=0, le=60)
+    """An unanswered decision request is sent again this often, so a human (intent)
+    service that joined late or restarted answers it [s]."""
     choice_wait_s: float = Field(0.2, gt=0, le=10)
     """How long the human's answer waits for the policy's choice of the same request [s]."""
     human_model: int = Field(1, ge=1, le=2)

@@ -19,6 +19,7 @@ import threading
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -97,6 +98,8 @@ class ControllerNode:
         self.request_t_s = 0.0
         self.choices: dict[int, ModelChoice] = {}  # the policy's answer per request
         self.intent: Intent | None = None  # the human's answer, until matched with a choice
+        self.request_fields: dict[str, Any] = {}  # the open request, to send it again
+        self.request_sent_s = 0.0
         self.intent_wall_s = 0.0
         self.publish = {
             t: bus.publisher(t)
@@ -116,7 +119,14 @@ class ControllerNode:
                 self._dispatch(message)
             self._watch()
             holding = self.reach is not None and self.reach.controller.hold_reason is not None
-            self.bus.report_health("holding" if holding else "ok")
+            self.bus.report_health("holding" if holding else "ok", self._waiting_for())
+
+    def _waiting_for(self) -> str:
+        """What the controller waits for, and since when (Health detail)."""
+        if self.reach is not None and self.reach.asked:
+            since = time.monotonic() - self.request_sent_s
+            return f"waiting for the answer to request {self.request} ({since:.1f} s)"
+        return ""
 
     def _wait_for_policy(self, stop: threading.Event) -> None:
         """Start the first episode once the policy speaks (its first ModelChoice), so every
@@ -184,15 +194,30 @@ class ControllerNode:
     def _request_decision(self, ee_pos: np.ndarray, episode: Episode) -> None:
         self.request += 1
         self.request_t_s = self.last_t
-        self.publish[DecisionRequest].publish(
-            episode=episode.number,
-            request=self.request,
-            t_s=self.last_t,
-            ee_pos_m=tuple(float(v) for v in ee_pos),
-            goal_m=tuple(float(v) for v in episode.task.goal),
-            primary_axis=self.settings.primary_axis,
-            human_model=self.choice[0],
-        )
+        self.request_fields = {
+            "episode": episode.number,
+            "request": self.request,
+            "t_s": self.last_t,
+            "ee_pos_m": tuple(float(v) for v in ee_pos),
+            "goal_m": tuple(float(v) for v in episode.task.goal),
+            "primary_axis": self.settings.primary_axis,
+            "human_model": self.choice[0],
+        }
+        self._send_request()
+
+    def _send_request(self) -> None:
+        self.request_sent_s = time.monotonic()
+        self.publish[DecisionRequest].publish(**self.request_fields)
+
+    def _resend_if_unanswered(self) -> None:
+        """Never a silent wait: the same request again while nobody answered it (a service
+        that joined late or restarted; intent and policy answer a repeat with their first
+        answer)."""
+        waiting = self.reach is not None and self.reach.asked and self.intent is None
+        if waiting and time.monotonic() - self.request_sent_s > self.settings.request_resend_s:
+            log.warning("request %d unanswered for %.1f s: sending it again",
+                        self.request, time.monotonic() - self.request_sent_s)  # fmt: skip
+            self._send_request()
 
     def _await_answer(self) -> None:
         """Lockstep: take messages until the human answered the open request (bounded)."""
@@ -206,6 +231,7 @@ class ControllerNode:
             if isinstance(message, Intent | ModelChoice):
                 self._dispatch(message)
             self._answer_if_complete()
+            self._resend_if_unanswered()
 
     def _on_intent(self, message: Intent) -> None:
         episode, reach = self.episode, self.reach
@@ -241,6 +267,7 @@ class ControllerNode:
     def _watch(self) -> None:
         """Announce the running episode until it starts; end it when the state is stale."""
         self._answer_if_complete()
+        self._resend_if_unanswered()
         now = time.monotonic()
         if (
             self.episode is not None

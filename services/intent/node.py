@@ -16,7 +16,7 @@ import logging
 import threading
 import time
 from collections.abc import Sequence
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -47,6 +47,7 @@ class IntentNode:
         )
         self.waiting: dict[tuple[int, int], tuple[float, DecisionRequest]] = {}
         self.choices: dict[tuple[int, int], int] = {}  # (episode, request) -> the policy's i
+        self.answered: dict[tuple[int, int], dict[str, Any]] = {}  # the intents published
         self.episode = 0
         self.publisher = bus.publisher(Intent)
         bus.subscribe(DecisionRequest, TaskGoal, ModelChoice)
@@ -68,7 +69,12 @@ class IntentNode:
             self.human.rng = seed_streams(message.seed).human
             self.waiting.clear()
             self.choices.clear()
+            self.answered.clear()
         elif isinstance(message, DecisionRequest):
+            answered = self.answered.get((message.episode, message.request))
+            if answered is not None:  # a re-sent request: the same answer again
+                self.publisher.publish(**answered)
+                return
             self.waiting[(message.episode, message.request)] = (time.monotonic(), message)
             self._decide_if_chosen((message.episode, message.request))
         elif isinstance(message, ModelChoice) and message.request > 0:
@@ -96,17 +102,19 @@ class IntentNode:
             request.primary_axis,
             human_model,
         )
-        self.publisher.publish(
-            episode=request.episode,
-            request=request.request,
-            u_h=decision.intent.u_h,
-            human_model=human_model,
-            radius_m=decision.intent.radius_m,
-            confidence=1.0,
-            source="simulated",
-            decision_s=decision.decision_s,
-            correct=decision.correct,
-        )
+        fields: dict[str, Any] = {
+            "episode": request.episode,
+            "request": request.request,
+            "u_h": decision.intent.u_h,
+            "human_model": human_model,
+            "radius_m": decision.intent.radius_m,
+            "confidence": 1.0,
+            "source": "simulated",
+            "decision_s": decision.decision_s,
+            "correct": decision.correct,
+        }
+        self.answered[(request.episode, request.request)] = fields
+        self.publisher.publish(**fields)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

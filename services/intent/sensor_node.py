@@ -34,6 +34,7 @@ class SensorIntentNode:
         self.decoder = PressDecoder(self.calibration, settings.decoder)
         self.sensor = SerialSensor(settings.port, settings.baud_rate, settings.reconnect_max_s)
         self.request: DecisionRequest | None = None
+        self.seen_requests: set[tuple[int, int]] = set()  # the controller re-sends unanswered
         self.request_wall_s = 0.0
         self.ignored_presses = 0
         self.samples = bus.publisher(SensorSample)
@@ -53,7 +54,9 @@ class SensorIntentNode:
 
     def _dispatch(self, message: Message) -> None:
         if isinstance(message, DecisionRequest):
-            self.request, self.request_wall_s = message, time.monotonic()
+            if (message.episode, message.request) not in self.seen_requests:
+                self.seen_requests.add((message.episode, message.request))  # not a repeat
+                self.request, self.request_wall_s = message, time.monotonic()
         elif isinstance(message, TaskGoal):
             self.request = None
 

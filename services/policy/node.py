@@ -40,6 +40,7 @@ class PolicyNode:
         self.latest: CoreChoice = self.policy.decide(np.zeros(3), np.zeros(3))
         self.episode = 0
         self.real_human = False
+        self.answers: dict[tuple[int, int], CoreChoice] = {}  # this episode's choices
         self._new_episode(0)
         self.publisher = bus.publisher(ModelChoice)
         self.posterior = HumanModelPosterior(human)
@@ -54,12 +55,7 @@ class PolicyNode:
         while not stop.is_set():
             message = self.bus.receive(self.settings.publish_period_s)
             if isinstance(message, DecisionRequest):
-                self._new_episode(message.episode)
-                self.requests[(message.episode, message.request)] = message
-                ee, goal = np.array(message.ee_pos_m), np.array(message.goal_m)
-                human = self.posterior.map_model if self.estimating else None
-                self.latest = self.policy.decide(ee, goal, human)
-                self._publish(message.request)
+                self._answer(message)
             elif isinstance(message, Intent):
                 self._observe_human(message)
             elif isinstance(message, TaskGoal):
@@ -67,6 +63,18 @@ class PolicyNode:
             else:
                 self._publish(-1)
             self.bus.report_health(self.health, self.description)
+
+    def _answer(self, message: DecisionRequest) -> None:
+        """Choose M_ij for a request; a re-sent request gets the same choice again."""
+        self._new_episode(message.episode)
+        request = (message.episode, message.request)
+        if request not in self.answers:
+            self.requests[request] = message
+            ee, goal = np.array(message.ee_pos_m), np.array(message.goal_m)
+            human = self.posterior.map_model if self.estimating else None
+            self.answers[request] = self.policy.decide(ee, goal, human)
+        self.latest = self.answers[request]
+        self._publish(message.request)
 
     @property
     def estimating(self) -> bool:
@@ -87,6 +95,7 @@ class PolicyNode:
         if episode != self.episode or episode == 0:
             self.episode = episode
             self.policy.reset()
+            self.answers.clear()
 
     def _publish(self, request: int) -> None:
         choice = self.latest
