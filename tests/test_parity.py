@@ -83,13 +83,24 @@ def _by_episode(messages: list[Message], seeds: range) -> dict[int, BusEpisode]:
             seen.goal = message
         elif isinstance(message, RobotState):
             seen.states.append(message)
-        elif isinstance(message, Intent):
+        elif isinstance(message, Intent) and _first_answer(seen.intents, message):
             seen.intents.append(message)
         elif isinstance(message, ModelChoice) and message.request > 0:
-            seen.choices.append(message)
+            if _first_answer(seen.choices, message):
+                seen.choices.append(message)
         elif isinstance(message, EpisodeResult):
             seen.result = message
     return episodes
+
+
+def _first_answer(answers: list[Intent] | list[ModelChoice], message: Intent | ModelChoice) -> bool:
+    """A re-sent request is answered again with the same answer: count it once (and check
+    it is the same)."""
+    same = [a for a in answers if a.request == message.request]
+    for earlier in same:
+        fields = earlier.model_dump(exclude={"header"})
+        assert fields == message.model_dump(exclude={"header"}), "a repeat answered otherwise"
+    return not same
 
 
 def _in_process(

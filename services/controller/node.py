@@ -87,6 +87,9 @@ class ControllerNode:
         self.choice_wait_s = (
             bus.settings.lockstep_timeout_s / 4 if lockstep else settings.choice_wait_s
         )
+        # in lockstep the answer must come within the wait for it: ask again sooner
+        resend = settings.request_resend_s
+        self.resend_s = min(resend, bus.settings.lockstep_timeout_s / 8) if lockstep else resend
         self.choice = (settings.human_model, settings.robot_model)  # until the policy speaks
         self.episode: Episode | None = None
         self.reach: Reach | None = None
@@ -214,7 +217,7 @@ class ControllerNode:
         that joined late or restarted; intent and policy answer a repeat with their first
         answer)."""
         waiting = self.reach is not None and self.reach.asked and self.intent is None
-        if waiting and time.monotonic() - self.request_sent_s > self.settings.request_resend_s:
+        if waiting and time.monotonic() - self.request_sent_s > self.resend_s:
             log.warning("request %d unanswered for %.1f s: sending it again",
                         self.request, time.monotonic() - self.request_sent_s)  # fmt: skip
             self._send_request()
