@@ -67,17 +67,6 @@ def joint_command(message: wire.JointCommand) -> core.JointCommand:
     )
 
 
-def intent(message: wire.Intent, t_s: float) -> core.Intent:
-    """The core's Intent, stamped with the robot clock ``t_s`` of its arrival."""
-    return core.Intent(
-        t_s=t_s,
-        u_h=message.u_h,
-        radius_m=message.radius_m,
-        human_model=message.human_model,
-        confidence=message.confidence,
-    )
-
-
 def step_fields(step: core.StepEvent, episode: int) -> dict[str, Any]:
     return {
         "episode": episode,
