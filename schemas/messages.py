@@ -59,6 +59,12 @@ class RobotState(Message):
     q_ref_applied_rad: Joints | None = Field(
         None, description="joint reference the arm applies (after its own caps)"
     )
+    command_answers_ns: int | None = Field(
+        None,
+        ge=0,
+        description="header stamp of the state the command in force answered "
+        "(none: a hold, or no command yet); a late command shows as an older stamp",
+    )
 
 
 class JointCommand(Message):

@@ -14,6 +14,7 @@ its next physics step is applied one period late. The last test measures that.
 
 from __future__ import annotations
 
+import itertools
 import json
 import subprocess
 import sys
@@ -26,7 +27,15 @@ import pytest
 
 from dammrl.core.policy import Policy
 from dammrl.runner import ReachResult, ReachRunner, ReachSettings
-from schemas import EpisodeResult, Intent, Message, ModelChoice, RobotState, TaskGoal
+from schemas import (
+    EpisodeResult,
+    Intent,
+    JointCommand,
+    Message,
+    ModelChoice,
+    RobotState,
+    TaskGoal,
+)
 from services.policy.config import SHIPPED_POLICY
 from services.policy.learned import LearnedPolicy
 from services.sim.config import DomainRandomization, SimSettings
@@ -49,6 +58,7 @@ class BusEpisode:
     states: list[RobotState] = field(default_factory=list)
     intents: list[Intent] = field(default_factory=list)
     choices: list[ModelChoice] = field(default_factory=list)
+    commands: list[JointCommand] = field(default_factory=list)
     result: EpisodeResult | None = None
 
 
@@ -88,6 +98,8 @@ def _by_episode(messages: list[Message], seeds: range) -> dict[int, BusEpisode]:
         elif isinstance(message, ModelChoice) and message.request > 0:
             if _first_answer(seen.choices, message):
                 seen.choices.append(message)
+        elif isinstance(message, JointCommand):
+            seen.commands.append(message)
         elif isinstance(message, EpisodeResult):
             seen.result = message
     return episodes
@@ -140,10 +152,12 @@ def _wire(value: object) -> object:
     return tuple(value) if isinstance(value, list) else value
 
 
-def _path_difference(states: list[RobotState], local: ReachResult) -> float:
+def _path_difference(
+    states: list[RobotState], local: ReachResult, t_end: float | None = None
+) -> float:
     """Largest end-effector difference between the bus states and the in-process log at
-    the same robot times, over the reach (up to its end)."""
-    t_end = local.metrics.t_total_s
+    the same robot times, over the reach (up to its end, or ``t_end``)."""
+    t_end = local.metrics.t_total_s if t_end is None else t_end
     bus = {round(s.t_s, 6): np.array(s.ee_pos_m) for s in states if s.t_s <= t_end + 1e-9}
     traj = local.trajectory
     pairs = [
@@ -151,6 +165,19 @@ def _path_difference(states: list[RobotState], local: ReachResult) -> float:
     ]
     assert len(pairs) >= 0.99 * np.sum(traj.t <= t_end + 1e-9), "bus states missing"
     return max(float(np.max(np.abs(a - b))) for a, b in pairs)
+
+
+def _on_time_until(seen: BusEpisode, t_end: float) -> float:
+    """Robot time of the last state before the first late command: the first step the sim
+    took with another command in force than the answer to the state before it (an older
+    command, a hold), or with that answer changed by the arm's caps."""
+    answers = {c.state_stamp_ns: c.q_ref_rad for c in seen.commands}
+    states = sorted((s for s in seen.states if s.t_s <= t_end + 1e-9), key=lambda s: s.t_s)
+    for before, after in itertools.pairwise(states):
+        answered = after.command_answers_ns == before.header.stamp_ns
+        if not answered or answers.get(before.header.stamp_ns) != after.q_ref_applied_rad:
+            return before.t_s
+    return t_end
 
 
 @pytest.fixture(scope="module")
@@ -194,22 +221,23 @@ def test_real_time_bus_stack_differs_from_the_in_process_runner_only_by_late_com
     runner: ReachRunner,
 ) -> None:
     """In real time the same logic meets the wall clock: the task and start posture are
-    the same; a reach whose commands all reached the sim within their period is the same
-    to the bit, one with a late command drifts by a fraction of a millimetre."""
+    the same, and the path is the same to the bit for as long as every command reached
+    the sim before its next step. How long that is depends on the machine's load (the
+    benchmark ``parity_real_time.py`` measures it); what follows a late command is not
+    compared."""
     seeds = SEEDS[:4]
     bus = _run_stack(seeds, DAMMRL_BUS_LOCKSTEP="false", DAMMRL_CONTROLLER_TRIGGER="fixed",
                      DAMMRL_POLICY_KIND="fixed", DAMMRL_POLICY_HUMAN_MODEL="2",
                      DAMMRL_POLICY_ROBOT_MODEL="1")  # fmt: skip
     local = _in_process(runner, seeds, "fixed", None)
-    identical = 0
     for seed in seeds:
         seen = bus[seed]
         assert seen.goal is not None and seen.result is not None
         np.testing.assert_array_equal(seen.goal.goal_m, local[seed].task.goal)
         q_start = runner.start_posture(local[seed].task.start)
         np.testing.assert_allclose(seen.goal.q_start_rad, q_start, atol=EXACT, rtol=0)
-        identical += _path_difference(seen.states, local[seed]) == 0.0
-    assert identical >= len(seeds) // 2
+        on_time = _on_time_until(seen, local[seed].metrics.t_total_s)
+        assert _path_difference(seen.states, local[seed], on_time) == 0.0, (seed, on_time)
 
 
 def test_dammrl_up_lockstep_prints_what_dammrl_reach_prints(runner: ReachRunner) -> None:

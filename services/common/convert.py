@@ -15,10 +15,15 @@ def _floats(array: np.ndarray) -> tuple[float, ...]:
 
 
 def state_fields(
-    state: core.RobotState, episode: int, holding: bool, q_ref: np.ndarray | None = None
+    state: core.RobotState,
+    episode: int,
+    holding: bool,
+    q_ref: np.ndarray | None = None,
+    command_answers_ns: int | None = None,
 ) -> dict[str, Any]:
     return {
         "q_ref_applied_rad": None if q_ref is None else _floats(q_ref),
+        "command_answers_ns": command_answers_ns,
         "episode": episode,
         "t_s": state.t_s,
         "q_rad": _floats(state.q),

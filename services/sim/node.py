@@ -63,6 +63,7 @@ class SimNode:
         answerable = max(1, round(settings.command_max_age_s * settings.state_rate_hz))
         self.recent_stamps: deque[int] = deque(maxlen=answerable)  # states a command may answer
         self.last_answered_ns = -1  # the state the last applied command answered
+        self.in_force_answers_ns: int | None = None  # ... while that command is in force
         self.last_apply_t_s = 0.0
         self.clamped = 0  # commands the caps changed
         self.last_stamp_ns = -1
@@ -103,6 +104,7 @@ class SimNode:
                 self.episode,
                 self.holding,
                 None if self.sim.applied is None else self.sim.applied.q_ref,
+                self.in_force_answers_ns,
             )
         )
         self.last_stamp_ns = message.header.stamp_ns
@@ -154,6 +156,7 @@ class SimNode:
                 log.warning("command #%d clamped: %s", self.clamped, guarded.reason)
         self.command = guarded.command
         self.last_answered_ns = message.state_stamp_ns
+        self.in_force_answers_ns = message.state_stamp_ns
         self.last_apply_t_s = self.state.t_s
         self.command_wall_s = time.monotonic()
         self.answered |= message.state_stamp_ns == self.last_stamp_ns
@@ -205,6 +208,7 @@ class SimNode:
             )
         )
         self.last_apply_t_s = self.sim.t_s
+        self.in_force_answers_ns = None
         self.holding = True
 
     def _reset(self, goal: TaskGoal) -> None:
