@@ -24,7 +24,13 @@ from pathlib import Path
 
 import zenoh
 
-from dammrl.core.errors import DammrlError
+from dammrl.core.errors import (
+    ConfigurationError,
+    DammrlError,
+    Exit,
+    JobFailedError,
+    UsageError,
+)
 from schemas import (
     DecisionRequest,
     DecodeError,
@@ -116,12 +122,12 @@ def check_options(options: StackOptions) -> None:
     if options.mode not in MODES:
         raise DammrlError(f"mode {options.mode!r} is not available; choose from {sorted(MODES)}")
     if options.mode == "semi-virtual" and options.lockstep:
-        raise DammrlError(
+        raise UsageError(
             "--lockstep is for simulation only: in semi-virtual mode a person at the sensor "
             "needs real time"
         )
     if options.mode == "semi-virtual" and not options.serial_port:
-        raise DammrlError("semi-virtual mode needs --port (the pressure sensor's serial device)")
+        raise UsageError("semi-virtual mode needs --port (the pressure sensor's serial device)")
     if options.calibration is not None:
         from services.intent.calibration import load_calibration
 
@@ -253,7 +259,7 @@ class Stack:
                 return
             time.sleep(0.2)
         if not stop.is_set():
-            raise DammrlError(f"services not alive after {START_TIMEOUT_S:.0f} s")
+            raise JobFailedError(f"services not alive after {START_TIMEOUT_S:.0f} s")
 
     def _watch(
         self, results: zenoh.Subscriber[zenoh.handlers.Handler[zenoh.Sample]], stop: SignalStop
@@ -276,7 +282,7 @@ class Stack:
                 self.info(summary(self.results))
                 return 0
         self.info(f"stopping on signal {stop.signum}")
-        return 0
+        return Exit.OK if total is None else Exit.INTERRUPTED  # open-ended: a signal ends it
 
     def _accept(self, payload: bytes) -> EpisodeResult | None:
         """An episode result to count, or None (logged): undecodable, not from the
@@ -308,8 +314,10 @@ class Stack:
     def _check_children(self) -> None:
         for name, child in self.children.items():
             code = child.poll()
+            if code == Exit.BAD_INPUT:
+                raise ConfigurationError(f"service {name} cannot start (its log says why)")
             if code is not None:
-                raise DammrlError(f"service {name} exited unexpectedly with code {code}")
+                raise JobFailedError(f"service {name} exited unexpectedly with code {code}")
 
     def _stop_children(self) -> None:
         for child in self.children.values():

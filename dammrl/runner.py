@@ -17,7 +17,7 @@ from collections.abc import Generator
 from dataclasses import dataclass, field
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict
+from pydantic import BaseModel, ConfigDict, Field
 
 from dammrl.core.dynamics import ArmModel
 from dammrl.core.human import HumanModel
@@ -51,12 +51,12 @@ class ReachSettings(BaseModel):
 
     fast_forward: bool = True
     """Step idle stretches (controller waiting for the human) in one MuJoCo rollout."""
-    sim: SimSettings = SimSettings()
-    controller: ControllerSettings = ControllerSettings()
-    human: HumanModel = HumanModel()
-    models: ModelSet = ModelSet()
-    robot: RobotSettings = RobotSettings()
-    task: TaskSettings = TaskSettings()
+    sim: SimSettings = Field(default_factory=SimSettings)
+    controller: ControllerSettings = Field(default_factory=ControllerSettings)
+    human: HumanModel = Field(default_factory=HumanModel)
+    models: ModelSet = Field(default_factory=ModelSet)
+    robot: RobotSettings = Field(default_factory=RobotSettings)
+    task: TaskSettings = Field(default_factory=TaskSettings)
 
 
 @dataclass

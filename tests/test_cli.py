@@ -8,6 +8,7 @@ from pathlib import Path
 import pytest
 
 from dammrl.cli import main
+from dammrl.core.errors import Exit
 
 KEYS = {
     "success", "t_total_s", "t_step_mean_s", "final_error_m", "n_osc", "jerk_isj",
@@ -50,8 +51,9 @@ def test_bad_setting_from_the_environment_is_a_clear_error(
     monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
     monkeypatch.setenv("DAMMRL_CONTROLLER_FIXED_PERIOD_S", "-1")
-    assert main(["reach"]) == 2
-    assert "fixed_period_s" in capsys.readouterr().err
+    assert main(["reach"]) == Exit.BAD_INPUT
+    err = capsys.readouterr().err
+    assert "DAMMRL_CONTROLLER_FIXED_PERIOD_S='-1'" in err and err.count("\n") == 1
 
 
 def test_sensor_list_prints_ports_or_says_none(capsys: pytest.CaptureFixture[str]) -> None:
@@ -94,7 +96,7 @@ def test_lockstep_is_refused_with_a_person_at_the_sensor(
     capsys: pytest.CaptureFixture[str],
 ) -> None:
     code = main(["up", "--mode", "semi-virtual", "--port", "/dev/null", "--lockstep"])
-    assert code == 2
+    assert code == Exit.USAGE
     assert "--lockstep is for simulation only" in capsys.readouterr().err
 
 

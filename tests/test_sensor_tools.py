@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from dammrl.core.errors import ConfigurationError
+from dammrl.core.errors import ConfigurationError, Exit
 from dammrl.sensor import calibrate
 from services.intent.calibration import (
     CalibrationError,
@@ -126,7 +126,7 @@ def test_monitor_uses_the_intent_services_decoder_settings(tmp_path: Path) -> No
 def test_monitor_and_calibrate_say_when_no_sensor_answers(tmp_path: Path) -> None:
     for action in (["monitor"], ["calibrate", "--yes"]):
         done = _dammrl("sensor", *action, "--port", str(tmp_path / "nothing"))
-        assert done.returncode == 2 and "no valid frame" in done.stderr, done.stderr
+        assert done.returncode == Exit.BAD_INPUT and "no valid frame" in done.stderr, done.stderr
 
 
 def test_calibrate_command_guides_a_person_and_saves_a_file(tmp_path: Path) -> None:
@@ -156,5 +156,5 @@ def test_paths_that_cannot_be_used_are_clear_errors(tmp_path: Path) -> None:
         ["recording", "plot", str(tmp_path / "none.mcap"), "-o", str(missing / "s2.png")],
     ):
         done = _dammrl(*args)
-        assert done.returncode == 2 and "dammrl: error" in done.stderr, done.stderr
+        assert done.returncode == Exit.BAD_INPUT and "dammrl: error" in done.stderr, done.stderr
         assert "Traceback" not in done.stderr

@@ -13,7 +13,8 @@ from collections.abc import Sequence
 from pydantic import ValidationError
 
 from dammrl.cli import bus, reach, recording, rl, sensor, stack
-from dammrl.core.errors import DammrlError
+from dammrl.core.errors import EXIT_CODES_HELP, DammrlError, Exit
+from dammrl.core.settings import error_line
 
 GROUPS = (
     reach.register,
@@ -28,25 +29,25 @@ GROUPS = (
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Run one command; its exit code, 2 for a one-line error (bad usage exits 2 too)."""
+    """Run one command; its exit code (``Exit``): a bad setting, file or device is one
+    line on stderr."""
     args = parser().parse_args(argv)
     try:
         return int(args.handler(args))
-    except DammrlError as exc:
-        print(f"dammrl: error: {exc}", file=sys.stderr)
-        return 2
-    except ValidationError as exc:  # a setting (flag or DAMMRL_* variable) out of range
-        print(f"dammrl: invalid settings: {exc}", file=sys.stderr)
-        return 2
-    except OSError as exc:  # a path given on the command line: unwritable, missing, busy
-        print(f"dammrl: error: {exc}", file=sys.stderr)
-        return 2
+    except (DammrlError, ValidationError, OSError) as exc:  # OSError: a path or device
+        print(f"dammrl: error: {error_line(exc)}", file=sys.stderr)
+        return exc.exit_code if isinstance(exc, DammrlError) else Exit.BAD_INPUT
+    except KeyboardInterrupt:
+        print("dammrl: interrupted", file=sys.stderr)
+        return Exit.INTERRUPTED
 
 
 def parser() -> argparse.ArgumentParser:
     """The ``dammrl`` parser with every command group."""
     top = argparse.ArgumentParser(
-        prog="dammrl", description="Event-triggered human-robot co-adaptation (DAMMRL)."
+        prog="dammrl",
+        description="Event-triggered human-robot co-adaptation (DAMMRL).",
+        epilog=EXIT_CODES_HELP,
     )
     commands = top.add_subparsers(required=True, metavar="COMMAND")
     for register in GROUPS:

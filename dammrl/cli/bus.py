@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 
 from dammrl.cli.common import Commands, print_err, print_out
+from dammrl.core.errors import Exit
 
 
 def register(commands: Commands) -> None:
@@ -26,7 +27,7 @@ def _init(args: argparse.Namespace) -> int:
 
     if args.out.exists() and any(args.out.iterdir()):
         print_err(f"dammrl: error: {args.out} is not empty; choose a new folder")
-        return 2
+        return Exit.BAD_INPUT
     create_credentials(args.out, args.host)
     print_out(f"credentials for {', '.join(ROLES)} in {args.out}")
     print_out(f"every service and tool: DAMMRL_BUS_CREDENTIALS={args.out.resolve()} and tls/ "

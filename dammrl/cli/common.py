@@ -19,6 +19,7 @@ Commands: TypeAlias = "argparse._SubParsersAction[argparse.ArgumentParser]"
 DEFAULT_CONNECT = "tcp/127.0.0.1:7447"
 """Where a client looks for the stack: the default endpoint of ``dammrl up``."""
 
+
 UNITS = {"t_total_s": "s", "t_step_mean_s": "s", "final_error_m": "m", "jerk_isj": "m^2/s^5"}
 
 

@@ -10,10 +10,12 @@ from collections.abc import Sequence
 
 import numpy as np
 from pydantic import Field
-from pydantic_settings import BaseSettings, SettingsConfigDict
+from pydantic_settings import SettingsConfigDict
+
+from dammrl.core.settings import Settings
 
 
-class HumanModel(BaseSettings):
+class HumanModel(Settings):
     """Accuracy and decision time per human sub-model i (``DAMMRL_HUMAN_``).
 
     Decision times are lognormal: median ``decision_median_*_s``, log-sd
@@ -21,7 +23,7 @@ class HumanModel(BaseSettings):
     adults are 0.3-0.6 s; a hurried choice under E_big is faster and less accurate).
     """
 
-    model_config = SettingsConfigDict(env_prefix="DAMMRL_HUMAN_", frozen=True, extra="forbid")
+    model_config = SettingsConfigDict(env_prefix="DAMMRL_HUMAN_")
 
     accuracy_big: float = Field(0.8, gt=0, lt=1)
     """Probability of a correct command (toward the goal) under E_big (i = 1)."""

@@ -16,16 +16,17 @@ from typing import Literal
 
 import numpy as np
 from pydantic import Field
-from pydantic_settings import BaseSettings, SettingsConfigDict
+from pydantic_settings import SettingsConfigDict
 
 from dammrl.core.errors import ConfigurationError
+from dammrl.core.settings import Settings
 
 HUMAN_MODELS = (1, 2)
 ROBOT_MODELS = tuple(range(1, 9))
 RadiusName = Literal["E_big", "E_small"]
 
 
-class ModelSet(BaseSettings):
+class ModelSet(Settings):
     """Numbers behind each M_ij: admission radii [m] and step magnitudes [m] per axis.
 
     One setting for the whole stack (environment prefix ``DAMMRL_MODELS_``): the human,
@@ -33,9 +34,7 @@ class ModelSet(BaseSettings):
     the one the trigger uses.
     """
 
-    model_config = SettingsConfigDict(
-        env_prefix="DAMMRL_MODELS_", env_nested_delimiter="__", frozen=True, extra="forbid"
-    )
+    model_config = SettingsConfigDict(env_prefix="DAMMRL_MODELS_")
 
     e_big_m: float = Field(0.010, gt=0, description="admission radius E_big [m]")
     e_small_m: float = Field(0.004, gt=0, description="admission radius E_small [m]")

@@ -13,22 +13,21 @@ from dataclasses import dataclass
 
 import numpy as np
 from pydantic import Field
-from pydantic_settings import BaseSettings, SettingsConfigDict
+from pydantic_settings import SettingsConfigDict
 
 from dammrl.core.dynamics import ArmModel
 from dammrl.core.errors import ConfigurationError, IKError
 from dammrl.core.ik import DampedLeastSquaresIK
 from dammrl.core.robot.scene import SceneLayout
+from dammrl.core.settings import PerJoint, Settings
 
 START_ACCEPT_ERROR_M = 1e-4  # a start posture farther than this from x_s is refused
 
 
-class TaskSettings(BaseSettings):
+class TaskSettings(Settings):
     """Environment prefix ``DAMMRL_TASK_``."""
 
-    model_config = SettingsConfigDict(
-        env_prefix="DAMMRL_TASK_", env_nested_delimiter="__", frozen=True, extra="forbid"
-    )
+    model_config = SettingsConfigDict(env_prefix="DAMMRL_TASK_")
 
     goal_tolerance_m: float = Field(0.015, gt=0)
     """eps_g: success when ||x - x_g|| <= eps_g (half the button cap radius) [m]."""
@@ -46,7 +45,7 @@ class TaskSettings(BaseSettings):
     """Allowed ||x_g - x_s|| [m]."""
     table_top_z_m: float = -0.25
     """Table height in the robot base frame [m] (the shoulder is the origin)."""
-    home_q_rad: tuple[float, float, float, float, float, float] = (0.0, 1.0, 0.0, 1.6, 0.0, 0.3)
+    home_q_rad: PerJoint = (0.0, 1.0, 0.0, 1.6, 0.0, 0.3)
     """Posture from which the start posture is solved [rad]."""
     start_limit_margin_rad: float = Field(0.02, ge=0, le=0.2)
     """The start posture stays this far inside the joint limits [rad]."""

@@ -4,8 +4,10 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field
-from pydantic_settings import BaseSettings, SettingsConfigDict
+from pydantic import BaseModel, Field
+from pydantic_settings import SettingsConfigDict
+
+from dammrl.core.settings import FINITE, Settings
 
 
 class RewardWeights(BaseModel):
@@ -18,7 +20,7 @@ class RewardWeights(BaseModel):
     waypoint reversals during the step, ``R_success`` 1 when the reach succeeds.
     """
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
+    model_config = FINITE
 
     alpha: float = Field(1.0, ge=0)
     beta: float = Field(1.0, ge=0)
@@ -32,10 +34,10 @@ class RewardWeights(BaseModel):
         return cls(beta=0.0) if reward == 1 else cls()
 
 
-class TrainSettings(BaseSettings):
+class TrainSettings(Settings):
     """DQN hyper-parameters shared by both agents."""
 
-    model_config = SettingsConfigDict(env_prefix="DAMMRL_RL_", frozen=True, extra="forbid")
+    model_config = SettingsConfigDict(env_prefix="DAMMRL_RL_")
 
     episodes: int = Field(1500, ge=1)
     """Training episodes."""

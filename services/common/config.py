@@ -10,15 +10,16 @@ from pathlib import Path
 from typing import Literal, Self
 
 from pydantic import Field, model_validator
-from pydantic_settings import BaseSettings, SettingsConfigDict
+from pydantic_settings import SettingsConfigDict
 
+from dammrl.core.settings import Settings
 from schemas import DEFAULT_NAMESPACE
 
 
-class BusSettings(BaseSettings):
+class BusSettings(Settings):
     """How a service joins the Zenoh network."""
 
-    model_config = SettingsConfigDict(env_prefix="DAMMRL_BUS_", frozen=True, extra="forbid")
+    model_config = SettingsConfigDict(env_prefix="DAMMRL_BUS_")
 
     mode: Literal["peer", "client", "router"] = "peer"
     """Zenoh mode: peers talk directly; clients go through a router."""

@@ -9,7 +9,8 @@ from typing import Protocol
 
 from pydantic import ValidationError
 
-from dammrl.core.errors import DammrlError
+from dammrl.core.errors import EXIT_CODES_HELP, DammrlError, Exit
+from dammrl.core.settings import error_line
 from services.common.bus import Bus
 from services.common.config import BusSettings
 from services.common.logs import setup_logging
@@ -19,6 +20,8 @@ EPILOG = """\
 Every setting can also come from the environment: DAMMRL_BUS_* for the bus (MODE,
 LISTEN and CONNECT as JSON lists, MULTICAST_SCOUTING, NAMESPACE) and the service's own
 prefix ({prefixes}); see the README and the settings classes for names and units.
+
+{exit_codes}
 """
 
 
@@ -39,7 +42,7 @@ def run_service(
     parser = argparse.ArgumentParser(
         prog=f"python -m services.{name}",
         description=description,
-        epilog=EPILOG.format(prefixes=prefixes),
+        epilog=EPILOG.format(prefixes=prefixes, exit_codes=EXIT_CODES_HELP),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("--mode", choices=["peer", "client", "router"], help="Zenoh mode")
@@ -65,7 +68,7 @@ def run_service(
             log.info("up on namespace %r", settings.namespace)
             node.run(stop)
     except (ValidationError, DammrlError) as exc:
-        log.error("cannot start: %s", exc)
-        return 2
+        log.error("cannot start: %s", error_line(exc))
+        return Exit.BAD_INPUT
     log.info("stopped")
-    return 0
+    return Exit.OK

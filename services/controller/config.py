@@ -5,20 +5,19 @@ from __future__ import annotations
 from typing import Literal
 
 from pydantic import Field
-from pydantic_settings import BaseSettings, SettingsConfigDict
+from pydantic_settings import SettingsConfigDict
 
 from dammrl.core.ik import IKSolverName, LatencyMode
+from dammrl.core.settings import PerJointNonNegative, Settings
 
 Trigger = Literal["event", "fixed"]
 Feedforward = Literal["inverse_dynamics", "resolved_acceleration"]
 
 
-class ControllerSettings(BaseSettings):
+class ControllerSettings(Settings):
     """How micro-steps are planned, triggered, solved and turned into joint commands."""
 
-    model_config = SettingsConfigDict(
-        env_prefix="DAMMRL_CONTROLLER_", env_nested_delimiter="__", frozen=True, extra="forbid"
-    )
+    model_config = SettingsConfigDict(env_prefix="DAMMRL_CONTROLLER_")
 
     trigger: Trigger = "event"
     """'event': next step when ||x - x_m|| <= eps and dV/dt <= 0; 'fixed': on a timer."""
@@ -56,9 +55,9 @@ class ControllerSettings(BaseSettings):
     """Peak joint speed as a fraction of the URDF velocity limit."""
     min_segment_s: float = Field(0.08, gt=0)
     """Shortest duration of one micro-step segment [s]."""
-    kp: tuple[float, ...] = (400.0, 400.0, 200.0, 200.0, 50.0, 50.0)
+    kp: PerJointNonNegative = (400.0, 400.0, 200.0, 200.0, 50.0, 50.0)
     """Joint stiffness [N m/rad]."""
-    kd: tuple[float, ...] = (30.0, 30.0, 12.0, 12.0, 1.5, 1.5)
+    kd: PerJointNonNegative = (30.0, 30.0, 12.0, 12.0, 1.5, 1.5)
     """Joint damping gains [N m s/rad]."""
     feedforward: Feedforward = "inverse_dynamics"
     """'inverse_dynamics': RNEA along the joint reference; 'resolved_acceleration': the

@@ -6,21 +6,20 @@ from pathlib import Path
 from typing import Literal
 
 from pydantic import Field
-from pydantic_settings import BaseSettings, SettingsConfigDict
+from pydantic_settings import SettingsConfigDict
 
+from dammrl.core.settings import Settings
 from services.intent.decoder import DecoderSettings
 
 
-class IntentSettings(BaseSettings):
+class IntentSettings(Settings):
     """Where the human's decisions come from (``DAMMRL_INTENT_``).
 
     The simulated human's behaviour is the stack's one ``DAMMRL_HUMAN_*`` setting
     (:class:`dammrl.core.human.HumanModel`), the radii the one ``DAMMRL_MODELS_*``.
     """
 
-    model_config = SettingsConfigDict(
-        env_prefix="DAMMRL_INTENT_", env_nested_delimiter="__", frozen=True, extra="forbid"
-    )
+    model_config = SettingsConfigDict(env_prefix="DAMMRL_INTENT_")
 
     source: Literal["simulated", "serial"] = "simulated"
     """Who decides: the simulated human (virtual mode) or a pressure sensor (semi-virtual)."""

@@ -18,13 +18,15 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, Field, model_validator
+
+from dammrl.core.settings import FINITE
 
 
 class Calibration(BaseModel):
     """Raw readings of the pad at rest, under a light press and under a firm press."""
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
+    model_config = FINITE
 
     rest_raw: float = Field(ge=0)
     light_raw: float = Field(ge=0)
@@ -48,7 +50,7 @@ class Calibration(BaseModel):
 
 
 class DecoderSettings(BaseModel):
-    model_config = ConfigDict(frozen=True, extra="forbid")
+    model_config = FINITE
 
     filter_time_constant_s: float = Field(0.03, ge=0)
     on_level: float = Field(0.15, gt=0, lt=1)

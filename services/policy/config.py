@@ -7,17 +7,17 @@ from pathlib import Path
 from typing import Literal
 
 from pydantic import Field
-from pydantic_settings import BaseSettings, SettingsConfigDict
+from pydantic_settings import SettingsConfigDict
+
+from dammrl.core.settings import Settings
 
 SHIPPED_POLICY = Path(str(resources.files("dammrl").joinpath("policies/reward2/checkpoint.pt")))
 
 
-class PolicySettings(BaseSettings):
+class PolicySettings(Settings):
     """Which policy chooses the multi-model M_ij at each decision."""
 
-    model_config = SettingsConfigDict(
-        env_prefix="DAMMRL_POLICY_", env_nested_delimiter="__", frozen=True, extra="forbid"
-    )
+    model_config = SettingsConfigDict(env_prefix="DAMMRL_POLICY_")
 
     kind: Literal["learned", "fixed"] = "learned"
     """'learned': the DQN of ``checkpoint``; 'fixed': always M_{human_model,robot_model}."""

@@ -5,13 +5,15 @@ from __future__ import annotations
 from pathlib import Path
 
 from pydantic import Field
-from pydantic_settings import BaseSettings, SettingsConfigDict
+from pydantic_settings import SettingsConfigDict
+
+from dammrl.core.settings import Settings
 
 
-class RecorderSettings(BaseSettings):
+class RecorderSettings(Settings):
     """Where and how the bus is recorded to MCAP."""
 
-    model_config = SettingsConfigDict(env_prefix="DAMMRL_RECORDER_", frozen=True, extra="forbid")
+    model_config = SettingsConfigDict(env_prefix="DAMMRL_RECORDER_")
 
     out: Path = Path("sessions")
     """A .mcap file, or a directory that receives session-<UTC time>.mcap files."""

@@ -2,14 +2,16 @@
 
 from __future__ import annotations
 
-from pydantic import BaseModel, ConfigDict, Field
-from pydantic_settings import BaseSettings, SettingsConfigDict
+from pydantic import BaseModel, Field
+from pydantic_settings import SettingsConfigDict
+
+from dammrl.core.settings import FINITE, Settings
 
 
 class DomainRandomization(BaseModel):
     """Seeded perturbations of the simulated arm (off by default)."""
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
+    model_config = FINITE
 
     enabled: bool = False
     mass_scale: float = Field(0.15, ge=0, lt=1)
@@ -26,13 +28,11 @@ class DomainRandomization(BaseModel):
     """Standard deviation of end-effector position noise [m]."""
 
 
-class SimSettings(BaseSettings):
+class SimSettings(Settings):
     """The simulated arm's physics (the arm itself is ``DAMMRL_ROBOT_*``, the table
     ``DAMMRL_TASK_*``)."""
 
-    model_config = SettingsConfigDict(
-        env_prefix="DAMMRL_SIM_", env_nested_delimiter="__", frozen=True, extra="forbid"
-    )
+    model_config = SettingsConfigDict(env_prefix="DAMMRL_SIM_")
 
     timestep_s: float = Field(0.001, gt=0, le=0.005)
     """Physics step [s]."""

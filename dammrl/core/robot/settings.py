@@ -4,23 +4,22 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from pydantic_settings import BaseSettings, SettingsConfigDict
+from pydantic_settings import SettingsConfigDict
 
 from dammrl.core.robot.description import DEFAULT_URDF, RobotDescription
+from dammrl.core.settings import PerJointNonNegative, Settings
 
 
-class RobotSettings(BaseSettings):
+class RobotSettings(Settings):
     """The arm's description, environment prefix ``DAMMRL_ROBOT_``."""
 
-    model_config = SettingsConfigDict(
-        env_prefix="DAMMRL_ROBOT_", env_nested_delimiter="__", frozen=True, extra="forbid"
-    )
+    model_config = SettingsConfigDict(env_prefix="DAMMRL_ROBOT_")
 
     urdf_path: Path = DEFAULT_URDF
     """Any 6-DoF URDF; the default is the dammrl reference rehabilitation arm."""
     ee_frame: str = "fingertip"
     """URDF link whose origin is the end-effector point x."""
-    armature_kgm2: tuple[float, ...] = (0.05, 0.05, 0.03, 0.03, 0.01, 0.01)
+    armature_kgm2: PerJointNonNegative = (0.05, 0.05, 0.03, 0.03, 0.01, 0.01)
     """Reflected rotor inertia per joint [kg m^2] (no URDF tag exists for it)."""
 
     def load(self) -> RobotDescription:

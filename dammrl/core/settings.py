@@ -1,0 +1,98 @@
+"""The base of every ``DAMMRL_*`` settings class.
+
+A bad value is one line naming its variable, what was expected and what was given
+(never a traceback); numbers are finite (``inf`` or ``nan`` is no bound).
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from typing import Annotated, Any, ClassVar, TypeAlias
+
+from pydantic import ConfigDict, Field, ValidationError
+from pydantic_settings import BaseSettings, SettingsConfigDict, SettingsError
+
+from dammrl.core.errors import ConfigurationError
+
+FINITE = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
+"""The configuration of a plain settings model nested in a ``Settings`` class."""
+
+_SHOWN_CHARS = 60
+
+_NonNegative = Annotated[float, Field(ge=0)]
+PerJoint: TypeAlias = tuple[float, float, float, float, float, float]
+"""One value per joint, base to wrist (six, no fewer, no more)."""
+PerJointNonNegative: TypeAlias = tuple[
+    _NonNegative, _NonNegative, _NonNegative, _NonNegative, _NonNegative, _NonNegative
+]
+
+
+class Settings(BaseSettings):
+    """Frozen, no unknown fields, finite numbers, nested fields as ``PREFIX_A__B``."""
+
+    model_config: ClassVar[SettingsConfigDict] = SettingsConfigDict(
+        frozen=True, extra="forbid", env_nested_delimiter="__", allow_inf_nan=False
+    )
+
+    def __init__(self, **values: Any) -> None:
+        try:
+            super().__init__(**values)
+        except SettingsError as exc:
+            raise ConfigurationError(_unparsable(type(self), exc)) from None
+        except ValidationError as exc:
+            raise ConfigurationError(invalid_line(type(self), exc)) from None
+
+
+def variable(settings: type[BaseSettings], location: tuple[int | str, ...]) -> str:
+    """The environment variable of a field (``location`` as pydantic reports it)."""
+    prefix = str(settings.model_config.get("env_prefix", ""))
+    names = [str(part).upper() for part in location if isinstance(part, str)]
+    indices = "".join(f"[{part}]" for part in location if isinstance(part, int))
+    return prefix + "__".join(names) + indices
+
+
+def invalid_line(settings: type[BaseSettings], exc: ValidationError) -> str:
+    """Every error of ``exc`` on one line: ``VARIABLE=given: expected``."""
+    parts = []
+    for error in exc.errors(include_url=False):
+        given = _shown(error.get("input"))
+        parts.append(f"{variable(settings, tuple(error['loc']))}={given}: {error['msg']}")
+    return "invalid setting: " + "; ".join(parts)
+
+
+def error_line(exc: Exception) -> str:
+    """Any error as one line; a settings error raised while building a larger model
+    (pydantic wraps it) as its own message."""
+    if not isinstance(exc, ValidationError):
+        return " ".join(str(exc).split())
+    parts = []
+    for error in exc.errors(include_url=False):
+        cause = error.get("ctx", {}).get("error")
+        if isinstance(cause, ConfigurationError):
+            parts.append(str(cause))
+        else:
+            parts.append(f"{'.'.join(map(str, error['loc']))}: {error['msg']}")
+    return "; ".join(parts)
+
+
+def _unparsable(settings: type[BaseSettings], exc: SettingsError) -> str:
+    """A list or nested value that is not JSON."""
+    match = re.search(r'field "([^"]+)"', str(exc))
+    name = variable(settings, (match.group(1),)) if match else str(exc)
+    given = _environment(name)
+    reason = f" ({exc.__cause__})" if exc.__cause__ else ""
+    return (
+        f"invalid setting: {name}={_shown(given)}: expected JSON, e.g. [1, 2] or "
+        f'{{"key": 1}}{reason}'
+    )
+
+
+def _environment(name: str) -> str | None:
+    wanted = name.upper()
+    return next((v for k, v in os.environ.items() if k.upper() == wanted), None)
+
+
+def _shown(value: object) -> str:
+    text = repr(value)
+    return text if len(text) <= _SHOWN_CHARS else text[: _SHOWN_CHARS - 3] + "..."
