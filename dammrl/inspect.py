@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
+import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
 
 import zenoh
 
@@ -12,53 +15,102 @@ from dammrl.core.errors import DammrlError
 from schemas import DecodeError, Health, decode, type_of
 from services.common.bus import zenoh_config
 from services.common.config import BusSettings
+from services.common.runtime import stopping_on_signals
+
+CLOSE_WAIT_S = 1.0
+"""How long a tool waits for its session to close: a hung peer can hold it 10 s."""
 
 
-def status(settings: BusSettings, listen_s: float = 2.5) -> str:
-    """A table of the services alive on the bus with their health and publish rates."""
+@contextlib.contextmanager
+def _session(settings: BusSettings) -> Iterator[zenoh.Session]:
+    """A tool's session, closed in bounded time (the process is about to end anyway)."""
+    session = zenoh.open(zenoh_config(settings))
+    try:
+        yield session
+    finally:
+        closer = threading.Thread(target=_close_quietly, args=(session,), daemon=True)
+        closer.start()
+        closer.join(CLOSE_WAIT_S)
+
+
+def _close_quietly(session: zenoh.Session) -> None:
+    with contextlib.suppress(zenoh.ZError):
+        session.close()  # type: ignore[no-untyped-call]
+
+
+@dataclass
+class Roll:
+    """What ``status`` heard: tokens alive (its own query and what the services see), the
+    last Health of each service, and the services others saw go away (when, Unix time)."""
+
+    alive: set[str] = field(default_factory=set)
+    reports: dict[str, Health] = field(default_factory=dict)
+    missing: dict[str, float] = field(default_factory=dict)
+
+    def hear(self, report: Health) -> None:
+        self.reports[report.service] = report
+        self.alive |= set(report.peers)
+        for name, when in report.missing.items():
+            self.missing[name] = max(when, self.missing.get(name, 0.0))
+
+    def names(self) -> set[str]:
+        return self.alive | set(self.reports) | set(self.missing)
+
+
+def status(settings: BusSettings, listen_s: float = 2.5) -> tuple[str, bool]:
+    """A table of the services on the bus with their health and publish rates, and
+    whether every service heard of is alive and reporting."""
     ns = settings.namespace
-    with zenoh.open(zenoh_config(settings)) as session:
+    roll = Roll()
+    with _session(settings) as session:
         health = session.declare_subscriber(f"{ns}/health/*")
         time.sleep(0.3)  # let the connection settle before asking
-        alive = sorted(
+        roll.alive |= {
             str(r.ok.key_expr).rsplit("/", 1)[-1]
             for r in session.liveliness().get(f"{ns}/alive/*", timeout=1.0)
             if r.ok is not None
-        )
-        reports: dict[str, Health] = {}
+        }
         deadline = time.monotonic() + listen_s
         while time.monotonic() < deadline:
             sample = health.try_recv()
             if sample is None:
                 time.sleep(0.02)
                 continue
-            try:
-                report = decode(Health, sample.payload.to_bytes())
-            except DecodeError:
-                continue
-            reports[report.service] = report
-    return _status_table(alive, reports)
+            with contextlib.suppress(DecodeError):
+                roll.hear(decode(Health, sample.payload.to_bytes()))
+    names = roll.names()
+    for name in roll.alive:
+        roll.missing.pop(name, None)  # back since (a restarted service)
+    healthy = bool(names) and all(n in roll.alive and n in roll.reports for n in names)
+    return _status_table(roll, listen_s), healthy
 
 
-def _status_table(alive: list[str], reports: dict[str, Health]) -> str:
-    if not alive and not reports:
+def _status_table(roll: Roll, listen_s: float) -> str:
+    names = sorted(roll.names())
+    if not names:
         return "no service alive on this namespace (is the stack up, are the endpoints right?)"
     lines = [f"{'service':12s} {'alive':6s} {'state':8s} {'rejected':>8s}  rates / detail"]
-    for name in sorted(set(alive) | set(reports)):
-        report = reports.get(name)
-        if report is None:
-            lines.append(f"{name:12s} {'yes':6s} {'?':8s} {'?':>8s}  no health report yet")
-            continue
-        rates = ", ".join(
-            f"{k.split('/', 1)[-1]} {v:.0f} Hz" for k, v in report.rates_hz.items() if v
-        )
-        rejected = sum(report.rejected.values())
-        detail = "; ".join(filter(None, [rates, report.detail]))
-        is_alive = "yes" if name in alive else "NO"
-        lines.append(f"{name:12s} {is_alive:6s} {report.state:8s} {rejected:8d}  {detail}")
-        for where, count in report.rejected.items():
-            lines.append(f"{'':12s} {'':6s} {'':8s} {count:8d}  rejected on {where}")
+    for name in names:
+        lines += _service_lines(name, roll, listen_s)
     return "\n".join(lines)
+
+
+def _service_lines(name: str, roll: Roll, listen_s: float) -> list[str]:
+    report = roll.reports.get(name)
+    if name not in roll.alive and report is None:
+        ago = time.time() - roll.missing[name]
+        return [f"{name:12s} {'NO':6s} {'missing':8s} {'':>8s}  last seen {ago:.0f} s ago"]
+    if report is None:
+        silence = f"no health report in {listen_s:.1f} s (hung, or just started?)"
+        return [f"{name:12s} {'yes':6s} {'silent':8s} {'?':>8s}  {silence}"]
+    rates = ", ".join(f"{k.split('/', 1)[-1]} {v:.0f} Hz" for k, v in report.rates_hz.items() if v)
+    rejected = sum(report.rejected.values())
+    detail = "; ".join(filter(None, [rates, report.detail]))
+    is_alive = "yes" if name in roll.alive else "NO"
+    lines = [f"{name:12s} {is_alive:6s} {report.state:8s} {rejected:8d}  {detail}"]
+    for where, count in report.rejected.items():
+        lines.append(f"{'':12s} {'':6s} {'':8s} {count:8d}  rejected on {where}")
+    return lines
 
 
 def echo(
@@ -69,15 +121,18 @@ def echo(
     duration_s: float | None = None,
     out: Callable[[str], None] = print,
 ) -> int:
-    """Print the decoded messages on ``<namespace>/<topic>`` (or their rate with ``hz``)."""
+    """Print the decoded messages on ``<namespace>/<topic>`` (or their rate with ``hz``)
+    until ``count``, ``duration_s``, Ctrl-C or a closed pipe; how many arrived."""
     key_expr = f"{settings.namespace}/{topic.strip('/')}"
     if type_of(settings.namespace, key_expr.replace("*", "x")) is None and "*" not in topic:
         raise DammrlError(f"unknown topic {topic!r}: see `dammrl schemas` for the topics")
     seen, window, window_start = 0, 0, time.monotonic()
     end = None if duration_s is None else time.monotonic() + duration_s
-    with zenoh.open(zenoh_config(settings)) as session:
+    with stopping_on_signals() as stop, _session(settings) as session:
         subscriber = session.declare_subscriber(key_expr)
-        while (count is None or seen < count) and (end is None or time.monotonic() < end):
+        while not stop.is_set() and (count is None or seen < count):
+            if end is not None and time.monotonic() >= end:
+                break
             sample = subscriber.try_recv()
             now = time.monotonic()
             if hz and now - window_start >= 1.0:

@@ -200,3 +200,11 @@ class Health(Message):
     rejected: dict[str, int] = Field(default_factory=dict, description="rejected messages per key")
     rates_hz: dict[str, Finite] = Field(default_factory=dict, description="publish rate per key")
     uptime_s: Finite = Field(ge=0)
+    peers: list[str] = Field(
+        default_factory=list, max_length=64, description="services this one sees alive"
+    )
+    missing: dict[str, Finite] = Field(
+        default_factory=dict,
+        description="services this one saw alive that are gone: when it last saw each "
+        "(Unix time) [s]",
+    )

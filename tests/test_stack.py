@@ -174,7 +174,8 @@ def test_status_lists_every_service_and_echo_decodes_a_topic(
     from tests.busutil import client_settings
 
     wait_for(lambda: _steps(observer) >= 1, 60, "the reach to start")
-    table = status(client_settings(port))
+    table, healthy = status(client_settings(port))
+    assert healthy, table
     for name in SERVICES:
         assert any(line.split()[:2] == [name, "yes"] for line in table.splitlines()), table
     rate = re.search(r"robot/state (\d+) Hz", table)
@@ -183,6 +184,46 @@ def test_status_lists_every_service_and_echo_decodes_a_topic(
     assert echo(client_settings(port), "robot/state", count=3, out=lines.append) == 3
     decoded = [json.loads(line) for line in lines]
     assert all(d["key"] == "dammrl/robot/state" and len(d["q_rad"]) == 6 for d in decoded)
+
+
+def _dammrl(port: int, *args: str, timeout_s: float = 30) -> subprocess.CompletedProcess[str]:
+    command = [sys.executable, "-m", "dammrl", *args, "--connect", f"tcp/127.0.0.1:{port}"]
+    return subprocess.run(command, capture_output=True, text=True, timeout=timeout_s, check=False)
+
+
+def test_status_names_a_hung_service_and_a_dead_one_in_bounded_time(
+    stack: Stack, observer: Observer, port: int
+) -> None:
+    wait_for(lambda: _steps(observer) >= 1, 60, "the reach to start")
+    stack.processes["intent"].send_signal(signal.SIGSTOP)  # hung: alive, silent
+    stack.kill("policy")  # dead
+    try:
+        started = time.monotonic()
+        done = _dammrl(port, "status")
+        took = time.monotonic() - started
+    finally:
+        stack.processes["intent"].send_signal(signal.SIGCONT)
+    rows = {line.split()[0]: line.split()[1:3] for line in done.stdout.splitlines()[1:]}
+    assert rows.get("intent") == ["yes", "silent"], done.stdout
+    assert rows.get("policy") == ["NO", "missing"], done.stdout
+    assert done.returncode == 1 and "Traceback" not in done.stderr, done.stderr
+    assert took < 10, f"status took {took:.1f} s"  # start-up ~1.5 s + 0.3 + 1 + 2.5 listening
+
+
+def test_echo_ends_cleanly_on_ctrl_c_and_says_when_nothing_came(
+    stack: Stack, observer: Observer, port: int
+) -> None:
+    wait_for(lambda: _steps(observer) >= 1, 60, "the reach to start")
+    command = [sys.executable, "-m", "dammrl", "echo", "robot/state",
+               "--connect", f"tcp/127.0.0.1:{port}"]  # fmt: skip
+    echo = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    assert echo.stdout is not None
+    assert echo.stdout.readline().startswith("{")
+    echo.send_signal(signal.SIGINT)
+    _, err = echo.communicate(timeout=15)
+    assert echo.returncode == 0 and "Traceback" not in err, err
+    quiet = _dammrl(port, "echo", "task/result", "--duration", "1")
+    assert quiet.returncode == 1 and "nothing received on task/result" in quiet.stderr
 
 
 def test_dammrl_up_exits_non_zero_when_a_service_dies(port: int) -> None:

@@ -7,6 +7,7 @@ and their handlers; this module builds the parser and turns errors into exit cod
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from collections.abc import Sequence
 
@@ -34,6 +35,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser().parse_args(argv)
     try:
         return int(args.handler(args))
+    except BrokenPipeError:  # `dammrl echo ... | head`: the reader has what it wanted
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return Exit.OK
     except (DammrlError, ValidationError, OSError) as exc:  # OSError: a path or device
         print(f"dammrl: error: {error_line(exc)}", file=sys.stderr)
         return exc.exit_code if isinstance(exc, DammrlError) else Exit.BAD_INPUT

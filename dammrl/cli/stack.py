@@ -16,6 +16,7 @@ from dammrl.cli.common import (
     print_err,
     print_out,
 )
+from dammrl.core.errors import Exit
 from schemas import DEFAULT_NAMESPACE, TOPICS
 
 CONNECT_HELP = f"where the stack listens (default {DEFAULT_CONNECT})"
@@ -97,19 +98,23 @@ def _up(args: argparse.Namespace) -> int:
 
 
 def _status(args: argparse.Namespace) -> int:
-    """Print the services alive on the bus."""
+    """Print the services on the bus; exit 1 unless every one is alive and reporting."""
     from dammrl.inspect import status
 
-    print(status(bus_settings(args)))
-    return 0
+    table, healthy = status(bus_settings(args))
+    print_out(table)
+    return Exit.OK if healthy else Exit.FAILED
 
 
 def _echo(args: argparse.Namespace) -> int:
-    """Print one topic's messages (or its rate) until a count, a duration or Ctrl-C."""
+    """Print one topic's messages (or its rate) until a count, a duration or Ctrl-C; exit 1
+    if nothing arrived."""
     from dammrl.inspect import echo
 
-    echo(bus_settings(args), args.topic, hz=args.hz, count=args.count, duration_s=args.duration)
-    return 0
+    seen = echo(bus_settings(args), args.topic, args.hz, args.count, args.duration, print_out)
+    if seen == 0:
+        print_err(f"dammrl: nothing received on {args.topic}")
+    return Exit.OK if seen else Exit.FAILED
 
 
 def _schemas(args: argparse.Namespace) -> int:

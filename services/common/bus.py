@@ -23,6 +23,7 @@ from services.common.config import BusSettings
 from services.common.security import ROLES, secure_config_entries
 
 M = TypeVar("M", bound=Message)
+MAX_NAME, MAX_PEERS = 64, 32
 log = logging.getLogger("dammrl.bus")
 
 
@@ -93,13 +94,18 @@ class Bus:
         self._next_health = 0.0
         self._health: Publisher[Health] | None = None
         self._token: Any = None
+        self._roster: Any = None
+        self.peers: set[str] = set()  # services with a liveliness token
+        self.missing: dict[str, float] = {}  # services seen alive, now gone: when [Unix s]
         self._sources: dict[type[Message], frozenset[str]] = {}
 
     def __enter__(self) -> Bus:
         role = self.service if self.service in ROLES else "tool"
         self.session = zenoh.open(zenoh_config(self.settings, role))
-        self._token = self.session.liveliness().declare_token(
-            f"{self.namespace}/alive/{self.service}"
+        alive = f"{self.namespace}/alive"
+        self._token = self.session.liveliness().declare_token(f"{alive}/{self.service}")
+        self._roster = self.session.liveliness().declare_subscriber(
+            f"{alive}/*", self._on_liveliness, history=True
         )
         self._health = self.publisher(Health)
         return self
@@ -111,6 +117,21 @@ class Bus:
         tb: TracebackType | None,
     ) -> None:
         self.session.close()  # type: ignore[no-untyped-call]
+
+    def _on_liveliness(self, sample: zenoh.Sample) -> None:
+        """Remember who went away (and forget it when it is back): a dead service shows
+        as missing in every other service's Health, so ``dammrl status`` can name it."""
+        name = str(sample.key_expr).rsplit("/", 1)[-1]
+        if len(name) > MAX_NAME:
+            return
+        if sample.kind == zenoh.SampleKind.DELETE:
+            self.peers.discard(name)
+            if len(self.missing) < MAX_PEERS:  # a stray peer's tokens cannot grow it
+                self.missing[name] = time.time()
+        else:
+            self.missing.pop(name, None)
+            if len(self.peers) < MAX_PEERS:
+                self.peers.add(name)
 
     def key(self, message_type: type[Message]) -> str:
         return key(self.namespace, message_type, self.service)
@@ -201,5 +222,7 @@ class Bus:
             rejected=rejected,
             rates_hz=rates,
             uptime_s=uptime,
+            peers=sorted(self.peers),
+            missing=dict(self.missing),
         )
         self._next_health = now + self.settings.health_period_s
