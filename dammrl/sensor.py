@@ -27,9 +27,9 @@ from services.intent.calibration import (
     held_press,
     rest_of,
 )
-from services.intent.decoder import Calibration, PressDecision, PressDecoder
+from services.intent.decoder import Calibration, DecoderSettings, PressDecision, PressDecoder
 from services.intent.emulator import SensorEmulator
-from services.intent.serial_sensor import SerialSensor
+from services.intent.serial_sensor import Arrival, SerialSensor
 
 BAR_WIDTH = 40
 BAR_TOP = 1.25  # normalised level at the right end of the bar
@@ -95,7 +95,9 @@ class Monitor:
         next_draw = 0.0
         while not stop.is_set():
             for arrival in self.sensor.read():
-                self._sample(arrival.t_s, arrival.frame.raw, tty_out)
+                self._sample(arrival, tty_out)
+            if not self.sensor.connected:
+                self.decoder.reset()  # as the intent service: no press spans a disconnect
             now = time.monotonic()
             if now >= next_draw:
                 self._draw(tty_out)
@@ -112,12 +114,12 @@ class Monitor:
             f" held = E_small ({small:.0f} mm). Ctrl-C stops.\n"
         )
 
-    def _sample(self, t_s: float, raw: int, tty_out: bool) -> None:
-        self.raw = raw
+    def _sample(self, arrival: Arrival, tty_out: bool) -> None:
+        t_s, self.raw = arrival.t_s, arrival.frame.raw
         self.arrivals.append(t_s)
         while self.arrivals and self.arrivals[0] < t_s - 1.0:
             self.arrivals.popleft()
-        decision = self.decoder.update(t_s, raw)
+        decision = self.decoder.update(t_s, self.raw, arrival.lost_frames)
         if decision is None:
             return
         self.count += 1
@@ -128,8 +130,6 @@ class Monitor:
 
     def status_lines(self) -> list[str]:
         d, s = self.decoder, self.sensor
-        since = d.pressing_since
-        state = "rest" if since is None else f"PRESSED {time.monotonic() - since:3.1f} s"
         bar = level_bar(d.level, {d.firm_level: "|"})
         if not s.connected:
             link = f"NOT CONNECTED, retrying ({s.last_error})"
@@ -140,7 +140,7 @@ class Monitor:
         bad = sum(s.parser.errors.values())
         errors = ", ".join(f"{k} {v}" for k, v in s.parser.errors.items()) or "none"
         return [
-            f"pressure {bar} {max(d.level, 0.0):4.2f}  raw {self.raw:4d}  {state}",
+            f"pressure {bar} {max(d.level, 0.0):4.2f}  raw {self.raw:4d}  {press_state(d)}",
             f"sensor   {link}, {s.parser.frames} frames, {bad} bad ({errors})",
         ]
 
@@ -155,6 +155,18 @@ class Monitor:
         sys.stdout.write(up + "".join(f"\x1b[2K{line[:width]}\n" for line in lines))
         sys.stdout.flush()
         self._drawn = len(lines)
+
+
+def press_state(decoder: PressDecoder) -> str:
+    """What the decoder makes of the pad now, in a few words."""
+    now, stuck, high = time.monotonic(), decoder.stuck_since, decoder.high_since
+    if stuck is not None:
+        return f"STUCK {now - stuck:3.0f} s: no command until the pad is at rest"
+    if decoder.pressing_since is not None:
+        return f"PRESSED {now - decoder.pressing_since:3.1f} s"
+    if high is not None:
+        return "pressed, not counted: release the pad first"  # since before a reset
+    return "rest" if decoder.armed else "waiting for rest"
 
 
 # --- calibrate ---------------------------------------------------------------------------
@@ -186,8 +198,11 @@ def calibrate(
     ready: Callable[[str], None],
     show: Callable[[str], None],
     tries: int = 3,
+    decoder: DecoderSettings | None = None,
 ) -> Calibration:
-    """Guide rest, light and firm recordings; a failed step is explained and repeated."""
+    """Guide rest, light and firm recordings; a failed step is explained and repeated; the
+    result must suit the ``decoder``'s thresholds (the intent service's), or what to redo
+    is explained."""
     wait_for_frames(sensor)
     rest: Rest | None = None
     levels: dict[str, float] = {}
@@ -210,7 +225,7 @@ def calibrate(
             show(f"  ok: {summary}\n")
             break
     assert rest is not None
-    return calibration_from(rest, levels["LIGHT"], levels["FIRM"])
+    return calibration_from(rest, levels["LIGHT"], levels["FIRM"], decoder)
 
 
 # --- emulate -----------------------------------------------------------------------------

@@ -19,7 +19,6 @@ from services.intent.calibration import (
     load_calibration,
     rest_of,
 )
-from services.intent.decoder import Calibration
 from services.intent.emulator import DEFAULT_CALIBRATION, Press, SensorEmulator
 from services.intent.serial_sensor import SerialSensor
 
@@ -89,7 +88,7 @@ def test_a_failed_step_is_explained_and_repeated(tmp_path: Path) -> None:
 
 def test_a_bad_calibration_file_is_a_clear_error(tmp_path: Path) -> None:
     path = tmp_path / "calibration.json"
-    path.write_text(Calibration(rest_raw=1, light_raw=2, firm_raw=3).model_dump_json()[:-3])
+    path.write_text(DEFAULT_CALIBRATION.model_dump_json()[:-3])
     with pytest.raises(ConfigurationError, match="not a valid calibration file"):
         load_calibration(path)
     with pytest.raises(ConfigurationError, match="cannot read"):

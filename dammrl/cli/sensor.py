@@ -101,9 +101,11 @@ def _list(args: argparse.Namespace) -> int:
 def _calibrate(args: argparse.Namespace) -> int:
     """Three guided recordings, then save the calibration; 130 if the person cancels."""
     from dammrl.sensor import calibrate, quiet_reader
+    from services.intent.config import IntentSettings
     from services.intent.serial_sensor import SerialSensor
 
     quiet_reader()
+    decoder = IntentSettings().decoder  # the service's thresholds: the levels must suit them
     if not args.out.parent.is_dir():  # say so before the person does three recordings
         raise DammrlError(f"cannot save the calibration: {args.out.parent} is not a directory")
 
@@ -115,7 +117,7 @@ def _calibrate(args: argparse.Namespace) -> int:
     print(f"Calibrating the pressure sensor on {args.port}: three {args.seconds:.0f} s recordings.")
     try:
         with SerialSensor(args.port, reconnect_max_s=1.0) as sensor:
-            calibration = calibrate(sensor, args.seconds, ready, _show)
+            calibration = calibrate(sensor, args.seconds, ready, _show, decoder=decoder)
     except (KeyboardInterrupt, EOFError):
         print("\ncalibration cancelled; nothing saved (--yes runs without Enter)")
         return 130
@@ -127,7 +129,8 @@ def _calibrate(args: argparse.Namespace) -> int:
 def _say_saved(args: argparse.Namespace, calibration: Calibration) -> None:
     """The saved levels, and the commands that check and use the file."""
     print(
-        f"\nSaved {args.out}: rest {calibration.rest_raw:.0f}, light {calibration.light_raw:.0f},"
+        f"\nSaved {args.out}: rest {calibration.rest_raw:.0f} (noise +/-"
+        f"{calibration.rest_noise_raw or 0:.0f}), light {calibration.light_raw:.0f},"
         f" firm {calibration.firm_raw:.0f} raw.\nCheck it:   dammrl sensor monitor --port "
         f"{args.port} --calibration {args.out}\nUse it:     DAMMRL_INTENT_CALIBRATION_FILE="
         f"{args.out.resolve()} dammrl up --mode semi-virtual --port {args.port}"

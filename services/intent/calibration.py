@@ -3,7 +3,9 @@
 Pure statistics, so they are tested without a terminal; ``dammrl sensor calibrate``
 guides the person through the recordings and saves the result as JSON
 (:class:`~services.intent.decoder.Calibration`, read back through
-``DAMMRL_INTENT_CALIBRATION_FILE``).
+``DAMMRL_INTENT_CALIBRATION_FILE``). The rest recording also measures the pad's noise: a
+calibration whose levels, or whose decoder thresholds, that noise could cross is refused
+with what to redo (ADC noise would otherwise be taken for presses).
 """
 
 from __future__ import annotations
@@ -16,7 +18,7 @@ import numpy as np
 from pydantic import ValidationError
 
 from dammrl.core.errors import ConfigurationError, DammrlError
-from services.intent.decoder import Calibration
+from services.intent.decoder import Calibration, DecoderSettings, level_problem
 from services.intent.emulator import DEFAULT_CALIBRATION
 
 MIN_PRESS_RISE_RAW = 40.0  # a press must rise at least this far above rest [ADC counts]
@@ -60,7 +62,10 @@ def held_press(samples: Sequence[int], rest: Rest, what: str) -> float:
     return float(np.median(pressed))
 
 
-def calibration_from(rest: Rest, light_raw: float, firm_raw: float) -> Calibration:
+def calibration_from(
+    rest: Rest, light_raw: float, firm_raw: float, decoder: DecoderSettings | None = None
+) -> Calibration:
+    """The calibration of three recordings, checked against the decoder's thresholds."""
     if firm_raw <= light_raw:
         raise CalibrationError(
             f"the firm press ({firm_raw:.0f}) was not harder than the light one "
@@ -73,7 +78,33 @@ def calibration_from(rest: Rest, light_raw: float, firm_raw: float) -> Calibrati
             f"apart ({gap:.0%} of the range, need {MIN_FIRM_LIGHT_GAP:.0%}): press lighter "
             "for 'light' or harder for 'firm'"
         )
-    return Calibration(rest_raw=rest.raw, light_raw=light_raw, firm_raw=firm_raw)
+    try:
+        calibration = Calibration(
+            rest_raw=rest.raw, light_raw=light_raw, firm_raw=firm_raw, rest_noise_raw=rest.noise_raw
+        )
+    except ValidationError as exc:
+        raise CalibrationError(f"{reason(exc)}. {_redo(rest)}") from None
+    if (problem := level_problem(calibration, decoder or DecoderSettings())) is not None:
+        raise CalibrationError(f"{problem}. {_redo(rest)}")
+    return calibration
+
+
+def reason(exc: ValidationError) -> str:
+    """A calibration's validation errors on one line."""
+    parts = []
+    for error in exc.errors(include_url=False):
+        message = str(error["msg"]).removeprefix("Value error, ")
+        where = ".".join(map(str, error["loc"]))
+        parts.append(f"{where}: {message}" if where else message)
+    return "; ".join(parts)
+
+
+def _redo(rest: Rest) -> str:
+    return (
+        f"Redo all three steps: keep the pad untouched and still during 'rest' (noise was "
+        f"+/-{rest.noise_raw:.0f} counts; if it stays that high, check the sensor's wiring), "
+        "press clearly harder than rest for 'light' and as firm as is comfortable for 'firm'"
+    )
 
 
 def load_calibration(path: Path | None) -> Calibration:
@@ -81,8 +112,15 @@ def load_calibration(path: Path | None) -> Calibration:
     if path is None:
         return DEFAULT_CALIBRATION
     try:
-        return Calibration.model_validate_json(path.read_text())
+        return Calibration.model_validate_json(path.read_text(encoding="utf-8"))
     except OSError as exc:
-        raise ConfigurationError(f"cannot read the calibration file {path}: {exc}") from exc
+        raise ConfigurationError(f"cannot read the calibration file {path}: {exc}") from None
+    except UnicodeDecodeError as exc:
+        raise ConfigurationError(
+            f"{path} is not a calibration file (not UTF-8 text: {exc})"
+        ) from None
     except ValidationError as exc:
-        raise ConfigurationError(f"{path} is not a valid calibration file: {exc}") from exc
+        raise ConfigurationError(
+            f"{path} is not a valid calibration file: {reason(exc)}; run "
+            "dammrl sensor calibrate again"
+        ) from None

@@ -3,9 +3,10 @@
 It opens a pty pair, links the slave side to a path (e.g. /tmp/ttySENSOR) that any
 serial client (pyserial, the intent service) opens like a real port, and writes frames
 of the wire protocol at the sensor's rate from a press script, with ADC noise, and on
-demand drop-outs and corrupted bytes. Presses can also be added while it runs
-(:meth:`SensorEmulator.press`, :meth:`SensorEmulator.hold`): from the keyboard or from a
-simulated patient (``services/intent/patient.py``).
+demand drop-outs, corrupted bytes and glitches (valid frames with a wrong reading).
+Presses can also be added while it runs (:meth:`SensorEmulator.press`,
+:meth:`SensorEmulator.hold`): from the keyboard or from a simulated patient
+(``services/intent/patient.py``).
 """
 
 from __future__ import annotations
@@ -23,7 +24,10 @@ import numpy as np
 from services.intent.decoder import Calibration
 from services.intent.protocol import RAW_MAX, SAMPLE_RATE_HZ, encode_frame
 
-DEFAULT_CALIBRATION = Calibration(rest_raw=400, light_raw=1200, firm_raw=3000)
+NOISE_RAW = 12.0  # the emulated ADC's noise (standard deviation) [counts]
+DEFAULT_CALIBRATION = Calibration(
+    rest_raw=400, light_raw=1200, firm_raw=3000, rest_noise_raw=NOISE_RAW
+)
 
 
 @dataclass(frozen=True)
@@ -50,7 +54,7 @@ class SensorEmulator:
         link: Path,
         presses: Sequence[Press],
         calibration: Calibration = DEFAULT_CALIBRATION,
-        noise_raw: float = 12.0,
+        noise_raw: float = NOISE_RAW,
         seed: int = 0,
         loop_s: float | None = None,
         rate_hz: float = SAMPLE_RATE_HZ,
@@ -69,6 +73,7 @@ class SensorEmulator:
         self.rng = np.random.default_rng(seed)
         self.silent = threading.Event()  # set: a drop-out, nothing is sent
         self.corrupt_next = 0  # frames still to corrupt
+        self._glitch: tuple[int, int] = (0, 0)  # (frames still to glitch, their raw reading)
         self.sent = 0
         self._stop = threading.Event()
         self._master, self._slave = os.openpty()
@@ -109,6 +114,10 @@ class SensorEmulator:
         """Press at ``level`` until :meth:`hold` is called again (0 releases)."""
         self.held_level = level
 
+    def glitch(self, raw: int, frames: int) -> None:
+        """Send ``raw`` in the next ``frames`` valid frames (a spike, or a drop to 0)."""
+        self._glitch = (frames, min(max(raw, 0), RAW_MAX))
+
     def inject(self, data: bytes) -> None:
         """Write arbitrary bytes into the line (garbage, cut or overlong frames)."""
         os.write(self._master, data)
@@ -123,12 +132,20 @@ class SensorEmulator:
         raw = c.rest_raw + level * (c.firm_raw - c.rest_raw) + self.rng.normal(0, self.noise_raw)
         return int(min(max(raw, 0), RAW_MAX))
 
+    def _reading(self, level: float) -> int:
+        """The raw reading of the next frame: the pad's, or a glitch's."""
+        left, raw = self._glitch
+        if left <= 0:
+            return self.raw_of(level)
+        self._glitch = (left - 1, raw)
+        return raw
+
     def _run(self) -> None:
         period, seq = 1.0 / self.rate_hz, 0
         while not self._stop.is_set():
             t = seq * period
             script_t = t % self.loop_s if self.loop_s else t
-            frame = encode_frame(seq, self.raw_of(self.level_at(script_t, t)))
+            frame = encode_frame(seq, self._reading(self.level_at(script_t, t)))
             if self.corrupt_next > 0:
                 self.corrupt_next -= 1
                 frame = frame[:4] + b"\x07" + frame[5:]  # one bad byte: the checksum fails

@@ -27,6 +27,16 @@ class Frame:
     raw: int
 
 
+def frames_lost(previous_seq: int | None, seq: int) -> int | None:
+    """Frames missing between two received sequence numbers (wrapping); None: no previous.
+
+    A repeated or restarted count reads as nearly a full wrap of frames lost.
+    """
+    if previous_seq is None:
+        return None
+    return (seq - previous_seq - 1) % SEQ_MODULO
+
+
 def checksum(body: bytes) -> int:
     value = 0
     for byte in body:

@@ -3,9 +3,10 @@
 It reads the sensor's frames from the serial port (reopening it with back-off when it
 disappears), publishes every sample as a SensorSample, decodes presses into decisions,
 and answers the open DecisionRequest with each decision (source "sensor"). A press with
-no open request is ignored (the arm only moves when asked). While the sensor is silent
-or unplugged the service reports it (Health "degraded"); no intent means the controller
-takes no step: it holds.
+no open request is ignored (the arm only moves when asked). While the sensor is silent,
+unplugged or stuck pressed the service reports it (Health "degraded"); no intent means the
+controller takes no step: it holds. A press the decoder did not see whole (the sensor was
+lost, frames went missing) never becomes a decision.
 """
 
 from __future__ import annotations
@@ -37,6 +38,7 @@ class SensorIntentNode:
         self.seen_requests: set[tuple[int, int]] = set()  # the controller re-sends unanswered
         self.request_wall_s = 0.0
         self.ignored_presses = 0
+        self.health_state = ""  # the last reported: a change is reported at once
         self.samples = bus.publisher(SensorSample)
         self.intents = bus.publisher(Intent)
         bus.subscribe(DecisionRequest, TaskGoal)
@@ -50,6 +52,8 @@ class SensorIntentNode:
                     self._dispatch(message)
                 for arrival in self.sensor.read():  # waits a few ms for bytes
                     self._sample(arrival)
+                if not self.sensor.connected:
+                    self.decoder.reset()  # a press spanning a disconnect is never a decision
                 self._report()
 
     def _dispatch(self, message: Message) -> None:
@@ -61,7 +65,7 @@ class SensorIntentNode:
             self.request = None
 
     def _sample(self, arrival: Arrival) -> None:
-        decision = self.decoder.update(arrival.t_s, arrival.frame.raw)
+        decision = self.decoder.update(arrival.t_s, arrival.frame.raw, arrival.lost_frames)
         self.samples.publish(
             device_seq=arrival.frame.seq,
             raw=arrival.frame.raw,
@@ -93,11 +97,24 @@ class SensorIntentNode:
     def _report(self) -> None:
         sensor = self.sensor
         counts = f"{sensor.parser.frames} frames, {sum(sensor.parser.errors.values())} bad"
+        problem = self._problem()
+        state = "ok" if problem is None else "degraded"
+        detail = counts if problem is None else f"{counts}; {problem}"
+        self.bus.report_health(state, detail, force=state != self.health_state)
+        self.health_state = state
+
+    def _problem(self) -> str | None:
+        """What keeps the sensor from deciding, if anything."""
+        sensor = self.sensor
         if not sensor.connected:
-            detail = f"sensor {sensor.device} not connected: {sensor.last_error}"
-            self.bus.report_health("degraded", f"{counts}; {detail}")
-        elif sensor.silent_for() > self.settings.sensor_stale_s:
-            silent = f"sensor silent: no valid frame for {sensor.silent_for():.1f} s"
-            self.bus.report_health("degraded", f"{counts}; {silent}")
-        else:
-            self.bus.report_health("ok", counts)
+            return f"sensor {sensor.device} not connected: {sensor.last_error}"
+        if sensor.silent_for() > self.settings.sensor_stale_s:
+            return f"sensor silent: no valid frame for {sensor.silent_for():.1f} s"
+        if (since := self.decoder.stuck_since) is not None:
+            held_s = time.monotonic() - since
+            wall = time.strftime("%H:%M:%S", time.localtime(time.time() - held_s))
+            return (
+                f"sensor stuck pressed (level {self.decoder.level:.2f}) since {wall}, "
+                f"{held_s:.0f} s: no decision until it returns to rest"
+            )
+        return None

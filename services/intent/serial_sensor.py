@@ -2,7 +2,8 @@
 
 One reader serves the intent service, ``dammrl sensor monitor|calibrate`` and the
 benchmark: it opens the port (again with exponential back-off after it disappears),
-waits at most ``poll_s`` for bytes, and returns the valid frames with their arrival time.
+waits at most ``poll_s`` for bytes, and returns the valid frames with their arrival time
+and how many frames were lost before each (from the sequence numbers).
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ from dataclasses import dataclass
 
 import serial
 
-from services.intent.protocol import BAUD_RATE, Frame, FrameParser
+from services.intent.protocol import BAUD_RATE, Frame, FrameParser, frames_lost
 
 log = logging.getLogger("dammrl.intent")
 
@@ -25,6 +26,7 @@ FIRST_BACKOFF_S = 0.5
 class Arrival:
     t_s: float  # time.monotonic() when the frame was read off the port
     frame: Frame
+    lost_frames: int | None = 0  # missing just before it; None: the first since opening
 
 
 class SerialSensor:
@@ -43,6 +45,7 @@ class SerialSensor:
         self.port: serial.Serial | None = None
         self.last_frame_s = 0.0
         self.last_error = ""
+        self._last_seq: int | None = None  # None: nothing received since the port opened
         self._retry_at, self._backoff_s = 0.0, FIRST_BACKOFF_S
 
     @property
@@ -70,13 +73,19 @@ class SerialSensor:
         frames = self.parser.feed(data)
         if frames:
             self.last_frame_s = now
-        return [Arrival(now, frame) for frame in frames]
+        return [self._arrival(now, frame) for frame in frames]
+
+    def _arrival(self, t_s: float, frame: Frame) -> Arrival:
+        lost = frames_lost(self._last_seq, frame.seq)
+        self._last_seq = frame.seq
+        return Arrival(t_s, frame, lost)
 
     def close(self) -> None:
         if self.port is not None:
             with contextlib.suppress(serial.SerialException, OSError):
                 self.port.close()
         self.port = None
+        self._last_seq = None  # whatever comes next may be another device, or a restarted one
 
     def __enter__(self) -> SerialSensor:
         return self
