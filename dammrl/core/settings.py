@@ -6,6 +6,7 @@ A bad value is one line naming its variable, what was expected and what was give
 
 from __future__ import annotations
 
+import difflib
 import os
 import re
 from typing import Annotated, Any, ClassVar, TypeAlias
@@ -36,12 +37,30 @@ class Settings(BaseSettings):
     )
 
     def __init__(self, **values: Any) -> None:
+        _refuse_unknown(type(self))
         try:
             super().__init__(**values)
         except SettingsError as exc:
             raise ConfigurationError(_unparsable(type(self), exc)) from None
         except ValidationError as exc:
             raise ConfigurationError(invalid_line(type(self), exc)) from None
+
+
+def _refuse_unknown(settings: type[BaseSettings]) -> None:
+    """A misspelt variable would silently leave its default in force (gains, limits):
+    refuse it, with the nearest real name."""
+    prefix = str(settings.model_config.get("env_prefix", "")).upper()
+    fields = {name.upper() for name in settings.model_fields}
+    for name in os.environ:
+        upper = name.upper()
+        if not prefix or not upper.startswith(prefix):
+            continue
+        field = upper[len(prefix) :].split("__", 1)[0]
+        if field not in fields:
+            starts = sorted((f for f in fields if field.startswith(f + "_")), key=len)
+            near = starts[-1:] or difflib.get_close_matches(field, fields, n=1)
+            hint = f"; did you mean {prefix}{near[0]}?" if near else ""
+            raise ConfigurationError(f"unknown setting {name}{hint}")
 
 
 def variable(settings: type[BaseSettings], location: tuple[int | str, ...]) -> str:
