@@ -63,6 +63,7 @@ def test_guided_calibration_recovers_the_pads_levels_and_the_file_loads(tmp_path
     assert abs(calibration.rest_raw - c.rest_raw) < 15
     assert abs(calibration.light_raw - (c.rest_raw + 0.3 * span)) < 20
     assert abs(calibration.firm_raw - (c.rest_raw + 0.9 * span)) < 20
+    assert calibration.rest_noise_raw is not None and 8 < calibration.rest_noise_raw < 16
     assert any("Step 3/3 - FIRM" in line for line in shown)
     path = tmp_path / "calibration.json"
     path.write_text(calibration.model_dump_json())
@@ -145,6 +146,28 @@ def test_calibrate_command_guides_a_person_and_saves_a_file(tmp_path: Path) -> N
                 break
         assert person.wait(30) == 0, person.stderr.read() if person.stderr else ""
     assert load_calibration(out).firm_raw > load_calibration(out).light_raw
+
+
+def test_calibrate_refuses_a_pad_too_noisy_for_the_thresholds_and_says_what_to_redo(
+    tmp_path: Path,
+) -> None:
+    link, out = tmp_path / "ttySENSOR", tmp_path / "cal.json"
+    levels = {"REST": 0.0, "LIGHT": 0.5, "FIRM": 1.0}  # well apart, but noise +/-100 counts
+    command = [sys.executable, "-m", "dammrl", "sensor", "calibrate", "--port", str(link)]
+    command += ["--out", str(out), "--seconds", "0.5"]
+    with SensorEmulator(link, [], noise_raw=100.0) as pad:
+        pipe = subprocess.PIPE
+        person = subprocess.Popen(command, stdin=pipe, stdout=pipe, stderr=pipe, text=True)
+        assert person.stdin is not None and person.stdout is not None
+        for line in person.stdout:
+            if line.startswith("Step"):
+                pad.hold(levels[line.split(" - ")[1].split(":")[0]])
+                person.stdin.write("\n")
+                person.stdin.flush()
+        _, stderr = person.communicate(timeout=30)
+    assert person.returncode == Exit.BAD_INPUT and not out.exists(), stderr
+    assert "DAMMRL_INTENT_DECODER__OFF_LEVEL" in stderr and "Redo all three steps" in stderr
+    assert "Traceback" not in stderr and len(stderr.strip().splitlines()) == 1, stderr
 
 
 def test_paths_that_cannot_be_used_are_clear_errors(tmp_path: Path) -> None:
