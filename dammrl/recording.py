@@ -2,7 +2,10 @@
 
 Every reader goes through :func:`read_recording`, which streams records from the start
 and stops cleanly at a truncated tail, so a file whose recorder was killed (no footer,
-last chunk cut) is read up to its last complete chunk.
+last chunk cut) is read up to its last complete chunk. Damage inside the file is
+skipped and counted, never raised: a chunk that does not decompress or fails its CRC
+(the next ones are still read), a message on a channel the file never declared. A file
+with no readable start is a :class:`RecordingError` saying where and why it stops.
 """
 
 from __future__ import annotations
@@ -14,16 +17,17 @@ from collections import Counter, defaultdict
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
-import msgpack
 import numpy as np
+import zstandard
 from mcap.exceptions import McapError
-from mcap.records import Channel, Footer, Message, Metadata, Schema
-from mcap.stream_reader import StreamReader
+from mcap.opcode import Opcode
+from mcap.records import Channel, Chunk, Footer, Header, Message, Metadata, Schema
+from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.writer import CompressionType, Writer
 
-from dammrl.core.errors import DammrlError
+from dammrl.core.errors import DammrlError, JobFailedError
 from dammrl.core.human import direction_to_goal
 from dammrl.core.models import radius_name
 from schemas import (
@@ -38,6 +42,13 @@ from schemas import (
     type_of,
 )
 from schemas import Message as BusMessage
+from services.recorder.core import header_of
+from services.recorder.gaps import SequenceAccount
+
+MAGIC = b"\x89MCAP0\r\n"
+COMPRESSIONS = ("", "zstd", "lz4")
+MAX_CHUNK_BYTES = 2**31
+"""A chunk claiming more (uncompressed) is skipped rather than allocated."""
 
 
 class RecordingError(DammrlError):
@@ -53,8 +64,10 @@ class Recording:
     channels: dict[int, Channel] = field(default_factory=dict)
     messages: list[Message] = field(default_factory=list)
     metadata: dict[str, dict[str, str]] = field(default_factory=dict)
+    started: bool = False  # the MCAP header record was read
     complete: bool = False  # the footer was reached
     truncated_reason: str = ""
+    skipped: Counter[str] = field(default_factory=Counter)  # unreadable records, by kind
 
     def topic(self, message: Message) -> str:
         return self.channels[message.channel_id].topic
@@ -76,24 +89,51 @@ class Recording:
 
 
 def read_recording(path: Path) -> Recording:
+    """Everything readable in ``path``; RecordingError when not even its start is."""
     path = Path(path)
     if not path.is_file():
-        raise RecordingError(f"{path} does not exist")
+        raise RecordingError(f"{path} {'is not a file' if path.exists() else 'does not exist'}")
+    size = path.stat().st_size
     recording = Recording(path)
     with open(path, "rb") as stream:
-        try:
-            for record in StreamReader(stream).records:
-                _collect(recording, record)
-        except (McapError, EOFError, ValueError, OSError, struct.error) as exc:
-            if not recording.channels and not recording.metadata:
-                raise RecordingError(f"{path} is not an MCAP recording: {exc}") from exc
-            recording.truncated_reason = f"{type(exc).__name__}: {exc}".strip()
+        resume_at: int | None = 0
+        while resume_at is not None:
+            resume_at = _read_from(recording, stream, size, resume_at)
+    _drop_orphans(recording)
     recording.messages.sort(key=lambda m: m.log_time)
     return recording
 
 
+def _read_from(recording: Recording, stream: BinaryIO, size: int, start: int) -> int | None:
+    """Collect records from byte ``start`` (0: the magic) on; where to resume after a
+    complete but unreadable record, None when done (footer, end or a cut)."""
+    stream.seek(start)
+    end = start  # where the last readable record ends
+    try:
+        reader = StreamReader(stream, skip_magic=start > 0, emit_chunks=True,
+                              record_size_limit=max(size, 1))  # fmt: skip
+        for record in reader.records:
+            _collect(recording, record)
+            end = stream.tell()
+    except (McapError, EOFError, ValueError, OSError, struct.error) as exc:
+        reason, unreadable = _why_it_stops(stream, size, end, exc)
+        if not recording.started:
+            raise RecordingError(f"{recording.path} is not an MCAP recording: {reason}") from exc
+        if unreadable is not None:
+            recording.skipped[f"{unreadable[0]} records"] += 1
+            return unreadable[1]
+        if not recording.complete:
+            recording.truncated_reason = reason
+    return None
+
+
 def _collect(recording: Recording, record: object) -> None:
-    if isinstance(record, Schema):
+    if isinstance(record, Header):
+        recording.started = True
+    elif isinstance(record, Chunk):
+        for inner in _chunk_records(recording, record):
+            _collect(recording, inner)
+    elif isinstance(record, Schema):
         recording.schemas[record.id] = record
     elif isinstance(record, Channel):
         recording.channels[record.id] = record
@@ -103,6 +143,69 @@ def _collect(recording: Recording, record: object) -> None:
         recording.metadata[record.name] = dict(record.metadata)
     elif isinstance(record, Footer):
         recording.complete = True
+
+
+def _chunk_records(recording: Recording, chunk: Chunk) -> list[object]:
+    """The records of a chunk; none (counted) when it cannot be trusted."""
+    if chunk.compression not in COMPRESSIONS:
+        recording.skipped[f"chunks with unknown compression {chunk.compression!r}"] += 1
+        return []
+    if chunk.uncompressed_size > MAX_CHUNK_BYTES:
+        recording.skipped[f"chunks claiming over {MAX_CHUNK_BYTES} bytes"] += 1
+        return []
+    try:
+        return list(breakup_chunk(chunk, validate_crc=True))
+    except (McapError, EOFError, ValueError, RuntimeError, struct.error, zstandard.ZstdError):
+        recording.skipped["chunks that do not decompress or fail their CRC"] += 1
+        return []
+
+
+def _drop_orphans(recording: Recording) -> None:
+    """Messages on a channel the file never declared are unreadable: skip, count."""
+    known = [m for m in recording.messages if m.channel_id in recording.channels]
+    if len(known) < len(recording.messages):
+        recording.skipped["messages on an undeclared channel"] += len(recording.messages) - len(
+            known
+        )
+        recording.messages = known
+
+
+def _why_it_stops(
+    stream: BinaryIO, size: int, end: int, exc: Exception
+) -> tuple[str, tuple[str, int] | None]:
+    """Where and why reading stopped, for a person: the byte and the record; and, when
+    that record is complete but unreadable, its name and where the next one starts."""
+    if size == 0:
+        return "the file is empty (0 bytes): nothing reached the disk", None
+    if end == 0:
+        stream.seek(0)
+        start = stream.read(len(MAGIC))
+        if start != MAGIC:
+            if MAGIC.startswith(start):
+                return f"cut at byte {size}, inside the 8-byte MCAP magic", None
+            return f"it does not start with the MCAP magic (found {start!r})", None
+        end = len(MAGIC)
+    stream.seek(end)
+    head = stream.read(9)  # opcode (1 byte) and record length (8 bytes, little endian)
+    after = "the MCAP magic" if end == len(MAGIC) else "its last complete record"
+    if not head:
+        return f"cut at byte {size}, right after {after} (no footer)", None
+    if len(head) < 9:
+        return f"cut at byte {size}, inside the record header after {after}", None
+    name = _record_name(head[0])
+    length = 9 + int.from_bytes(head[1:], "little")
+    if end + length > size:
+        there = f"({length} bytes long, {size - end} there)"
+        return f"cut at byte {size}, inside the {name} record at byte {end} {there}", None
+    reason = f"unreadable {name} record at byte {end}: {type(exc).__name__} {exc}".strip()
+    return reason, (name, end + length)
+
+
+def _record_name(opcode: int) -> str:
+    try:
+        return Opcode(opcode).name
+    except ValueError:
+        return f"unknown (opcode {opcode:#04x})"
 
 
 def info(path: Path) -> dict[str, Any]:
@@ -122,6 +225,7 @@ def info(path: Path) -> dict[str, Any]:
             "rate_hz": (len(messages) - 1) / span_s if span_s > 0 else 0.0,
         }
     times = [m.log_time for m in recording.messages]
+    account = sequence_account(recording)
     return {
         "file": str(recording.path),
         "complete": recording.complete,
@@ -129,26 +233,32 @@ def info(path: Path) -> dict[str, Any]:
         "messages": len(recording.messages),
         "duration_s": (max(times) - min(times)) * 1e-9 if times else 0.0,
         "topics": topics,
-        "sequence_gaps": sequence_gaps(recording),
+        "sequence_gaps": dict(account.gaps),
+        "sequence_anomalies": account.anomalies(),
+        "skipped": dict(recording.skipped),
         "metadata": recording.metadata,
     }
 
 
-def sequence_gaps(recording: Recording) -> dict[str, int]:
-    """Messages missing per topic, from each publisher's sequence numbers."""
-    last: dict[tuple[str, str], int] = {}
-    gaps: Counter[str] = Counter()
-    for message in sorted(recording.messages, key=lambda m: m.publish_time):
+def sequence_account(recording: Recording) -> SequenceAccount:
+    """Each publisher's sequence numbers in receipt order, as the recorder counted them
+    (the header stamps are the publishers' say, the receipt times the recorder's)."""
+    account = SequenceAccount(recording.namespace())
+    for message in recording.messages:
         channel = recording.channels[message.channel_id]
         if channel.metadata.get("dammrl.invalid"):
             continue
-        header = msgpack.unpackb(message.data).get("header", {})
-        source = (channel.topic, str(header.get("source")))
-        seq = message.sequence
-        if source in last and seq > last[source] + 1:
-            gaps[channel.topic] += seq - last[source] - 1
-        last[source] = max(seq, last.get(source, seq))
-    return dict(gaps)
+        header = header_of(message.data)
+        if header is None:  # never written so by the recorder: a crafted or damaged file
+            account.headerless[channel.topic] += 1
+            continue
+        account.see(channel.topic, str(header.get("source")), header["seq"], message.log_time)
+    return account
+
+
+def sequence_gaps(recording: Recording) -> dict[str, int]:
+    """Messages missing per topic, in the streams of each topic's publisher."""
+    return dict(sequence_account(recording).gaps)
 
 
 def _copy_schemas_and_metadata(recording: Recording, writer: Writer) -> dict[int, int]:
@@ -180,7 +290,8 @@ def repair(path: Path, out: Path) -> dict[str, Any]:
             )
         writer.finish()  # type: ignore[no-untyped-call]
     return {"from": str(path), "to": str(out), "messages": len(recording.messages),
-            "was_complete": recording.complete}  # fmt: skip
+            "was_complete": recording.complete, "why": recording.truncated_reason,
+            "skipped": dict(recording.skipped)}  # fmt: skip
 
 
 def export_json(path: Path, out: Path) -> int:
@@ -317,7 +428,7 @@ def session_traces(path: Path, episode: int | None = None) -> SessionTraces:
     types = (SensorSample, RobotState, TaskGoal, Intent, EpisodeResult)
     decoded = list(recording.decoded(*types))
     if not decoded:
-        raise RecordingError(f"{path} holds no sensor, robot or task message to plot")
+        raise JobFailedError(f"{path} holds no sensor, robot or task message to plot")
     t0 = decoded[0][0]
     goals: dict[int, np.ndarray] = {}
     pressure: list[tuple[float, float, bool]] = []
@@ -343,7 +454,7 @@ def session_traces(path: Path, episode: int | None = None) -> SessionTraces:
     if episode is not None:
         traces.episodes = [(t, n) for t, n in traces.episodes if n == episode]
         if not traces.episodes:
-            raise RecordingError(f"{path} has no episode {episode}")
+            raise JobFailedError(f"{path} has no episode {episode}")
     if pressure:
         traces.pressure_t = np.array([p[0] for p in pressure])
         traces.pressure = np.array([p[1] for p in pressure])

@@ -7,6 +7,7 @@ topics into a namespace where a sim (or robot) is alive needs ``force``.
 from __future__ import annotations
 
 import csv
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -15,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import zenoh
 
-from dammrl.core.errors import DammrlError
+from dammrl.core.errors import DammrlError, JobFailedError
 from dammrl.core.models import ModelSet
 from dammrl.recording import Recording
 from schemas import DecisionRequest, ModelChoice
@@ -62,15 +63,18 @@ def replay(
     settings: BusSettings,
     options: ReplayOptions,
     info: Callable[[str], None] = print,
+    stop: threading.Event | None = None,
 ) -> int:
-    """Publish the selected messages under ``settings.namespace``; return how many."""
+    """Publish the selected messages under ``settings.namespace``; return how many.
+    ``stop`` (e.g. set by Ctrl-C) ends the replay early, a loop included."""
     messages = selected(recording, options)
     if not messages:
-        raise DammrlError("nothing to replay: no message matches the topics and time window")
+        raise JobFailedError("nothing to replay: no message matches the topics and time window")
+    stop = stop or threading.Event()
     commands = sorted({t for t, _, _ in messages if t.startswith(COMMAND_TOPICS)})
     sent = 0
     with zenoh.open(zenoh_config(settings)) as session:
-        time.sleep(1.0)  # let the session connect (and learn who is alive) before publishing
+        stop.wait(1.0)  # let the session connect (and learn who is alive) before publishing
         if commands and not options.force:
             _refuse_if_an_arm_listens(session, settings.namespace, commands)
         publishers = {
@@ -82,21 +86,26 @@ def replay(
             for topic in {t for t, _, _ in messages}
         }
         info(f"replaying {len(messages)} messages on {len(publishers)} topics")
-        while True:
-            sent += _play_once(messages, publishers, options.rate)
+        while not stop.is_set():
+            sent += _play_once(messages, publishers, options.rate, stop)
             if not options.loop:
-                return sent
+                break
+    return sent
 
 
 def _play_once(
-    messages: list[tuple[str, int, bytes]], publishers: dict[str, zenoh.Publisher], rate: float
+    messages: list[tuple[str, int, bytes]],
+    publishers: dict[str, zenoh.Publisher],
+    rate: float,
+    stop: threading.Event,
 ) -> int:
+    """Publish ``messages`` once with their recorded spacing over ``rate``; how many
+    went out before ``stop``."""
     first, start = messages[0][1], time.perf_counter()
-    for topic, log_time, payload in messages:
-        if rate > 0:
-            delay = start + (log_time - first) * 1e-9 / rate - time.perf_counter()
-            if delay > 0:
-                time.sleep(delay)
+    for sent, (topic, log_time, payload) in enumerate(messages):
+        delay = start + (log_time - first) * 1e-9 / rate - time.perf_counter() if rate > 0 else 0
+        if stop.wait(delay) if delay > 0 else stop.is_set():
+            return sent
         publishers[topic].put(payload)
     return len(messages)
 

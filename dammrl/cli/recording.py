@@ -7,6 +7,7 @@ import json
 from pathlib import Path
 
 from dammrl.cli.common import DEFAULT_CONNECT, Commands, add_connect, bus_settings, print_err
+from dammrl.core.errors import Exit
 
 
 def register(commands: Commands) -> None:
@@ -87,6 +88,10 @@ def _info(args: argparse.Namespace) -> int:
         print(f"  {topic:36s} {t['type']:16s} {t['count']:8d}  {t['rate_hz']:8.1f} Hz")
     gaps = summary["sequence_gaps"]
     print("  sequence gaps: " + (", ".join(f"{k} {v}" for k, v in gaps.items()) or "none"))
+    for kind, counts in summary["sequence_anomalies"].items():
+        print(f"  {kind.replace('_', ' ')}: " + ", ".join(f"{k} {v}" for k, v in counts.items()))
+    if summary["skipped"]:
+        print("  skipped (unreadable): " + _counts(summary["skipped"]))
     for name, data in summary["metadata"].items():
         print(
             f"  metadata {name}: "
@@ -101,8 +106,15 @@ def _repair(args: argparse.Namespace) -> int:
 
     out = args.out or args.file.with_suffix(".repaired.mcap")
     done = repair(args.file, out)
-    print(f"wrote {done['messages']} messages to {out} (source complete: {done['was_complete']})")
+    state = "complete" if done["was_complete"] else f"cut: {done['why']}"
+    print(f"wrote {done['messages']} messages to {out} (source {state})")
+    if done["skipped"]:
+        print(f"skipped (unreadable): {_counts(done['skipped'])}")
     return 0
+
+
+def _counts(counts: dict[str, int]) -> str:
+    return ", ".join(f"{n} {what}" for what, n in counts.items())
 
 
 def _export(args: argparse.Namespace) -> int:
@@ -148,6 +160,7 @@ def _replay(args: argparse.Namespace) -> int:
     """Publish a recording onto the bus, or (``--into-policy``) compare a policy offline."""
     from dammrl.recording import read_recording
     from dammrl.replay import ReplayOptions, into_policy, replay, write_decisions
+    from services.common.runtime import stopping_on_signals
 
     recording = read_recording(args.file)
     if args.into_policy is not None:
@@ -159,5 +172,10 @@ def _replay(args: argparse.Namespace) -> int:
         start_s=args.start, end_s=args.end, loop=args.loop, force=args.force,
     )  # fmt: skip
     settings = bus_settings(args, recording.namespace())
-    print(f"replayed {replay(recording, settings, options, info=print_err)} messages")
-    return 0
+    with stopping_on_signals() as stop:  # Ctrl-C ends the replay, not the process
+        sent = replay(recording, settings, options, info=print_err, stop=stop)
+    print(f"replayed {sent} messages")
+    if stop.is_set() and not options.loop:  # a finite job cut short
+        print_err("dammrl: interrupted")
+        return Exit.INTERRUPTED
+    return Exit.OK

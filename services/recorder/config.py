@@ -22,6 +22,11 @@ class RecorderSettings(Settings):
     max_duration_s: float | None = Field(None, gt=0)
     """Start a new file after this long (None: never) [s]."""
     chunk_bytes: int = Field(1_000_000, ge=4096)
-    """MCAP chunk size; a crash loses at most the chunk being written."""
+    """A chunk is closed once it holds this many (uncompressed) bytes..."""
+    chunk_s: float = Field(0.5, gt=0, le=60)
+    """... or once it is this old, and closed chunks are handed to the OS at once: a
+    ``kill -9`` loses at most about this much [s]."""
+    retry_s: float = Field(5.0, gt=0, le=3600)
+    """After a write error (disk full), try a new file this often [s]."""
     mode: str = "virtual"
     """Stack mode written into the recording's metadata."""

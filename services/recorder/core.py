@@ -4,17 +4,22 @@ One channel per key expression, message encoding ``msgpack``, schema encoding
 ``jsonschema`` from the pydantic models; ``log_time`` is the receipt time and
 ``publish_time`` the header stamp. Payloads that do not decode are still written, on a
 channel ``_invalid/<key>`` (schema-less), so nothing that crossed the bus is dropped.
-Per-publisher sequence numbers are checked and gaps counted; the counts go into a
-``dammrl.loss`` metadata record when the file is finished.
+Sequence numbers are accounted per publisher (``gaps.SequenceAccount``); the counts go
+into a ``dammrl.loss`` metadata record when the file is finished.
+
+A chunk is closed by size (the writer) or by age (:meth:`McapRecorder.flush_due`, the
+node calls :meth:`McapRecorder.flush`), and a closed chunk goes to the OS at once: a
+killed recorder loses at most the chunk in progress. Write errors (a full disk) are
+``OSError``; the node decides what to do with them.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import socket
 from collections import Counter
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
 
@@ -24,48 +29,34 @@ from mcap.writer import CompressionType, Writer
 from dammrl import __version__
 from dammrl.core.errors import DammrlError
 from schemas import Message, type_of
+from services.recorder.gaps import SequenceAccount
 
 PROFILE = "dammrl"
 log = logging.getLogger("dammrl.recorder")
-
-
-@dataclass
-class LossCounter:
-    """Sequence-number bookkeeping per (key, source)."""
-
-    last_seq: dict[tuple[str, str], int] = field(default_factory=dict)
-    gaps: Counter[str] = field(default_factory=Counter)  # missing messages per key
-    messages: Counter[str] = field(default_factory=Counter)
-
-    def see(self, key: str, source: str, seq: int) -> int:
-        """Record one message; return how many before it are missing."""
-        self.messages[key] += 1
-        previous = self.last_seq.get((key, source))
-        self.last_seq[(key, source)] = seq
-        if previous is None or seq <= previous:  # first, or the publisher restarted
-            return 0
-        missing = seq - previous - 1
-        self.gaps[key] += missing
-        return missing
 
 
 def header_of(payload: bytes) -> dict[str, Any] | None:
     """The header map of a msgpack message, without validating the rest (None if absent)."""
     try:
         obj = msgpack.unpackb(payload, raw=False)
-    except (ValueError, msgpack.ExtraData, msgpack.FormatError, msgpack.StackError):
+    except (ValueError, TypeError, msgpack.ExtraData, msgpack.FormatError, msgpack.StackError):
         return None
     header = obj.get("header") if isinstance(obj, dict) else None
     if not isinstance(header, dict):
         return None
-    ok = isinstance(header.get("stamp_ns"), int) and isinstance(header.get("seq"), int)
+    stamp, seq = header.get("stamp_ns"), header.get("seq")
+    ok = type(stamp) is int and type(seq) is int and seq >= 0  # bool is no number here
     return header if ok else None
 
 
 class McapRecorder:
-    """One MCAP file being written. ``finish()`` must be called (see the node)."""
+    """One MCAP file being written. ``finish()`` (or, after a write error, ``abandon()``)
+    must be called (see the node)."""
 
     def __init__(self, path: Path, namespace: str, metadata: dict[str, str], chunk_bytes: int):
+        """Open ``path`` and write the file's start through to the OS (a recorder killed
+        at once still leaves a valid, empty recording). DammrlError: the file cannot be
+        created; OSError: it cannot be written (the file is closed)."""
         self.path = path
         self.namespace = namespace
         try:
@@ -73,21 +64,29 @@ class McapRecorder:
         except OSError as exc:
             raise DammrlError(f"cannot record to {path}: {exc}") from exc
         self.writer = Writer(self._stream, chunk_size=chunk_bytes, compression=CompressionType.ZSTD)
-        self.writer.start(profile=PROFILE, library=f"dammrl {__version__}")
-        self.writer.add_metadata(
-            "dammrl.session",
-            {"version": __version__, "host": socket.gethostname(), "namespace": namespace}
-            | metadata,
-        )
         self._schemas: dict[type[Message], int] = {}
         self._channels: dict[str, int] = {}
-        self.loss = LossCounter()
+        self.loss = SequenceAccount(namespace)
         self.invalid: Counter[str] = Counter()
         self.first_ns: int | None = None
+        self.unflushed_ns: int | None = None  # receipt time of the oldest unflushed message
         self.finished = False
+        try:
+            self.writer.start(profile=PROFILE, library=f"dammrl {__version__}")
+            self.writer.add_metadata(
+                "dammrl.session",
+                {"version": __version__, "host": socket.gethostname(), "namespace": namespace}
+                | metadata,
+            )
+            self._stream.flush()
+        except OSError:
+            self.abandon()
+            raise
 
-    def record(self, key: str, payload: bytes, log_time_ns: int) -> None:
+    def record(self, key: str, payload: bytes, log_time_ns: int, session: str = "") -> None:
+        """Write one received payload; ``session``: the publishing Zenoh session, if known."""
         self.first_ns = log_time_ns if self.first_ns is None else self.first_ns
+        self.unflushed_ns = log_time_ns if self.unflushed_ns is None else self.unflushed_ns
         header = header_of(payload)
         message_type = type_of(self.namespace, key)
         if header is None or message_type is None:
@@ -96,30 +95,50 @@ class McapRecorder:
             self.writer.add_message(channel, log_time_ns, payload, log_time_ns)
             return
         seq = header["seq"]
-        missing = self.loss.see(key, str(header.get("source")), seq)
+        missing = self.loss.see(key, str(header.get("source")), seq, log_time_ns, session)
         if missing:
             log.warning("%d message(s) missing on %s before seq %d", missing, key, seq)
         channel = self._channel(key, message_type)
         publish_ns = header["stamp_ns"] if header["stamp_ns"] >= 0 else log_time_ns
         self.writer.add_message(channel, log_time_ns, payload, publish_ns, seq % 2**32)
 
+    def flush_due(self, now_ns: int, chunk_s: float) -> bool:
+        """Whether the oldest message not yet handed to the OS is ``chunk_s`` old."""
+        return self.unflushed_ns is not None and now_ns - self.unflushed_ns >= chunk_s * 1e9
+
+    def flush(self) -> None:
+        """Close the chunk in progress and hand everything written to the OS (a process
+        kill then loses nothing of it; a power cut may: no fsync)."""
+        self.writer.flush()  # type: ignore[no-untyped-call]
+        self.unflushed_ns = None
+
     def bytes_written(self) -> int:
         return self._stream.tell()
 
     def finish(self) -> None:
+        """Write the loss counts, the summary and the footer, and close the file."""
         if self.finished:
             return
-        self.finished = True
-        self.writer.add_metadata(
-            "dammrl.loss",
-            {
-                "gaps": json.dumps(dict(self.loss.gaps)),
-                "messages": json.dumps(dict(self.loss.messages)),
-                "invalid": json.dumps(dict(self.invalid)),
-            },
-        )
+        self.writer.add_metadata("dammrl.loss", self.loss_metadata())
         self.writer.finish()  # type: ignore[no-untyped-call]
+        self.finished = True
         self._stream.close()
+
+    def abandon(self) -> None:
+        """Close the file after a write error: it stays readable up to its last chunk
+        that reached the disk (``dammrl recording repair``)."""
+        self.finished = True
+        with contextlib.suppress(OSError):  # the buffer's tail cannot be written either
+            self._stream.close()
+
+    def loss_metadata(self) -> dict[str, str]:
+        loss = self.loss
+        return {
+            "gaps": json.dumps(dict(loss.gaps)),
+            "messages": json.dumps(dict(loss.messages)),
+            "invalid": json.dumps(dict(self.invalid)),
+            "anomalies": json.dumps(loss.anomalies()),
+        }
 
     def _channel(self, topic: str, message_type: type[Message] | None) -> int:
         if topic not in self._channels:

@@ -1,13 +1,20 @@
 """The recorder node: everything under the namespace, to MCAP, until a signal.
 
-The Zenoh callback only enqueues (key, bytes, receipt time); the loop writes. Files rotate
-by size or duration; ``finish()`` runs on SIGINT/SIGTERM (in a ``finally``). After a
-``kill -9`` the file is readable up to its last complete chunk (``dammrl recording repair``).
+The Zenoh callback only enqueues (key, bytes, receipt time, publishing session); the loop
+writes, in slices of at most ``WRITE_SLICE_S`` so that it also closes chunks by age
+(``chunk_s``), rotates files and reports Health under any load. ``finish()`` runs on
+SIGINT/SIGTERM (in a ``finally``). After a ``kill -9`` the file is readable up to its
+last chunk, at most about ``chunk_s`` old (``dammrl recording repair`` completes it).
+
+A write error (a full disk) never stops the robot session: one error line, Health
+"degraded" with the reason, the file left readable up to its last chunk, the messages
+received meanwhile counted as not recorded, and a new file tried every ``retry_s``.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
 import queue
 import threading
@@ -26,20 +33,33 @@ from services.recorder.core import McapRecorder
 
 log = logging.getLogger("dammrl.recorder")
 
+WRITE_SLICE_S = 0.1
+"""The longest the loop writes before it looks at the clock again [s]."""
+
+Received = tuple[str, bytes, int, str]  # key, payload, receipt time [ns], Zenoh session id
+
 
 class RecorderNode:
     def __init__(self, settings: RecorderSettings, bus: Bus) -> None:
         self.settings = settings
         self.bus = bus
-        self.inbox: queue.Queue[tuple[str, bytes, int]] = queue.Queue(2_000_000)
-        self.dropped = 0
+        self.inbox: queue.Queue[Received] = queue.Queue(2_000_000)
+        self.dropped = 0  # inbox overflow
+        self.not_recorded = 0  # received while no file could be written
+        self.problem = ""  # why nothing is recorded ("" while recording)
+        self.retry_at = 0.0
         self.files: list[Path] = []
-        self.recorder = self._open()
+        self.recorder: McapRecorder | None = None
+        self._try_open(startup=True)
         self._subscriber = bus.session.declare_subscriber(f"{bus.namespace}/**", self._enqueue)
 
     def _enqueue(self, sample: zenoh.Sample) -> None:
+        source = sample.source_info  # set only by publishers that declare it
+        session = "" if source is None else str(source.source_id.zid)
         try:
-            self.inbox.put_nowait((str(sample.key_expr), sample.payload.to_bytes(), time.time_ns()))
+            self.inbox.put_nowait(
+                (str(sample.key_expr), sample.payload.to_bytes(), time.time_ns(), session)
+            )
         except queue.Full:
             self.dropped += 1
 
@@ -47,53 +67,148 @@ class RecorderNode:
         try:
             while not stop.is_set():
                 self._write_pending(timeout_s=0.1)
-                self._rotate_if_due()
-                total = sum(self.recorder.loss.messages.values())
-                self.bus.report_health(detail=f"{total} messages in {self.recorder.path.name}")
+                self._keep_up()
+                self._report()
             self._write_pending(timeout_s=0.0)  # what arrived before the signal
         finally:
-            self.recorder.finish()
-            log.info("finished %s", self.recorder.path)
+            self._close()
 
     def _write_pending(self, timeout_s: float) -> None:
+        """Write what is queued, for at most ``WRITE_SLICE_S`` (``timeout_s``: the
+        longest to wait for a first message; 0: drain without waiting)."""
+        deadline = time.monotonic() + WRITE_SLICE_S
         try:
             item = self.inbox.get(timeout=timeout_s) if timeout_s else self.inbox.get_nowait()
+            while True:
+                self._write(item)
+                if timeout_s and time.monotonic() > deadline:
+                    return
+                item = self.inbox.get_nowait()
         except queue.Empty:
             return
-        while True:
-            self.recorder.record(*item)
-            try:
-                item = self.inbox.get_nowait()
-            except queue.Empty:
-                return
 
-    def _rotate_if_due(self) -> None:
-        s, r = self.settings, self.recorder
+    def _write(self, item: Received) -> None:
+        if self.recorder is None:
+            self.not_recorded += 1
+            return
+        try:
+            self.recorder.record(*item)
+        except OSError as exc:
+            self._degrade(exc)
+            self.not_recorded += 1
+
+    def _keep_up(self) -> None:
+        """Close an old chunk, rotate the file when due, or retry after a write error."""
+        r, s = self.recorder, self.settings
+        if r is None:
+            if time.monotonic() >= self.retry_at:
+                self._try_open()
+            return
+        try:
+            if r.flush_due(time.time_ns(), s.chunk_s):
+                r.flush()
+            if self._rotation_due(r):
+                self._finish(r)
+                self._try_open()
+        except OSError as exc:
+            self._degrade(exc)
+
+    def _rotation_due(self, r: McapRecorder) -> bool:
+        s = self.settings
         too_big = s.max_bytes is not None and r.bytes_written() >= s.max_bytes
         started = r.first_ns or time.time_ns()
         too_long = (
             s.max_duration_s is not None and time.time_ns() - started >= s.max_duration_s * 1e9
         )
-        if too_big or too_long:
-            r.finish()
-            self.recorder = self._open()
+        return too_big or too_long
 
-    def _open(self) -> McapRecorder:
+    def _report(self) -> None:
+        if self.recorder is None:
+            self.bus.report_health("degraded", self._detail())
+        else:
+            self.bus.report_health(detail=self._detail())
+
+    def _detail(self) -> str:
+        lost = self.not_recorded + self.dropped
+        suffix = f"; {lost} messages not recorded" if lost else ""
+        if self.recorder is None:
+            return self.problem + suffix
+        r = self.recorder
+        total = sum(r.loss.messages.values()) + sum(r.invalid.values())
+        return f"{total} messages in {r.path.name}{suffix}"
+
+    def _degrade(self, exc: OSError) -> None:
+        """Leave the file being written (readable up to its last chunk) after an error."""
+        assert self.recorder is not None
+        self.recorder.abandon()
+        path, self.recorder = self.recorder.path, None
+        self._pause(f"cannot write {path}: {_reason(exc)}")
+
+    def _pause(self, problem: str) -> None:
+        """Say once, in the log and in Health, why nothing is recorded; retry later."""
+        if not self.problem:
+            self.problem = f"not recording since {datetime.now(UTC):%H:%M:%S} UTC: {problem}"
+            log.error("%s; a new file is tried every %g s", self.problem, self.settings.retry_s)
+            self.bus.report_health("degraded", self._detail(), force=True)
+        self.retry_at = time.monotonic() + self.settings.retry_s
+
+    def _try_open(self, startup: bool = False) -> None:
+        """Start a new file. At start-up a path that cannot be created is a bad setting
+        (DammrlError); any other failure pauses the recording until a retry succeeds."""
+        metadata = {"mode": self.settings.mode, "settings": self.settings.model_dump_json()}
+        try:
+            path = self._next_path()
+            try:
+                recorder = McapRecorder(
+                    path, self.bus.namespace, metadata, self.settings.chunk_bytes
+                )
+            except OSError as exc:  # the disk is (still) full: that empty start is no file
+                with contextlib.suppress(OSError):
+                    path.unlink()
+                self._pause(f"cannot write {path}: {_reason(exc)}")
+                return
+        except DammrlError as exc:
+            if startup:
+                raise
+            self._pause(str(exc))
+            return
+        self.recorder = recorder
+        self.files.append(path)
+        if self.problem:
+            log.warning("recording again, to %s (%d messages were not recorded)",
+                        path, self.not_recorded)  # fmt: skip
+            self.problem = ""
+        log.info("recording to %s", path)
+
+    def _next_path(self) -> Path:
         out = self.settings.out
         if out.suffix == ".mcap":
-            path = (
-                out if not self.files else out.with_name(f"{out.stem}-{len(self.files):03d}.mcap")
-            )
+            rotated = out.with_name(f"{out.stem}-{len(self.files):03d}.mcap")
+            path = rotated if self.files else out
         else:
             path = out / f"session-{datetime.now(UTC):%Y%m%d-%H%M%S-%f}.mcap"
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             raise DammrlError(f"cannot create {path.parent}: {exc}") from exc
-        self.files.append(path)
-        log.info("recording to %s", path)
-        metadata = {"mode": self.settings.mode, "settings": self.settings.model_dump_json()}
-        return McapRecorder(path, self.bus.namespace, metadata, self.settings.chunk_bytes)
+        return path
+
+    def _finish(self, recorder: McapRecorder) -> None:
+        recorder.finish()
+        self.recorder = None
+        log.info("finished %s", recorder.path)
+
+    def _close(self) -> None:
+        """Finish the file at the end (a write error leaves it cut, readable)."""
+        if self.recorder is not None:
+            try:
+                self._finish(self.recorder)
+            except OSError as exc:
+                self._degrade(exc)
+
+
+def _reason(exc: OSError) -> str:
+    return exc.strerror or str(exc)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -101,7 +216,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     return run_service(
         "recorder",
         "Recorder service: everything on the bus to MCAP (zstd chunks).",
-        "DAMMRL_RECORDER_* (OUT, MAX_BYTES, MAX_DURATION_S, CHUNK_BYTES, MODE)",
+        "DAMMRL_RECORDER_* (OUT, MAX_BYTES, MAX_DURATION_S, CHUNK_BYTES, CHUNK_S, RETRY_S, MODE)",
         lambda bus, args: RecorderNode(_settings(args), bus),
         argv,
         _add_out_argument,
