@@ -1,18 +1,24 @@
-"""The MCAP writer core, without a bus: channels, invalid payloads, gaps, cut files."""
+"""The MCAP writer core, without a bus: channels, invalid payloads, gaps, flushes, cut files."""
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 import msgpack
 import pytest
+from mcap.reader import make_reader
 
-from dammrl.recording import RecordingError, info, read_recording
+from dammrl.recording import RecordingError, info, read_recording, repair
 from schemas import Header, encode
+from services.recorder.config import RecorderSettings
 from services.recorder.core import McapRecorder
+from services.recorder.gaps import SequenceAccount, publisher_of
 from tests.test_schemas import EXAMPLES
 
 STATE = EXAMPLES[0]
+KEY = "dammrl/robot/state"
+MS = 1_000_000  # [ns]
 
 
 def _state(seq: int, source: str = "sim") -> bytes:
@@ -24,43 +30,169 @@ def test_every_payload_is_kept_and_gaps_are_counted(tmp_path: Path) -> None:
     path = tmp_path / "r.mcap"
     recorder = McapRecorder(path, "dammrl", {"mode": "virtual"}, chunk_bytes=4096)
     for seq in (0, 1, 2, 5, 6):  # 3 and 4 were lost
-        recorder.record("dammrl/robot/state", _state(seq), 2_000 + seq)
-    recorder.record("dammrl/robot/state", _state(0, source="sim2"), 2_010)  # another publisher
-    recorder.record("dammrl/robot/state", b"\x00garbage", 2_020)
+        recorder.record(KEY, _state(seq), 2_000 + seq)
+    recorder.record(KEY, _state(0, source="sim2"), 2_010)  # not the key's publisher
+    recorder.record(KEY, b"\x00garbage", 2_020)
     recorder.record("dammrl/robot/command", bytes(msgpack.packb({"no": "header"})), 2_030)
     recorder.finish()
     summary = info(path)
     assert summary["complete"]
-    assert summary["topics"]["dammrl/robot/state"] == {
+    assert summary["topics"][KEY] == {
         "type": "RobotState", "count": 6, "rate_hz": pytest.approx(5 / 10e-9)
     }  # fmt: skip
-    assert summary["topics"]["_invalid/dammrl/robot/state"]["count"] == 1
+    assert summary["topics"][f"_invalid/{KEY}"]["count"] == 1
     assert summary["topics"]["_invalid/dammrl/robot/command"]["count"] == 1
-    assert summary["sequence_gaps"] == {"dammrl/robot/state": 2}
-    assert recorder.loss.gaps["dammrl/robot/state"] == 2
+    assert summary["sequence_gaps"] == {KEY: 2}
+    assert summary["sequence_anomalies"] == {"foreign_source": {KEY: 1}}
+    assert recorder.loss.gaps[KEY] == 2
+    assert summary["metadata"]["dammrl.loss"]["gaps"] == '{"dammrl/robot/state": 2}'
     recording = read_recording(path)
     assert [m.data for m in recording.messages][:1] == [_state(0)]  # the bytes as they came
     assert recording.messages[0].publish_time == 1_000  # the header stamp
 
 
-def test_a_file_cut_mid_chunk_is_read_up_to_its_last_complete_chunk(tmp_path: Path) -> None:
+# ---- sequence accounting ------------------------------------------------------------
+def test_the_publisher_of_a_key_is_the_role_allowed_to_publish_it() -> None:
+    assert publisher_of("dammrl", KEY) == "sim"
+    assert publisher_of("dammrl", "dammrl/task/goal") == "controller"
+    assert publisher_of("dammrl", "dammrl/health/intent") == "intent"
+    assert publisher_of("dammrl", "dammrl/elsewhere") is None
+    assert publisher_of("lab2", KEY) is None
+
+
+def test_a_fuzzed_sequence_number_is_an_anomaly_not_four_billion_lost_messages() -> None:
+    account = SequenceAccount("dammrl")
+    for seq in range(10):
+        account.see(KEY, "sim", seq, seq * MS)
+        if seq == 4:
+            assert account.see(KEY, "sim", 2**32 - 1, seq * MS + 1) == 0  # the fuzz
+    assert account.gaps == {}
+    assert account.anomalies() == {"implausible_jumps": {KEY: 1}}
+    assert account.messages[KEY] == 11
+
+
+def test_a_restarted_publisher_starts_a_new_stream() -> None:
+    account = SequenceAccount("dammrl")
+    for seq in range(500, 510):
+        account.see(KEY, "sim", seq, seq * MS)
+    for seq in (0, 1, 3):  # the restarted sim: 2 was lost
+        account.see(KEY, "sim", seq, 600 * MS + seq * MS)
+    assert account.gaps == {KEY: 1}
+    assert account.anomalies() == {"restarts": {KEY: 1}}
+
+
+def test_a_forged_source_cannot_touch_the_real_publishers_counts() -> None:
+    account = SequenceAccount("dammrl")
+    for seq in range(20):
+        account.see(KEY, "sim", seq, seq * MS)
+        account.see(KEY, "intruder", 10**9 - seq, seq * MS)  # wrong source, wild seqs
+    assert account.gaps == {}
+    assert account.anomalies() == {"foreign_source": {KEY: 20}}
+
+
+def test_a_real_outage_is_still_counted_as_missing_messages() -> None:
+    account = SequenceAccount("dammrl")
+    account.see(KEY, "sim", 0, 0)
+    assert account.see(KEY, "sim", 1001, 2_000 * MS) == 1000  # 2 s without state at 500 Hz
+    assert account.gaps == {KEY: 1000} and account.anomalies() == {}
+
+
+def test_streams_of_two_zenoh_sessions_are_kept_apart() -> None:
+    account = SequenceAccount("dammrl")
+    for seq in range(5):
+        account.see(KEY, "sim", seq, seq * MS, session="a")
+        account.see(KEY, "sim", 100 + seq, seq * MS, session="b")
+    assert account.gaps == {} and account.anomalies() == {}
+
+
+# ---- what reaches the disk -----------------------------------------------------------
+def test_the_chunk_age_bound_is_a_finite_setting_of_at_most_a_second_by_default() -> None:
+    assert RecorderSettings().chunk_s <= 1.0
+    with pytest.raises(ValueError, match="DAMMRL_RECORDER_CHUNK_S"):
+        RecorderSettings(chunk_s=float("inf"))
+
+
+def test_a_new_file_is_a_readable_recording_at_once(tmp_path: Path) -> None:
     path = tmp_path / "r.mcap"
-    recorder = McapRecorder(path, "dammrl", {}, chunk_bytes=4096)
-    for seq in range(400):
-        recorder.record("dammrl/robot/state", _state(seq), 2_000 + seq)
-    recorder._stream.flush()
-    size = path.stat().st_size
+    McapRecorder(path, "dammrl", {"mode": "virtual"}, chunk_bytes=1_000_000)  # never finished
+    recording = read_recording(path)
+    assert recording.metadata["dammrl.session"]["mode"] == "virtual"
+    assert not recording.complete and recording.messages == []
+
+
+def test_a_chunk_is_closed_by_age_and_reaches_the_os(tmp_path: Path) -> None:
+    path = tmp_path / "r.mcap"
+    recorder = McapRecorder(path, "dammrl", {}, chunk_bytes=1_000_000)
+    for seq in range(50):
+        recorder.record(KEY, _state(seq), seq * 10 * MS)
+    assert not recorder.flush_due(690 * MS, chunk_s=0.7)
+    assert recorder.flush_due(700 * MS, chunk_s=0.7)
+    recorder.flush()
+    assert not recorder.flush_due(10**12, chunk_s=0.7)  # nothing unflushed
+    copy = tmp_path / "as-the-os-has-it.mcap"
+    shutil.copy(path, copy)  # what a kill -9 now would leave
+    assert len(read_recording(copy).messages) == 50
+
+
+# ---- damaged files -------------------------------------------------------------------
+def _chunked(path: Path, chunks: int, per_chunk: int) -> None:
+    recorder = McapRecorder(path, "dammrl", {}, chunk_bytes=1_000_000)
+    for seq in range(chunks * per_chunk):
+        recorder.record(KEY, _state(seq), seq * MS)
+        if seq % per_chunk == per_chunk - 1:
+            recorder.flush()
+    recorder.finish()
+
+
+def test_a_file_cut_mid_chunk_is_read_and_repaired_up_to_its_last_complete_chunk(
+    tmp_path: Path,
+) -> None:
+    path = tmp_path / "r.mcap"
+    _chunked(path, chunks=5, per_chunk=40)
+    with open(path, "rb") as stream:
+        chunks = make_reader(stream).get_summary().chunk_indexes  # type: ignore[union-attr]
+    last = chunks[-1]
     cut = tmp_path / "cut.mcap"
-    cut.write_bytes(path.read_bytes()[: size // 2])  # through the middle of a chunk
+    cut.write_bytes(path.read_bytes()[: last.chunk_start_offset + last.chunk_length // 2])
     summary = info(cut)
-    assert not summary["complete"]
-    assert 0 < summary["messages"] < 400
+    assert not summary["complete"] and summary["messages"] == 4 * 40
+    assert f"inside the CHUNK record at byte {last.chunk_start_offset}" in summary["truncated"]
+    done = repair(cut, tmp_path / "fixed.mcap")
+    assert done["messages"] == 160 and info(tmp_path / "fixed.mcap")["complete"]
 
 
-def test_a_file_that_is_not_mcap_is_a_clear_error(tmp_path: Path) -> None:
+def test_a_corrupt_chunk_is_skipped_and_the_chunks_after_it_are_read(tmp_path: Path) -> None:
+    path = tmp_path / "r.mcap"
+    _chunked(path, chunks=5, per_chunk=40)
+    with open(path, "rb") as stream:
+        second = make_reader(stream).get_summary().chunk_indexes[1]  # type: ignore[union-attr]
+    data = bytearray(path.read_bytes())
+    middle = second.chunk_start_offset + second.chunk_length // 2
+    data[middle : middle + 8] = b"\xff" * 8  # its framing intact, its content not
+    path.write_bytes(bytes(data))
+    summary = info(path)
+    assert summary["messages"] == 4 * 40 and summary["complete"]
+    assert summary["skipped"] == {"chunks that do not decompress or fail their CRC": 1}
+    assert summary["sequence_gaps"] == {KEY: 40}  # the lost chunk, as missing messages
+
+
+@pytest.mark.parametrize(
+    ("content", "reason"),
+    [
+        (b"", "the file is empty (0 bytes): nothing reached the disk"),
+        (b"\x89MCA", "cut at byte 4, inside the 8-byte MCAP magic"),
+        (b"\x89MCAP0\r\n", "cut at byte 8, right after the MCAP magic"),
+        (b"not an mcap file at all", "it does not start with the MCAP magic (found b'not an m')"),
+    ],
+    ids=["empty", "half magic", "magic only", "text"],
+)
+def test_a_file_that_is_no_recording_is_a_one_line_reason(
+    tmp_path: Path, content: bytes, reason: str
+) -> None:
     path = tmp_path / "x.mcap"
-    path.write_bytes(b"not an mcap file at all")
-    with pytest.raises(RecordingError, match="not an MCAP recording"):
+    path.write_bytes(content)
+    with pytest.raises(RecordingError, match="not an MCAP recording: ") as error:
         info(path)
+    assert reason in str(error.value) and "\n" not in str(error.value)
     with pytest.raises(RecordingError, match="does not exist"):
         info(tmp_path / "missing.mcap")
