@@ -6,13 +6,14 @@ import json
 import signal
 import subprocess
 import time
-from collections import Counter
+from collections import defaultdict
 from collections.abc import Iterator
 from pathlib import Path
 
 import jsonschema
 import numpy as np
 import pytest
+import zenoh
 from mcap.reader import make_reader
 
 from dammrl.core.errors import DammrlError
@@ -20,9 +21,11 @@ from dammrl.recording import export_csv, export_json, human_statistics, info, re
 from dammrl.replay import ReplayOptions, replay, selected
 from schemas import StepEvent
 from services.common.config import BusSettings
+from services.recorder.core import header_of
 from tests.busutil import Observer, client_settings, free_port, start_service, wait_for
 
 STACK = ("sim", "policy", "intent", "controller")
+Seen = dict[str, set[tuple[str, int]]]  # key -> (header.source, header.seq) received
 
 
 def _stop(processes: list[subprocess.Popen[bytes]]) -> None:
@@ -34,15 +37,19 @@ def _stop(processes: list[subprocess.Popen[bytes]]) -> None:
 
 
 @pytest.fixture(scope="module")
-def session_recording(
-    tmp_path_factory: pytest.TempPathFactory,
-) -> Iterator[tuple[Path, Counter[str]]]:
+def session_recording(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Path, Seen]]:
     """A recorded stack run and what an independent subscriber saw during it."""
     port = free_port()
     path = tmp_path_factory.mktemp("rec") / "session.mcap"
     observer = Observer(port)
-    seen: Counter[str] = Counter()
-    observer.session.declare_subscriber("dammrl/**", lambda s: seen.update([str(s.key_expr)]))
+    seen: Seen = defaultdict(set)
+
+    def saw(sample: zenoh.Sample) -> None:
+        header = header_of(sample.payload.to_bytes())
+        if header is not None:
+            seen[str(sample.key_expr)].add((str(header.get("source")), header["seq"]))
+
+    observer.session.declare_subscriber("dammrl/**", saw)
     recorder = start_service("recorder", port, DAMMRL_RECORDER_OUT=str(path))
     wait_for(lambda: "dammrl/health/recorder" in seen, 30, "the recorder")
     stack = [start_service(name, port, DAMMRL_TASK_EPISODES="1") for name in STACK]
@@ -59,21 +66,47 @@ def session_recording(
         observer.close()
 
 
-def test_recorded_counts_equal_what_an_independent_subscriber_saw(
-    session_recording: tuple[Path, Counter[str]],
+def test_every_message_an_independent_subscriber_saw_is_recorded_or_counted_missing(
+    session_recording: tuple[Path, Seen],
 ) -> None:
+    """What is guaranteed, whatever the load: the file holds every message the recorder
+    received, and a message it did not receive between two it did is counted missing.
+
+    Not guaranteed: that the recorder receives everything (the services publish with
+    congestion control DROP, so a loaded machine can drop a message on the recorder's
+    link and not on another subscriber's: a CI run under load had one robot/state gap),
+    nor that a publisher's very first or last message, if dropped, is seen as missing.
+    """
     path, seen = session_recording
     summary = info(path)
-    assert summary["complete"] and summary["sequence_gaps"] == {}
-    recorded = {topic: t["count"] for topic, t in summary["topics"].items()}
-    expected = {k: v for k, v in seen.items() if k != "dammrl/health/recorder"}
-    recorded.pop("dammrl/health/recorder", None)
-    assert recorded == expected
+    assert summary["complete"] and summary["sequence_anomalies"] == {}
     assert summary["metadata"]["dammrl.session"]["mode"] == "virtual"
+    loss = summary["metadata"]["dammrl.loss"]
+    received = json.loads(loss["messages"])  # as the recorder counted them on receipt
+    received |= {f"_invalid/{k}": n for k, n in json.loads(loss["invalid"]).items()}
+    assert {topic: t["count"] for topic, t in summary["topics"].items()} == received
+    recorded = _recorded(path)
+    for topic, messages in seen.items():
+        seqs = [seq for _, seq in recorded[topic]] or [0]
+        gaps = summary["sequence_gaps"].get(topic, 0)
+        assert gaps == max(seqs) - min(seqs) + 1 - len(recorded[topic]), topic  # the holes
+        missed = [seq for _, seq in messages - recorded[topic]]
+        assert len([seq for seq in missed if min(seqs) < seq < max(seqs)]) <= gaps, topic
+
+
+def _recorded(path: Path) -> Seen:
+    """(header.source, header.seq) of every recorded message, per key."""
+    recorded: Seen = defaultdict(set)
+    recording = read_recording(path)
+    for message in recording.messages:
+        header = header_of(message.data)
+        assert header is not None
+        recorded[recording.topic(message)].add((str(header["source"]), header["seq"]))
+    return recorded
 
 
 def test_json_export_decodes_and_validates_against_its_schemas(
-    session_recording: tuple[Path, Counter[str]], tmp_path: Path
+    session_recording: tuple[Path, Seen], tmp_path: Path
 ) -> None:
     path, _ = session_recording
     out = tmp_path / "foxglove.mcap"
@@ -90,7 +123,7 @@ def test_json_export_decodes_and_validates_against_its_schemas(
 
 
 def test_csv_export_has_one_file_per_topic(
-    session_recording: tuple[Path, Counter[str]], tmp_path: Path
+    session_recording: tuple[Path, Seen], tmp_path: Path
 ) -> None:
     path, _ = session_recording
     counts = export_csv(path, tmp_path / "csv")
@@ -100,7 +133,7 @@ def test_csv_export_has_one_file_per_topic(
     assert counts["dammrl/robot/state"] == len(state_csv.read_text().splitlines()) - 1
 
 
-def test_human_statistics_score_each_decision(session_recording: tuple[Path, Counter[str]]) -> None:
+def test_human_statistics_score_each_decision(session_recording: tuple[Path, Seen]) -> None:
     stats = human_statistics(session_recording[0])
     assert stats["decisions"] >= 5
     assert 0.0 <= stats["per_radius"]["E_big"]["error_rate"] <= 1.0
@@ -108,7 +141,7 @@ def test_human_statistics_score_each_decision(session_recording: tuple[Path, Cou
 
 
 def test_replay_as_fast_as_possible_reproduces_the_sequence(
-    session_recording: tuple[Path, Counter[str]],
+    session_recording: tuple[Path, Seen],
 ) -> None:
     recording = read_recording(session_recording[0])
     options = ReplayOptions(rate=0.0, topics=("robot/state", "intent"))
@@ -130,7 +163,7 @@ def test_replay_as_fast_as_possible_reproduces_the_sequence(
 
 
 def test_replay_in_real_time_keeps_the_inter_arrival_times(
-    session_recording: tuple[Path, Counter[str]],
+    session_recording: tuple[Path, Seen],
 ) -> None:
     recording = read_recording(session_recording[0])
     options = ReplayOptions(rate=1.0, topics=("robot/state",), end_s=3.0)
@@ -172,7 +205,7 @@ def test_a_cut_recording_is_readable_and_repairable(tmp_path: Path) -> None:
 
 
 def test_replaying_commands_to_a_live_sim_needs_force(
-    session_recording: tuple[Path, Counter[str]],
+    session_recording: tuple[Path, Seen],
 ) -> None:
     recording = read_recording(session_recording[0])
     port = free_port()
@@ -196,7 +229,7 @@ def test_replaying_commands_to_a_live_sim_needs_force(
 
 
 def test_replay_into_the_recorded_policy_reproduces_its_decisions(
-    session_recording: tuple[Path, Counter[str]], tmp_path: Path
+    session_recording: tuple[Path, Seen], tmp_path: Path
 ) -> None:
     from dammrl.replay import into_policy, write_decisions
     from services.policy.config import SHIPPED_POLICY
