@@ -5,12 +5,14 @@
     runs it (``python -m dammrl ...``): how many answers are tracebacks, and the exit codes;
 (b) ``kill``: the recorder on a live 500 Hz stream, killed with SIGKILL at several moments
     after it is up (its first Health); the file read back (repaired when cut): data lost =
-    kill time - last recorded message [s] (``--recorder-from DIR`` runs the recorder of
-    another checkout, e.g. a ``git worktree`` of an older commit, for a before/after);
+    kill time - last recorded message [s];
 (c) ``gaps``: ``recording info``'s sequence gaps on the crafted fuzzed-sequence file.
 
+``--code-from DIR`` runs the tools and the recorder of another tree (e.g. ``git archive
+<commit> dammrl services schemas | tar -x -C DIR``) for a before/after comparison.
+
     PYTHONPATH=. python benchmarks/recorder_faults.py [crafted|kill|gaps ...]
-        [--kill-at 0.5,2,5,12] [--recorder-from DIR]
+        [--kill-at 0.5,2,5,12] [--code-from DIR]
 """
 
 from __future__ import annotations
@@ -53,17 +55,18 @@ def free_port() -> int:
         return int(sock.getsockname()[1])
 
 
-def run_tool(argv: list[str]) -> tuple[int, str]:
+def run_tool(argv: list[str], code_from: Path | None = None) -> tuple[int, str]:
     """Exit code and the last line of stderr (the whole of it when it is a traceback)."""
     done = subprocess.run([sys.executable, "-m", "dammrl", *argv], capture_output=True,
-                          text=True, timeout=120, stdin=subprocess.DEVNULL)  # fmt: skip
+                          text=True, timeout=120, stdin=subprocess.DEVNULL,
+                          cwd=code_from)  # fmt: skip
     err = done.stderr.strip()
     if "Traceback" in err:
         return done.returncode, "TRACEBACK " + err.splitlines()[-1]
     return done.returncode, (err.splitlines() or [""])[-1]
 
 
-def crafted(workdir: Path) -> None:
+def crafted(workdir: Path, code_from: Path | None) -> None:
     port = free_port()
     bus = f"tcp/127.0.0.1:{port}"
     router = BusSettings(listen=[bus], mode="router", namespace="crafted")
@@ -74,7 +77,7 @@ def crafted(workdir: Path) -> None:
             for tool, template in TOOLS.items():
                 out = Path(tempfile.mkdtemp(dir=workdir))
                 argv = [a.format(file=path, out=out, bus=bus) for a in template]
-                code, line = run_tool(argv)
+                code, line = run_tool(argv, code_from)
                 tracebacks += line.startswith("TRACEBACK")
                 codes[code] += 1
                 print(f"    {tool:12s} exit {code:3d}  {line[:110]}")
@@ -111,7 +114,7 @@ def last_recorded_ns(path: Path) -> tuple[int | None, str]:
     return (max(times) if times else None), f"{len(times)} messages, {path.stat().st_size} B"
 
 
-def kill(workdir: Path, moments_s: list[float], recorder_from: Path | None) -> None:
+def kill(workdir: Path, moments_s: list[float], code_from: Path | None) -> None:
     port = free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
     stop = threading.Event()
@@ -123,14 +126,14 @@ def kill(workdir: Path, moments_s: list[float], recorder_from: Path | None) -> N
         try:
             for at_s in moments_s:
                 healthy.clear()
-                kill_once(workdir, endpoint, at_s, healthy, recorder_from)
+                kill_once(workdir, endpoint, at_s, healthy, code_from)
         finally:
             stop.set()
             publisher.join()
 
 
 def kill_once(
-    workdir: Path, endpoint: str, at_s: float, healthy: list[int], recorder_from: Path | None
+    workdir: Path, endpoint: str, at_s: float, healthy: list[int], code_from: Path | None
 ) -> None:
     path = workdir / f"killed-at-{at_s:g}s.mcap"
     env = os.environ | {
@@ -138,10 +141,10 @@ def kill_once(
         "DAMMRL_RECORDER_OUT": str(path),
         "DAMMRL_LOG_LEVEL": "WARNING",
     }
-    if recorder_from is not None:
-        env["PYTHONPATH"] = str(recorder_from)
+    if code_from is not None:
+        env["PYTHONPATH"] = str(code_from)
     recorder = subprocess.Popen(  # python -m puts the working directory first on the path
-        [sys.executable, "-m", "services.recorder"], env=env, cwd=recorder_from
+        [sys.executable, "-m", "services.recorder"], env=env, cwd=code_from
     )
     with contextlib.suppress(TimeoutError):
         wait_until(lambda: bool(healthy), 30)  # up and subscribed
@@ -162,11 +165,11 @@ def wait_until(condition: object, timeout_s: float) -> None:
         time.sleep(0.05)
 
 
-def gaps(workdir: Path) -> None:
+def gaps(workdir: Path, code_from: Path | None) -> None:
     path = crafted_files(workdir)["fuzzed sequence number"]
-    code, _ = run_tool(["recording", "info", str(path), "--json"])
     done = subprocess.run([sys.executable, "-m", "dammrl", "recording", "info", str(path),
-                           "--json"], capture_output=True, text=True)  # fmt: skip
+                           "--json"], capture_output=True, text=True, cwd=code_from)  # fmt: skip
+    code = done.returncode
     summary = json.loads(done.stdout) if done.returncode == 0 else {}
     print(f"(c) fuzzed seq (9 real messages 1..9, one claiming 2**32-1): exit {code}, "
           f"sequence_gaps {summary.get('sequence_gaps')}, "
@@ -177,15 +180,15 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
     parser.add_argument("parts", nargs="*", default=["crafted", "kill", "gaps"])
     parser.add_argument("--kill-at", default="0.5,2,5,12", help="seconds, comma-separated")
-    parser.add_argument("--recorder-from", type=Path, help="checkout whose recorder to run")
+    parser.add_argument("--code-from", type=Path, help="a tree whose tools and recorder to run")
     args = parser.parse_args()
     workdir = Path(tempfile.mkdtemp(prefix="dammrl-faults-"))
     if "crafted" in args.parts:
-        crafted(workdir)
+        crafted(workdir, args.code_from)
     if "kill" in args.parts:
-        kill(workdir, [float(s) for s in args.kill_at.split(",")], args.recorder_from)
+        kill(workdir, [float(s) for s in args.kill_at.split(",")], args.code_from)
     if "gaps" in args.parts:
-        gaps(workdir)
+        gaps(workdir, args.code_from)
 
 
 if __name__ == "__main__":
