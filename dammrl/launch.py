@@ -128,10 +128,12 @@ def check_options(options: StackOptions) -> None:
         )
     if options.mode == "semi-virtual" and not options.serial_port:
         raise UsageError("semi-virtual mode needs --port (the pressure sensor's serial device)")
-    if options.calibration is not None:
+    if options.calibration is not None:  # a clear error now, not a dead service
         from services.intent.calibration import load_calibration
+        from services.intent.config import IntentSettings
+        from services.intent.decoder import PressDecoder
 
-        load_calibration(options.calibration)  # a clear error now, not a dead service
+        PressDecoder(load_calibration(options.calibration), IntentSettings().decoder)
 
 
 def _die_with_parent() -> None:

@@ -126,3 +126,22 @@ def test_a_port_in_time_wait_is_reused_and_a_held_port_is_a_clear_error() -> Non
     accepted.close()  # the side that closes first keeps the port in TIME_WAIT
     client.close()
     assert check_port(port) == port
+
+
+def test_every_command_help_ends_with_the_exit_codes() -> None:
+    import argparse
+
+    from dammrl.cli import parser
+    from dammrl.core.errors import EXIT_CODES_HELP
+
+    def commands(top: argparse.ArgumentParser) -> list[argparse.ArgumentParser]:
+        found = []
+        for action in top._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                for command in action.choices.values():
+                    found += [command, *commands(command)]
+        return found
+
+    every = commands(parser())
+    assert len(every) > 15
+    assert all(EXIT_CODES_HELP in (c.epilog or "") for c in every)

@@ -56,4 +56,16 @@ def parser() -> argparse.ArgumentParser:
     commands = top.add_subparsers(required=True, metavar="COMMAND")
     for register in GROUPS:
         register(commands)
+    _with_exit_codes(commands)
     return top
+
+
+def _with_exit_codes(commands: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    """Every command's ``--help`` ends with the exit codes (nested actions included)."""
+    for command in commands.choices.values():
+        command.epilog = (
+            f"{command.epilog}\n\n{EXIT_CODES_HELP}" if command.epilog else EXIT_CODES_HELP
+        )
+        for action in command._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                _with_exit_codes(action)

@@ -18,12 +18,25 @@ from typing import Any, Generic, TypeVar
 
 import zenoh
 
-from schemas import DecodeError, Header, Health, Message, decode, encode, key, type_of
+from schemas import (
+    DecodeError,
+    Header,
+    Health,
+    JointCommand,
+    Message,
+    RobotState,
+    decode,
+    encode,
+    key,
+    type_of,
+)
 from services.common.config import BusSettings
 from services.common.security import ROLES, secure_config_entries
 
 M = TypeVar("M", bound=Message)
 MAX_NAME, MAX_PEERS = 64, 32
+ARM_LOOP: tuple[type[Message], ...] = (RobotState, JointCommand)
+"""The loop's messages (100 Hz each way): a late one stalls the arm, so they go first."""
 log = logging.getLogger("dammrl.bus")
 
 
@@ -56,10 +69,12 @@ class Publisher(Generic[M]):
         self.message_type = message_type
         self.key_expr = key_expr
         self._bus = bus
+        urgent = bus.settings.realtime and message_type in ARM_LOOP
         self._zenoh = bus.session.declare_publisher(
             key_expr,
             express=express,
             congestion_control=zenoh.CongestionControl.DROP,
+            priority=zenoh.Priority.REAL_TIME if urgent else zenoh.Priority.DATA,
         )
         self.seq = 0
         self.count = 0

@@ -14,7 +14,7 @@ from dammrl.core.settings import error_line
 from services.common.bus import Bus
 from services.common.config import BusSettings
 from services.common.logs import setup_logging
-from services.common.runtime import stop_on_signals
+from services.common.runtime import TIME_CRITICAL, prioritise, stop_on_signals
 
 EPILOG = """\
 Every setting can also come from the environment: DAMMRL_BUS_* for the bus (MODE,
@@ -63,6 +63,8 @@ def run_service(
     stop = stop_on_signals()
     try:
         settings = BusSettings(**overrides)
+        if settings.realtime:
+            log.info(prioritise(name in TIME_CRITICAL))
         with Bus(settings, name) as bus:
             node = build(bus, args)
             log.info("up on namespace %r", settings.namespace)

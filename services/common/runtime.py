@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import signal
 import threading
 import time
@@ -9,6 +10,23 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 
 SIGNALS = (signal.SIGINT, signal.SIGTERM)
+TIME_CRITICAL = ("sim", "controller")
+"""The services that close the arm's loop (a late state or command stalls the arm)."""
+CRITICAL_NICE = -10
+
+
+def prioritise(critical: bool) -> str:
+    """Set this process's scheduling priority: ``CRITICAL_NICE`` for a time-critical one,
+    the default otherwise (a launcher's children inherit its own). Call it before opening
+    the Zenoh session: on Linux a priority is per thread, and threads inherit it when they
+    start. Returns what it did, for the log."""
+    wanted = CRITICAL_NICE if critical else 0
+    try:
+        os.setpriority(os.PRIO_PROCESS, 0, wanted)
+    except PermissionError:
+        now = os.getpriority(os.PRIO_PROCESS, 0)
+        return f"scheduling priority left at nice {now} (nice {wanted} needs CAP_SYS_NICE)"
+    return f"scheduling priority nice {wanted}"
 
 
 class SignalStop(threading.Event):
