@@ -170,7 +170,8 @@ class EpisodeResult(Message):
     final_error_m: Finite
     n_osc: int = Field(ge=0)
     jerk_isj: Finite
-    jerk_dimensionless: Finite
+    sparc: Finite = Field(description="spectral arc length of the speed [-] (0: smoothest)")
+    ldlj: Finite = Field(description="log dimensionless jerk of the speed [-] (higher: smoother)")
     human_error_rate: Finite
     n_steps: int = Field(ge=0)
     n_decisions: int = Field(ge=0)

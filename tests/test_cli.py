@@ -12,7 +12,7 @@ from dammrl.core.errors import Exit
 
 KEYS = {
     "success", "t_total_s", "t_step_mean_s", "final_error_m", "n_osc", "jerk_isj",
-    "jerk_dimensionless", "human_error_rate", "n_steps", "trigger", "model", "seed",
+    "sparc", "ldlj", "human_error_rate", "n_steps", "trigger", "model", "seed",
 }  # fmt: skip
 
 

@@ -7,11 +7,12 @@ import pytest
 
 from dammrl.core.metrics import (
     GoalMonitor,
-    dimensionless_jerk,
     human_error_rate,
     integrated_squared_jerk,
+    log_dimensionless_jerk,
     n_oscillations,
     reach_metrics,
+    spectral_arc_length,
 )
 
 
@@ -29,11 +30,28 @@ def test_isj_of_a_minimum_jerk_reach_matches_the_analytic_value() -> None:
     assert integrated_squared_jerk(t, v) == pytest.approx(720 * 0.3**2 / 1.5**5, rel=0.01)
 
 
-def test_dimensionless_jerk_is_independent_of_amplitude_and_duration() -> None:
-    a = dimensionless_jerk(*_min_jerk(0.3, 1.5))
-    b = dimensionless_jerk(*_min_jerk(0.1, 0.6))
-    assert a == pytest.approx(b, rel=0.01)
-    assert a == pytest.approx(720 / 1.875**2, rel=0.01)
+GAUSSIAN_T = np.arange(-1.0, 1.0, 0.01)  # the published reference: 100 Hz, t in [-1, 1)
+GAUSSIAN = np.exp(-5 * GAUSSIAN_T**2)
+
+
+def test_sparc_and_ldlj_match_the_published_reference_values() -> None:
+    """Balasubramanian et al. 2015: SPARC -1.41403, LDLJ -5.81636."""
+    assert spectral_arc_length(GAUSSIAN, 100.0) == pytest.approx(-1.41403, abs=5e-6)
+    assert log_dimensionless_jerk(GAUSSIAN, 100.0) == pytest.approx(-5.81636, abs=5e-6)
+
+
+def test_sparc_and_ldlj_ignore_amplitude_and_duration() -> None:
+    for measure in (spectral_arc_length, log_dimensionless_jerk):
+        base = measure(GAUSSIAN, 100.0)
+        assert measure(3.0 * GAUSSIAN, 100.0) == pytest.approx(base, abs=1e-9)
+        slow = np.exp(-5 * np.arange(-1.0, 1.0, 0.005) ** 2)  # the same shape, twice as long
+        assert measure(slow, 100.0) == pytest.approx(base, abs=0.01)
+
+
+def test_stop_and_go_is_less_smooth_than_one_reach() -> None:
+    two = np.concatenate([GAUSSIAN, GAUSSIAN])
+    assert spectral_arc_length(two, 100.0) < spectral_arc_length(GAUSSIAN, 100.0)
+    assert log_dimensionless_jerk(two, 100.0) < log_dimensionless_jerk(GAUSSIAN, 100.0)
 
 
 SUBGOAL = np.zeros((1, 3))

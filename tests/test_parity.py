@@ -47,7 +47,7 @@ EXACT = 1e-9
 METRICS_EXACT = ("success", "outcome", "reason", "n_osc", "n_steps", "n_decisions",
                  "button_pressed", "trigger", "model", "seed")  # fmt: skip
 METRICS_CLOSE = ("t_total_s", "t_step_mean_s", "final_error_m", "jerk_isj",
-                 "jerk_dimensionless", "human_error_rate", "start_m", "goal_m")  # fmt: skip
+                 "sparc", "ldlj", "human_error_rate", "start_m", "goal_m")  # fmt: skip
 
 
 @dataclass

@@ -52,7 +52,7 @@ EXAMPLES: list[Message] = [
     EpisodeResult(header=HEADER, episode=2, seed=7, trigger="fixed", model=(1, 3),
                   success=True, outcome="success", reason="goal reached", t_total_s=5.0,
                   t_step_mean_s=None, final_error_m=0.01, n_osc=3, jerk_isj=1e4,
-                  jerk_dimensionless=1e8, human_error_rate=0.1, n_steps=40, n_decisions=20,
+                  sparc=-2.5, ldlj=-8.0, human_error_rate=0.1, n_steps=40, n_decisions=20,
                   button_pressed=True, start_m=V3, goal_m=V3),
     SensorSample(header=HEADER, device_seq=9, raw=512, pressure_kpa=12.5),
     Health(header=HEADER, service="sim", state="ok", rejected={"dammrl/robot/command": 2},

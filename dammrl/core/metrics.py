@@ -25,7 +25,8 @@ class ReachMetrics:
     final_error_m: float  # ||x - x_g|| at the end [m]
     n_osc: int  # waypoint oscillation count, see n_oscillations
     jerk_isj: float  # integrated squared jerk [m^2/s^5]
-    jerk_dimensionless: float  # Hogan & Sternad dimensionless squared jerk [-]
+    sparc: float  # spectral arc length of the speed profile [-], see spectral_arc_length
+    ldlj: float  # log dimensionless jerk of the speed profile [-], see log_dimensionless_jerk
     human_error_rate: float  # share of human commands pointing away from the goal
     n_steps: int  # micro-steps executed
     n_decisions: int  # human decisions made
@@ -90,7 +91,8 @@ def reach_metrics(
         final_error_m=float(goal_error(x[-1], goal)[0]),
         n_osc=n_oscillations(x, subgoals.reshape(-1, 3), radii),
         jerk_isj=integrated_squared_jerk(t, v),
-        jerk_dimensionless=dimensionless_jerk(t, v),
+        sparc=spectral_arc_length(_speed(v), _rate(t)),
+        ldlj=log_dimensionless_jerk(_speed(v), _rate(t)),
         human_error_rate=human_error_rate(decisions_correct),
         n_steps=n_steps,
         n_decisions=len(decisions_correct),
@@ -160,20 +162,56 @@ def integrated_squared_jerk(t: np.ndarray, v: np.ndarray) -> float:
     return float(np.sum(j**2) * (t[1] - t[0]))
 
 
-def dimensionless_jerk(t: np.ndarray, v: np.ndarray) -> float:
-    """Dimensionless squared jerk, Hogan & Sternad (2009): ISJ * D^3 / v_peak^2.
+def _speed(v: np.ndarray) -> np.ndarray:
+    return np.asarray(np.linalg.norm(v, axis=1))
 
-    D is the movement duration and v_peak the peak speed; the measure is independent of
-    duration and amplitude (a single minimum-jerk reach scores 720 / 1.875^2 ~ 205 in
-    theory; arrests and corrections raise it).
-    """
-    if len(t) < 3:
+
+def _rate(t: np.ndarray) -> float:
+    return 1.0 / float(t[1] - t[0]) if len(t) > 1 else 1.0
+
+
+def spectral_arc_length(
+    speed: np.ndarray,
+    rate_hz: float,
+    padding: int = 4,
+    cutoff_hz: float = 10.0,
+    threshold: float = 0.05,
+) -> float:
+    """SPARC, the spectral arc length of a speed profile (Balasubramanian et al. 2015,
+    J NeuroEng Rehabil 12:112): minus the length of the normalised Fourier magnitude
+    spectrum's curve, over the band from 0 up to where it last exceeds ``threshold``
+    (at most ``cutoff_hz``), with the frequency axis normalised to that band. Smoother
+    movements score closer to 0; it is independent of amplitude and duration. A Gaussian
+    speed profile exp(-5 t^2), t in [-1, 1) at 100 Hz, scores -1.41403."""
+    if len(speed) < 2 or float(np.max(np.abs(speed))) == 0.0:
         return 0.0
-    v_peak = float(np.max(np.linalg.norm(v, axis=1)))
-    if v_peak == 0.0:
+    n_fft = int(2 ** (math.ceil(math.log2(len(speed))) + padding))
+    frequency = np.arange(n_fft) * rate_hz / n_fft
+    magnitude = np.abs(np.fft.fft(speed, n_fft))
+    magnitude = magnitude / magnitude.max()
+    band = frequency <= cutoff_hz
+    frequency, magnitude = frequency[band], magnitude[band]
+    above = np.nonzero(magnitude >= threshold)[0]
+    frequency = frequency[above[0] : above[-1] + 1]
+    magnitude = magnitude[above[0] : above[-1] + 1]
+    if len(frequency) < 2:
         return 0.0
-    duration = float(t[-1] - t[0])
-    return integrated_squared_jerk(t, v) * duration**3 / v_peak**2
+    df = np.diff(frequency) / (frequency[-1] - frequency[0])
+    return -float(np.sum(np.sqrt(df**2 + np.diff(magnitude) ** 2)))
+
+
+def log_dimensionless_jerk(speed: np.ndarray, rate_hz: float) -> float:
+    """LDLJ (Balasubramanian et al. 2015): -ln(D^3 / v_peak^2 * integral of (d^2 v/dt^2)^2
+    dt) for a speed profile of duration D and peak v_peak. Smoother movements score
+    higher (closer to 0). A Gaussian speed profile exp(-5 t^2), t in [-1, 1) at 100 Hz,
+    scores -5.81636."""
+    v_peak = float(np.max(np.abs(speed))) if len(speed) else 0.0
+    if len(speed) < 3 or v_peak == 0.0:
+        return 0.0
+    dt = 1.0 / rate_hz
+    duration = len(speed) * dt
+    jerk_ = np.diff(speed, 2) / dt**2
+    return -math.log(duration**3 / v_peak**2 * float(np.sum(jerk_**2)) * dt)
 
 
 def human_error_rate(correct: list[bool] | np.ndarray) -> float:
