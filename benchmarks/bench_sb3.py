@@ -20,9 +20,10 @@ import gymnasium as gym
 import numpy as np
 from stable_baselines3 import DQN
 
+from dammrl.core.task import HELD_OUT_START, held_out_seeds
 from dammrl.rl.config import RewardWeights, TrainSettings
 from dammrl.rl.env import ACTIONS, OBSERVATION_SIZE, ReachEnv
-from dammrl.rl.train import EVAL_SEED_OFFSET, evaluate, train
+from dammrl.rl.train import evaluate, train
 from dammrl.runner import ReachRunner
 
 
@@ -53,7 +54,7 @@ class JointActionEnv(gym.Env):  # type: ignore[misc]
 
 
 def sb3_success(model: DQN, reward: int, episodes: int) -> float:
-    env = JointActionEnv(reward, TrainSettings().max_decisions, seed_base=EVAL_SEED_OFFSET)
+    env = JointActionEnv(reward, TrainSettings().max_decisions, seed_base=HELD_OUT_START)
     wins = 0
     for _ in range(episodes):
         obs, _ = env.reset()
@@ -79,7 +80,7 @@ def main() -> None:
         logs = train(args.reward, Path(out), settings, "cpu", progress=lambda _: None)
         ours_s = time.perf_counter() - start
         decisions = sum(log.decisions for log in logs)
-        ours = evaluate(Path(out), args.eval)["success_rate"]
+        ours = evaluate(Path(out), held_out_seeds(args.eval))["success_rate"]
     print(f"dammrl dual-agent DQN: {args.episodes} episodes ({decisions} decisions), "
           f"{ours_s:.0f} s, greedy success {ours:.0%} on {args.eval} unseen seeds")  # fmt: skip
 

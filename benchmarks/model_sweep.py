@@ -3,7 +3,7 @@
 Prints, per (trigger, model): success rate with a 95 % Wilson interval, mean total time,
 mean N_osc, mean final error and the share of reaches that pressed the button.
 
-    python benchmarks/model_sweep.py --seeds 50 [--trigger event|fixed|both] [--models 1,1 2,1]
+    python benchmarks/model_sweep.py --seeds 50|A:B [--trigger event|fixed|both] [--models 1,1 2,1]
 """
 
 from __future__ import annotations
@@ -16,6 +16,7 @@ import numpy as np
 
 from dammrl.core.metrics import ReachMetrics
 from dammrl.core.models import HUMAN_MODELS, ROBOT_MODELS, parse_model
+from dammrl.core.task import held_out_seeds
 from dammrl.runner import ReachRunner
 
 
@@ -46,7 +47,8 @@ def summarise(trigger: str, model: tuple[int, int], rows: list[ReachMetrics]) ->
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--seeds", type=int, default=50)
+    parser.add_argument("--seeds", type=held_out_seeds, default=held_out_seeds(50),
+                        help="held-out task seeds: N or A:B (default the first 50)")  # fmt: skip
     parser.add_argument("--trigger", choices=["event", "fixed", "both"], default="both")
     parser.add_argument("--models", nargs="*", type=parse_model)
     args = parser.parse_args()
@@ -56,10 +58,11 @@ def main() -> None:
     start = time.perf_counter()
     for trigger in triggers:
         for model in models:
-            rows = [runner.run(seed, model, trigger=trigger).metrics for seed in range(args.seeds)]
+            rows = [runner.run(seed, model, trigger=trigger).metrics for seed in args.seeds]
             print(summarise(trigger, model, rows), flush=True)
     print(
-        f"{args.seeds} seeds x {len(models)} models x {len(triggers)} triggers "
+        f"{len(args.seeds)} seeds ({args.seeds.start}:{args.seeds.stop}) x {len(models)} "
+        f"models x {len(triggers)} triggers "
         f"in {time.perf_counter() - start:.0f} s"
     )
 

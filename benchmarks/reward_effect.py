@@ -21,6 +21,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from dammrl.core.models import ModelSet
+from dammrl.core.task import held_out_seeds
 from dammrl.rl.train import Rollout, greedy_rollouts
 
 BINS_M = np.array([0.0, 0.01, 0.02, 0.04, 0.08, 0.16, 0.5])
@@ -52,7 +53,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("reward1", type=Path)
     parser.add_argument("reward2", type=Path)
-    parser.add_argument("--episodes", type=int, default=100)
+    parser.add_argument("--seeds", type=held_out_seeds, default=held_out_seeds(100),
+                        help="held-out task seeds: N or A:B (default the first 100)")  # fmt: skip
     parser.add_argument("-o", "--out", type=Path, default=Path("reward_effect.png"))
     args = parser.parse_args()
     rng = np.random.default_rng(0)
@@ -63,7 +65,7 @@ def main() -> None:
         ("Reward 2 (speed + accuracy)", args.reward2, "tab:orange"),
     )
     for label, run, color in runs:
-        rollouts = greedy_rollouts(run, args.episodes)
+        rollouts = greedy_rollouts(run, args.seeds)
         wins = sum(r.metrics.success for r in rollouts)
         lo, hi = wilson(wins, len(rollouts))
         t = np.array([r.metrics.t_total_s for r in rollouts])

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 
+from dammrl.core.task import held_out_seeds
 from dammrl.rl.config import RewardWeights, TrainSettings
 from dammrl.rl.dqn import DualAgentDQN, ReplayBuffer
 from dammrl.rl.env import ACTIONS, OBSERVATION_SIZE, ReachEnv, RewardTerms, accuracy_term
@@ -104,7 +105,7 @@ def test_training_writes_a_checkpoint_that_resumes_and_evaluates(tmp_path: Path)
         1, tmp_path, SMALL.model_copy(update={"episodes": 6}), "cpu", progress=lambda _: None
     )
     assert [log.episode for log in more] == [1, 2, 3, 4, 5, 6]
-    result = evaluate(tmp_path, episodes=2)
+    result = evaluate(tmp_path, held_out_seeds(2))
     assert 0.0 <= result["success_rate"] <= 1.0 and result["episodes"] == 2
     with pytest.raises(CheckpointError, match="Reward 1 run"):
         train(2, tmp_path, SMALL, "cpu", progress=lambda _: None)
@@ -175,7 +176,8 @@ def test_shipped_reward_1_policy_takes_smaller_steps_near_the_goal_than_reward_2
 
     models, near = ModelSet(), {}
     for reward in (1, 2):
-        rollouts = greedy_rollouts(SHIPPED_POLICY.parent.parent / f"reward{reward}", 20)
+        run = SHIPPED_POLICY.parent.parent / f"reward{reward}"
+        rollouts = greedy_rollouts(run, held_out_seeds(20))
         assert np.mean([r.metrics.success for r in rollouts]) >= 0.9
         near[reward] = np.mean(
             [models.steps_m(j).mean() for r in rollouts for d, _, j in r.decisions if d < 0.04]
@@ -228,3 +230,20 @@ def test_policy_service_estimates_a_real_humans_model_and_publishes_the_posterio
         thread.join(5)
     assert choices[-1].posterior is not None and choices[-1].posterior[1] > 0.95
     assert choices[-1].human_model == 2
+
+
+def test_training_never_draws_a_held_out_seed_and_evaluation_only_does() -> None:
+    from dammrl.core.errors import ConfigurationError
+    from dammrl.core.task import HELD_OUT_START, training_seed
+
+    assert training_seed(69, 99_999) < HELD_OUT_START
+    for run_seed, episode in ((70, 0), (0, 100_000)):
+        with pytest.raises(ConfigurationError, match="training uses seeds below"):
+            training_seed(run_seed, episode)
+    assert held_out_seeds(3) == range(HELD_OUT_START, HELD_OUT_START + 3)
+    assert held_out_seeds("7000100:7000110") == range(7_000_100, 7_000_110)
+    for bad in ("0:10", "x", "0", "7000010:7000005"):
+        with pytest.raises(ConfigurationError):
+            held_out_seeds(bad)
+    with pytest.raises(Exception, match="less than 70"):
+        TrainSettings(seed=70)

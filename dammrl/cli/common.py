@@ -34,6 +34,22 @@ def positive(text: str) -> float:
     return value
 
 
+SEEDS_HELP = (
+    "held-out task seeds: N (the first N, default 100) or A:B (seeds A to B-1, all >= "
+    "7,000,000: training never uses them)"
+)
+
+
+def seeds_arg(text: str) -> range:
+    """Argument type: held-out task seeds ``N`` or ``A:B``."""
+    from dammrl.core.task import held_out_seeds
+
+    try:
+        return held_out_seeds(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from exc
+
+
 def model_arg(text: str) -> tuple[int, int]:
     """Argument type: a multi-model index ``I,J``."""
     try:

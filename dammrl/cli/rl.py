@@ -6,7 +6,7 @@ import argparse
 import json
 from pathlib import Path
 
-from dammrl.cli.common import Commands, print_err
+from dammrl.cli.common import SEEDS_HELP, Commands, print_err, seeds_arg
 
 
 def register(commands: Commands) -> None:
@@ -21,7 +21,8 @@ def register(commands: Commands) -> None:
     train.set_defaults(handler=_train)
     evaluate = commands.add_parser("evaluate", help="greedy evaluation of a trained run")
     evaluate.add_argument("--checkpoint", type=Path, required=True, help="run directory or .pt")
-    evaluate.add_argument("--episodes", type=int, default=100)
+    evaluate.add_argument("--seeds", default="100", metavar="N|A:B", type=seeds_arg,
+                          help=SEEDS_HELP)  # fmt: skip
     evaluate.add_argument("--json", action="store_true")
     evaluate.set_defaults(handler=_evaluate)
 
@@ -44,7 +45,7 @@ def _evaluate(args: argparse.Namespace) -> int:
     """Greedy episodes of a trained run; their metrics as text or one JSON object."""
     from dammrl.rl.train import evaluate
 
-    result = evaluate(args.checkpoint, args.episodes)
+    result = evaluate(args.checkpoint, args.seeds)
     if args.json:
         print(json.dumps(result))
     else:

@@ -22,6 +22,11 @@ from dammrl.core.robot.scene import SceneLayout
 from dammrl.core.settings import PerJoint, Settings
 
 START_ACCEPT_ERROR_M = 1e-4  # a start posture farther than this from x_s is refused
+HELD_OUT_START = 7_000_000
+"""Task seeds from here on are held out: no training episode ever draws one; evaluation,
+sweeps and studies do (``held_out_seeds``), so every tool reports on the same unseen set."""
+TRAINING_SEEDS_PER_RUN = 100_000
+"""Training run ``s`` draws the task seeds s * 100 000 + episode (``training_seed``)."""
 
 
 class TaskSettings(Settings):
@@ -74,6 +79,38 @@ class SeedStreams:
     human: np.random.Generator  # the simulated human's decisions and decision times
     ik_latency: np.random.Generator  # the controller's IK latency model
     sim: np.random.Generator  # domain randomisation and sensor noise
+
+
+def training_seed(run_seed: int, episode: int) -> int:
+    """The task seed of a training episode; never a held-out one."""
+    seed = run_seed * TRAINING_SEEDS_PER_RUN + episode
+    if not 0 <= episode < TRAINING_SEEDS_PER_RUN or not 0 <= seed < HELD_OUT_START:
+        raise ConfigurationError(
+            f"training run {run_seed}, episode {episode} would use task seed {seed}: training "
+            f"uses seeds below {HELD_OUT_START:,} (run seed <= "
+            f"{HELD_OUT_START // TRAINING_SEEDS_PER_RUN - 1}, < {TRAINING_SEEDS_PER_RUN:,} "
+            "episodes)"
+        )
+    return seed
+
+
+def held_out_seeds(spec: str | int) -> range:
+    """The evaluation seeds: ``N`` (the first N held-out seeds) or ``A:B`` (seeds A to B-1,
+    all held out)."""
+    text = str(spec).strip()
+    try:
+        if ":" in text:
+            first, end = (int(part) for part in text.split(":", 1))
+        else:
+            first, end = HELD_OUT_START, HELD_OUT_START + int(text)
+    except ValueError:
+        raise ConfigurationError(f"seeds must be N or A:B, got {text!r}") from None
+    if not HELD_OUT_START <= first < end:
+        raise ConfigurationError(
+            f"seeds {text!r}: need at least one seed, all >= {HELD_OUT_START:,} (held out "
+            "from training)"
+        )
+    return range(first, end)
 
 
 def seed_streams(seed: int) -> SeedStreams:

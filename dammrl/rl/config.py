@@ -39,7 +39,7 @@ class TrainSettings(Settings):
 
     model_config = SettingsConfigDict(env_prefix="DAMMRL_RL_")
 
-    episodes: int = Field(1500, ge=1)
+    episodes: int = Field(1500, ge=1, lt=100_000)
     """Training episodes."""
     max_decisions: int = Field(150, ge=1)
     """Decisions per episode before it is truncated."""
@@ -61,4 +61,4 @@ class TrainSettings(Settings):
     hidden: int = Field(128, ge=8)
     """Units per hidden layer."""
     grad_clip: float = Field(10.0, gt=0)
-    seed: int = Field(0, ge=0)
+    seed: int = Field(0, ge=0, lt=70)

@@ -21,6 +21,7 @@ import torch
 from torch.utils.tensorboard import SummaryWriter
 
 from dammrl.core.errors import DammrlError
+from dammrl.core.task import training_seed
 from dammrl.rl.config import RewardWeights, TrainSettings
 from dammrl.rl.dqn import DualAgentDQN, ReplayBuffer, UpdateStats
 from dammrl.rl.env import ACTIONS, OBSERVATION_SIZE, ReachEnv
@@ -34,7 +35,6 @@ from services.policy.learned import (
 )
 
 __all__ = ["CheckpointError", "evaluate", "load_checkpoint", "train"]
-EVAL_SEED_OFFSET = 1_000_000  # evaluation seeds never seen in training
 
 
 @dataclass
@@ -112,7 +112,7 @@ def _run_episode(
     decisions: int,
     s: TrainSettings,
 ) -> tuple[EpisodeLog, int]:
-    obs, _ = env.reset(seed=s.seed * 100_000 + episode)
+    obs, _ = env.reset(seed=training_seed(s.seed, episode))
     total, stats, small, n = 0.0, [], 0, 0
     while True:
         epsilon = epsilon_at(decisions, s)
@@ -193,16 +193,16 @@ class Rollout:
     decisions: list[tuple[float, int, int]]
 
 
-def greedy_rollouts(run: Path, episodes: int) -> list[Rollout]:
-    """The run's greedy policy on ``episodes`` unseen seeds, stochastic human."""
+def greedy_rollouts(run: Path, seeds: range) -> list[Rollout]:
+    """The run's greedy policy on ``seeds`` (held out from training), stochastic human."""
     checkpoint = load_checkpoint(run)
     settings = TrainSettings(**checkpoint["settings"])
     runner = ReachRunner()
     policy = LearnedPolicy(runner.settings.models, run)
     env = ReachEnv(runner, RewardWeights(**checkpoint["weights"]), settings.max_decisions)
     rollouts = []
-    for k in range(episodes):
-        env.reset(seed=EVAL_SEED_OFFSET + k)
+    for seed in seeds:
+        env.reset(seed=seed)
         policy.reset()
         decisions = []
         while True:
@@ -217,13 +217,14 @@ def greedy_rollouts(run: Path, episodes: int) -> list[Rollout]:
     return rollouts
 
 
-def evaluate(run: Path, episodes: int) -> dict[str, Any]:
+def evaluate(run: Path, seeds: range) -> dict[str, Any]:
     """Summary of :func:`greedy_rollouts` (the ``dammrl evaluate`` JSON)."""
-    rollouts = greedy_rollouts(run, episodes)
+    rollouts = greedy_rollouts(run, seeds)
     metrics = [r.metrics for r in rollouts]
     choices = [d for r in rollouts for d in r.decisions]
     return {
-        "checkpoint": str(run), "reward": load_checkpoint(run)["reward"], "episodes": episodes,
+        "checkpoint": str(run), "reward": load_checkpoint(run)["reward"],
+        "episodes": len(seeds), "seeds": f"{seeds.start}:{seeds.stop}",
         "success_rate": float(np.mean([m.success for m in metrics])),
         "t_total_s": float(np.mean([m.t_total_s for m in metrics])),
         "final_error_m": float(np.mean([m.final_error_m for m in metrics])),
