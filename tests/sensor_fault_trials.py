@@ -21,8 +21,8 @@ import numpy as np
 from pydantic import ValidationError
 
 from dammrl.core.errors import DammrlError
+from dammrl.core.settings import error_line
 from schemas import DecisionRequest, Header, Intent, SensorSample, encode
-from services.intent.calibration import reason
 from services.intent.decoder import Calibration, PressDecoder
 from services.intent.emulator import DEFAULT_CALIBRATION, Press, SensorEmulator
 from tests.busutil import Observer, free_port, start_service, wait_for
@@ -112,7 +112,7 @@ def phantom_trial(levels: dict[str, float], seconds: float = 20.0, seed: int = 4
         cal = Calibration.model_validate(levels)
         decoder = PressDecoder(cal)
     except ValidationError as exc:
-        return f"refused: {reason(exc)}"
+        return f"refused: {error_line(exc)}"
     except DammrlError as exc:
         return f"refused: {exc}"
     raws = noisy_rest(seconds, np.random.default_rng(seed), cal)

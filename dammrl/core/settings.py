@@ -90,8 +90,10 @@ def error_line(exc: Exception) -> str:
         cause = error.get("ctx", {}).get("error")
         if isinstance(cause, ConfigurationError):
             parts.append(str(cause))
-        else:
-            parts.append(f"{'.'.join(map(str, error['loc']))}: {error['msg']}")
+            continue
+        message = str(error["msg"]).removeprefix("Value error, ")
+        where = ".".join(map(str, error["loc"]))
+        parts.append(f"{where}: {message}" if where else message)
     return "; ".join(parts)
 
 

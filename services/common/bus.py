@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import logging
 import queue
+import threading
 import time
 from collections import Counter
 from types import TracebackType
@@ -110,6 +111,7 @@ class Bus:
         self._health: Publisher[Health] | None = None
         self._token: Any = None
         self._roster: Any = None
+        self._roster_lock = threading.Lock()  # Zenoh's thread writes, the loop reads
         self.peers: set[str] = set()  # services with a liveliness token
         self.missing: dict[str, float] = {}  # services seen alive, now gone: when [Unix s]
         self._sources: dict[type[Message], frozenset[str]] = {}
@@ -139,7 +141,11 @@ class Bus:
         name = str(sample.key_expr).rsplit("/", 1)[-1]
         if len(name) > MAX_NAME:
             return
-        if sample.kind == zenoh.SampleKind.DELETE:
+        with self._roster_lock:
+            self._update_roster(name, sample.kind == zenoh.SampleKind.DELETE)
+
+    def _update_roster(self, name: str, gone: bool) -> None:
+        if gone:
             self.peers.discard(name)
             if len(self.missing) < MAX_PEERS:  # a stray peer's tokens cannot grow it
                 self.missing[name] = time.time()
@@ -147,6 +153,10 @@ class Bus:
             self.missing.pop(name, None)
             if len(self.peers) < MAX_PEERS:
                 self.peers.add(name)
+
+    def _roster_fields(self) -> dict[str, Any]:
+        with self._roster_lock:
+            return {"peers": sorted(self.peers), "missing": dict(self.missing)}
 
     def key(self, message_type: type[Message]) -> str:
         return key(self.namespace, message_type, self.service)
@@ -237,7 +247,6 @@ class Bus:
             rejected=rejected,
             rates_hz=rates,
             uptime_s=uptime,
-            peers=sorted(self.peers),
-            missing=dict(self.missing),
+            **self._roster_fields(),
         )
         self._next_health = now + self.settings.health_period_s

@@ -18,6 +18,7 @@ import numpy as np
 from pydantic import ValidationError
 
 from dammrl.core.errors import ConfigurationError, DammrlError
+from dammrl.core.settings import error_line
 from services.intent.decoder import Calibration, DecoderSettings, level_problem
 from services.intent.emulator import DEFAULT_CALIBRATION
 
@@ -83,20 +84,10 @@ def calibration_from(
             rest_raw=rest.raw, light_raw=light_raw, firm_raw=firm_raw, rest_noise_raw=rest.noise_raw
         )
     except ValidationError as exc:
-        raise CalibrationError(f"{reason(exc)}. {_redo(rest)}") from None
+        raise CalibrationError(f"{error_line(exc)}. {_redo(rest)}") from None
     if (problem := level_problem(calibration, decoder or DecoderSettings())) is not None:
         raise CalibrationError(f"{problem}. {_redo(rest)}")
     return calibration
-
-
-def reason(exc: ValidationError) -> str:
-    """A calibration's validation errors on one line."""
-    parts = []
-    for error in exc.errors(include_url=False):
-        message = str(error["msg"]).removeprefix("Value error, ")
-        where = ".".join(map(str, error["loc"]))
-        parts.append(f"{where}: {message}" if where else message)
-    return "; ".join(parts)
 
 
 def _redo(rest: Rest) -> str:
@@ -121,6 +112,6 @@ def load_calibration(path: Path | None) -> Calibration:
         ) from None
     except ValidationError as exc:
         raise ConfigurationError(
-            f"{path} is not a valid calibration file: {reason(exc)}; run "
+            f"{path} is not a valid calibration file: {error_line(exc)}; run "
             "dammrl sensor calibrate again"
         ) from None
