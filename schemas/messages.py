@@ -83,6 +83,7 @@ class DecisionRequest(Message):
     """The controller asks the human for the next decision (one per event trigger)."""
 
     episode: int = Field(ge=0)
+    seed: int = Field(ge=0, description="the episode's task seed (a late joiner seeds from it)")
     request: int = Field(ge=0, description="request number within the episode")
     t_s: Finite = Field(ge=0, description="robot clock when asked [s]")
     ee_pos_m: Vec3 = Field(description="end-effector position the human sees")

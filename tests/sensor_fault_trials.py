@@ -135,7 +135,7 @@ class PortRig:
         self.requests += 1
         request = DecisionRequest(
             header=Header(stamp_ns=time.time_ns(), seq=self.requests, source="controller"),
-            episode=1, request=self.requests, t_s=0.0, ee_pos_m=(0.0, 0.0, 0.0),
+            episode=1, seed=1, request=self.requests, t_s=0.0, ee_pos_m=(0.0, 0.0, 0.0),
             goal_m=(0.3, 0.0, 0.0), primary_axis=0, human_model=1,
         )  # fmt: skip
         self.observer.session.put("dammrl/intent/request", encode(request))

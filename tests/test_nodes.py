@@ -43,14 +43,14 @@ def _goal(episode: int, seed: int) -> TaskGoal:
                     goal_m=(0.5, 0, -0.2), q_start_rad=(0, 1, 0, 1.6, 0, 0.3))  # fmt: skip
 
 
-def _request(request: int) -> DecisionRequest:
-    return DecisionRequest(header=HEADER, episode=1, request=request, t_s=1.0,
+def _request(request: int, episode: int = 1, seed: int = 5) -> DecisionRequest:
+    return DecisionRequest(header=HEADER, episode=episode, seed=seed, request=request, t_s=1.0,
                            ee_pos_m=(0.3, 0, 0), goal_m=(0.5, 0, -0.2), primary_axis=0,
                            human_model=1)  # fmt: skip
 
 
-def _choice(request: int, i: int) -> ModelChoice:
-    return ModelChoice(header=HEADER, episode=1, request=request, human_model=i, robot_model=1,
+def _choice(request: int, i: int, episode: int = 1) -> ModelChoice:
+    return ModelChoice(header=HEADER, episode=episode, request=request, human_model=i, robot_model=1,
                        radius_m=0.004, steps_m=(0.01, 0.01, 0.01))  # fmt: skip
 
 
@@ -82,6 +82,33 @@ def test_a_repeated_task_goal_does_not_reseed_the_human_mid_episode() -> None:
     assert [p["decision_s"] for p in bus.published] == [
         p["decision_s"] for p in reference_bus.published
     ]
+
+
+def test_an_intent_service_that_missed_the_announcement_seeds_from_the_first_request() -> None:
+    """A late-joining intent service (it came up after the controller's last TaskGoal)
+    draws the seed's decisions all the same: parity must not depend on start-up order."""
+    reference, reference_bus = _intent_node()
+    late, late_bus = _intent_node()
+    reference._dispatch(_goal(1, 5))
+    for target in (reference, late):
+        for request in (1, 2, 3):
+            target._dispatch(_choice(request, 1))
+            target._dispatch(_request(request))
+    assert late_bus.published == reference_bus.published
+
+
+def test_a_stray_request_of_an_older_episode_does_not_reseed_the_human() -> None:
+    reference, reference_bus = _intent_node()
+    node, bus = _intent_node()
+    for target in (reference, node):
+        target._dispatch(_goal(2, 6))
+        if target is node:
+            node._dispatch(_request(9, episode=1, seed=5))  # a late repeat from episode 1
+        for request in (1, 2):
+            target._dispatch(_choice(request, 1, episode=2))
+            target._dispatch(_request(request, episode=2, seed=6))
+    assert len(reference_bus.published) == 2
+    assert [p for p in bus.published if p["episode"] == 2] == reference_bus.published
 
 
 def test_the_launcher_counts_only_the_controllers_new_results() -> None:

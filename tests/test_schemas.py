@@ -39,7 +39,7 @@ EXAMPLES: list[Message] = [
                holding=False),
     JointCommand(header=HEADER, episode=1, state_stamp_ns=5, q_ref_rad=J6, dq_ref_rad_s=J6,
                  tau_ff_nm=J6, kp_nm_per_rad=(400,) * 6, kd_nms_per_rad=(30,) * 6),
-    DecisionRequest(header=HEADER, episode=1, request=3, t_s=1.0, ee_pos_m=V3, goal_m=V3,
+    DecisionRequest(header=HEADER, episode=1, seed=1, request=3, t_s=1.0, ee_pos_m=V3, goal_m=V3,
                     primary_axis=0, human_model=2),
     Intent(header=HEADER, episode=1, request=3, u_h=-1, human_model=2, radius_m=0.004,
            confidence=0.9, source="simulated", decision_s=0.4, correct=False),

@@ -171,7 +171,7 @@ def _request() -> bytes:
     return encode(
         DecisionRequest(
             header=Header(stamp_ns=time.time_ns(), seq=0, source="controller"),
-            episode=1, request=0, t_s=0.0, ee_pos_m=(0.0, 0.0, 0.0), goal_m=(0.3, 0.0, 0.0),
+            episode=1, seed=1, request=0, t_s=0.0, ee_pos_m=(0.0, 0.0, 0.0), goal_m=(0.3, 0.0, 0.0),
             primary_axis=0, human_model=1,
         )
     )  # fmt: skip

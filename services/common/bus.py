@@ -119,13 +119,19 @@ class Bus:
     def __enter__(self) -> Bus:
         role = self.service if self.service in ROLES else "tool"
         self.session = zenoh.open(zenoh_config(self.settings, role))
-        alive = f"{self.namespace}/alive"
-        self._token = self.session.liveliness().declare_token(f"{alive}/{self.service}")
         self._roster = self.session.liveliness().declare_subscriber(
-            f"{alive}/*", self._on_liveliness, history=True
+            f"{self.namespace}/alive/*", self._on_liveliness, history=True
         )
         self._health = self.publisher(Health)
         return self
+
+    def declare_alive(self) -> None:
+        """Show this service alive (its liveliness token). A service calls it once it has
+        subscribed, so "alive" means "hears the bus": the launcher's wait for the recorder
+        and the controller's wait for the human then lose no message."""
+        if self._token is None:
+            alive = f"{self.namespace}/alive/{self.service}"
+            self._token = self.session.liveliness().declare_token(alive)
 
     def __exit__(
         self,
@@ -153,6 +159,11 @@ class Bus:
             self.missing.pop(name, None)
             if len(self.peers) < MAX_PEERS:
                 self.peers.add(name)
+
+    def alive_peers(self) -> set[str]:
+        """The services whose liveliness token this session sees now."""
+        with self._roster_lock:
+            return set(self.peers)
 
     def _roster_fields(self) -> dict[str, Any]:
         with self._roster_lock:

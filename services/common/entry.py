@@ -67,6 +67,7 @@ def run_service(
             log.info(prioritise(name in TIME_CRITICAL))
         with Bus(settings, name) as bus:
             node = build(bus, args)
+            bus.declare_alive()
             log.info("up on namespace %r", settings.namespace)
             node.run(stop)
     except (ValidationError, DammrlError) as exc:

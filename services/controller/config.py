@@ -78,7 +78,8 @@ class ControllerSettings(Settings):
     state_stale_s: float = Field(0.1, gt=0)
     """No RobotState for this long: stop stepping and hold the last reference [s]."""
     policy_wait_s: float = Field(20.0, ge=0)
-    """How long the first episode waits for the policy's first ModelChoice [s]."""
+    """How long the first episode waits for the policy's first ModelChoice and for the
+    human (intent) service to be alive [s]."""
     request_resend_s: float = Field(2.0, gt=0, le=60)
     """An unanswered decision request is sent again this often, so a human (intent)
     service that joined late or restarted answers it [s]."""

@@ -114,7 +114,7 @@ class ControllerNode:
         bus.expect(ModelChoice, "policy")
 
     def run(self, stop: threading.Event) -> None:
-        self._wait_for_policy(stop)
+        self._wait_for_peers(stop)
         self._next_episode()
         while not stop.is_set():
             message = self.bus.receive(0.02)
@@ -131,17 +131,29 @@ class ControllerNode:
             return f"waiting for the answer to request {self.request} ({since:.1f} s)"
         return ""
 
-    def _wait_for_policy(self, stop: threading.Event) -> None:
+    def _wait_for_peers(self, stop: threading.Event) -> None:
         """Start the first episode once the policy speaks (its first ModelChoice), so every
-        decision is the policy's; after ``policy_wait_s`` go on with the configured model."""
+        decision is the policy's, and the human service is alive, so it hears the episode's
+        announcement; after ``policy_wait_s`` go on (the configured model; requests are
+        sent again until a human answers)."""
         deadline = time.monotonic() + self.settings.policy_wait_s
+        spoke = False
         while not stop.is_set() and time.monotonic() < deadline:
             message = self.bus.receive(0.1)
             if isinstance(message, ModelChoice):
                 self.choice = (message.human_model, message.robot_model)
+                spoke = True
+            human = "intent" in self.bus.alive_peers()
+            if spoke and human:
                 return
-            self.bus.report_health("holding", "waiting for the policy")
-        log.warning("no ModelChoice from the policy: starting with M_%d,%d", *self.choice)
+            waiting = " and ".join(
+                w for w, ok in (("the policy", spoke), ("intent", human)) if not ok
+            )
+            self.bus.report_health("holding", f"waiting for {waiting}")
+        if not spoke:
+            log.warning("no ModelChoice from the policy: starting with M_%d,%d", *self.choice)
+        if "intent" not in self.bus.alive_peers():
+            log.warning("no intent service alive: starting; requests repeat until one answers")
 
     # ---- messages -----------------------------------------------------------------
     def _dispatch(self, message: Message) -> None:
@@ -199,6 +211,7 @@ class ControllerNode:
         self.request_t_s = self.last_t
         self.request_fields = {
             "episode": episode.number,
+            "seed": episode.seed,
             "request": self.request,
             "t_s": self.last_t,
             "ee_pos_m": tuple(float(v) for v in ee_pos),

@@ -6,8 +6,9 @@ works with; after ``policy_wait_s`` without an answer the request's own i is use
 Intent is published at once with the decision time the human took: the controller
 applies it when its robot clock reaches the request time plus that decision time, as the
 in-process runner does, so the human is timed by the robot clock, not by bus latency.
-A TaskGoal reseeds the human with the episode's seed, so a seed draws the same decisions
-as in-process.
+The first message of a new episode, its TaskGoal or (for an intent service that joined
+after the announcement) its first request, reseeds the human with the episode's seed, so a
+seed draws the same decisions as in-process.
 """
 
 from __future__ import annotations
@@ -64,13 +65,11 @@ class IntentNode:
             self.bus.report_health()
 
     def _dispatch(self, message: Message) -> None:
-        if isinstance(message, TaskGoal) and message.episode != self.episode:
-            self.episode = message.episode  # repeats of the announcement change nothing
-            self.human.rng = seed_streams(message.seed).human
-            self.waiting.clear()
-            self.choices.clear()
-            self.answered.clear()
+        if isinstance(message, TaskGoal):
+            self._new_episode(message.episode, message.seed)
         elif isinstance(message, DecisionRequest):
+            if message.episode > self.episode:  # its announcement was missed (never an older one)
+                self._new_episode(message.episode, message.seed)
             answered = self.answered.get((message.episode, message.request))
             if answered is not None:  # a re-sent request: the same answer again
                 self.publisher.publish(**answered)
@@ -81,6 +80,16 @@ class IntentNode:
             # the policy's answer may overtake the request it answers: keep it
             self.choices[(message.episode, message.request)] = message.human_model
             self._decide_if_chosen((message.episode, message.request))
+
+    def _new_episode(self, episode: int, seed: int) -> None:
+        """Reseed the human once per episode (repeats of the announcement change nothing)."""
+        if episode == self.episode:
+            return
+        self.episode = episode
+        self.human.rng = seed_streams(seed).human
+        for pending in (self.waiting, self.choices, self.answered):
+            for key in [k for k in pending if k[0] != episode]:  # a choice may come first
+                del pending[key]
 
     def _decide_if_chosen(self, key: tuple[int, int]) -> None:
         if key in self.waiting and key in self.choices:
