@@ -50,8 +50,8 @@ def _request(request: int, episode: int = 1, seed: int = 5) -> DecisionRequest:
 
 
 def _choice(request: int, i: int, episode: int = 1) -> ModelChoice:
-    return ModelChoice(header=HEADER, episode=episode, request=request, human_model=i, robot_model=1,
-                       radius_m=0.004, steps_m=(0.01, 0.01, 0.01))  # fmt: skip
+    return ModelChoice(header=HEADER, episode=episode, request=request, human_model=i,
+                       robot_model=1, radius_m=0.004, steps_m=(0.01, 0.01, 0.01))  # fmt: skip
 
 
 def _intent_node() -> tuple[IntentNode, FakeBus]:
