@@ -121,7 +121,7 @@ def latency(link: Path, presses: int) -> dict[str, list[float]]:
         request = stack.bus.publisher(DecisionRequest)
         releases = []
         for k in range(presses):
-            request.publish(episode=1, request=k, t_s=0.0, ee_pos_m=(0.0, 0.0, 0.0),
+            request.publish(episode=1, seed=1, request=k, t_s=0.0, ee_pos_m=(0.0, 0.0, 0.0),
                             goal_m=(0.3, 0.0, 0.0), primary_axis=0, human_model=1)  # fmt: skip
             time.sleep(0.1)
             pad.press(1.0, 0.2)

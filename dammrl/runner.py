@@ -296,13 +296,15 @@ class Episode:
     def _quiet_ticks(self, times: np.ndarray, rows: np.ndarray) -> int:
         """How many leading ticks need no more than logging (see ``_fast_forward``)."""
         reach = self.reach
-        if reach.goal_monitor.entered_s is not None:
+        if reach.dwelling:
             return 0
         deadline = reach.timeout_s if self.hold_until is None else self.hold_until
         eventful = times >= deadline - 1e-9
         if self.hold_until is None:
             distance = np.linalg.norm(rows[:, SENSOR_LAYOUT["ee_pos"]] - self.task.goal, axis=1)
-            eventful |= distance <= reach.goal_monitor.tolerance_m
+            eventful |= distance <= reach.tolerance_m
+            travel = -rows[:, SENSOR_LAYOUT["button"]][:, 0]
+            eventful |= travel >= self.sim.settings.button_press_travel_m
             violation = self.controller.limits.first_violation(
                 rows[:, SENSOR_LAYOUT["q"]], rows[:, SENSOR_LAYOUT["dq"]]
             )

@@ -163,13 +163,15 @@ class EpisodeResult(Message):
     seed: int = Field(ge=0)
     trigger: Trigger
     model: tuple[HumanModel, RobotModel]
-    success: bool
+    success: bool = Field(description="the button pressed and held for the dwell time")
+    reached: bool = Field(description="the paper's criterion: ||x - x_g|| <= eps_g held")
     outcome: Literal["success", "hold", "timeout"]
     reason: str
     t_total_s: Finite
     t_step_mean_s: Finite | None = Field(description="None when no step was taken")
     final_error_m: Finite
     n_osc: int = Field(ge=0)
+    n_osc_per_step: Finite | None = Field(description="None when no step was taken")
     jerk_isj: Finite
     sparc: Finite = Field(description="spectral arc length of the speed [-] (0: smoothest)")
     ldlj: Finite = Field(description="log dimensionless jerk of the speed [-] (higher: smoother)")

@@ -12,8 +12,9 @@ from services.controller.config import ControllerSettings
 def test_event_triggered_reach_presses_the_goal(runner: ReachRunner) -> None:
     result = runner.run(seed=3, model=(2, 1), trigger="event")
     m = result.metrics
-    assert m.success and m.outcome == "success"
-    assert m.final_error_m <= runner.settings.task.goal_tolerance_m
+    assert m.success and m.outcome == "success" and m.button_pressed
+    layout = runner.sim.layout  # success is the press: the fingertip is on the cap
+    assert m.final_error_m <= layout.cap_radius_m + layout.fingertip_radius_m
     assert m.n_steps >= 15 and 0.0 <= m.human_error_rate <= 0.5
     assert all(s.trigger == "event" for s in result.steps)
 

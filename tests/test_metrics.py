@@ -6,13 +6,16 @@ import numpy as np
 import pytest
 
 from dammrl.core.metrics import (
-    GoalMonitor,
+    Dwell,
+    _turning_points,
+    decisions_until_stable,
     human_error_rate,
     integrated_squared_jerk,
     log_dimensionless_jerk,
     n_oscillations,
     reach_metrics,
     spectral_arc_length,
+    within,
 )
 
 
@@ -55,13 +58,14 @@ def test_stop_and_go_is_less_smooth_than_one_reach() -> None:
 
 
 SUBGOAL = np.zeros((1, 3))
+RATE_HZ = 1000.0  # the synthetic paths below: 1000 samples over 1 s
 RADIUS = np.array([0.004])
 
 
 def test_oscillation_count_ignores_noise_within_the_deadband() -> None:
     rng = np.random.default_rng(0)
     x = np.zeros((500, 3)) + rng.normal(0, 2e-4, (500, 3))
-    assert n_oscillations(x, SUBGOAL, RADIUS, deadband_m=0.001) == 0
+    assert n_oscillations(x, SUBGOAL, RADIUS, RATE_HZ, deadband_m=0.001) == 0
 
 
 def test_oscillation_count_counts_reversals_near_a_subgoal_per_axis() -> None:
@@ -69,7 +73,23 @@ def test_oscillation_count_counts_reversals_near_a_subgoal_per_axis() -> None:
     x = np.zeros((1000, 3))
     x[:, 0] = 0.003 * np.sin(2 * np.pi * 3 * t)  # 3 periods: 6 extrema, each reversed
     x[:, 2] = 0.003 * np.sin(2 * np.pi * 1 * t)  # 1 period: 2 turning points
-    assert n_oscillations(x, SUBGOAL, RADIUS, deadband_m=0.001) == 6 + 2
+    assert n_oscillations(x, SUBGOAL, RADIUS, RATE_HZ, deadband_m=0.001) == 6 + 2
+
+
+def test_oscillations_are_counted_on_motion_not_on_sensor_noise() -> None:
+    """A long wait at a subgoal with the sim's end-effector noise (0.25 mm) turns the raw
+    path many times past a 1 mm deadband; the motion estimate does not. Chatter at the
+    fixed-frequency timer's 5 Hz survives the filter."""
+    rate, n = 100.0, 3000  # 30 s at the control rate
+    rng = np.random.default_rng(1)
+    noise = rng.normal(0, 2.5e-4, (n, 3))
+    raw = [i for axis in range(3) for i in _turning_points(noise[:, axis], 0.001)]
+    assert len(raw) > 5
+    assert n_oscillations(noise, SUBGOAL, RADIUS, rate) == 0
+    t = np.arange(n) / rate
+    chatter = noise.copy()
+    chatter[:100, 0] += 0.002 * np.sin(2 * np.pi * 5 * t[:100])  # 1 s of 5 Hz chatter
+    assert n_oscillations(chatter, SUBGOAL, RADIUS, rate) >= 8
 
 
 def test_reversals_far_from_every_subgoal_do_not_count() -> None:
@@ -77,10 +97,10 @@ def test_reversals_far_from_every_subgoal_do_not_count() -> None:
     x = np.zeros((1000, 3))
     x[:, 0] = 0.003 * np.sin(2 * np.pi * 3 * t)
     far = np.array([[0.1, 0.0, 0.0], [0.0, 0.1, 0.0]])
-    assert n_oscillations(x, far, np.array([0.004, 0.004])) == 0
-    assert n_oscillations(x, np.zeros((0, 3)), np.zeros(0)) == 0
+    assert n_oscillations(x, far, np.array([0.004, 0.004]), RATE_HZ) == 0
+    assert n_oscillations(x, np.zeros((0, 3)), np.zeros(0), RATE_HZ) == 0
     near_second = np.array([[0.1, 0.0, 0.0], [0.0, 0.0, 0.0]])
-    assert n_oscillations(x, near_second, np.array([0.004, 0.004])) == 6
+    assert n_oscillations(x, near_second, np.array([0.004, 0.004]), RATE_HZ) == 6
 
 
 def test_human_error_rate() -> None:
@@ -89,12 +109,21 @@ def test_human_error_rate() -> None:
 
 
 def test_goal_needs_a_dwell_not_a_fly_by() -> None:
-    monitor = GoalMonitor(np.zeros(3), 0.01, 0.1)
-    assert not monitor.update(0.0, np.array([0.005, 0, 0]))
-    assert not monitor.update(0.05, np.array([0.005, 0, 0]))
-    assert not monitor.update(0.08, np.array([0.02, 0, 0]))  # left: the dwell restarts
-    assert not monitor.update(0.10, np.array([0.0, 0, 0]))
-    assert monitor.update(0.20, np.array([0.0, 0, 0]))
+    monitor, goal = Dwell(0.1), np.zeros(3)
+    assert not monitor.update(0.0, within(np.array([0.005, 0, 0]), goal, 0.01))
+    assert not monitor.update(0.05, within(np.array([0.005, 0, 0]), goal, 0.01))
+    assert not monitor.update(0.08, within(np.array([0.02, 0, 0]), goal, 0.01))  # left: restart
+    assert not monitor.update(0.10, within(np.zeros(3), goal, 0.01))
+    assert not monitor.done
+    assert monitor.update(0.20, within(np.zeros(3), goal, 0.01))
+    assert not monitor.update(0.21, False) and monitor.done  # once held, it stays done
+
+
+def test_convergence_counts_the_decisions_before_the_final_choice() -> None:
+    assert decisions_until_stable([]) == 0
+    assert decisions_until_stable([(2, 1)] * 5) == 0
+    assert decisions_until_stable([(1, 8), (1, 8), (2, 1), (2, 1)]) == 2
+    assert decisions_until_stable([1, 2, 1, 2, 2]) == 3
 
 
 def test_an_episode_summary_is_strict_json_even_without_a_step() -> None:
@@ -106,9 +135,9 @@ def test_an_episode_summary_is_strict_json_even_without_a_step() -> None:
     metrics = reach_metrics(
         outcome="hold", reason="IK failed", t_end_s=0.5, t=np.arange(0, 0.5, 0.01),
         x=np.zeros((50, 3)), v=np.zeros((50, 3)), goal=np.ones(3), subgoals=np.zeros((0, 3)),
-        radii=np.zeros(0), decisions_correct=[], button_pressed=False,
+        radii=np.zeros(0), decisions_correct=[], button_pressed=False, reached=False,
     )  # fmt: skip
     task = ReachTask(np.zeros(3), np.ones(3))
     summary = episode_summary(metrics, "event", (2, 1), 7, task)
-    assert summary["t_step_mean_s"] is None
+    assert summary["t_step_mean_s"] is None and summary["n_osc_per_step"] is None
     json.dumps(summary, allow_nan=False)  # raises on NaN or infinity

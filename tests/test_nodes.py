@@ -117,10 +117,10 @@ def test_the_launcher_counts_only_the_controllers_new_results() -> None:
     from tests.busutil import free_port
 
     stack = Stack(StackOptions(port=free_port(), insecure=True), info=lambda line: None)
-    fields = dict(episode=1, seed=0, trigger="event", model=(2, 1), success=True,
-                  outcome="success", reason="goal reached", t_total_s=5.0, t_step_mean_s=0.5,
-                  final_error_m=0.01, n_osc=1, jerk_isj=1.0, sparc=-2.0, ldlj=-7.0,
-                  human_error_rate=0.1, n_steps=10, n_decisions=10, button_pressed=True,
+    fields = dict(episode=1, seed=0, trigger="event", model=(2, 1), success=True, reached=True,
+                  outcome="success", reason="button pressed", t_total_s=5.0, t_step_mean_s=0.5,
+                  final_error_m=0.01, n_osc=1, n_osc_per_step=0.1, jerk_isj=1.0, sparc=-2.0,
+                  ldlj=-7.0, human_error_rate=0.1, n_steps=10, n_decisions=10, button_pressed=True,
                   start_m=(0.3, 0, 0), goal_m=(0.5, 0, -0.2))  # fmt: skip
     genuine = EpisodeResult(header=Header(stamp_ns=1, seq=0, source="controller"), **fields)
     forged = EpisodeResult(header=Header(stamp_ns=1, seq=0, source="intruder"), **fields)

@@ -214,7 +214,7 @@ def test_policy_service_estimates_a_real_humans_model_and_publishes_the_posterio
         goal, choices = (0.5, 0.0, -0.2), []
         for k in range(1, 13):
             ee = (0.4, 0.0, -0.1)
-            requests.publish(episode=1, request=k, t_s=k * 0.5, ee_pos_m=ee, goal_m=goal,
+            requests.publish(episode=1, seed=1, request=k, t_s=k * 0.5, ee_pos_m=ee, goal_m=goal,
                              primary_axis=0, human_model=1)  # fmt: skip
             time.sleep(0.05)
             decision = human.decide(0.0, np.array(ee), np.array(goal), 0, 2)

@@ -13,7 +13,7 @@ from collections.abc import Sequence
 
 from pydantic import ValidationError
 
-from dammrl.cli import bus, reach, recording, rl, sensor, stack
+from dammrl.cli import bus, reach, recording, rl, sensor, stack, study
 from dammrl.core.errors import EXIT_CODES_HELP, DammrlError, Exit
 from dammrl.core.settings import error_line
 
@@ -23,6 +23,7 @@ GROUPS = (
     recording.register,
     sensor.register,
     rl.register,
+    study.register,
     bus.register,
     stack.register_schemas,
 )

@@ -17,13 +17,15 @@ import numpy as np
 class ReachMetrics:
     """The paper's evaluation metrics for one reach (see each function for definitions)."""
 
-    success: bool  # final error <= eps_g held for the dwell time, no limit violation
+    success: bool  # the button pressed and held for the dwell time (the task done)
+    reached: bool  # the paper's criterion: ||x - x_g|| <= eps_g held for the dwell time
     outcome: str  # 'success', 'hold' or 'timeout'
     reason: str  # why the reach ended
     t_total_s: float  # start to goal acquisition (or to the end) [s]
     t_step_mean_s: float  # t_total / n_steps [s]
     final_error_m: float  # ||x - x_g|| at the end [m]
     n_osc: int  # waypoint oscillation count, see n_oscillations
+    n_osc_per_step: float  # n_osc / n_steps (NaN without a step)
     jerk_isj: float  # integrated squared jerk [m^2/s^5]
     sparc: float  # spectral arc length of the speed profile [-], see spectral_arc_length
     ldlj: float  # log dimensionless jerk of the speed profile [-], see log_dimensionless_jerk
@@ -77,19 +79,23 @@ def reach_metrics(
     radii: np.ndarray,
     decisions_correct: list[bool],
     button_pressed: bool,
+    reached: bool,
 ) -> ReachMetrics:
     """All metrics of one reach from its samples up to its end ``t_end_s`` (a success, the
     start of a hold, or the timeout): ``t`` (N,), ``x``, ``v`` (N, 3); the subgoals (M, 3)
     and admission radii (M,) of its M steps; whether each human decision was correct."""
     n_steps = len(subgoals)
+    n_osc = n_oscillations(x, subgoals.reshape(-1, 3), radii, _rate(t))
     return ReachMetrics(
         success=outcome == "success",
+        reached=reached,
         outcome=outcome,
         reason=reason,
         t_total_s=float(t_end_s),
         t_step_mean_s=float(t_end_s) / n_steps if n_steps else float("nan"),
         final_error_m=float(goal_error(x[-1], goal)[0]),
-        n_osc=n_oscillations(x, subgoals.reshape(-1, 3), radii),
+        n_osc=n_osc,
+        n_osc_per_step=n_osc / n_steps if n_steps else float("nan"),
         jerk_isj=integrated_squared_jerk(t, v),
         sparc=spectral_arc_length(_speed(v), _rate(t)),
         ldlj=log_dimensionless_jerk(_speed(v), _rate(t)),
@@ -109,27 +115,61 @@ def n_oscillations(
     x: np.ndarray,
     subgoals: np.ndarray,
     radii: np.ndarray,
+    rate_hz: float,
     deadband_m: float = 0.001,
     near_factor: float = 2.0,
 ) -> int:
-    """Waypoint oscillation count N_osc: direction reversals near the admission spheres.
+    """Waypoint oscillation count N_osc: direction reversals of the motion near the
+    admission spheres.
 
-    For each task axis, the measured end-effector coordinate (``x`` (N, 3), sampled at the
-    control rate) is scanned for reversals of the direction of its successive increments,
-    with a deadband: a reversal counts only once the coordinate has moved back by more
-    than ``deadband_m`` from its last extreme, so sensor noise and sub-millimetre vibration
-    are not chatter. A reversal counts when its turning point lies within ``near_factor``
-    times the admission radius of one of the reach's subgoals (``subgoals`` (M, 3),
-    ``radii`` (M,)): the same rule for every progression strategy, whichever subgoal was
-    active. N_osc is the sum over the three axes.
+    The measured end-effector path (``x`` (N, 3), sampled at ``rate_hz``) is first reduced
+    to its motion (:func:`motion_estimate`: sensor noise removed, every movement the arm
+    can make kept). Each task axis of it is scanned for reversals of direction, with a
+    deadband: a reversal counts only once the coordinate has moved back by more than
+    ``deadband_m`` from its last extreme, so what noise survives the filter and
+    sub-millimetre vibration are not chatter. A reversal counts when its turning point
+    lies within ``near_factor`` times the admission radius of one of the reach's subgoals
+    (``subgoals`` (M, 3), ``radii`` (M,)): the same rule for every progression strategy,
+    whichever subgoal was active. N_osc is the sum over the three axes.
     """
     if len(subgoals) == 0:
         return 0
+    x = motion_estimate(x, rate_hz)
     turns = [i for axis in range(3) for i in _turning_points(x[:, axis], deadband_m)]
     if not turns:
         return 0
     distance = np.linalg.norm(x[turns][:, None, :] - subgoals[None, :, :], axis=2)  # (T, M)
     return int(np.sum(np.any(distance <= near_factor * radii[None, :], axis=1)))
+
+
+MOTION_CUTOFF_HZ = 10.0
+"""Above every movement the controller commands: its shortest micro-step segment lasts
+``min_segment_s`` = 0.08 s (a half-period of 6 Hz), and the fixed-frequency timer ticks
+at 10 Hz (chatter at <= 5 Hz)."""
+
+
+def motion_estimate(
+    x: np.ndarray, rate_hz: float, cutoff_hz: float = MOTION_CUTOFF_HZ
+) -> np.ndarray:
+    """The end-effector's motion from its measured path (N, 3): a zero-phase 4th-order
+    Butterworth low-pass at ``cutoff_hz``. White sensor noise keeps about
+    sqrt(cutoff / Nyquist) of its amplitude (0.45 at 100 Hz); motion below the cutoff
+    passes unchanged and undelayed. Paths too short to filter are returned as they are."""
+    from scipy.signal import butter, sosfiltfilt
+
+    if cutoff_hz >= rate_hz / 2 or len(x) < 16:
+        return x
+    sos = butter(4, cutoff_hz, fs=rate_hz, output="sos")
+    return np.asarray(sosfiltfilt(sos, x, axis=0, padlen=min(len(x) - 1, 27)))
+
+
+def decisions_until_stable(choices: list[Any]) -> int:
+    """Multi-model convergence: how many decisions passed before the choice in force at the
+    end was made for good (0: the first choice was never changed)."""
+    for k in range(len(choices) - 1, 0, -1):
+        if choices[k] != choices[k - 1]:
+            return k
+    return 0
 
 
 def _turning_points(signal: np.ndarray, deadband: float) -> list[int]:
@@ -220,21 +260,28 @@ def human_error_rate(correct: list[bool] | np.ndarray) -> float:
     return float(1.0 - flags.mean()) if flags.size else 0.0
 
 
-class GoalMonitor:
-    """Success test: ||x - x_g|| <= eps_g held for ``dwell_s`` (a press, not a fly-by)."""
+class Dwell:
+    """A condition held for ``dwell_s`` (a press, not a fly-by); ``done`` stays true once
+    it was."""
 
-    def __init__(self, goal: np.ndarray, tolerance_m: float, dwell_s: float) -> None:
-        self.goal = goal
-        self.tolerance_m = tolerance_m
+    def __init__(self, dwell_s: float) -> None:
         self.dwell_s = dwell_s
         self.entered_s: float | None = None
+        self.done = False
 
-    def update(self, t_s: float, x: np.ndarray) -> bool:
-        """True once the end-effector has stayed inside the goal ball long enough."""
-        error = x - self.goal
-        if float(error @ error) > self.tolerance_m**2:
+    def update(self, t_s: float, holds: bool) -> bool:
+        """True once the condition has held since ``dwell_s`` ago."""
+        if not holds:
             self.entered_s = None
             return False
         if self.entered_s is None:
             self.entered_s = t_s
-        return t_s - self.entered_s >= self.dwell_s - 1e-9
+        held = t_s - self.entered_s >= self.dwell_s - 1e-9
+        self.done |= held
+        return held
+
+
+def within(x: np.ndarray, goal: np.ndarray, tolerance_m: float) -> bool:
+    """||x - x_g|| <= eps_g, the paper's goal criterion."""
+    error = x - goal
+    return float(error @ error) <= tolerance_m**2

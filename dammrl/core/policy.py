@@ -12,7 +12,7 @@ from typing import Protocol
 
 import numpy as np
 
-from dammrl.core.models import ModelSet, radius_name
+from dammrl.core.models import HUMAN_MODELS, ROBOT_MODELS, ModelSet, radius_name
 
 
 @dataclass(frozen=True)
@@ -64,3 +64,22 @@ class FixedPolicy:
         if human_model is None:
             return self.choice
         return model_choice(self.models, human_model, self.choice.robot_model)
+
+
+class RandomPolicy:
+    """A uniformly random (i, j) at every decision (the study's chance-level row); with the
+    human's own i given, only j is drawn."""
+
+    def __init__(self, models: ModelSet, rng: np.random.Generator) -> None:
+        self.models = models
+        self.rng = rng
+
+    def reset(self) -> None:
+        """Nothing to forget (the stream goes on)."""
+
+    def decide(
+        self, ee_pos: np.ndarray, goal: np.ndarray, human_model: int | None = None
+    ) -> ModelChoice:
+        i = int(self.rng.choice(HUMAN_MODELS))
+        j = int(self.rng.choice(ROBOT_MODELS))
+        return model_choice(self.models, i if human_model is None else human_model, j)

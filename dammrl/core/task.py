@@ -4,7 +4,10 @@ Defaults describe a seated button-press reach with the shoulder at the origin of
 task frame (x forward, y left, z up), the table 0.25 m below it: the hand starts 15-25 cm
 above the table near the body and reaches 0.2-0.4 m forward and down onto a button
 (cap radius 3 cm) somewhere on the table in front of it. The goal point is the fingertip
-centre pressing the button cap 5 mm down (it registers a press at 3 mm).
+centre pressing the button cap 8 mm down (it registers a press at 3 mm; see
+``SceneLayout.goal_press_depth_m``). Success is the button pressed and held for
+``goal_dwell_s``; the paper's criterion, ||x - x_g|| <= eps_g held as long, is reported
+beside it as ``reached``.
 """
 
 from __future__ import annotations
@@ -35,9 +38,11 @@ class TaskSettings(Settings):
     model_config = SettingsConfigDict(env_prefix="DAMMRL_TASK_")
 
     goal_tolerance_m: float = Field(0.015, gt=0)
-    """eps_g: success when ||x - x_g|| <= eps_g (half the button cap radius) [m]."""
+    """eps_g: the paper's criterion ||x - x_g|| <= eps_g (half the button cap radius),
+    reported as ``reached`` beside success (the button pressed) [m]."""
     goal_dwell_s: float = Field(0.1, ge=0)
-    """How long the fingertip must stay inside eps_g to count as a press [s]."""
+    """How long the button must stay pressed for success (and the fingertip inside eps_g
+    for ``reached``) [s]."""
     episode_timeout_s: float = Field(60.0, gt=0)
     """A reach still running after this long ends as a timeout [s]."""
     start_min_m: tuple[float, float, float] = (0.28, -0.15, -0.10)
@@ -79,6 +84,7 @@ class SeedStreams:
     human: np.random.Generator  # the simulated human's decisions and decision times
     ik_latency: np.random.Generator  # the controller's IK latency model
     sim: np.random.Generator  # domain randomisation and sensor noise
+    policy: np.random.Generator  # a randomised policy (the study's random-choice row)
 
 
 def training_seed(run_seed: int, episode: int) -> int:
@@ -115,10 +121,10 @@ def held_out_seeds(spec: str | int) -> range:
 
 def seed_streams(seed: int) -> SeedStreams:
     """The named streams of episode ``seed`` (spawned in this order: keep it)."""
-    task, human, ik_latency, sim = (
-        np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(4)
+    task, human, ik_latency, sim, policy = (
+        np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(5)
     )
-    return SeedStreams(task=task, human=human, ik_latency=ik_latency, sim=sim)
+    return SeedStreams(task=task, human=human, ik_latency=ik_latency, sim=sim, policy=policy)
 
 
 def scene_layout(settings: TaskSettings, timestep_s: float = 0.001) -> SceneLayout:

@@ -102,6 +102,7 @@ class ReachEnv:
                 segment.x,
                 np.array([s.subgoal for s in episode.steps]).reshape(-1, 3),
                 np.array([s.radius_m for s in episode.steps]),
+                1.0 / dt,
             )
         error = float(np.linalg.norm(self._state.ee_pos - episode.task.goal))
         return RewardTerms(

@@ -23,6 +23,15 @@ class ControllerSettings(Settings):
     """'event': next step when ||x - x_m|| <= eps and dV/dt <= 0; 'fixed': on a timer."""
     fixed_period_s: float = Field(0.1, gt=0)
     """Timer period of the fixed-frequency baseline [s]."""
+    fixed_step_from: Literal["measured", "subgoal"] = "measured"
+    """Where a fixed-rate step starts: the measured end-effector position, or the last
+    planned subgoal, x^(m+1) = x^(m) + dx, the paper's chain that can run ahead of the arm."""
+    fixed_replan_while_pending: bool = False
+    """Whether a timer tick plans a step while the last IK solve is still running (the
+    paper's "premature IK update": solves overlap and each starts when ready), or skips."""
+    fixed_decisions: Literal["latest", "fresh"] = "latest"
+    """Fixed rate: each tick re-uses the human's latest decision (the paper), or takes a
+    fresh one and waits for it (one decision per step, as the event trigger does)."""
     control_rate_hz: float = Field(100.0, gt=0, le=1000)
     """Rate at which the reference is sampled into joint commands and the trigger checked."""
     primary_axis: Literal[0, 1, 2] = 0

@@ -83,7 +83,7 @@ class Controller:
         self._rest_segment: QuinticSegment | None = None
         self.limits = safety.LimitMonitor(robot)
         self.intent: Intent | None = None  # latest undelivered (event) / sampled (fixed) decision
-        self.pending: _PlannedStep | None = None  # solved step waiting out its IK latency
+        self.planned: list[_PlannedStep] = []  # solved steps waiting out their IK latency
         self.subgoal: np.ndarray | None = None  # x_m, the active Cartesian subgoal (3,) [m]
         self.radius_m = 0.0  # admission radius of the active step [m]
         self.awaiting_trigger = False
@@ -116,16 +116,16 @@ class Controller:
             self.hold_reason = reason
             q, _, _ = self.segment.sample(t_s)
             self.segment = QuinticSegment.hold(t_s, q)
-            self.pending = None
+            self.planned.clear()
 
     @property
     def wants_intent(self) -> bool:
         """True while the controller is waiting for (or, fixed-rate, sampling) decisions."""
         if self.hold_reason is not None:
             return False
-        if self.settings.trigger == "fixed":
-            return True
-        return self.intent is None and self.pending is None and not self.awaiting_trigger
+        if self.settings.trigger == "fixed":  # latest: always deciding; fresh: one per step
+            return self.settings.fixed_decisions == "latest" or self.intent is None
+        return self.intent is None and not self.planned and not self.awaiting_trigger
 
     @property
     def idle(self) -> bool:
@@ -138,7 +138,7 @@ class Controller:
             self.settings.trigger == "event"
             and self.settings.feedforward == "inverse_dynamics"
             and self.intent is None
-            and self.pending is None
+            and not self.planned
             and not self.awaiting_trigger
             and self._rest_command is not None
             and self._rest_segment is self.segment
@@ -168,9 +168,8 @@ class Controller:
         self._start_if_ready(t, started)  # a step planned now with no IK latency
 
     def _start_if_ready(self, t: float, started: list[StepEvent]) -> None:
-        if self.pending is not None and t >= self.pending.ready_s:
-            started.append(self._start_segment(self.pending, t))
-            self.pending = None
+        while self.planned and t >= self.planned[0].ready_s:
+            started.append(self._start_segment(self.planned.pop(0), t))
 
     def _event_progress(self, state: RobotState) -> None:
         t = state.t_s
@@ -184,18 +183,23 @@ class Controller:
                     t,
                 )
             return
-        if self.pending is None and self.intent is not None:
+        if not self.planned and self.intent is not None:
             intent, self.intent = self.intent, None  # each decision drives one step
             self._plan(state, intent)
 
     def _fixed_progress(self, state: RobotState) -> None:
-        """Plan a step on every timer tick with the latest intent, wherever the arm is."""
+        """Plan a step on every timer tick with the latest (or a fresh) intent, wherever
+        the arm is."""
         t = state.t_s
-        if self.intent is None or self.pending is not None:
-            return  # no decision yet, or the previous solve still running (the tick is late)
+        if self.intent is None:
+            return  # no decision yet (or, fresh decisions, none since the last step)
+        if self.planned and not self.settings.fixed_replan_while_pending:
+            return  # the previous solve still running: this tick is late
         if fixed_timer_due(t, self.last_step_s, self.settings.fixed_period_s):
             self.last_step_s = t if self.last_step_s is None else self._next_tick(t)
             self._plan(state, self.intent)
+            if self.settings.fixed_decisions == "fresh":
+                self.intent = None
 
     def _next_tick(self, t: float) -> float:
         assert self.last_step_s is not None
@@ -204,8 +208,8 @@ class Controller:
 
     # ---- planning -----------------------------------------------------------------
     def _plan(self, state: RobotState, intent: Intent) -> None:
-        """Micro-step from the measured position, IK, and schedule it after the latency."""
-        t, x = state.t_s, state.ee_pos
+        """Micro-step from where the step starts, IK, and schedule it after the latency."""
+        t, x = state.t_s, self._step_start(state)
         dx = micro_step(
             self.goal - x,
             intent.u_h,
@@ -241,8 +245,17 @@ class Controller:
             ik_compute_s=result.compute_s,
             ik_latency_s=latency,
         )
-        self.pending = _PlannedStep(t + latency, result.q, event)
+        self.planned.append(_PlannedStep(t + latency, result.q, event))
         self.radius_m = intent.radius_m
+
+    def _step_start(self, state: RobotState) -> np.ndarray:
+        """The measured position, or (fixed rate, the paper's chain) the last subgoal."""
+        if self.settings.trigger == "fixed" and self.settings.fixed_step_from == "subgoal":
+            if self.planned:
+                return self.planned[-1].event.subgoal
+            if self.subgoal is not None:
+                return self.subgoal
+        return state.ee_pos
 
     def _ik_refusal(
         self, target: np.ndarray, q_seed: np.ndarray, q: np.ndarray, error_m: float
@@ -307,7 +320,7 @@ class Controller:
 
     def _reset_episode_state(self) -> None:
         self.intent = None
-        self.pending = None
+        self.planned = []
         self.subgoal = None
         self.radius_m = 0.0
         self.awaiting_trigger = False

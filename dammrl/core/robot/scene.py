@@ -33,7 +33,10 @@ class SceneLayout:
     button_stiffness_n_per_m: float = 400.0
     button_damping_ns_per_m: float = 5.0
     fingertip_radius_m: float = 0.012
-    goal_press_depth_m: float = 0.005  # the goal pushes the cap this far down
+    # the goal pushes the cap this far down: the detection travel (3 mm) plus half the
+    # smallest micro-step (10 mm), so a fingertip the controller leaves anywhere inside its
+    # deadband around x_g on the vertical axis (half a step, eq. 2) presses the button
+    goal_press_depth_m: float = 0.008
     timestep_s: float = 0.001
 
     @property

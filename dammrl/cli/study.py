@@ -1,0 +1,105 @@
+"""``dammrl study``: the paper's comparison in one command."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shlex
+import sys
+from pathlib import Path
+
+from dammrl.cli.common import SEEDS_HELP, Commands, print_err, seeds_arg
+
+RANDOMIZE = {"both": (False, True), "off": (False,), "on": (True,)}
+
+
+def register(commands: Commands) -> None:
+    """Add ``study``."""
+    study = commands.add_parser(
+        "study",
+        help="the paper's comparison: every configuration, claims C1-C6, report",
+        description="Run the paper's four configurations and the reviewer's rows on held-out "
+        "seeds; write report.md, reaches.csv and the figures into --out.",
+    )
+    study.add_argument("--out", type=Path, default=Path("study"), help="report directory")
+    study.add_argument("--seeds", default="100", metavar="N|A:B", type=seeds_arg,
+                       help=SEEDS_HELP)  # fmt: skip
+    study.add_argument("--tuning-seeds", type=int, default=20, metavar="N",
+                       help="seeds of the best-fixed search (from 7,900,000; never evaluated "
+                       "on; default 20)")  # fmt: skip
+    study.add_argument("--randomize", choices=sorted(RANDOMIZE), default="both",
+                       help="domain randomisation (arm and sensor noise): both (default), "
+                       "off or on")  # fmt: skip
+    study.add_argument("--reward1", type=Path, nargs="+", default=[], metavar="RUN",
+                       help="Reward 1 runs or checkpoints (default: the shipped policy); "
+                       "several runs aggregate")  # fmt: skip
+    study.add_argument(
+        "--reward2",
+        type=Path,
+        nargs="+",
+        default=[],
+        metavar="RUN",
+        help="Reward 2 runs or checkpoints (default: the shipped policy)",
+    )
+    study.add_argument("--jobs", type=int, default=os.cpu_count() or 1,
+                       help="processes on this machine (default: every core)")  # fmt: skip
+    study.add_argument(
+        "--ray",
+        nargs="?",
+        const="local",
+        metavar="ADDRESS",
+        help="run on a Ray cluster (no address: a local Ray instance)",
+    )
+    study.add_argument(
+        "--readme",
+        type=Path,
+        metavar="README",
+        help="also regenerate this README's results section",
+    )
+    study.set_defaults(handler=_study)
+
+
+def _study(args: argparse.Namespace) -> int:
+    from dammrl.core.errors import UsageError
+    from dammrl.study.report import results_section, update_readme, write_report
+    from dammrl.study.run import progress_bar
+    from dammrl.study.study import TUNING_START, StudyOptions, run_study
+
+    if args.jobs < 1:
+        raise UsageError(f"--jobs must be at least 1, got {args.jobs}")
+    if not 1 <= args.tuning_seeds <= 10_000:
+        raise UsageError(f"--tuning-seeds must be 1 to 10000, got {args.tuning_seeds}")
+    for run in [*args.reward1, *args.reward2]:
+        if not run.exists():
+            raise UsageError(f"no such run or checkpoint: {run}")
+    options = StudyOptions(
+        seeds=args.seeds,
+        randomize=RANDOMIZE[args.randomize],
+        tuning_seeds=range(TUNING_START, TUNING_START + args.tuning_seeds),
+        reward1=tuple(args.reward1),
+        reward2=tuple(args.reward2),
+        workers=args.jobs,
+        ray=args.ray,
+    )
+    closers = []
+
+    def progress(total: int, description: str):  # type: ignore[no-untyped-def]
+        update, close = progress_bar(total, description)
+        closers.append(close)
+        return update
+
+    try:
+        result = run_study(options, progress)
+    finally:
+        for close in closers:
+            close()
+    command = "dammrl " + shlex.join(sys.argv[1:])
+    report = write_report(result, args.out, command)
+    if args.readme is not None:
+        update_readme(args.readme, results_section(result))
+        print_err(f"results section of {args.readme} regenerated")
+    for randomize, claims in result.claims.items():
+        condition = "randomised" if randomize else "nominal"
+        print(f"{condition}: " + ", ".join(f"{c.key} {c.verdict}" for c in claims))
+    print(f"report: {report}")
+    return 0

@@ -1,0 +1,1 @@
+"""The comparison study of the paper: ``dammrl study``."""

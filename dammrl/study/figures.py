@@ -1,0 +1,158 @@
+"""The study's figures (PNG, matplotlib Agg): the paper's figures and a summary chart."""
+
+from __future__ import annotations
+
+import csv
+import itertools
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+import numpy as np
+
+from dammrl.study.claims import FIXED, R1, R2
+from dammrl.study.configs import Configuration, checkpoint_file
+from dammrl.study.run import Job, Record, reach
+from dammrl.study.stats import bootstrap_mean, wilson
+
+MM = 1000.0
+SUMMARY_METRICS = (
+    ("success", "success (button pressed) [%]", 100.0, True),
+    ("reached", "reached, ||x - x_g|| <= eps_g [%]", 100.0, True),
+    ("t_total_s", "total time [s]", 1.0, False),
+    ("n_osc_per_step", "oscillations per step", 1.0, False),
+    ("final_error_m", "final error [mm]", MM, False),
+    ("sparc", "SPARC (0: smoothest)", 1.0, False),
+)
+DISTANCE_BINS_M = np.array([0.0, 0.01, 0.02, 0.04, 0.08, 0.16, 0.5])
+
+
+def summary_chart(records: list[Record], configurations: list[Configuration], path: Path) -> Path:
+    """Every metric per configuration with its 95 % interval, without and with
+    randomisation side by side."""
+    rng = np.random.default_rng(0)
+    keys = [c.key for c in configurations]
+    fig, axes = plt.subplots(2, 3, figsize=(15, 8), constrained_layout=True)
+    for ax, (metric, title, scale, rate) in zip(axes.flat, SUMMARY_METRICS, strict=True):
+        for offset, randomize in ((-0.2, False), (0.2, True)):
+            means, lows, highs = [], [], []
+            for key in keys:
+                values = [r.row[metric] for r in records
+                          if r.row["configuration"] == key and r.row["randomize"] == randomize
+                          and r.row[metric] is not None]  # fmt: skip
+                if rate:
+                    e = wilson(int(sum(values)), len(values))
+                else:
+                    e = bootstrap_mean(np.array(values, dtype=float), rng)
+                means.append(e.value * scale)
+                lows.append((e.value - e.low) * scale)
+                highs.append((e.high - e.value) * scale)
+            if not np.all(np.isnan(means)):
+                ax.bar(np.arange(len(keys)) + offset, means, 0.4, yerr=[lows, highs], capsize=2,
+                       label="randomised" if randomize else "nominal arm")  # fmt: skip
+        ax.set_title(title)
+        ax.set_xticks(range(len(keys)), keys, rotation=60, ha="right", fontsize=8)
+    axes.flat[0].legend(fontsize=8)
+    fig.suptitle("Every configuration on the held-out seeds (95 % intervals)")
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def trajectory_figure(configurations: list[Configuration], seed: int, path: Path) -> Path:
+    """The paper's trajectory figure: the end-effector near the subgoals, fixed-frequency
+    (black) against event-triggered DAMMRL (red), on one seed."""
+    by_key = {c.key: c for c in configurations}
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.5), constrained_layout=True)
+    for key, color in ((FIXED, "black"), (R2, "tab:red")):
+        if key not in by_key:
+            continue
+        result = reach(Job(by_key[key], seed, False))
+        traj, goal = result.trajectory, result.task.goal
+        error = np.linalg.norm(traj.x - goal, axis=1) * MM
+        axes[0].plot(traj.t, error, color=color, lw=1.2, label=by_key[key].label)
+        for step in result.steps:
+            axes[0].plot(step.start_s, np.linalg.norm(step.subgoal - goal) * MM, "o",
+                         color=color, ms=3, alpha=0.6)  # fmt: skip
+        axes[1].plot((traj.x[:, 0] - goal[0]) * MM, (traj.x[:, 2] - goal[2]) * MM, color=color,
+                     lw=1.2, label=by_key[key].label)  # fmt: skip
+        subgoals = np.array([s.subgoal - goal for s in result.steps]).reshape(-1, 3) * MM
+        axes[1].plot(subgoals[:, 0], subgoals[:, 2], "o", color=color, ms=3, alpha=0.6)
+    axes[0].set(xlabel="time [s]", ylabel="distance to the goal [mm]", yscale="log",
+                title=f"seed {seed}: distance (dots: subgoals when started)")  # fmt: skip
+    axes[1].set(xlabel="x - x_g [mm]", ylabel="z - z_g [mm]", xlim=(-60, 20), ylim=(-20, 60),
+                title="near the goal (x-z plane)", aspect="equal")  # fmt: skip
+    axes[0].legend(fontsize=8)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def step_modulation_figure(records: list[Record], path: Path) -> Path:
+    """Reward 1 vs Reward 2: the step magnitude the robot agent chose against the distance
+    to the goal, and the number of steps planned per reach."""
+    rng = np.random.default_rng(0)
+    fig, (left, right) = plt.subplots(1, 2, figsize=(12, 4.5), constrained_layout=True)
+    centres = (DISTANCE_BINS_M[:-1] + DISTANCE_BINS_M[1:]) / 2 * 100
+    for key, label, color in ((R1, "Reward 1", "tab:blue"), (R2, "Reward 2", "tab:orange")):
+        mine = [r for r in records if r.row["configuration"] == key and not r.row["randomize"]]
+        if not mine:
+            continue
+        steps = np.concatenate([r.steps for r in mine])
+        stats = [bootstrap_mean(steps[(steps[:, 0] >= a) & (steps[:, 0] < b), 1], rng)
+                 for a, b in itertools.pairwise(DISTANCE_BINS_M)]  # fmt: skip
+        left.plot(centres, [s.value * MM for s in stats], "o-", color=color, label=label)
+        left.fill_between(centres, [s.low * MM for s in stats], [s.high * MM for s in stats],
+                          color=color, alpha=0.2)  # fmt: skip
+        counts = [r.row["n_steps"] for r in mine]
+        right.hist(counts, bins=range(0, max(counts) + 2), color=color, alpha=0.5, label=label)
+    left.set(xscale="log", xlabel="distance to the goal when planned [cm]",
+             ylabel="mean step magnitude [mm]", title="learned step-size modulation")  # fmt: skip
+    right.set(xlabel="micro-steps planned in a reach", ylabel="reaches",
+              title="planned step counts")  # fmt: skip
+    left.legend()
+    right.legend()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def training_figure(runs: dict[str, tuple[Path, ...]], path: Path) -> Path | None:
+    """Training curves of both agents under both rewards (each run's training.csv)."""
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4), constrained_layout=True)
+    drawn = False
+    for (label, checkpoints), color in zip(runs.items(), ("tab:blue", "tab:orange"), strict=False):
+        for checkpoint in checkpoints:
+            log = checkpoint_file(checkpoint).parent / "training.csv"
+            if not log.exists():
+                continue
+            with log.open() as f:
+                rows = list(csv.DictReader(f))
+            episode = np.array([float(r["episode"]) for r in rows])
+            for ax, column in zip(axes, ("ret", "q_human", "q_robot"), strict=True):
+                ax.plot(episode, _smooth(np.array([float(r[column]) for r in rows])),
+                        color=color, lw=1, label=label)  # fmt: skip
+                label = "_"  # one legend entry per reward
+            drawn = True
+    if not drawn:
+        plt.close(fig)
+        return None
+    for ax, title in zip(axes, ("episode return (moving mean)", "human agent: mean max Q",
+                                "robot agent: mean max Q"), strict=True):  # fmt: skip
+        ax.set(xlabel="episode", title=title)
+    axes[0].legend()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def _smooth(values: np.ndarray, window: int = 50) -> np.ndarray:
+    finite = np.where(np.isfinite(values), values, np.nan)
+    out = np.full_like(finite, np.nan)
+    for k in range(len(finite)):
+        chunk = finite[max(0, k - window + 1) : k + 1]
+        if np.any(np.isfinite(chunk)):
+            out[k] = np.nanmean(chunk)
+    return out

@@ -1,0 +1,213 @@
+"""Run a study's reaches: one process, every core, or a Ray cluster, with the same result.
+
+A reach is a pure function of (configuration, seed, randomisation): every random draw
+comes from the seed's named streams. So the reaches can run anywhere, in any order, and
+the records, sorted, are identical whichever executor ran them.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from dammrl.core.metrics import decisions_until_stable
+from dammrl.core.policy import FixedPolicy, Policy, RandomPolicy
+from dammrl.core.task import seed_streams
+from dammrl.runner import ReachResult, ReachRunner, ReachSettings
+from dammrl.study.configs import Configuration
+
+Progress = Callable[[int], None]  # called with the number of reaches just finished
+
+
+@dataclass(frozen=True)
+class Job:
+    """One reach of a study."""
+
+    configuration: Configuration
+    seed: int
+    randomize: bool
+    index: int = 0  # the seed's position in the study: picks one of several checkpoints
+
+
+@dataclass(frozen=True)
+class Record:
+    """What a study keeps of one reach: a flat row of numbers, and the decisions."""
+
+    row: dict[str, Any]
+    steps: np.ndarray  # (n, 2) per micro-step: distance to the goal [m], mean step [m]
+
+
+def run_job(job: Job) -> Record:
+    """One reach, in whatever process this is (cores and policies built once per process)."""
+    result = reach(job)
+    return Record(_row(job, result), _steps(result))
+
+
+def reach(job: Job) -> ReachResult:
+    """The reach of a job, whole (trajectory included)."""
+    runner = _runner(job.randomize, job.configuration)
+    configuration = job.configuration
+    return runner.run(job.seed, configuration.policy.model, configuration.trigger,
+                      policy=_policy(runner, job))  # fmt: skip
+
+
+_RUNNERS: dict[tuple[bool, tuple[tuple[str, Any], ...]], ReachRunner] = {}
+_POLICIES: dict[str, Policy] = {}
+
+
+def _runner(randomize: bool, configuration: Configuration) -> ReachRunner:
+    overrides = tuple(sorted(configuration.controller.items()))
+    key = (randomize, overrides)
+    if key not in _RUNNERS:
+        base = ReachSettings()
+        sim = base.sim.model_copy(
+            update={
+                "randomization": base.sim.randomization.model_copy(update={"enabled": randomize})
+            }
+        )
+        controller = base.controller.model_copy(update=dict(overrides))
+        _RUNNERS[key] = ReachRunner(base.model_copy(update={"sim": sim, "controller": controller}))
+    return _RUNNERS[key]
+
+
+def _policy(runner: ReachRunner, job: Job) -> Policy:
+    spec, models = job.configuration.policy, runner.settings.models
+    if spec.kind == "fixed":
+        return FixedPolicy(models, *spec.model)
+    if spec.kind == "random":
+        return RandomPolicy(models, seed_streams(job.seed).policy)
+    checkpoint = spec.checkpoints[job.index % len(spec.checkpoints)]
+    if str(checkpoint) not in _POLICIES:
+        from services.policy.learned import LearnedPolicy  # torch: only when needed
+
+        _POLICIES[str(checkpoint)] = LearnedPolicy(models, checkpoint)
+    return _POLICIES[str(checkpoint)]
+
+
+def _row(job: Job, result: ReachResult) -> dict[str, Any]:
+    metrics = result.metrics.as_dict()
+    human = [c.human_model for c in result.choices]
+    robot = [c.robot_model for c in result.choices]
+    n = len(result.choices)
+    return {
+        "configuration": job.configuration.key,
+        "seed": job.seed,
+        "randomize": job.randomize,
+        "model": f"{result.model[0]},{result.model[1]}",  # in force at the end
+        **metrics,
+        "n_osc_per_step": metrics["n_osc"] / metrics["n_steps"] if metrics["n_steps"] else None,
+        "human_stable_after": decisions_until_stable(human),
+        "robot_stable_after": decisions_until_stable(robot),
+        "stable_share": 1 - decisions_until_stable(list(zip(human, robot, strict=True))) / n
+        if n
+        else None,
+        "step_mean_m": _mean_step(result, 0.0, np.inf),
+        "near_step_m": _mean_step(result, 0.0, NEAR_M),
+        "mid_step_m": _mean_step(result, NEAR_M, MID_M),
+    }
+
+
+NEAR_M, MID_M = 0.04, 0.16  # "near the target" and "mid-to-late": distance to the goal [m]
+
+
+def _mean_step(result: ReachResult, nearest_m: float, farthest_m: float) -> float | None:
+    """Mean step magnitude [m] of the steps planned at a goal distance in the range."""
+    sizes = [s.steps_m.mean() for s in result.steps if nearest_m <= s.goal_error_m < farthest_m]
+    return float(np.mean(sizes)) if sizes else None
+
+
+def _steps(result: ReachResult) -> np.ndarray:
+    rows = [(s.goal_error_m, float(s.steps_m.mean())) for s in result.steps]
+    return np.array(rows, dtype=float).reshape(-1, 2)
+
+
+def run_local(jobs: Sequence[Job], workers: int, progress: Progress | None = None) -> list[Record]:
+    """Every job, on ``workers`` processes of this machine (1: in this process)."""
+    if workers <= 1:
+        return [_tick(run_job(job), progress) for job in jobs]
+    chunk = max(1, min(16, len(jobs) // (workers * 8)))
+    # spawn, not fork: a forked child would inherit torch's and MuJoCo's thread state
+    import multiprocessing
+
+    context = multiprocessing.get_context("spawn")
+    with ProcessPoolExecutor(workers, mp_context=context, initializer=_quiet_worker) as pool:
+        return [_tick(r, progress) for r in pool.map(run_job, jobs, chunksize=chunk)]
+
+
+def _quiet_worker() -> None:
+    """One thread per worker process: the workers are the parallelism."""
+    os.environ["OMP_NUM_THREADS"] = "1"
+    import torch
+
+    torch.set_num_threads(1)
+
+
+def _tick(record: Record, progress: Progress | None) -> Record:
+    if progress is not None:
+        progress(1)
+    return record
+
+
+def run_ray(
+    jobs: Sequence[Job], address: str | None, progress: Progress | None = None
+) -> list[Record]:
+    """Every job on a Ray cluster (``address``; None or "local": a local Ray instance)."""
+    try:
+        import ray
+    except ImportError as exc:  # an optional dependency
+        raise ImportError("--ray needs Ray: pip install 'dammrl[ray]'") from exc
+    started = not ray.is_initialized()
+    if started:
+        where = None if address in (None, "local") else address
+        ray.init(address=where, include_dashboard=False, log_to_driver=False,
+                 runtime_env={"env_vars": {"OMP_NUM_THREADS": "1"}})  # fmt: skip
+    try:
+        remote = ray.remote(num_cpus=1)(_run_batch)
+        pending = [remote.remote(list(batch)) for batch in _batches(jobs, 16)]
+        records: list[Record] = []
+        while pending:
+            done, pending = ray.wait(pending, num_returns=1)
+            batch = ray.get(done[0])
+            records.extend(batch)
+            if progress is not None:
+                progress(len(batch))
+        return records
+    finally:
+        if started:
+            ray.shutdown()
+
+
+def _run_batch(jobs: list[Job]) -> list[Record]:
+    return [run_job(job) for job in jobs]
+
+
+def _batches(jobs: Sequence[Job], size: int) -> Iterator[Sequence[Job]]:
+    for start in range(0, len(jobs), size):
+        yield jobs[start : start + size]
+
+
+def progress_bar(total: int, description: str) -> tuple[Progress, Callable[[], None]]:
+    """A progress bar on stderr (tqdm); returns its update and close functions."""
+    from tqdm import tqdm
+
+    bar = tqdm(total=total, desc=description, unit="reach", file=sys.stderr,
+               disable=None, dynamic_ncols=True)  # fmt: skip
+
+    def update(n: int) -> None:
+        bar.update(n)
+
+    return update, bar.close
+
+
+def ordered(records: Iterable[Record]) -> list[Record]:
+    """Records in one canonical order, whichever executor produced them."""
+    return sorted(
+        records,
+        key=lambda r: (r.row["configuration"], r.row["randomize"], r.row["seed"], r.row["model"]),
+    )
