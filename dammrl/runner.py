@@ -301,8 +301,6 @@ class Episode:
         deadline = reach.timeout_s if self.hold_until is None else self.hold_until
         eventful = times >= deadline - 1e-9
         if self.hold_until is None:
-            distance = np.linalg.norm(rows[:, SENSOR_LAYOUT["ee_pos"]] - self.task.goal, axis=1)
-            eventful |= distance <= reach.tolerance_m
             travel = -rows[:, SENSOR_LAYOUT["button"]][:, 0]
             eventful |= travel >= self.sim.settings.button_press_travel_m
             violation = self.controller.limits.first_violation(

@@ -164,7 +164,7 @@ class EpisodeResult(Message):
     trigger: Trigger
     model: tuple[HumanModel, RobotModel]
     success: bool = Field(description="the button pressed and held for the dwell time")
-    reached: bool = Field(description="the paper's criterion: ||x - x_g|| <= eps_g held")
+    reached: bool = Field(description="the paper's criterion ||x - x_g|| <= eps_g was met")
     outcome: Literal["success", "hold", "timeout"]
     reason: str
     t_total_s: Finite

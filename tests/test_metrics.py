@@ -15,7 +15,6 @@ from dammrl.core.metrics import (
     n_oscillations,
     reach_metrics,
     spectral_arc_length,
-    within,
 )
 
 
@@ -108,14 +107,14 @@ def test_human_error_rate() -> None:
     assert human_error_rate([]) == 0.0
 
 
-def test_goal_needs_a_dwell_not_a_fly_by() -> None:
-    monitor, goal = Dwell(0.1), np.zeros(3)
-    assert not monitor.update(0.0, within(np.array([0.005, 0, 0]), goal, 0.01))
-    assert not monitor.update(0.05, within(np.array([0.005, 0, 0]), goal, 0.01))
-    assert not monitor.update(0.08, within(np.array([0.02, 0, 0]), goal, 0.01))  # left: restart
-    assert not monitor.update(0.10, within(np.zeros(3), goal, 0.01))
+def test_a_press_needs_a_dwell_not_a_tap() -> None:
+    monitor = Dwell(0.1)
+    assert not monitor.update(0.0, True)
+    assert not monitor.update(0.05, True)
+    assert not monitor.update(0.08, False)  # released: the dwell restarts
+    assert not monitor.update(0.10, True)
     assert not monitor.done
-    assert monitor.update(0.20, within(np.zeros(3), goal, 0.01))
+    assert monitor.update(0.20, True)
     assert not monitor.update(0.21, False) and monitor.done  # once held, it stays done
 
 

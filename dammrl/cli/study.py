@@ -51,6 +51,12 @@ def register(commands: Commands) -> None:
         help="run on a Ray cluster (no address: a local Ray instance)",
     )
     study.add_argument(
+        "--recording",
+        type=Path,
+        metavar="MCAP",
+        help="a semi-virtual session: its pressure/error figure in the report",
+    )
+    study.add_argument(
         "--readme",
         type=Path,
         metavar="README",
@@ -72,6 +78,12 @@ def _study(args: argparse.Namespace) -> int:
     for run in [*args.reward1, *args.reward2]:
         if not run.exists():
             raise UsageError(f"no such run or checkpoint: {run}")
+    if args.recording is not None:  # read it now: a bad file fails before the study runs
+        from dammrl.recording import session_traces
+
+        if not args.recording.is_file():
+            raise UsageError(f"no such recording: {args.recording}")
+        session_traces(args.recording)
     options = StudyOptions(
         seeds=args.seeds,
         randomize=RANDOMIZE[args.randomize],
@@ -80,6 +92,7 @@ def _study(args: argparse.Namespace) -> int:
         reward2=tuple(args.reward2),
         workers=args.jobs,
         ray=args.ray,
+        recording=args.recording,
     )
     closers = []
 

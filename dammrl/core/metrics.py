@@ -18,7 +18,7 @@ class ReachMetrics:
     """The paper's evaluation metrics for one reach (see each function for definitions)."""
 
     success: bool  # the button pressed and held for the dwell time (the task done)
-    reached: bool  # the paper's criterion: ||x - x_g|| <= eps_g held for the dwell time
+    reached: bool  # the paper's criterion: ||x - x_g|| <= eps_g at some time before the end
     outcome: str  # 'success', 'hold' or 'timeout'
     reason: str  # why the reach ended
     t_total_s: float  # start to goal acquisition (or to the end) [s]
@@ -279,9 +279,3 @@ class Dwell:
         held = t_s - self.entered_s >= self.dwell_s - 1e-9
         self.done |= held
         return held
-
-
-def within(x: np.ndarray, goal: np.ndarray, tolerance_m: float) -> bool:
-    """||x - x_g|| <= eps_g, the paper's goal criterion."""
-    error = x - goal
-    return float(error @ error) <= tolerance_m**2

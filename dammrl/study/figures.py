@@ -148,6 +148,18 @@ def training_figure(runs: dict[str, tuple[Path, ...]], path: Path) -> Path | Non
     return path
 
 
+def session_figure(recording: Path, path: Path) -> Path:
+    """The paper's semi-virtual figure from a recorded session: the pressure above the
+    per-axis end-effector error (its first episode)."""
+    from dammrl.core.task import TaskSettings
+    from dammrl.plots import plot_session
+    from dammrl.recording import session_traces
+
+    traces = session_traces(recording, None)
+    title = f"{recording.name}: {len(traces.decisions)} decisions, {len(traces.pressure)} samples"
+    return plot_session(traces, TaskSettings().goal_tolerance_m, title, path)
+
+
 def _smooth(values: np.ndarray, window: int = 50) -> np.ndarray:
     finite = np.where(np.isfinite(values), values, np.nan)
     out = np.full_like(finite, np.nan)

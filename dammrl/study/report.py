@@ -157,6 +157,10 @@ def _figures(result: StudyResult, out: Path) -> dict[str, Path]:
     training = figures.training_figure(runs, out / "training.png")
     if training is not None:
         pictures["training"] = training
+    if result.options.recording is not None:
+        pictures["semi-virtual session"] = figures.session_figure(
+            result.options.recording, out / "semi_virtual.png"
+        )
     return pictures
 
 
@@ -191,7 +195,7 @@ def update_readme(readme: Path, section: str) -> None:
 DEFINITIONS = """\
 - **success**: the button pressed (cap pushed past its 3 mm detection travel) and held for
   the dwell time (0.1 s); the reach ends there. **reached**: the paper's criterion,
-  ||x - x_g|| <= eps_g (15 mm) held as long, at any time before the end.
+  ||x - x_g|| <= eps_g (30 mm, the cap radius) met at some time before the end.
 - **N_osc**: direction reversals of the end-effector's motion (measured path low-passed at
   10 Hz, zero phase; 1 mm deadband) within twice the admission radius of a subgoal;
   **N_osc/step** divides by the micro-steps planned.

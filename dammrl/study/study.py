@@ -35,6 +35,7 @@ class StudyOptions:
     reward2: tuple[Path, ...] = ()
     workers: int = 1
     ray: str | None = None  # a Ray address ("local": a local instance); None: this machine
+    recording: Path | None = None  # a semi-virtual session (MCAP): its figure in the report
 
     def check(self) -> None:
         overlap = set(self.seeds) & set(self.tuning_seeds)
