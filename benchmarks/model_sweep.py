@@ -40,7 +40,7 @@ def summarise(trigger: str, model: tuple[int, int], rows: list[ReachMetrics]) ->
     return (
         f"{trigger:6s} M_{model[0]},{model[1]}  success {wins / n:5.0%} [{lo:4.0%}, {hi:4.0%}]  "
         f"t_total {mean('t_total_s'):5.1f} s  N_osc {mean('n_osc'):5.1f}  "
-        f"error {mean('final_error_m') * 1000:5.1f} mm  pressed {mean('button_pressed'):4.0%}  "
+        f"error {mean('final_error_m') * 1000:5.1f} mm  reached {mean('reached'):4.0%}  "
         f"{failures or ''}"
     )
 
