@@ -274,7 +274,7 @@ class Episode:
         tick runs exactly as in the loop. The last period's state is returned for the
         loop; None when the reach ended inside the stretch.
         """
-        times, rows = self.sim.advance(periods, self.runner.substeps)
+        times, rows, true_ee = self.sim.advance(periods, self.runner.substeps)
         quiet = self._quiet_ticks(times[:-1], rows[:-1])
         controller = self.controller
         self.reach.log.record_many(
@@ -283,15 +283,16 @@ class Episode:
             controller.subgoal,
             controller.radius_m,
             self.sim.settings.button_press_travel_m,
+            true_ee[:quiet],
         )
-        for t_s, row in zip(times[quiet:-1], rows[quiet:-1], strict=True):
-            state = self.sim.state_from_sensors(float(t_s), row)
+        for k in range(quiet, len(times) - 1):
+            state = self.sim.state_from_sensors(float(times[k]), rows[k], true_ee[k])
             self.last_state = state
             tick = self.reach.tick(state)  # idle: no decision can be due in the stretch
             if tick.command is None or self._observed_enough(state):
                 return None
             self.sim.apply(tick.command)
-        return self.sim.state_from_sensors(float(times[-1]), rows[-1])
+        return self.sim.state_from_sensors(float(times[-1]), rows[-1], true_ee[-1])
 
     def _quiet_ticks(self, times: np.ndarray, rows: np.ndarray) -> int:
         """How many leading ticks need no more than logging (see ``_fast_forward``)."""

@@ -103,6 +103,8 @@ def test_dammrl_study_writes_the_report_the_table_and_the_readme_section(tmp_pat
     assert (
         len(rows) == 2 * 9 and {"success", "reached", "n_osc_per_step", "sparc"} <= rows[0].keys()
     )
+    # without sensor noise the measured path is the true one: the two counts agree
+    assert all(row["n_osc_true"] == row["n_osc"] for row in rows)
     text = readme.read_text()
     assert (
         "\nold\n" not in text and "| C1: " in text and text.endswith("<!-- study:end -->\nrest\n")

@@ -23,6 +23,9 @@ class RobotState:
     ee_vel: np.ndarray  # end-effector linear velocity [m/s] (3,)
     button_pressed: bool  # goal button pushed past its detection travel
     button_travel_m: float  # how far the button cap is pushed down [m]
+    # simulation only: the noise-free end-effector position [m] (3,), ground truth for
+    # analysis (dammrl study); never read by the controller, absent on the bus and the arm
+    ee_pos_true: np.ndarray | None = None
 
 
 @dataclass(frozen=True)

@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from dammrl.core.metrics import decisions_until_stable
+from dammrl.core.metrics import decisions_until_stable, n_oscillations
 from dammrl.core.policy import FixedPolicy, Policy, RandomPolicy
 from dammrl.core.task import seed_streams
 from dammrl.runner import ReachResult, ReachRunner, ReachSettings
@@ -101,7 +101,7 @@ def _row(job: Job, result: ReachResult) -> dict[str, Any]:
         "randomize": job.randomize,
         "model": f"{result.model[0]},{result.model[1]}",  # in force at the end
         **metrics,
-        "n_osc_per_step": metrics["n_osc"] / metrics["n_steps"] if metrics["n_steps"] else None,
+        "n_osc_true": _n_osc_true(result),
         "human_stable_after": decisions_until_stable(human),
         "robot_stable_after": decisions_until_stable(robot),
         "stable_share": 1 - decisions_until_stable(list(zip(human, robot, strict=True))) / n
@@ -111,6 +111,20 @@ def _row(job: Job, result: ReachResult) -> dict[str, Any]:
         "near_step_m": _mean_step(result, 0.0, NEAR_M),
         "mid_step_m": _mean_step(result, NEAR_M, MID_M),
     }
+
+
+def _n_osc_true(result: ReachResult) -> int | None:
+    """N_osc on the noise-free path (simulation's ground truth), beside N_osc on the
+    measured one: how much of the count is motion."""
+    traj = result.trajectory
+    kept = traj.t <= result.metrics.t_total_s + 1e-9
+    x = traj.x_true[kept]
+    if len(x) == 0 or not np.all(np.isfinite(x)):
+        return None
+    subgoals = np.array([s.subgoal for s in result.steps]).reshape(-1, 3)
+    radii = np.array([s.radius_m for s in result.steps])
+    rate = 1.0 / float(traj.t[1] - traj.t[0]) if len(traj.t) > 1 else 1.0
+    return n_oscillations(x, subgoals, radii, rate)
 
 
 NEAR_M, MID_M = 0.04, 0.16  # "near the target" and "mid-to-late": distance to the goal [m]

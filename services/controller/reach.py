@@ -43,6 +43,7 @@ class Trajectory:
     tau: np.ndarray  # applied torques (N, 6) [N m]
     subgoal: np.ndarray  # active subgoal (N, 3) [m], NaN before the first step
     radius: np.ndarray  # active admission radius (N,) [m]
+    x_true: np.ndarray  # noise-free end-effector position (N, 3) [m], NaN where unknown
 
 
 class ReachLog:
@@ -50,8 +51,9 @@ class ReachLog:
 
     COLUMNS: ClassVar[dict[str, tuple[int, int]]] = {
         "x": (0, 3), "v": (3, 6), "q": (6, 12), "tau": (12, 18), "subgoal": (18, 21),
+        "x_true": (23, 26),
     }  # fmt: skip
-    RADIUS, TIME, WIDTH = 21, 22, 23
+    RADIUS, TIME, WIDTH = 21, 22, 26
 
     def __init__(self, capacity: int) -> None:
         self.rows = np.full((capacity, self.WIDTH), np.nan)
@@ -64,6 +66,7 @@ class ReachLog:
         row[0:3], row[3:6], row[6:12], row[12:18] = state.ee_pos, state.ee_vel, state.q, state.tau
         row[18:21] = subgoal if subgoal is not None else np.nan
         row[self.RADIUS], row[self.TIME] = radius_m, state.t_s
+        row[23:26] = state.ee_pos_true if state.ee_pos_true is not None else np.nan
         self.n += 1
         self.button_pressed |= state.button_pressed
 
@@ -74,8 +77,10 @@ class ReachLog:
         subgoal: np.ndarray | None,
         radius_m: float,
         press_travel_m: float,
+        true_ee: np.ndarray | None = None,
     ) -> None:
-        """Log many ticks at once from raw sensor rows (see SENSOR_LAYOUT)."""
+        """Log many ticks at once from raw sensor rows (see SENSOR_LAYOUT) and, when known,
+        the noise-free end-effector positions (n, 3)."""
         if len(times) == 0:
             return
         self._grow(len(times))
@@ -85,6 +90,7 @@ class ReachLog:
             block[:, lo:hi] = sensors[:, SENSOR_LAYOUT[key]]
         block[:, 18:21] = subgoal if subgoal is not None else np.nan
         block[:, self.RADIUS], block[:, self.TIME] = radius_m, times
+        block[:, 23:26] = true_ee if true_ee is not None else np.nan
         self.n += len(times)
         travel = -sensors[:, SENSOR_LAYOUT["button"]][:, 0]
         self.button_pressed |= bool(np.any(travel >= press_travel_m))

@@ -110,12 +110,16 @@ class Simulation:
         at most (as on hardware, where state is sampled before the command is applied).
         """
         raw = self.data.sensordata.copy()
+        true_ee = raw[self._sensor_slices[3]].copy()
         if self.settings.randomization.enabled:
             raw += self._noise_std * self.rng.standard_normal(raw.size)
-        return self.state_from_sensors(float(self.data.time), raw)
+        return self.state_from_sensors(float(self.data.time), raw, true_ee)
 
-    def state_from_sensors(self, t_s: float, raw: np.ndarray) -> RobotState:
-        """A RobotState over one sensordata vector (see SENSOR_LAYOUT); no copy."""
+    def state_from_sensors(
+        self, t_s: float, raw: np.ndarray, true_ee: np.ndarray | None = None
+    ) -> RobotState:
+        """A RobotState over one sensordata vector (see SENSOR_LAYOUT); no copy.
+        ``true_ee``: the noise-free end-effector position, when known."""
         q, dq, tau, ee_pos, ee_vel, button = self._sensor_slices
         travel = -float(raw[button][0])
         return RobotState(
@@ -127,14 +131,16 @@ class Simulation:
             ee_vel=raw[ee_vel],
             button_pressed=travel >= self.settings.button_press_travel_m,
             button_travel_m=travel,
+            ee_pos_true=true_ee,
         )
 
-    def advance(self, n_periods: int, substeps: int) -> tuple[np.ndarray, np.ndarray]:
+    def advance(self, n_periods: int, substeps: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Advance ``n_periods * substeps`` steps under the latched command in one rollout.
 
         Returns the times (n,) and sensor vectors (n, nsensordata) at the end of each
-        period: what ``read`` would have returned there. The final state is bitwise the
-        one ``step`` would reach (same integrator, solver warm start carried over).
+        period: what ``read`` would have returned there; and the noise-free end-effector
+        positions (n, 3). The final state is bitwise the one ``step`` would reach (same
+        integrator, solver warm start carried over).
         """
         spec = mujoco.mjtState.mjSTATE_FULLPHYSICS
         mujoco.mj_getState(self.model, self.data, self._state, spec)
@@ -149,9 +155,10 @@ class Simulation:
         )
         ends = slice(substeps - 1, None, substeps)
         times, rows = states[0, ends, 0].copy(), sensordata[0, ends].copy()  # time is first
+        true_ee = rows[:, self._sensor_slices[3]].copy()
         if self.settings.randomization.enabled:
             rows += self._noise_std * self.rng.standard_normal(rows.shape)
-        return times, rows
+        return times, rows, true_ee
 
     def _sensor_noise_std(self) -> np.ndarray:
         """Per-entry standard deviation of the sensordata noise (see SENSOR_LAYOUT)."""
