@@ -15,6 +15,7 @@ from dammrl.study.claims import EVENT, FIXED, R1, R2, judge
 from dammrl.study.configs import paper_configurations
 from dammrl.study.run import Job, run_local, run_ray
 from dammrl.study.stats import bootstrap_mean, paired_difference, wilson
+from tests.busutil import free_port
 
 
 def test_wilson_interval_matches_the_textbook_values() -> None:
@@ -116,8 +117,9 @@ def test_study_refuses_bad_options_in_one_line(tmp_path: Path) -> None:
         (["--seeds", "7899990:7900010"], "overlap the tuning seeds"),
         (["--jobs", "0"], "--jobs must be at least 1"),
         (["--reward1", str(tmp_path / "missing")], "no such run"),
+        (["--ray", f"127.0.0.1:{free_port()}"], "cannot reach the Ray cluster"),
     ):
         command = [sys.executable, "-m", "dammrl", "study", *args, "--out", str(tmp_path / "o")]
         done = subprocess.run(command, capture_output=True, text=True, timeout=120)
-        assert done.returncode in (2, 3), done.stderr
+        assert done.returncode in (1, 2, 3), done.stderr
         assert message in done.stderr and len(done.stderr.strip().splitlines()) == 1, done.stderr

@@ -8,6 +8,7 @@ the records, sorted, are identical whichever executor ran them.
 from __future__ import annotations
 
 import os
+import socket
 import sys
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor
@@ -16,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from dammrl.core.errors import JobFailedError
 from dammrl.core.metrics import decisions_until_stable, n_oscillations
 from dammrl.core.policy import FixedPolicy, Policy, RandomPolicy
 from dammrl.core.task import seed_streams
@@ -179,6 +181,8 @@ def run_ray(
     started = not ray.is_initialized()
     if started:
         where = None if address in (None, "local") else address
+        if where is not None:
+            check_reachable(where)
         ray.init(address=where, include_dashboard=False, log_to_driver=False,
                  runtime_env={"env_vars": {"OMP_NUM_THREADS": "1"}})  # fmt: skip
     try:
@@ -195,6 +199,18 @@ def run_ray(
     finally:
         if started:
             ray.shutdown()
+
+
+def check_reachable(address: str, timeout_s: float = 5.0) -> None:
+    """Fail in one line when a ``host:port`` Ray address does not answer (Ray itself
+    would retry for minutes); other forms ("auto", none) are left to Ray."""
+    host, _, port = address.removeprefix("ray://").rpartition(":")
+    if not host or not port.isdigit():
+        return
+    try:
+        socket.create_connection((host, int(port)), timeout_s).close()
+    except OSError as exc:
+        raise JobFailedError(f"cannot reach the Ray cluster at {address}: {exc}") from None
 
 
 def _run_batch(jobs: list[Job]) -> list[Record]:
