@@ -186,6 +186,45 @@ def test_a_re_sent_request_gets_the_same_answer_from_the_simulated_human() -> No
     assert len(bus.published) == 2 and bus.published[0] == bus.published[1]
 
 
+def test_a_re_sent_request_gets_the_same_answer_from_the_sensor_not_a_new_press() -> None:
+    """The sensor's intent was lost on the way (the controller heard nothing and asks
+    again): the same answer goes out again; a later press answers nothing."""
+    from services.intent.config import IntentSettings
+    from services.intent.decoder import PressDecision
+    from services.intent.sensor_node import SensorIntentNode
+
+    bus = FakeBus()
+    node = SensorIntentNode(IntentSettings(port="/dev/null"), ModelSet(), bus)  # type: ignore[arg-type]
+    node._dispatch(_request(1))
+    node._answer(PressDecision(t_s=1.0, u_h=1, human_model=2, confidence=0.9, duration_s=0.8,
+                               peak=0.9))  # fmt: skip
+    node._dispatch(_request(1))  # re-sent
+    node._answer(PressDecision(t_s=3.0, u_h=-1, human_model=1, confidence=0.9, duration_s=0.1,
+                               peak=0.9))  # fmt: skip
+    assert len(bus.published) == 2 and bus.published[0] == bus.published[1]
+    assert node.ignored_presses == 1
+
+
+def test_the_sensor_keeps_a_request_whose_episode_announcement_arrives_after_it() -> None:
+    """TaskGoal and DecisionRequest come on two subscriptions: the first request of an
+    episode may overtake the episode's announcement. It stays open (it was dropped, and
+    every re-send ignored as a repeat: no press was ever answered)."""
+    from services.intent.config import IntentSettings
+    from services.intent.decoder import PressDecision
+    from services.intent.sensor_node import SensorIntentNode
+
+    bus = FakeBus()
+    node = SensorIntentNode(IntentSettings(port="/dev/null"), ModelSet(), bus)  # type: ignore[arg-type]
+    node._dispatch(_request(1))
+    node._dispatch(_goal(1, 5))  # late: the same episode
+    node._answer(PressDecision(t_s=1.0, u_h=1, human_model=2, confidence=0.9, duration_s=0.8,
+                               peak=0.9))  # fmt: skip
+    assert [p["request"] for p in bus.published] == [1]
+    node._dispatch(_request(2))
+    node._dispatch(_goal(2, 6))  # a new episode closes episode 1's open request
+    assert node.request is None
+
+
 def test_the_controller_sends_an_unanswered_request_again() -> None:
     from dammrl.core.models import ModelSet
     from dammrl.core.robot import RobotSettings

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import threading
 import time
+from typing import Any
 
 from dammrl.core.errors import ConfigurationError
 from dammrl.core.models import ModelSet
@@ -22,6 +23,8 @@ from services.intent.calibration import load_calibration
 from services.intent.config import IntentSettings
 from services.intent.decoder import PressDecision, PressDecoder
 from services.intent.serial_sensor import Arrival, SerialSensor
+
+MAX_REMEMBERED = 256  # answers kept for re-sent requests
 
 
 class SensorIntentNode:
@@ -36,6 +39,9 @@ class SensorIntentNode:
         self.sensor = SerialSensor(settings.port, settings.baud_rate, settings.reconnect_max_s)
         self.request: DecisionRequest | None = None
         self.seen_requests: set[tuple[int, int]] = set()  # the controller re-sends unanswered
+        # the intents published, by (episode, request): a re-sent request (the controller
+        # heard no answer: it was lost) gets the same answer again, never a new press
+        self.answered: dict[tuple[int, int], dict[str, Any]] = {}
         self.request_wall_s = 0.0
         self.ignored_presses = 0
         self.health_state = ""  # the last reported: a change is reported at once
@@ -58,10 +64,19 @@ class SensorIntentNode:
 
     def _dispatch(self, message: Message) -> None:
         if isinstance(message, DecisionRequest):
-            if (message.episode, message.request) not in self.seen_requests:
-                self.seen_requests.add((message.episode, message.request))  # not a repeat
+            key = (message.episode, message.request)
+            if (answer := self.answered.get(key)) is not None:
+                self.intents.publish(**answer)  # the answer was lost: the same again
+            elif key not in self.seen_requests:
+                self.seen_requests.add(key)  # not a repeat
                 self.request, self.request_wall_s = message, time.monotonic()
-        elif isinstance(message, TaskGoal):
+        elif (
+            isinstance(message, TaskGoal)
+            and self.request is not None
+            and self.request.episode < message.episode
+        ):
+            # a new episode closes an older episode's request; never its own: the goal and
+            # the first request come on two subscriptions and may arrive in either order
             self.request = None
 
     def _sample(self, arrival: Arrival) -> None:
@@ -83,16 +98,20 @@ class SensorIntentNode:
         self.request = None
         models = self.models
         onset_s = decision.t_s - decision.duration_s  # the decision is made when pressing starts
-        self.intents.publish(
-            episode=request.episode,
-            request=request.request,
-            u_h=decision.u_h,
-            human_model=decision.human_model,
-            radius_m=models.radius_m(decision.human_model),
-            confidence=decision.confidence,
-            source="sensor",
-            decision_s=max(0.0, onset_s - self.request_wall_s),
-        )
+        answer: dict[str, Any] = {
+            "episode": request.episode,
+            "request": request.request,
+            "u_h": decision.u_h,
+            "human_model": decision.human_model,
+            "radius_m": models.radius_m(decision.human_model),
+            "confidence": decision.confidence,
+            "source": "sensor",
+            "decision_s": max(0.0, onset_s - self.request_wall_s),
+        }
+        if len(self.answered) >= MAX_REMEMBERED:  # bounded: the oldest answer goes first
+            del self.answered[next(iter(self.answered))]
+        self.answered[(request.episode, request.request)] = answer
+        self.intents.publish(**answer)
 
     def _report(self) -> None:
         sensor = self.sensor
