@@ -22,9 +22,12 @@ SUMMARY_METRICS = (
     ("success", "success (button pressed) [%]", 100.0, True),
     ("reached", "reached, ||x - x_g|| <= eps_g [%]", 100.0, True),
     ("t_total_s", "total time [s]", 1.0, False),
+    ("n_osc", "N_osc per reach", 1.0, False),
     ("n_osc_per_step", "oscillations per step", 1.0, False),
     ("final_error_m", "final error [mm]", MM, False),
     ("sparc", "SPARC (0: smoothest)", 1.0, False),
+    ("ldlj", "LDLJ (higher: smoother)", 1.0, False),
+    ("jerk_isj", "ISJ [10³ m²/s⁵]", 1e-3, False),
 )
 DISTANCE_BINS_M = np.array([0.0, 0.01, 0.02, 0.04, 0.08, 0.16, 0.5])
 
@@ -34,7 +37,7 @@ def summary_chart(records: list[Record], configurations: list[Configuration], pa
     randomisation side by side."""
     rng = np.random.default_rng(0)
     keys = [c.key for c in configurations]
-    fig, axes = plt.subplots(2, 3, figsize=(15, 8), constrained_layout=True)
+    fig, axes = plt.subplots(3, 3, figsize=(15, 12), constrained_layout=True)
     for ax, (metric, title, scale, rate) in zip(axes.flat, SUMMARY_METRICS, strict=True):
         for offset, randomize in ((-0.2, False), (0.2, True)):
             means, lows, highs = [], [], []
