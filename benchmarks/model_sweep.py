@@ -9,7 +9,6 @@ mean N_osc, mean final error and the share of reaches that pressed the button.
 from __future__ import annotations
 
 import argparse
-import math
 import time
 
 import numpy as np
@@ -18,19 +17,13 @@ from dammrl.core.metrics import ReachMetrics
 from dammrl.core.models import HUMAN_MODELS, ROBOT_MODELS, parse_model
 from dammrl.core.task import held_out_seeds
 from dammrl.runner import ReachRunner
-
-
-def wilson(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
-    """95 % Wilson score interval of a proportion."""
-    p = successes / n
-    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
-    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
-    return centre - half, centre + half
+from dammrl.study.stats import wilson
 
 
 def summarise(trigger: str, model: tuple[int, int], rows: list[ReachMetrics]) -> str:
     n, wins = len(rows), sum(m.success for m in rows)
-    lo, hi = wilson(wins, n)
+    rate = wilson(wins, n)
+    lo, hi = rate.low, rate.high
     mean = lambda key: float(np.mean([getattr(m, key) for m in rows]))  # noqa: E731
     failures: dict[str, int] = {}
     for m in rows:

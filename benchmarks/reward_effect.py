@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import argparse
 import itertools
-import math
 from pathlib import Path
 
 import matplotlib
@@ -23,23 +22,15 @@ import numpy as np
 from dammrl.core.models import ModelSet
 from dammrl.core.task import held_out_seeds
 from dammrl.rl.train import Rollout, greedy_rollouts
+from dammrl.study.stats import bootstrap_mean, wilson
 
 BINS_M = np.array([0.0, 0.01, 0.02, 0.04, 0.08, 0.16, 0.5])
 
 
 def mean_ci(values: np.ndarray, rng: np.random.Generator) -> tuple[float, float, float]:
-    """Mean and 95 % bootstrap interval."""
-    if len(values) == 0:
-        return math.nan, math.nan, math.nan
-    boots = [rng.choice(values, len(values)).mean() for _ in range(1000)]
-    return float(values.mean()), float(np.percentile(boots, 2.5)), float(np.percentile(boots, 97.5))
-
-
-def wilson(k: int, n: int) -> tuple[float, float]:
-    p, z = k / n, 1.96
-    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
-    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
-    return centre - half, centre + half
+    """Mean and 95 % bootstrap interval (the study's estimator)."""
+    estimate = bootstrap_mean(values, rng)
+    return estimate.value, estimate.low, estimate.high
 
 
 def step_vs_distance(rollouts: list[Rollout]) -> tuple[np.ndarray, np.ndarray]:
@@ -67,7 +58,8 @@ def main() -> None:
     for label, run, color in runs:
         rollouts = greedy_rollouts(run, args.seeds)
         wins = sum(r.metrics.success for r in rollouts)
-        lo, hi = wilson(wins, len(rollouts))
+        rate = wilson(wins, len(rollouts))
+        lo, hi = rate.low, rate.high
         t = np.array([r.metrics.t_total_s for r in rollouts])
         t_mean, t_lo, t_hi = mean_ci(t, rng)
         print(f"{label}: success {wins}/{len(rollouts)} [{lo:.0%}, {hi:.0%}], "
