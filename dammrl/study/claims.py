@@ -16,7 +16,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from dammrl.study.stats import Estimate, paired_difference, wilson
+from dammrl.study.stats import Estimate, bootstrap_mean, paired_difference, wilson
 
 Verdict = Literal["holds", "partly", "does not hold", "not tested"]
 Rows = Sequence[dict[str, Any]]
@@ -190,7 +190,5 @@ def _converged(row: dict[str, Any], *, agent: str) -> bool | None:
 
 
 def _mean_estimate(t: Table, config: str, metric: str) -> Estimate:
-    from dammrl.study.stats import bootstrap_mean
-
     seeds = sorted(t.by_config[config])
     return bootstrap_mean(t.values(config, metric, seeds), t.rng)

@@ -61,9 +61,6 @@ class StudyResult:
         return [r.row for r in self.records]
 
 
-Runner = Callable[[Sequence[Job], str], list[Record]]
-
-
 def run_study(options: StudyOptions, progress: Callable[[int, str], Progress]) -> StudyResult:
     """The whole study; ``progress(total, description)`` makes a progress callback."""
     options.check()
