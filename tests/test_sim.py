@@ -109,3 +109,21 @@ def test_reset_restores_the_nominal_model() -> None:
     sim.settings = SimSettings()
     sim.reset(HOME_Q, (0.5, 0.0))
     np.testing.assert_array_equal(sim.model.body_mass, nominal.model.body_mass)
+    np.testing.assert_array_equal(sim.model.body_pos[:9], nominal.model.body_pos[:9])
+    np.testing.assert_array_equal(sim.joint_offset, np.zeros(6))
+
+
+def test_kinematic_randomisation_moves_the_true_arm_not_the_reported_angles() -> None:
+    """Link lengths within 2 % and encoder offsets within 5 mrad: the arm reports the
+    commanded posture while its fingertip is millimetres from where the nominal model
+    (the controller's IK) puts it; the servo holds the reported angle."""
+    noise_free = DomainRandomization(enabled=True, q_noise_rad=0, dq_noise_rad_per_s=0,
+                                     ee_noise_m=0)  # fmt: skip
+    sim, nominal = _sim(SimSettings(randomization=noise_free), seed=3), _sim(SimSettings())
+    state, reference = sim.reset(HOME_Q, (0.5, 0.0)), nominal.reset(HOME_Q, (0.5, 0.0))
+    np.testing.assert_allclose(state.q, HOME_Q, atol=1e-12)  # the encoders read q
+    assert np.all(np.abs(sim.joint_offset) <= 0.005) and np.any(sim.joint_offset != 0)
+    shift = float(np.linalg.norm(state.ee_pos - reference.ee_pos))
+    assert 1e-4 < shift < 0.03, shift
+    lengths = sim.model.body_pos[[5, 7, 8], 0] / nominal.model.body_pos[[5, 7, 8], 0]
+    assert np.all(np.abs(lengths - 1) <= 0.02) and not np.allclose(lengths, 1)

@@ -20,6 +20,13 @@ class DomainRandomization(BaseModel):
     """Joint damping scaled by U(1 - s, 1 + s)."""
     friction_max_nm: float = Field(0.3, ge=0)
     """Joint dry friction drawn from U(0, max) [N m]."""
+    link_length_scale: float = Field(0.02, ge=0, lt=0.2)
+    """Kinematics: each link's offset from its parent (its length) scaled by U(1 - s,
+    1 + s). The controller's IK and dynamics keep the nominal model, as on a real arm whose
+    calibration is imperfect."""
+    joint_offset_rad: float = Field(0.005, ge=0, le=0.1)
+    """Kinematics: encoder zero offsets drawn from U(-max, max) [rad]: the reported joint
+    angle is the true one plus its offset, and the joint servo holds the reported angle."""
     q_noise_rad: float = Field(2e-4, ge=0)
     """Standard deviation of joint-position sensor noise [rad]."""
     dq_noise_rad_per_s: float = Field(2e-3, ge=0)

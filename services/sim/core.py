@@ -41,9 +41,10 @@ class Simulation:
         self.rng = np.random.default_rng(seed)
         self._nominal = {
             name: getattr(self.model, name).copy()
-            for name in ("body_mass", "body_inertia", "dof_damping", "dof_frictionloss")
+            for name in ("body_mass", "body_inertia", "dof_damping", "dof_frictionloss", "body_pos")
         }
         self._n = len(self.robot.joint_names)
+        self.joint_offset = np.zeros(self._n)  # encoder zero offsets [rad] (randomisation)
         self._button_body = self.model.body("button").id
         self._arm_bodies = np.arange(1, self.model.body("button").id)
         self._noise_std = self._sensor_noise_std()
@@ -83,7 +84,7 @@ class Simulation:
         self._last_command = None
         self._randomize()
         self.model.body_pos[self._button_body, :2] = button_xy
-        self.data.qpos[: self._n] = q
+        self.data.qpos[: self._n] = q - self.joint_offset  # the encoders read q
         mujoco.mj_forward(self.model, self.data)
         return self.read()
 
@@ -95,8 +96,11 @@ class Simulation:
         if last is None or command.kp is not last.kp or command.kd is not last.kd:
             self.model.actuator_biasprm[: self._n, 1] = -command.kp
             self.model.actuator_biasprm[: self._n, 2] = -command.kd
+        # the servo holds the angle its encoder reports: q_ref is met at true q_ref - offset
         self.data.ctrl[: self._n] = (
-            command.tau_ff + command.kp * command.q_ref + command.kd * command.dq_ref
+            command.tau_ff
+            + command.kp * (command.q_ref - self.joint_offset)
+            + command.kd * command.dq_ref
         )
 
     def step(self, n_steps: int) -> None:
@@ -111,6 +115,7 @@ class Simulation:
         """
         raw = self.data.sensordata.copy()
         true_ee = raw[self._sensor_slices[3]].copy()
+        raw[self._sensor_slices[0]] += self.joint_offset
         if self.settings.randomization.enabled:
             raw += self._noise_std * self.rng.standard_normal(raw.size)
         return self.state_from_sensors(float(self.data.time), raw, true_ee)
@@ -156,6 +161,7 @@ class Simulation:
         ends = slice(substeps - 1, None, substeps)
         times, rows = states[0, ends, 0].copy(), sensordata[0, ends].copy()  # time is first
         true_ee = rows[:, self._sensor_slices[3]].copy()
+        rows[:, self._sensor_slices[0]] += self.joint_offset
         if self.settings.randomization.enabled:
             rows += self._noise_std * self.rng.standard_normal(rows.shape)
         return times, rows, true_ee
@@ -173,6 +179,7 @@ class Simulation:
         """Restore the nominal model, then perturb it when randomisation is enabled."""
         for name, value in self._nominal.items():
             getattr(self.model, name)[:] = value
+        self.joint_offset = np.zeros(self._n)
         randomization = self.settings.randomization
         if not randomization.enabled:
             return
@@ -188,4 +195,11 @@ class Simulation:
         )
         self.model.dof_frictionloss[dofs] = self.rng.uniform(
             0, randomization.friction_max_nm, self._n
+        )
+        links = self._arm_bodies[1:]  # the base stays where it is mounted
+        self.model.body_pos[links] *= self.rng.uniform(
+            1 - randomization.link_length_scale, 1 + randomization.link_length_scale, len(links)
+        )[:, None]
+        self.joint_offset = self.rng.uniform(
+            -randomization.joint_offset_rad, randomization.joint_offset_rad, self._n
         )
