@@ -58,6 +58,12 @@ class ReachSettings(BaseModel):
     robot: RobotSettings = Field(default_factory=RobotSettings)
     task: TaskSettings = Field(default_factory=TaskSettings)
 
+    def randomized(self, enabled: bool = True) -> ReachSettings:
+        """These settings on a randomised arm (dynamics, kinematics, sensor noise) or not."""
+        randomization = self.sim.randomization.model_copy(update={"enabled": enabled})
+        sim = self.sim.model_copy(update={"randomization": randomization})
+        return self.model_copy(update={"sim": sim})
+
 
 @dataclass
 class ReachResult:

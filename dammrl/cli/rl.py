@@ -4,48 +4,146 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
+import shlex
+import sys
+import time
 from pathlib import Path
+from typing import Any
 
 from dammrl.cli.common import SEEDS_HELP, Commands, print_err, seeds_arg
 
 
 def register(commands: Commands) -> None:
-    """Add ``train`` and ``evaluate``."""
+    """Add ``train``, ``frontier`` and ``evaluate``."""
     train = commands.add_parser("train", help="train the dual-agent DQN (DAMMRL)")
     train.add_argument("--reward", type=int, choices=[1, 2], required=True,
                        help="1: accuracy focus (beta = 0); 2: speed and accuracy")  # fmt: skip
     train.add_argument("--out", type=Path, required=True, help="run directory (resumes if present)")
     train.add_argument("--episodes", type=int, help="default 1500 (DAMMRL_RL_EPISODES)")
-    train.add_argument("--seed", type=int)
-    train.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto")
+    train.add_argument("--seed", type=int, help="the run's seed (one run; default 0)")
+    train.add_argument("--seeds", type=int, metavar="N",
+                       help="train N seeds (0..N-1) into OUT/seed-K in parallel, evaluate each "
+                       "on held-out seeds and aggregate (summary.md, curves.png)")  # fmt: skip
+    train.add_argument("--beta", type=float, help="the time weight (default: the reward's)")
+    train.add_argument("--no-randomize", dest="randomize", action="store_false",
+                       help="train on the nominal arm (default: randomised arms, S1)")  # fmt: skip
+    train.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto",
+                       help="where the networks learn (auto: a GPU when present)")  # fmt: skip
+    _grid_options(train)
     train.set_defaults(handler=_train)
+    frontier = commands.add_parser(
+        "frontier", help="the reward-weight frontier: a grid of time weights, several seeds each"
+    )
+    frontier.add_argument("--out", type=Path, required=True, help="grid directory")
+    frontier.add_argument("--betas", type=_betas, default=[0.0, 0.25, 0.5, 1.0, 2.0, 4.0],
+                          help="time weights, comma-separated (default 0,0.25,0.5,1,2,4; 0 is "
+                          "Reward 1, 1 is Reward 2)")  # fmt: skip
+    frontier.add_argument("--seeds", type=int, default=3, metavar="N", help="seeds per weight")
+    frontier.add_argument("--episodes", type=int, default=1500, help="episodes per run")
+    _grid_options(frontier)
+    frontier.set_defaults(handler=_frontier)
     evaluate = commands.add_parser("evaluate", help="greedy evaluation of a trained run")
     evaluate.add_argument("--checkpoint", type=Path, required=True, help="run directory or .pt")
     evaluate.add_argument("--seeds", default="100", metavar="N|A:B", type=seeds_arg,
                           help=SEEDS_HELP)  # fmt: skip
-    evaluate.add_argument("--json", action="store_true")
+    evaluate.add_argument("--randomize", action="store_true", help="on randomised arms")
+    evaluate.add_argument("--json", action="store_true", help="one JSON object")
     evaluate.set_defaults(handler=_evaluate)
+
+
+def _grid_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--eval-seeds", default="100", metavar="N|A:B", type=seeds_arg,
+                        help="held-out seeds each run is evaluated on; " + SEEDS_HELP)  # fmt: skip
+    parser.add_argument("--jobs", type=int, default=os.cpu_count() or 1,
+                        help="training processes here (default: every core)")  # fmt: skip
+    parser.add_argument("--ray", nargs="?", const="local", metavar="ADDRESS",
+                        help="run on a Ray cluster (no address: a local Ray instance)")  # fmt: skip
+
+
+def _betas(text: str) -> list[float]:
+    try:
+        values = [float(part) for part in text.split(",") if part.strip()]
+    except ValueError:
+        values = []
+    if not values or any(not 0 <= v < 1000 for v in values) or len(set(values)) != len(values):
+        raise argparse.ArgumentTypeError(
+            f"expected distinct weights >= 0 like 0,0.5,1; got {text!r}"
+        )
+    return sorted(values)
 
 
 def _train(args: argparse.Namespace) -> int:
     """Train (or resume) a run; progress on stderr, the last 50 episodes' success at the end."""
-    from dammrl.rl.config import TrainSettings
+    from dammrl.rl.config import RewardWeights, TrainSettings
     from dammrl.rl.train import train
 
+    if args.seeds is not None:
+        return _train_seeds(args)
     overrides = {k: v for k in ("episodes", "seed") if (v := getattr(args, k)) is not None}
-    settings = TrainSettings(**overrides)
-    logs = train(args.reward, args.out, settings, args.device, progress=print_err)
+    settings = TrainSettings(**overrides, randomize=args.randomize)
+    weights = RewardWeights.preset(args.reward)
+    if args.beta is not None:
+        weights = weights.model_copy(update={"beta": args.beta})
+    logs = train(args.reward, args.out, settings, args.device, progress=print_err, weights=weights)
     recent = logs[-50:]
     print(f"trained {len(logs)} episodes; last 50: success "
           f"{sum(r.success for r in recent) / len(recent):.0%}; run in {args.out}")  # fmt: skip
     return 0
 
 
+def _train_seeds(args: argparse.Namespace) -> int:
+    from dammrl.core.errors import UsageError
+    from dammrl.study.training import check_seeds, group_jobs, write_group_report
+
+    if not 1 <= args.seeds <= 70 or args.seed is not None:
+        raise UsageError("--seeds N takes 1 to 70 seeds (0..N-1), and no --seed")
+    check_seeds(args.eval_seeds)
+    episodes = args.episodes or 1500
+    jobs = group_jobs(args.out, args.reward, args.seeds, episodes, args.eval_seeds, args.beta,
+                      args.randomize)  # fmt: skip
+    wall_s = _run_grid(jobs, args)
+    print(write_group_report(args.out, f"Reward {args.reward}", _command(), wall_s))
+    return 0
+
+
+def _frontier(args: argparse.Namespace) -> int:
+    from dammrl.study.frontier import frontier_jobs, write_report
+    from dammrl.study.training import check_seeds
+
+    check_seeds(args.eval_seeds)
+    jobs = frontier_jobs(args.out, args.betas, args.seeds, args.episodes, args.eval_seeds)
+    wall_s = _run_grid(jobs, args)
+    print(write_report(args.out, args.betas, _command(), wall_s))
+    return 0
+
+
+def _run_grid(jobs: list[Any], args: argparse.Namespace) -> float:
+    """Train and evaluate every job (processes or Ray) with a progress bar; wall time [s]."""
+    from dammrl.core.errors import UsageError
+    from dammrl.study.run import progress_bar
+    from dammrl.study.training import run_training
+
+    if args.jobs < 1:
+        raise UsageError(f"--jobs must be at least 1, got {args.jobs}")
+    started = time.monotonic()
+    update, close = progress_bar(len(jobs), "training runs", unit="run")
+    try:
+        run_training(jobs, args.jobs, args.ray, update)
+    finally:
+        close()
+    return time.monotonic() - started
+
+
+def _command() -> str:
+    return "dammrl " + shlex.join(sys.argv[1:])
+
+
 def _evaluate(args: argparse.Namespace) -> int:
     """Greedy episodes of a trained run; their metrics as text or one JSON object."""
     from dammrl.rl.train import evaluate
 
-    result = evaluate(args.checkpoint, args.seeds)
+    result = evaluate(args.checkpoint, args.seeds, args.randomize)
     if args.json:
         print(json.dumps(result))
     else:

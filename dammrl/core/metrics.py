@@ -6,6 +6,7 @@ the control rate (``t`` of shape (N,), positions and velocities of shape (N, 3))
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import asdict, dataclass
 from typing import Any
@@ -155,12 +156,21 @@ def motion_estimate(
     Butterworth low-pass at ``cutoff_hz``. White sensor noise keeps about
     sqrt(cutoff / Nyquist) of its amplitude (0.45 at 100 Hz); motion below the cutoff
     passes unchanged and undelayed. Paths too short to filter are returned as they are."""
-    from scipy.signal import butter, sosfiltfilt
+    from scipy.signal import sosfiltfilt
 
     if cutoff_hz >= rate_hz / 2 or len(x) < 16:
         return x
-    sos = butter(4, cutoff_hz, fs=rate_hz, output="sos")
+    sos = _low_pass(cutoff_hz, rate_hz).copy()  # scipy wants a writable array
     return np.asarray(sosfiltfilt(sos, x, axis=0, padlen=min(len(x) - 1, 27)))
+
+
+@functools.lru_cache(maxsize=16)
+def _low_pass(cutoff_hz: float, rate_hz: float) -> np.ndarray:
+    """The filter's sections, designed once per rate (the design costs as much as the
+    filtering: the RL reward counts oscillations at every decision)."""
+    from scipy.signal import butter
+
+    return np.asarray(butter(4, cutoff_hz, fs=rate_hz, output="sos"))
 
 
 def decisions_until_stable(choices: list[Any]) -> int:

@@ -62,3 +62,6 @@ class TrainSettings(Settings):
     """Units per hidden layer."""
     grad_clip: float = Field(10.0, gt=0)
     seed: int = Field(0, ge=0, lt=70)
+    randomize: bool = True
+    """Train on randomised arms (the paper's S1): masses, damping, friction, link lengths,
+    encoder offsets and sensor noise drawn anew every episode."""

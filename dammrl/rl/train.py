@@ -25,7 +25,7 @@ from dammrl.core.task import training_seed
 from dammrl.rl.config import RewardWeights, TrainSettings
 from dammrl.rl.dqn import DualAgentDQN, ReplayBuffer, UpdateStats
 from dammrl.rl.env import ACTIONS, OBSERVATION_SIZE, ReachEnv
-from dammrl.runner import ReachRunner
+from dammrl.runner import ReachRunner, ReachSettings
 from services.policy.learned import (
     CHECKPOINT,
     FORMAT,
@@ -71,13 +71,17 @@ def train(
     settings: TrainSettings,
     device: str = "auto",
     progress: Callable[[str], None] = print,
+    weights: RewardWeights | None = None,
 ) -> list[EpisodeLog]:
-    """Train (or resume) both agents; return the per-episode log."""
+    """Train (or resume) both agents; return the per-episode log. ``weights`` (default: the
+    ``reward`` preset) sets the reward's terms, e.g. another time weight beta."""
     out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(settings.seed)
     torch.set_num_threads(1)  # small networks: threads only contend with the simulation
     rng = np.random.default_rng(settings.seed)
-    env = ReachEnv(ReachRunner(), RewardWeights.preset(reward), settings.max_decisions)
+    weights = weights or RewardWeights.preset(reward)
+    runner = ReachRunner(ReachSettings().randomized(settings.randomize))
+    env = ReachEnv(runner, weights, settings.max_decisions)
     agent = DualAgentDQN(OBSERVATION_SIZE, ACTIONS, settings, pick_device(device))
     buffer = ReplayBuffer(settings.buffer_size, OBSERVATION_SIZE, settings.seed)
     logs, decisions = _resume(out, agent, reward, settings)
@@ -90,7 +94,7 @@ def train(
         if (episode + 1) % 10 == 0 or episode + 1 == settings.episodes:
             progress(_progress_line(logs, settings, time.monotonic() - started))
         if (episode + 1) % 50 == 0 or episode + 1 == settings.episodes:
-            save(out, agent, reward, settings, logs, decisions)
+            save(out, agent, reward, weights, settings, logs, decisions)
     board.close()
     plot_training(logs, out / "training.png", reward)
     return logs
@@ -149,10 +153,10 @@ def _progress_line(logs: list[EpisodeLog], s: TrainSettings, elapsed_s: float) -
     )
 
 
-def save(out: Path, agent: DualAgentDQN, reward: Literal[1, 2], settings: TrainSettings,
-         logs: list[EpisodeLog], decisions: int) -> None:  # fmt: skip
+def save(out: Path, agent: DualAgentDQN, reward: Literal[1, 2], weights: RewardWeights,
+         settings: TrainSettings, logs: list[EpisodeLog], decisions: int) -> None:  # fmt: skip
     checkpoint = {
-        "format": FORMAT, "reward": reward, "weights": RewardWeights.preset(reward).model_dump(),
+        "format": FORMAT, "reward": reward, "weights": weights.model_dump(),
         "settings": settings.model_dump(), "agent": agent.state_dict(), "decisions": decisions,
         "observation_size": OBSERVATION_SIZE, "actions": ACTIONS,
     }  # fmt: skip
@@ -193,11 +197,12 @@ class Rollout:
     decisions: list[tuple[float, int, int]]
 
 
-def greedy_rollouts(run: Path, seeds: range) -> list[Rollout]:
-    """The run's greedy policy on ``seeds`` (held out from training), stochastic human."""
+def greedy_rollouts(run: Path, seeds: range, randomize: bool = False) -> list[Rollout]:
+    """The run's greedy policy on ``seeds`` (held out from training), stochastic human,
+    on the nominal arm or on randomised ones."""
     checkpoint = load_checkpoint(run)
     settings = TrainSettings(**checkpoint["settings"])
-    runner = ReachRunner()
+    runner = ReachRunner(ReachSettings().randomized(randomize))
     policy = LearnedPolicy(runner.settings.models, run)
     env = ReachEnv(runner, RewardWeights(**checkpoint["weights"]), settings.max_decisions)
     rollouts = []
@@ -217,14 +222,14 @@ def greedy_rollouts(run: Path, seeds: range) -> list[Rollout]:
     return rollouts
 
 
-def evaluate(run: Path, seeds: range) -> dict[str, Any]:
+def evaluate(run: Path, seeds: range, randomize: bool = False) -> dict[str, Any]:
     """Summary of :func:`greedy_rollouts` (the ``dammrl evaluate`` JSON)."""
-    rollouts = greedy_rollouts(run, seeds)
+    rollouts = greedy_rollouts(run, seeds, randomize)
     metrics = [r.metrics for r in rollouts]
     choices = [d for r in rollouts for d in r.decisions]
     return {
         "checkpoint": str(run), "reward": load_checkpoint(run)["reward"],
-        "episodes": len(seeds), "seeds": f"{seeds.start}:{seeds.stop}",
+        "episodes": len(seeds), "seeds": f"{seeds.start}:{seeds.stop}", "randomize": randomize,
         "success_rate": float(np.mean([m.success for m in metrics])),
         "t_total_s": float(np.mean([m.t_total_s for m in metrics])),
         "final_error_m": float(np.mean([m.final_error_m for m in metrics])),

@@ -80,12 +80,23 @@ def checkpoint_file(path: Path) -> Path:
     return path / "checkpoint.pt" if path.is_dir() else path
 
 
+def checkpoint_files(path: Path) -> list[Path]:
+    """A run, a checkpoint, or a folder of seeds (``seed-*/``, ``dammrl train --seeds``):
+    every checkpoint it holds."""
+    seeds = sorted(path.glob("seed-*/checkpoint.pt"), key=lambda p: int(p.parent.name[5:]))
+    return (
+        seeds
+        if path.is_dir() and not (path / "checkpoint.pt").exists() and seeds
+        else [checkpoint_file(path)]
+    )
+
+
 def paper_configurations(
     reward1: tuple[Path, ...] = (), reward2: tuple[Path, ...] = ()
 ) -> list[Configuration]:
     """The four configurations of the paper (shipped policies unless runs are given)."""
-    r1 = tuple(checkpoint_file(p) for p in reward1) or (checkpoint_file(SHIPPED[1]),)
-    r2 = tuple(checkpoint_file(p) for p in reward2) or (checkpoint_file(SHIPPED[2]),)
+    r1 = tuple(c for p in reward1 for c in checkpoint_files(p)) or (checkpoint_file(SHIPPED[1]),)
+    r2 = tuple(c for p in reward2 for c in checkpoint_files(p)) or (checkpoint_file(SHIPPED[2]),)
     fixed = PolicySpec("fixed", PAPER_MODEL)
     return [
         Configuration("1-fixed", "1 fixed-frequency (paper's mechanism)", "paper", "fixed",

@@ -13,7 +13,7 @@ import sys
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -24,7 +24,9 @@ from dammrl.core.task import seed_streams
 from dammrl.runner import ReachResult, ReachRunner, ReachSettings
 from dammrl.study.configs import Configuration
 
-Progress = Callable[[int], None]  # called with the number of reaches just finished
+Progress = Callable[[int], None]  # called with the number of jobs just finished
+J = TypeVar("J")
+R = TypeVar("R")
 
 
 @dataclass(frozen=True)
@@ -67,14 +69,9 @@ def _runner(randomize: bool, configuration: Configuration) -> ReachRunner:
     overrides = tuple(sorted(configuration.controller.items()))
     key = (randomize, overrides)
     if key not in _RUNNERS:
-        base = ReachSettings()
-        sim = base.sim.model_copy(
-            update={
-                "randomization": base.sim.randomization.model_copy(update={"enabled": randomize})
-            }
-        )
+        base = ReachSettings().randomized(randomize)
         controller = base.controller.model_copy(update=dict(overrides))
-        _RUNNERS[key] = ReachRunner(base.model_copy(update={"sim": sim, "controller": controller}))
+        _RUNNERS[key] = ReachRunner(base.model_copy(update={"controller": controller}))
     return _RUNNERS[key]
 
 
@@ -145,15 +142,46 @@ def _steps(result: ReachResult) -> np.ndarray:
 
 def run_local(jobs: Sequence[Job], workers: int, progress: Progress | None = None) -> list[Record]:
     """Every job, on ``workers`` processes of this machine (1: in this process)."""
-    if workers <= 1:
-        return [_tick(run_job(job), progress) for job in jobs]
-    chunk = max(1, min(16, len(jobs) // (workers * 8)))
+    return list(map_jobs(run_job, jobs, workers, None, progress))
+
+
+def run_ray(
+    jobs: Sequence[Job], address: str | None, progress: Progress | None = None
+) -> list[Record]:
+    """Every job on a Ray cluster (``address``; None or "local": a local Ray instance)."""
+    return list(map_jobs(run_job, jobs, 1, address or "local", progress))
+
+
+def map_jobs(
+    function: Callable[[J], R],
+    jobs: Sequence[J],
+    workers: int,
+    ray: str | None = None,
+    progress: Progress | None = None,
+    batch: int = 16,
+) -> Iterator[R]:
+    """``function`` of every job, as each finishes: on a Ray cluster when ``ray`` is an
+    address ("local": a local instance), else on ``workers`` processes of this machine (1:
+    in this process). Jobs must be pure: the results do not depend on where they ran."""
+    if ray is not None:
+        yield from _map_ray(function, jobs, ray, progress, batch)
+    elif workers <= 1:
+        for job in jobs:
+            yield _tick(function(job), progress)
+    else:
+        yield from _map_processes(function, jobs, workers, progress, batch)
+
+
+def _map_processes(function: Callable[[J], R], jobs: Sequence[J], workers: int,
+                   progress: Progress | None, batch: int) -> Iterator[R]:  # fmt: skip
+    chunk = max(1, min(batch, len(jobs) // (workers * 8)))
     # spawn, not fork: a forked child would inherit torch's and MuJoCo's thread state
     import multiprocessing
 
     context = multiprocessing.get_context("spawn")
     with ProcessPoolExecutor(workers, mp_context=context, initializer=_quiet_worker) as pool:
-        return [_tick(r, progress) for r in pool.map(run_job, jobs, chunksize=chunk)]
+        for result in pool.map(function, jobs, chunksize=chunk):
+            yield _tick(result, progress)
 
 
 def _quiet_worker() -> None:
@@ -164,38 +192,34 @@ def _quiet_worker() -> None:
     torch.set_num_threads(1)
 
 
-def _tick(record: Record, progress: Progress | None) -> Record:
+def _tick(result: R, progress: Progress | None, n: int = 1) -> R:
     if progress is not None:
-        progress(1)
-    return record
+        progress(n)
+    return result
 
 
-def run_ray(
-    jobs: Sequence[Job], address: str | None, progress: Progress | None = None
-) -> list[Record]:
-    """Every job on a Ray cluster (``address``; None or "local": a local Ray instance)."""
+def _map_ray(function: Callable[[J], R], jobs: Sequence[J], address: str,
+             progress: Progress | None, batch: int) -> Iterator[R]:  # fmt: skip
     try:
         import ray
     except ImportError as exc:  # an optional dependency
         raise ImportError("--ray needs Ray: pip install 'dammrl[ray]'") from exc
     started = not ray.is_initialized()
     if started:
-        where = None if address in (None, "local") else address
+        where = None if address == "local" else address
         if where is not None:
             check_reachable(where)
         ray.init(address=where, include_dashboard=False, log_to_driver=False,
                  runtime_env={"env_vars": {"OMP_NUM_THREADS": "1"}})  # fmt: skip
     try:
-        remote = ray.remote(num_cpus=1)(_run_batch)
-        pending = [remote.remote(list(batch)) for batch in _batches(jobs, 16)]
-        records: list[Record] = []
+        remote: Any = ray.remote(num_cpus=1)(_run_batch)
+        pending = [remote.remote(function, list(chunk)) for chunk in _batches(jobs, batch)]
         while pending:
             done, pending = ray.wait(pending, num_returns=1)
-            batch = ray.get(done[0])
-            records.extend(batch)
+            results = ray.get(done[0])
             if progress is not None:
-                progress(len(batch))
-        return records
+                progress(len(results))
+            yield from results
     finally:
         if started:
             ray.shutdown()
@@ -213,20 +237,22 @@ def check_reachable(address: str, timeout_s: float = 5.0) -> None:
         raise JobFailedError(f"cannot reach the Ray cluster at {address}: {exc}") from None
 
 
-def _run_batch(jobs: list[Job]) -> list[Record]:
-    return [run_job(job) for job in jobs]
+def _run_batch(function: Callable[[J], R], jobs: list[J]) -> list[R]:
+    return [function(job) for job in jobs]
 
 
-def _batches(jobs: Sequence[Job], size: int) -> Iterator[Sequence[Job]]:
+def _batches(jobs: Sequence[J], size: int) -> Iterator[Sequence[J]]:
     for start in range(0, len(jobs), size):
         yield jobs[start : start + size]
 
 
-def progress_bar(total: int, description: str) -> tuple[Progress, Callable[[], None]]:
+def progress_bar(
+    total: int, description: str, unit: str = "reach"
+) -> tuple[Progress, Callable[[], None]]:
     """A progress bar on stderr (tqdm); returns its update and close functions."""
     from tqdm import tqdm
 
-    bar = tqdm(total=total, desc=description, unit="reach", file=sys.stderr,
+    bar = tqdm(total=total, desc=description, unit=unit, file=sys.stderr,
                disable=None, dynamic_ncols=True)  # fmt: skip
 
     def update(n: int) -> None:

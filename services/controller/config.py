@@ -53,6 +53,11 @@ class ControllerSettings(Settings):
     """Override of the latency model's median [s]."""
     ik_latency_sigma: float | None = Field(None, ge=0)
     """Override of the latency model's log-standard deviation."""
+    calibration_correction: bool = True
+    """Aim each step's IK at the subgoal minus the measured end-effector's offset from the
+    nominal forward kinematics: without it, a calibration error of a few millimetres puts
+    every step beside its subgoal and a small admission sphere is never entered. (Zero when
+    the end-effector position is itself computed from the joint angles.)"""
     ik_accept_error_m: float = Field(1e-3, gt=0)
     """An IK solution farther than this from its target is a failure [m]."""
     max_joint_step_rad: float = Field(0.5, gt=0)

@@ -223,8 +223,9 @@ class Controller:
             self.hold(reason, t)
             return
         q_seed, _, _ = self.segment.sample(t)
-        result = self.ik.solve(subgoal, q_seed)
-        reason = self._ik_refusal(subgoal, q_seed, result.q, result.error_m)
+        target = subgoal - self._calibration_offset(state)
+        result = self.ik.solve(target, q_seed)
+        reason = self._ik_refusal(target, q_seed, result.q, result.error_m)
         if reason is not None:
             self.hold(reason, t)
             return
@@ -247,6 +248,15 @@ class Controller:
         )
         self.planned.append(_PlannedStep(t + latency, result.q, event))
         self.radius_m = intent.radius_m
+
+    def _calibration_offset(self, state: RobotState) -> np.ndarray:
+        """Where the measured end-effector is relative to the nominal model's forward
+        kinematics at the measured joint angles. A real arm's calibration error (link
+        lengths, encoder zeros) shifts every IK solution by about this much; it changes
+        slowly with the posture, so aiming at subgoal - offset lands on the subgoal."""
+        if not self.settings.calibration_correction:
+            return np.zeros(3)
+        return np.asarray(state.ee_pos - self.arm.ee_position(state.q))
 
     def _step_start(self, state: RobotState) -> np.ndarray:
         """The measured position, or (fixed rate, the paper's chain) the last subgoal."""
