@@ -1,37 +1,96 @@
-"""RL benchmarks: environment decisions per second, and the wall time of a training run.
+"""RL throughput, side by side in one run: the environment on one core and on every core
+against raw MuJoCo for the same simulated time, and training wall time against
+stable-baselines3's DQN on the same environment (when the ``bench`` extra is installed).
 
-python benchmarks/bench_rl.py [--decisions 2000] [--train-episodes 200]
+    python benchmarks/bench_rl.py [--decisions 2000] [--train-episodes 200]
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import tempfile
 import time
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
+import mujoco
 import numpy as np
 
 from dammrl.rl.config import RewardWeights, TrainSettings
 from dammrl.rl.env import ACTIONS, ReachEnv
 from dammrl.rl.train import train
-from dammrl.runner import ReachRunner
+from dammrl.runner import ReachRunner, ReachSettings
 
 
-def decisions_per_second(n: int) -> float:
-    env = ReachEnv(ReachRunner(), RewardWeights.preset(2), max_decisions=150)
-    rng = np.random.default_rng(0)
-    env.reset(seed=0)
-    done, episode, start = 0, 0, time.perf_counter()
-    while done < n:
+def environment(decisions: int, randomize: bool, seed: int = 0) -> tuple[float, float, int]:
+    """Random actions for ``decisions`` decisions: (wall [s], simulated [s], physics steps)."""
+    runner = ReachRunner(ReachSettings().randomized(randomize))
+    env = ReachEnv(runner, RewardWeights.preset(2), max_decisions=150)
+    rng = np.random.default_rng(seed)
+    env.reset(seed=seed)
+    episode, simulated = seed * 10_000, 0.0
+    start = time.perf_counter()
+    for _ in range(decisions):
         *_, terminated, truncated, _ = env.step(
             (rng.integers(ACTIONS[0]), rng.integers(ACTIONS[1]))
         )
-        done += 1
         if terminated or truncated:
+            simulated += runner.sim.data.time
             episode += 1
             env.reset(seed=episode)
-    return n / (time.perf_counter() - start)
+    simulated += runner.sim.data.time
+    wall = time.perf_counter() - start
+    return wall, simulated, round(simulated / runner.sim.timestep_s)
+
+
+def raw_physics(steps: int) -> float:
+    """Wall time of ``steps`` bare mj_step calls (10 per call, as the control loop) on the
+    same model: the ceiling for the environment."""
+    runner = ReachRunner()
+    model, data = runner.sim.model, runner.sim.data
+    runner.episode(0).sim.reset(runner.start_posture(runner.sample(0).start), (0.5, 0.0))
+    start = time.perf_counter()
+    for _ in range(steps // 10):
+        mujoco.mj_step(model, data, nstep=10)
+    return time.perf_counter() - start
+
+
+def _worker(args: tuple[int, bool, int]) -> tuple[float, float, int]:
+    os.environ["OMP_NUM_THREADS"] = "1"
+    return environment(*args)
+
+
+def parallel_environment(decisions: int, workers: int) -> float:
+    """Decisions per second of ``workers`` processes collecting at once (one env each)."""
+    import multiprocessing
+
+    context = multiprocessing.get_context("spawn")
+    with ProcessPoolExecutor(workers, mp_context=context) as pool:
+        list(pool.map(_worker, [(50, True, k) for k in range(workers)]))  # warm up
+        start = time.perf_counter()
+        list(pool.map(_worker, [(decisions, True, k + 1) for k in range(workers)]))
+        return workers * decisions / (time.perf_counter() - start)
+
+
+def training(episodes: int) -> tuple[float, int]:
+    """dammrl's dual-agent DQN: (wall [s], decisions) for ``episodes`` episodes."""
+    with tempfile.TemporaryDirectory() as out:
+        start = time.perf_counter()
+        logs = train(2, Path(out), TrainSettings(episodes=episodes), "cpu", progress=lambda _: None)
+        return time.perf_counter() - start, sum(log.decisions for log in logs)
+
+
+def sb3_training(decisions: int) -> float | None:
+    """stable-baselines3's DQN with the same hyper-parameters for the same decisions."""
+    try:
+        from bench_sb3 import sb3_model  # the bench extra
+    except ImportError:
+        return None
+    model = sb3_model(2, TrainSettings(), decisions)
+    start = time.perf_counter()
+    model.learn(total_timesteps=decisions)
+    return time.perf_counter() - start
 
 
 def main() -> None:
@@ -39,19 +98,29 @@ def main() -> None:
     parser.add_argument("--decisions", type=int, default=2000)
     parser.add_argument("--train-episodes", type=int, default=200)
     args = parser.parse_args()
-    print(f"environment: {decisions_per_second(args.decisions):.0f} decisions/s (random actions)")
-    for reward in (1, 2):
-        with tempfile.TemporaryDirectory() as out:
-            start = time.perf_counter()
-            logs = train(reward, Path(out), TrainSettings(episodes=args.train_episodes),
-                         "cpu", progress=lambda _: None)  # fmt: skip
-            wall = time.perf_counter() - start
-        decisions = sum(log.decisions for log in logs)
-        rate = decisions / wall
-        print(
-            f"Reward {reward}: {args.train_episodes} episodes, {decisions} decisions, {wall:.0f} s"
-        )
-        print(f"    {rate:.0f} decisions/s with learning")
+    environment(100, True)  # warm up (imports, caches)
+    for randomize in (False, True):
+        wall, simulated, steps = environment(args.decisions, randomize)
+        physics = raw_physics(steps)
+        arm = "randomised" if randomize else "nominal"
+        print(f"environment, 1 core, {arm} arm: {args.decisions / wall:.0f} decisions/s "
+              f"({simulated / wall:.0f}x real time); raw mj_step for the same {simulated:.0f} s "
+              f"simulated: {args.decisions / physics:.0f} decisions/s "
+              f"(environment at {physics / wall:.0%} of it)")  # fmt: skip
+    cores = os.cpu_count() or 1
+    one = args.decisions / environment(args.decisions, True, seed=1)[0]
+    many = parallel_environment(args.decisions, cores)
+    print(f"environment, {cores} processes: {many:.0f} decisions/s in all "
+          f"({many / one:.2f}x one core)")  # fmt: skip
+    wall, decisions = training(args.train_episodes)
+    print(f"training (dammrl dual-agent DQN): {args.train_episodes} episodes, {decisions} "
+          f"decisions in {wall:.1f} s ({decisions / wall:.0f}/s with learning)")  # fmt: skip
+    sb3 = sb3_training(decisions)
+    if sb3 is None:
+        print("stable-baselines3: not installed (pip install -e '.[bench]')")
+    else:
+        print(f"training (stable-baselines3 DQN, joint action): {decisions} decisions in "
+              f"{sb3:.1f} s; dammrl / sb3 wall time = {wall / sb3:.2f}")  # fmt: skip
 
 
 if __name__ == "__main__":

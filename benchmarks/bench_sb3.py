@@ -24,14 +24,16 @@ from dammrl.core.task import HELD_OUT_START, held_out_seeds
 from dammrl.rl.config import RewardWeights, TrainSettings
 from dammrl.rl.env import ACTIONS, OBSERVATION_SIZE, ReachEnv
 from dammrl.rl.train import evaluate, train
-from dammrl.runner import ReachRunner
+from dammrl.runner import ReachRunner, ReachSettings
 
 
 class JointActionEnv(gym.Env):  # type: ignore[misc]
     """ReachEnv with the 2 x 8 actions flattened into Discrete(16)."""
 
-    def __init__(self, reward: int, max_decisions: int, seed_base: int = 0) -> None:
-        self.env = ReachEnv(ReachRunner(), RewardWeights.preset(reward), max_decisions)  # type: ignore[arg-type]
+    def __init__(self, reward: int, max_decisions: int, seed_base: int = 0,
+                 randomize: bool = True) -> None:  # fmt: skip
+        runner = ReachRunner(ReachSettings().randomized(randomize))  # as dammrl trains
+        self.env = ReachEnv(runner, RewardWeights.preset(reward), max_decisions)  # type: ignore[arg-type]
         self.observation_space = gym.spaces.Box(-5.0, 5.0, (OBSERVATION_SIZE,), np.float32)
         self.action_space = gym.spaces.Discrete(ACTIONS[0] * ACTIONS[1])
         self.episode = 0
@@ -67,6 +69,21 @@ def sb3_success(model: DQN, reward: int, episodes: int) -> float:
     return wins / episodes
 
 
+def sb3_model(reward: int, settings: TrainSettings, decisions: int) -> DQN:
+    """SB3's DQN with dammrl's hyper-parameters on the joint-action environment."""
+    env = JointActionEnv(reward, settings.max_decisions, randomize=settings.randomize)
+    return DQN(
+        "MlpPolicy", env, learning_rate=settings.learning_rate, buffer_size=settings.buffer_size,
+        learning_starts=settings.learning_starts, batch_size=settings.batch_size,
+        gamma=settings.gamma, train_freq=settings.train_every,
+        target_update_interval=settings.target_update_every,
+        exploration_fraction=min(1.0, settings.epsilon_decay_decisions / decisions),
+        exploration_final_eps=settings.epsilon_end, max_grad_norm=settings.grad_clip,
+        policy_kwargs={"net_arch": [settings.hidden, settings.hidden]}, seed=settings.seed,
+        device="cpu",
+    )  # fmt: skip
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--reward", type=int, choices=[1, 2], default=2)
@@ -84,17 +101,8 @@ def main() -> None:
     print(f"dammrl dual-agent DQN: {args.episodes} episodes ({decisions} decisions), "
           f"{ours_s:.0f} s, greedy success {ours:.0%} on {args.eval} unseen seeds")  # fmt: skip
 
-    env = JointActionEnv(args.reward, settings.max_decisions)
-    model = DQN(
-        "MlpPolicy", env, learning_rate=settings.learning_rate, buffer_size=settings.buffer_size,
-        learning_starts=settings.learning_starts, batch_size=settings.batch_size,
-        gamma=settings.gamma, train_freq=settings.train_every,
-        target_update_interval=settings.target_update_every,
-        exploration_fraction=min(1.0, settings.epsilon_decay_decisions / decisions),
-        exploration_final_eps=settings.epsilon_end, max_grad_norm=settings.grad_clip,
-        policy_kwargs={"net_arch": [settings.hidden, settings.hidden]}, seed=settings.seed,
-        device="cpu",
-    )  # fmt: skip
+    model = sb3_model(args.reward, settings, decisions)
+    env = model.get_env().envs[0].unwrapped  # type: ignore[union-attr]
     start = time.perf_counter()
     model.learn(total_timesteps=decisions)
     sb3_s = time.perf_counter() - start

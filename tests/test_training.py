@@ -125,7 +125,8 @@ def test_seeds_train_in_parallel_with_the_numbers_of_one_process(tmp_path: Path)
     assert "| Reward 1 | randomised | 2 |" in report
     assert (tmp_path / "two/curves.png").stat().st_size > 10_000
     assert checkpoint_files(tmp_path / "two") == [
-        tmp_path / "two/seed-0/checkpoint.pt", tmp_path / "two/seed-1/checkpoint.pt"
+        tmp_path / "two/seed-0/checkpoint.pt",
+        tmp_path / "two/seed-1/checkpoint.pt",
     ]  # fmt: skip (the study takes a folder of seeds)
     summary = summarize("x", [a.evaluation for a in serial], "nominal")
     assert summary.runs == 2 and summary.success.n == 4

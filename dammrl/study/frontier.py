@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
@@ -41,7 +41,7 @@ def frontier_jobs(out: Path, betas: list[float], seeds: int, episodes: int,
     ``dammrl train --reward 1|2 --seeds N`` makes."""
     jobs = []
     for beta in betas:
-        reward = 1 if beta == REWARD1_BETA else 2
+        reward: Literal[1, 2] = 1 if beta == REWARD1_BETA else 2
         jobs += group_jobs(beta_dir(out, beta), reward, seeds, episodes, eval_seeds, beta)
     return jobs
 
