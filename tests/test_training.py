@@ -27,8 +27,10 @@ from dammrl.study.training import (
     EVALUATION,
     TrainJob,
     best_on_validation,
+    finished,
     group_jobs,
     run_training,
+    ship,
     summarize,
     write_group_report,
 )
@@ -130,6 +132,14 @@ def test_seeds_train_in_parallel_with_the_numbers_of_one_process(tmp_path: Path)
     ]  # fmt: skip (the study takes a folder of seeds)
     summary = summarize("x", [a.evaluation for a in serial], "nominal")
     assert summary.runs == 2 and summary.success.n == 4
+    again = run_training(two, workers=2)  # finished runs are kept, not trained again
+    assert [r.wall_s for r in again] == [0.0, 0.0] and again[1].evaluation == serial[1].evaluation
+    assert finished(replace(two[0], episodes=4)) is None  # other settings: train anew
+    best = ship(tmp_path / "two", tmp_path / "shipped")
+    record = json.loads((tmp_path / "shipped/seeds.json").read_text())
+    assert record["shipped_seed"] == best and len(record["seeds"]) == 2
+    assert (tmp_path / "shipped/checkpoint.pt").is_file()
+    assert any((tmp_path / "shipped/tensorboard").iterdir())
 
 
 @pytest.mark.slow
@@ -149,6 +159,7 @@ def test_a_grid_on_a_local_ray_cluster_gives_the_local_numbers(tmp_path: Path) -
         (["train", "--reward", "1", "--out", "x", "--seeds", "0"], "--seeds N takes 1 to 70"),
         (["train", "--reward", "1", "--out", "x", "--seeds", "2", "--seed", "3"], "no --seed"),
         (["frontier", "--out", "x", "--betas", "0,-1"], "expected distinct weights"),
+        (["train", "--reward", "2", "--out", "x", "--ship", "y"], "--ship needs --seeds"),
         (["frontier", "--out", "x", "--eval-seeds", "7950000:7950010"], "validation seeds"),
     ],
 )

@@ -25,6 +25,9 @@ def register(commands: Commands) -> None:
     train.add_argument("--seeds", type=int, metavar="N",
                        help="train N seeds (0..N-1) into OUT/seed-K in parallel, evaluate each "
                        "on held-out seeds and aggregate (summary.md, curves.png)")  # fmt: skip
+    train.add_argument("--ship", type=Path, metavar="DIR",
+                       help="with --seeds: copy the best run on the validation seeds to DIR "
+                       "(checkpoint, curves, TensorBoard log, every seed's results)")  # fmt: skip
     train.add_argument("--beta", type=float, help="the time weight (default: the reward's)")
     train.add_argument("--no-randomize", dest="randomize", action="store_false",
                        help="train on the nominal arm (default: randomised arms, S1)")  # fmt: skip
@@ -75,11 +78,14 @@ def _betas(text: str) -> list[float]:
 
 def _train(args: argparse.Namespace) -> int:
     """Train (or resume) a run; progress on stderr, the last 50 episodes' success at the end."""
+    from dammrl.core.errors import UsageError
     from dammrl.rl.config import RewardWeights, TrainSettings
     from dammrl.rl.train import train
 
     if args.seeds is not None:
         return _train_seeds(args)
+    if args.ship is not None:
+        raise UsageError("--ship needs --seeds (it picks the best of several runs)")
     overrides = {k: v for k in ("episodes", "seed") if (v := getattr(args, k)) is not None}
     settings = TrainSettings(**overrides, randomize=args.randomize)
     weights = RewardWeights.preset(args.reward)
@@ -94,7 +100,7 @@ def _train(args: argparse.Namespace) -> int:
 
 def _train_seeds(args: argparse.Namespace) -> int:
     from dammrl.core.errors import UsageError
-    from dammrl.study.training import check_seeds, group_jobs, write_group_report
+    from dammrl.study.training import check_seeds, group_jobs, ship, write_group_report
 
     if not 1 <= args.seeds <= 70 or args.seed is not None:
         raise UsageError("--seeds N takes 1 to 70 seeds (0..N-1), and no --seed")
@@ -104,6 +110,8 @@ def _train_seeds(args: argparse.Namespace) -> int:
                       args.randomize)  # fmt: skip
     wall_s = _run_grid(jobs, args)
     print(write_group_report(args.out, f"Reward {args.reward}", _command(), wall_s))
+    if args.ship is not None:
+        print(f"shipped seed-{ship(args.out, args.ship)} to {args.ship}")
     return 0
 
 

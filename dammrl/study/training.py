@@ -82,6 +82,7 @@ def train_and_evaluate(job: TrainJob) -> RunResult:
             "weights": job.weights.model_dump(), "seed": job.seed, "episodes": job.episodes,
             "trained_randomized": job.randomize,
             "eval_seeds": [job.eval_seeds.start, job.eval_seeds.stop],
+            "validation_seeds": [job.validation_seeds.start, job.validation_seeds.stop],
             "arms": {arm: _rollouts(run, job.eval_seeds, on) for arm, on in ARMS.items()},
             "validation": _rollouts(run, job.validation_seeds, True),
         }  # fmt: skip
@@ -102,6 +103,23 @@ def _rollouts(run: Path, seeds: range, randomize: bool) -> dict[str, list[float]
     }
 
 
+def finished(job: TrainJob) -> RunResult | None:
+    """The run of ``job`` if its directory holds one made with the same settings."""
+    try:
+        evaluation = json.loads((job.out / EVALUATION).read_text())
+    except (OSError, ValueError):
+        return None
+    same = (
+        evaluation.get("weights") == job.weights.model_dump()
+        and evaluation.get("seed") == job.seed
+        and evaluation.get("episodes") == job.episodes
+        and evaluation.get("trained_randomized") == job.randomize
+        and evaluation.get("eval_seeds") == [job.eval_seeds.start, job.eval_seeds.stop]
+        and len(evaluation.get("validation", {}).get("success", ())) == len(job.validation_seeds)
+    )
+    return RunResult(job, {}, evaluation, 0.0) if same else None
+
+
 def write_run(result: RunResult) -> None:
     """Write a run's files where a local run writes them (replacing an older run)."""
     for relative, data in result.files.items():
@@ -117,11 +135,16 @@ def run_training(
     progress: Progress | None = None,
 ) -> list[RunResult]:
     """Every job on ``workers`` local processes or on a Ray cluster; each run is written
-    as soon as it finishes (a long grid keeps what it has done)."""
+    as soon as it finishes, and a run already finished with the same settings is kept
+    (an interrupted grid resumes where it stopped)."""
     if not jobs:
         raise ConfigurationError("no training runs to do")
-    results = []
-    for result in map_jobs(train_and_evaluate, jobs, workers, ray, progress, batch=1):
+    done = {job.out: result for job in jobs if (result := finished(job)) is not None}
+    if progress is not None and done:
+        progress(len(done))
+    todo = [job for job in jobs if job.out not in done]
+    results = list(done.values())
+    for result in map_jobs(train_and_evaluate, todo, workers, ray, progress, batch=1):
         write_run(result)
         results.append(result)
     order = {job.out: k for k, job in enumerate(jobs)}
@@ -278,6 +301,40 @@ def plot_curves(groups: dict[str, Path], path: Path) -> None:
     fig.suptitle("Training across seeds: mean and 95 % interval (t over seeds)")
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def ship(group: Path, destination: Path) -> int:
+    """Copy the best-on-validation run of a folder of seeds to ``destination`` (checkpoint,
+    curves, TensorBoard log), with every seed's results in ``seeds.json``; its seed."""
+    import shutil
+
+    evaluations = load_evaluations(group)
+    best = evaluations[best_on_validation(evaluations)]["seed"]
+    if destination.exists():
+        shutil.rmtree(destination)
+    shutil.copytree(group / f"seed-{best}", destination)
+    record = {
+        "shipped_seed": best,
+        "rule": "highest success on the validation seeds (randomised arms), then shortest "
+        f"mean t_total; validation seeds {VALIDATION_SEEDS.start}-{VALIDATION_SEEDS.stop - 1}",
+        "seeds": [_seed_record(e) for e in evaluations],
+    }  # fmt: skip
+    (destination / "seeds.json").write_text(json.dumps(record, indent=2))
+    if (group / "curves.png").exists():
+        shutil.copy(group / "curves.png", destination / "curves.png")
+    return int(best)
+
+
+def _seed_record(evaluation: dict[str, Any]) -> dict[str, Any]:
+    """One seed's mean results: validation, and every arm's evaluation."""
+    validation = evaluation["validation"]
+    return {
+        "seed": evaluation["seed"],
+        "validation_success": float(np.mean(validation["success"])),
+        "validation_t_total_s": float(np.mean(validation["t_total_s"])),
+        **{f"{arm}_{name}": float(np.mean(values))
+           for arm, figures in evaluation["arms"].items() for name, values in figures.items()},
+    }  # fmt: skip
 
 
 def write_group_report(out: Path, label: str, command: str, wall_s: float) -> str:
