@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 from pathlib import Path
 
@@ -145,3 +146,32 @@ def test_every_command_help_ends_with_the_exit_codes() -> None:
     every = commands(parser())
     assert len(every) > 15
     assert all(EXIT_CODES_HELP in (c.epilog or "") for c in every)
+
+
+def test_every_option_and_argument_has_a_help_text() -> None:
+    from dammrl.cli import parser
+
+    missing = []
+
+    def walk(node: argparse.ArgumentParser, path: str) -> None:
+        for action in node._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                for name, sub in action.choices.items():
+                    walk(sub, f"{path} {name}")
+            elif not action.help and not isinstance(action, argparse._HelpAction):
+                missing.append(f"{path} {'/'.join(action.option_strings) or action.dest}")
+
+    walk(parser(), "dammrl")
+    assert not missing, missing
+
+
+def test_version_and_shell_completion(capsys: pytest.CaptureFixture[str]) -> None:
+    from dammrl import __version__
+
+    with pytest.raises(SystemExit):
+        main(["--version"])
+    assert capsys.readouterr().out.strip() == f"dammrl {__version__}"
+    with pytest.raises(SystemExit):
+        main(["--print-completion", "bash"])
+    script = capsys.readouterr().out
+    assert "complete" in script and "frontier" in script and "--eval-seeds" in script

@@ -11,8 +11,10 @@ import os
 import sys
 from collections.abc import Sequence
 
+import shtab
 from pydantic import ValidationError
 
+from dammrl import __version__
 from dammrl.cli import bus, reach, recording, rl, sensor, stack, study
 from dammrl.core.errors import EXIT_CODES_HELP, DammrlError, Exit
 from dammrl.core.settings import error_line
@@ -33,8 +35,8 @@ GROUPS = (
 def main(argv: Sequence[str] | None = None) -> int:
     """Run one command; its exit code (``Exit``): a bad setting, file or device is one
     line on stderr."""
-    args = parser().parse_args(argv)
     try:
+        args = parser().parse_args(argv)  # --help, --print-completion: may meet a closed pipe
         return int(args.handler(args))
     except BrokenPipeError:  # `dammrl echo ... | head`: the reader has what it wanted
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
@@ -54,6 +56,10 @@ def parser() -> argparse.ArgumentParser:
         description="Event-triggered human-robot co-adaptation (DAMMRL).",
         epilog=EXIT_CODES_HELP,
     )
+    top.add_argument("--version", action="version", version=f"dammrl {__version__}")
+    shtab.add_argument_to(top, ["--print-completion"], help="print a shell completion script "
+                          "(bash, zsh or tcsh), e.g. dammrl --print-completion bash > "
+                          "/etc/bash_completion.d/dammrl")  # fmt: skip
     commands = top.add_subparsers(required=True, metavar="COMMAND")
     for register in GROUPS:
         register(commands)

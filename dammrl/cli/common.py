@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, TypeAlias
 
@@ -68,7 +69,8 @@ def add_bus_arguments(parser: argparse.ArgumentParser, connect_help: str) -> Non
     """``--connect``, ``--namespace`` and ``--credentials``: where and how a client finds
     the stack."""
     add_connect(parser, connect_help)
-    parser.add_argument("--namespace", default=DEFAULT_NAMESPACE)
+    parser.add_argument("--namespace", default=DEFAULT_NAMESPACE,
+                        help=f"the stack's key prefix (default {DEFAULT_NAMESPACE})")  # fmt: skip
     add_credentials(parser)
 
 
@@ -135,3 +137,21 @@ def fmt(value: object) -> str:
     if isinstance(value, list):
         return "(" + ", ".join(fmt(v) for v in value) + ")"
     return str(value)
+
+
+def progress_bar(
+    total: int, description: str, unit: str = "reach"
+) -> tuple[Callable[..., None], Callable[[], None]]:
+    """A progress bar with ETA on stderr (tqdm; off when stderr is not a terminal):
+    ``update(n, postfix=None)`` and ``close()``."""
+    from tqdm import tqdm
+
+    bar = tqdm(total=total, desc=description, unit=unit, file=sys.stderr,
+               disable=None, dynamic_ncols=True)  # fmt: skip
+
+    def update(n: int, postfix: str | None = None) -> None:
+        if postfix is not None:
+            bar.set_postfix_str(postfix, refresh=False)
+        bar.update(n)
+
+    return update, bar.close

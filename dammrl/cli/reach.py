@@ -38,7 +38,8 @@ def register(commands: Commands) -> None:
     reach.add_argument("--json", action="store_true", help="one JSON object per reach")
     reach.add_argument("--plot", type=Path, metavar="PNG", help="save a trajectory figure")
     reach.add_argument("--ik", choices=["pinocchio", "ikpy"], help="IK solver (default pinocchio)")
-    reach.add_argument("--feedforward", choices=["inverse_dynamics", "resolved_acceleration"])
+    reach.add_argument("--feedforward", choices=["inverse_dynamics", "resolved_acceleration"],
+                       help="computed-torque feed-forward (default: the setting)")  # fmt: skip
     reach.add_argument("--randomize", action="store_true", help="seeded domain randomisation")
     reach.set_defaults(handler=_reach)
 

@@ -15,17 +15,17 @@ def register(commands: Commands) -> None:
     recording = commands.add_parser("recording", help="inspect, repair and export recordings")
     actions = recording.add_subparsers(required=True, metavar="ACTION")
     info = actions.add_parser("info", help="topics, counts, rates, duration, gaps, metadata")
-    info.add_argument("file", type=Path)
-    info.add_argument("--json", action="store_true")
+    info.add_argument("file", type=Path, help="an MCAP recording")
+    info.add_argument("--json", action="store_true", help="one JSON object")
     info.set_defaults(handler=_info)
     repair = actions.add_parser("repair", help="rewrite a cut recording as a complete MCAP")
-    repair.add_argument("file", type=Path)
+    repair.add_argument("file", type=Path, help="a damaged MCAP recording")
     repair.add_argument("-o", "--out", type=Path, help="default: <file>.repaired.mcap")
     repair.set_defaults(handler=_repair)
     _add_export(actions)
     human = actions.add_parser("human", help="the human's error rate per radius, decision rate")
-    human.add_argument("file", type=Path)
-    human.add_argument("--json", action="store_true")
+    human.add_argument("file", type=Path, help="an MCAP recording")
+    human.add_argument("--json", action="store_true", help="one JSON object")
     human.set_defaults(handler=_human)
     _add_plot(actions)
     _add_replay(commands)
@@ -33,8 +33,9 @@ def register(commands: Commands) -> None:
 
 def _add_export(actions: Commands) -> None:
     export = actions.add_parser("export", help="JSON-encoded MCAP (Foxglove) or CSV per topic")
-    export.add_argument("file", type=Path)
-    export.add_argument("--format", choices=["json", "csv"], required=True)
+    export.add_argument("file", type=Path, help="an MCAP recording")
+    export.add_argument("--format", choices=["json", "csv"], required=True,
+                        help="json: one file; csv: one file per topic")  # fmt: skip
     export.add_argument(
         "-o", "--out", type=Path, required=True, help="file (json) or directory (csv)"
     )
@@ -45,22 +46,22 @@ def _add_plot(actions: Commands) -> None:
     plot = actions.add_parser(
         "plot", help="pressure trace above the end-effector error (the paper's S2 figure)"
     )
-    plot.add_argument("file", type=Path)
-    plot.add_argument("-o", "--out", type=Path, required=True, metavar="PNG")
+    plot.add_argument("file", type=Path, help="an MCAP recording")
+    plot.add_argument("-o", "--out", type=Path, required=True, metavar="PNG", help="the figure")
     plot.add_argument("--episode", type=int, help="only this episode")
     plot.set_defaults(handler=_plot)
 
 
 def _add_replay(commands: Commands) -> None:
     replay = commands.add_parser("replay", help="publish a recording onto the bus")
-    replay.add_argument("file", type=Path)
+    replay.add_argument("file", type=Path, help="an MCAP recording")
     replay.add_argument(
         "--rate", type=float, default=1.0, help="1 real time, 0 as fast as possible"
     )
     replay.add_argument("--topics", help="comma-separated topic prefixes, e.g. intent,robot/state")
     replay.add_argument("--start", type=float, default=0.0, help="offset into the recording [s]")
     replay.add_argument("--end", type=float, help="offset where to stop [s]")
-    replay.add_argument("--loop", action="store_true")
+    replay.add_argument("--loop", action="store_true", help="start again at the end, until Ctrl-C")
     replay.add_argument("--namespace", help="publish under this namespace (default: recorded one)")
     add_connect(replay, f"default {DEFAULT_CONNECT}")
     replay.add_argument("--force", action="store_true", help="replay commands even to a live arm")

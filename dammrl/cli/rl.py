@@ -11,7 +11,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from dammrl.cli.common import SEEDS_HELP, Commands, print_err, seeds_arg
+from dammrl.cli.common import SEEDS_HELP, Commands, progress_bar, seeds_arg
 
 
 def register(commands: Commands) -> None:
@@ -80,7 +80,7 @@ def _train(args: argparse.Namespace) -> int:
     """Train (or resume) a run; progress on stderr, the last 50 episodes' success at the end."""
     from dammrl.core.errors import UsageError
     from dammrl.rl.config import RewardWeights, TrainSettings
-    from dammrl.rl.train import train
+    from dammrl.rl.train import EpisodeLog, progress_summary, train
 
     if args.seeds is not None:
         return _train_seeds(args)
@@ -91,7 +91,18 @@ def _train(args: argparse.Namespace) -> int:
     weights = RewardWeights.preset(args.reward)
     if args.beta is not None:
         weights = weights.model_copy(update={"beta": args.beta})
-    logs = train(args.reward, args.out, settings, args.device, progress=print_err, weights=weights)
+    update, close = progress_bar(settings.episodes, f"Reward {args.reward}", unit="episode")
+    done = 0
+
+    def on_episode(logs: list[EpisodeLog]) -> None:
+        nonlocal done
+        update(len(logs) - done, progress_summary(logs))
+        done = len(logs)
+
+    try:
+        logs = train(args.reward, args.out, settings, args.device, on_episode, weights)
+    finally:
+        close()
     recent = logs[-50:]
     print(f"trained {len(logs)} episodes; last 50: success "
           f"{sum(r.success for r in recent) / len(recent):.0%}; run in {args.out}")  # fmt: skip
@@ -129,7 +140,6 @@ def _frontier(args: argparse.Namespace) -> int:
 def _run_grid(jobs: list[Any], args: argparse.Namespace) -> float:
     """Train and evaluate every job (processes or Ray) with a progress bar; wall time [s]."""
     from dammrl.core.errors import UsageError
-    from dammrl.study.run import progress_bar
     from dammrl.study.training import run_training
 
     if args.jobs < 1:
@@ -148,12 +158,37 @@ def _command() -> str:
 
 
 def _evaluate(args: argparse.Namespace) -> int:
-    """Greedy episodes of a trained run; their metrics as text or one JSON object."""
+    """Greedy episodes of a trained run; their metrics as a table or one JSON object."""
     from dammrl.rl.train import evaluate
 
-    result = evaluate(args.checkpoint, args.seeds, args.randomize)
+    update, close = progress_bar(len(args.seeds), "greedy reaches")
+    try:
+        result = evaluate(args.checkpoint, args.seeds, args.randomize, lambda: update(1))
+    finally:
+        close()
     if args.json:
         print(json.dumps(result))
     else:
-        print("\n".join(f"{k:22s} {v}" for k, v in result.items()))
+        print(evaluation_table(result))
     return 0
+
+
+EVALUATION_ROWS = {  # key: (label, scale, format, unit)
+    "success_rate": ("success", 100, ".0f", "%"),
+    "t_total_s": ("t_total (mean)", 1, ".2f", "s"),
+    "final_error_m": ("final error (mean)", 1000, ".1f", "mm"),
+    "n_osc": ("N_osc (mean)", 1, ".1f", "reversals"),
+    "share_e_small": ("decisions with E_small", 100, ".0f", "%"),
+    "share_all_small_steps": ("decisions with all-small steps", 100, ".0f", "%"),
+}
+
+
+def evaluation_table(result: dict[str, Any]) -> str:
+    """``dammrl evaluate``'s figures, rounded and with their units."""
+    lines = [f"{'checkpoint':32s} {result['checkpoint']}",
+             f"{'reward':32s} {result['reward']}",
+             f"{'held-out seeds':32s} {result['seeds']} ({result['episodes']} reaches, "
+             f"{'randomised' if result['randomize'] else 'nominal'} arm)"]  # fmt: skip
+    for key, (label, scale, spec, unit) in EVALUATION_ROWS.items():
+        lines.append(f"{label:32s} {result[key] * scale:{spec}} {unit}")
+    return "\n".join(lines)

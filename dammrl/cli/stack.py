@@ -47,7 +47,8 @@ def register(commands: Commands) -> None:
 def register_schemas(commands: Commands) -> None:
     """Add ``schemas`` (last in ``dammrl --help``, hence apart from ``register``)."""
     schemas = commands.add_parser("schemas", help="write the JSON Schema of every message")
-    schemas.add_argument("--out", type=Path, required=True, metavar="DIR")
+    schemas.add_argument("--out", type=Path, required=True, metavar="DIR",
+                         help="where the JSON Schemas are written")  # fmt: skip
     schemas.set_defaults(handler=_schemas)
 
 
@@ -57,14 +58,16 @@ def _add_up(commands: Commands) -> None:
         help="launch the service stack of a mode",
         description="Start the services as processes on the bus; Ctrl-C stops them all.",
     )
-    up.add_argument("--mode", choices=["virtual", "semi-virtual"], default="virtual")
+    up.add_argument("--mode", choices=["virtual", "semi-virtual"], default="virtual",
+                    help="virtual: simulated human; semi-virtual: the pressure sensor")  # fmt: skip
     up.add_argument(
         "--episodes", type=int, help="run this many episodes, then stop (default: until Ctrl-C)"
     )
     up.add_argument("--seed", type=int, default=0, help="seed of the first episode")
     up.add_argument("--model", type=model_arg, metavar="I,J",
                     help="a fixed M_ij (default: the learned DAMMRL policy)")  # fmt: skip
-    up.add_argument("--trigger", choices=["event", "fixed"], default="event")
+    up.add_argument("--trigger", choices=["event", "fixed"], default="event",
+                    help="progression: event-triggered (default) or fixed-frequency")  # fmt: skip
     up.add_argument("--lockstep", action="store_true", help=LOCKSTEP_HELP)
     up.add_argument("--port", help="semi-virtual: the pressure sensor's serial device")
     up.add_argument("--calibration", type=Path,
@@ -72,7 +75,8 @@ def _add_up(commands: Commands) -> None:
     up.add_argument(
         "--bus-port", type=int, default=7447, help="loopback port of the stack's endpoint"
     )
-    up.add_argument("--namespace", default=DEFAULT_NAMESPACE)
+    up.add_argument("--namespace", default=DEFAULT_NAMESPACE,
+                    help=f"the stack's key prefix (default {DEFAULT_NAMESPACE})")  # fmt: skip
     add_credentials(up)
     up.add_argument("--insecure", action="store_true",
                     help="plain tcp on loopback: any local process can join (default: this "

@@ -8,7 +8,7 @@ import shlex
 import sys
 from pathlib import Path
 
-from dammrl.cli.common import SEEDS_HELP, Commands, print_err, seeds_arg
+from dammrl.cli.common import SEEDS_HELP, Commands, print_err, progress_bar, seeds_arg
 
 RANDOMIZE = {"both": (False, True), "off": (False,), "on": (True,)}
 
@@ -68,7 +68,6 @@ def register(commands: Commands) -> None:
 def _study(args: argparse.Namespace) -> int:
     from dammrl.core.errors import UsageError
     from dammrl.study.report import results_section, update_readme, write_report
-    from dammrl.study.run import progress_bar
     from dammrl.study.study import TUNING_START, StudyOptions, run_study
 
     if args.jobs < 1:

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import csv
 import json
-import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -70,11 +69,12 @@ def train(
     out: Path,
     settings: TrainSettings,
     device: str = "auto",
-    progress: Callable[[str], None] = print,
+    progress: Callable[[list[EpisodeLog]], None] | None = None,
     weights: RewardWeights | None = None,
 ) -> list[EpisodeLog]:
-    """Train (or resume) both agents; return the per-episode log. ``weights`` (default: the
-    ``reward`` preset) sets the reward's terms, e.g. another time weight beta."""
+    """Train (or resume) both agents; return the per-episode log. ``progress`` is called
+    with the log after every episode; ``weights`` (default: the ``reward`` preset) sets the
+    reward's terms, e.g. another time weight beta."""
     out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(settings.seed)
     torch.set_num_threads(1)  # small networks: threads only contend with the simulation
@@ -85,14 +85,13 @@ def train(
     agent = DualAgentDQN(OBSERVATION_SIZE, ACTIONS, settings, pick_device(device))
     buffer = ReplayBuffer(settings.buffer_size, OBSERVATION_SIZE, settings.seed)
     logs, decisions = _resume(out, agent, reward, settings)
-    started = time.monotonic()
     board = SummaryWriter(str(out / "tensorboard"), purge_step=len(logs) + 1)
     for episode in range(len(logs), settings.episodes):
         log, decisions = _run_episode(env, agent, buffer, rng, episode, decisions, settings)
         logs.append(log)
         _to_tensorboard(board, log)
-        if (episode + 1) % 10 == 0 or episode + 1 == settings.episodes:
-            progress(_progress_line(logs, settings, time.monotonic() - started))
+        if progress is not None:
+            progress(logs)
         if (episode + 1) % 50 == 0 or episode + 1 == settings.episodes:
             save(out, agent, reward, weights, settings, logs, decisions)
     board.close()
@@ -143,13 +142,13 @@ def _mean_stats(stats: list[UpdateStats]) -> UpdateStats:
                          ("loss_human", "loss_robot", "q_human", "q_robot")))  # fmt: skip
 
 
-def _progress_line(logs: list[EpisodeLog], s: TrainSettings, elapsed_s: float) -> str:
+def progress_summary(logs: list[EpisodeLog]) -> str:
+    """The last 50 episodes in one short line (return, success, epsilon, Q of both agents)."""
     recent, last = logs[-50:], logs[-1]
-    mean_return = np.mean([r.ret for r in recent])
     return (
-        f"episode {last.episode:5d}/{s.episodes}  return {mean_return:7.2f}  "
-        f"success {np.mean([r.success for r in recent]):5.0%}  epsilon {logs[-1].epsilon:4.2f}  "
-        f"Q {last.q_human:6.2f}/{last.q_robot:6.2f}  {elapsed_s:6.0f} s"
+        f"return {np.mean([r.ret for r in recent]):.2f}, "
+        f"success {np.mean([r.success for r in recent]):.0%}, epsilon {last.epsilon:.2f}, "
+        f"Q {last.q_human:.2f}/{last.q_robot:.2f}"
     )
 
 
@@ -197,9 +196,10 @@ class Rollout:
     decisions: list[tuple[float, int, int]]
 
 
-def greedy_rollouts(run: Path, seeds: range, randomize: bool = False) -> list[Rollout]:
+def greedy_rollouts(run: Path, seeds: range, randomize: bool = False,
+                    done: Callable[[], None] | None = None) -> list[Rollout]:  # fmt: skip
     """The run's greedy policy on ``seeds`` (held out from training), stochastic human,
-    on the nominal arm or on randomised ones."""
+    on the nominal arm or on randomised ones; ``done`` is called after each reach."""
     checkpoint = load_checkpoint(run)
     settings = TrainSettings(**checkpoint["settings"])
     runner = ReachRunner(ReachSettings().randomized(randomize))
@@ -219,12 +219,15 @@ def greedy_rollouts(run: Path, seeds: range, randomize: bool = False) -> list[Ro
             if terminated or truncated:
                 break
         rollouts.append(Rollout(info["metrics"], decisions))
+        if done is not None:
+            done()
     return rollouts
 
 
-def evaluate(run: Path, seeds: range, randomize: bool = False) -> dict[str, Any]:
+def evaluate(run: Path, seeds: range, randomize: bool = False,
+             done: Callable[[], None] | None = None) -> dict[str, Any]:  # fmt: skip
     """Summary of :func:`greedy_rollouts` (the ``dammrl evaluate`` JSON)."""
-    rollouts = greedy_rollouts(run, seeds, randomize)
+    rollouts = greedy_rollouts(run, seeds, randomize, done)
     metrics = [r.metrics for r in rollouts]
     choices = [d for r in rollouts for d in r.decisions]
     return {

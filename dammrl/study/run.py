@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import os
 import socket
-import sys
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
@@ -244,21 +243,6 @@ def _run_batch(function: Callable[[J], R], jobs: list[J]) -> list[R]:
 def _batches(jobs: Sequence[J], size: int) -> Iterator[Sequence[J]]:
     for start in range(0, len(jobs), size):
         yield jobs[start : start + size]
-
-
-def progress_bar(
-    total: int, description: str, unit: str = "reach"
-) -> tuple[Progress, Callable[[], None]]:
-    """A progress bar on stderr (tqdm); returns its update and close functions."""
-    from tqdm import tqdm
-
-    bar = tqdm(total=total, desc=description, unit=unit, file=sys.stderr,
-               disable=None, dynamic_ncols=True)  # fmt: skip
-
-    def update(n: int) -> None:
-        bar.update(n)
-
-    return update, bar.close
 
 
 def ordered(records: Iterable[Record]) -> list[Record]:
