@@ -1,9 +1,14 @@
+# ruff: noqa: E402  (headless_gl must run before MuJoCo is first imported)
 """Shared fixtures: the reference arm and its models, built once per test session."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
+
+from dammrl.cli.common import headless_gl
+
+headless_gl()  # before MuJoCo is imported: the video tests render offscreen
 
 from dammrl.core.dynamics import ArmModel
 from dammrl.core.robot import RobotDescription

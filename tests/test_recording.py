@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import signal
 import subprocess
+import sys
 import time
 from collections import defaultdict
 from collections.abc import Iterator
@@ -265,3 +266,30 @@ def test_recordings_rotate_by_duration(tmp_path: Path) -> None:
     summaries = [info(f) for f in files]
     assert all(s["complete"] for s in summaries)
     assert all(s["topics"]["dammrl/robot/state"]["count"] > 50 for s in summaries[:-1])
+
+
+def test_a_recorded_episode_renders_to_a_video(
+    session_recording: tuple[Path, Seen], tmp_path: Path
+) -> None:
+    """``dammrl recording video``: the recorded states, subgoals and goal, offscreen."""
+    from dammrl.video import VideoSettings, frame_times, frames, track_of_recording
+
+    path, _ = session_recording
+    track = track_of_recording(path)
+    assert len(track.t) > 50 and np.isfinite(track.subgoal[-1]).all()
+    small = VideoSettings(fps=4, width=160, height=120)
+    images = list(frames(track, small))
+    assert len(images) == len(frame_times(track, small)) >= 2
+    assert np.abs(images[0].astype(int) - images[-1].astype(int)).mean() > 0.5  # it moved
+    done = subprocess.run(
+        [sys.executable, "-m", "dammrl", "recording", "video", str(path), "-o",
+         str(tmp_path / "episode.gif"), "--fps", "4"],
+        capture_output=True, text=True, timeout=600,
+    )  # fmt: skip
+    assert done.returncode == 0 and (tmp_path / "episode.gif").is_file(), done.stderr[-2000:]
+    bad = subprocess.run(
+        [sys.executable, "-m", "dammrl", "recording", "video", str(tmp_path / "none.mcap"),
+         "-o", str(tmp_path / "x.gif")],
+        capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert bad.returncode != 0 and "no such recording" in bad.stderr

@@ -155,3 +155,20 @@ def progress_bar(
         bar.update(n)
 
     return update, bar.close
+
+
+def headless_gl() -> None:
+    """Choose MuJoCo's offscreen OpenGL before MuJoCo is imported: on Linux without a
+    display, EGL (GPU or Mesa) or else OSMesa, whichever library is installed. A choice in
+    ``MUJOCO_GL`` is kept."""
+    import ctypes.util
+    import os
+
+    if "MUJOCO_GL" in os.environ or sys.platform != "linux":
+        return
+    if os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"):
+        return
+    for backend, library in (("egl", "EGL"), ("osmesa", "OSMesa")):
+        if ctypes.util.find_library(library):
+            os.environ["MUJOCO_GL"] = backend
+            return

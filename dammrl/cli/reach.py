@@ -7,10 +7,10 @@ import json
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from dammrl.cli.common import Commands, model_arg, print_err, table
+from dammrl.cli.common import Commands, headless_gl, model_arg, print_err, progress_bar, table
 
 if TYPE_CHECKING:
-    from dammrl.runner import ReachSettings
+    from dammrl.runner import ReachResult, ReachSettings
 
 
 def register(commands: Commands) -> None:
@@ -41,11 +41,16 @@ def register(commands: Commands) -> None:
     reach.add_argument("--feedforward", choices=["inverse_dynamics", "resolved_acceleration"],
                        help="computed-torque feed-forward (default: the setting)")  # fmt: skip
     reach.add_argument("--randomize", action="store_true", help="seeded domain randomisation")
+    reach.add_argument("--video", type=Path, metavar="MP4|GIF",
+                       help="render the reach (offscreen; .mp4 needs dammrl[video]); with "
+                       "--trigger both, one file per trigger")  # fmt: skip
     reach.set_defaults(handler=_reach)
 
 
 def _reach(args: argparse.Namespace) -> int:
     """Run the reach once per trigger on the same sampled task; print metrics, maybe plot."""
+    if args.video is not None:
+        headless_gl()  # before MuJoCo is imported
     from dammrl.runner import ReachRunner
 
     runner = ReachRunner(_settings(args))
@@ -62,7 +67,26 @@ def _reach(args: argparse.Namespace) -> int:
 
         path = plot_reaches(results, runner.settings.task.goal_tolerance_m, args.plot)
         print_err(f"figure written to {path}")
+    if args.video:
+        for result in results:
+            write_video_of(result, _video_path(args.video, result.trigger, len(results) > 1))
     return 0
+
+
+def _video_path(path: Path, trigger: str, several: bool) -> Path:
+    return path.with_name(f"{path.stem}-{trigger}{path.suffix}") if several else path
+
+
+def write_video_of(result: ReachResult, path: Path) -> None:
+    from dammrl.video import VideoSettings, frame_times, track_of_reach, write_video
+
+    track = track_of_reach(result)
+    update, close = progress_bar(len(frame_times(track, VideoSettings())), "video", "frame")
+    try:
+        frames = write_video(track, path, progress=update)
+    finally:
+        close()
+    print_err(f"video written to {path} ({frames} frames)")
 
 
 def _settings(args: argparse.Namespace) -> ReachSettings:

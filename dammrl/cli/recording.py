@@ -1,4 +1,4 @@
-"""Recordings: ``dammrl recording info|repair|export|human|plot`` and ``dammrl replay``."""
+"""Recordings: ``dammrl recording info|repair|export|human|plot|video`` and ``dammrl replay``."""
 
 from __future__ import annotations
 
@@ -6,7 +6,15 @@ import argparse
 import json
 from pathlib import Path
 
-from dammrl.cli.common import DEFAULT_CONNECT, Commands, add_connect, bus_settings, print_err
+from dammrl.cli.common import (
+    DEFAULT_CONNECT,
+    Commands,
+    add_connect,
+    bus_settings,
+    headless_gl,
+    print_err,
+    progress_bar,
+)
 from dammrl.core.errors import Exit
 
 
@@ -50,6 +58,15 @@ def _add_plot(actions: Commands) -> None:
     plot.add_argument("-o", "--out", type=Path, required=True, metavar="PNG", help="the figure")
     plot.add_argument("--episode", type=int, help="only this episode")
     plot.set_defaults(handler=_plot)
+    video = actions.add_parser("video", help="render an episode of a recording (MP4 or GIF)")
+    video.add_argument("file", type=Path, help="an MCAP recording")
+    video.add_argument("-o", "--out", type=Path, required=True, metavar="MP4|GIF",
+                       help="the video (.mp4 needs dammrl[video])")  # fmt: skip
+    video.add_argument("--episode", type=int, help="this episode (default: the first)")
+    video.add_argument("--fps", type=int, default=25, help="frames per second (default 25)")
+    video.add_argument("--speed", type=float, default=1.0,
+                       help="playback speed (2: twice real time; default 1)")  # fmt: skip
+    video.set_defaults(handler=_video)
 
 
 def _add_replay(commands: Commands) -> None:
@@ -139,6 +156,26 @@ def _plot(args: argparse.Namespace) -> int:
     traces = session_traces(args.file, args.episode)
     title = f"{args.file.name}: {len(traces.decisions)} decisions, {len(traces.pressure)} samples"
     print(plot_session(traces, TaskSettings().goal_tolerance_m, title, args.out))
+    return 0
+
+
+def _video(args: argparse.Namespace) -> int:
+    """Render one episode of a recording offscreen; prints the video's path."""
+    headless_gl()  # before MuJoCo is imported
+    from dammrl.video import VideoSettings, frame_times, track_of_recording, write_video
+
+    if not args.file.is_file():
+        raise FileNotFoundError(f"no such recording: {args.file}")
+    track = track_of_recording(args.file, args.episode)
+    settings = VideoSettings(fps=args.fps, speed=args.speed)
+    settings.check()
+    update, close = progress_bar(len(frame_times(track, settings)), "video", "frame")
+    try:
+        frames = write_video(track, args.out, settings, update)
+    finally:
+        close()
+    print_err(f"{frames} frames of {track.label}")
+    print(args.out)
     return 0
 
 
