@@ -15,7 +15,7 @@ import shtab
 from pydantic import ValidationError
 
 from dammrl import __version__
-from dammrl.cli import bus, reach, recording, rl, sensor, stack, study
+from dammrl.cli import bus, reach, recording, rl, sensor, stack, study, view
 from dammrl.core.errors import EXIT_CODES_HELP, DammrlError, Exit
 from dammrl.core.settings import error_line
 
@@ -26,6 +26,7 @@ GROUPS = (
     sensor.register,
     rl.register,
     study.register,
+    view.register,
     bus.register,
     stack.register_schemas,
 )

@@ -1,0 +1,73 @@
+"""``dammrl view``: the stack (or a recording) live in Foxglove."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from dammrl.cli.common import DEFAULT_CONNECT, Commands, add_bus_arguments, bus_settings, print_err
+
+
+def register(commands: Commands) -> None:
+    """Add ``view``."""
+    view = commands.add_parser(
+        "view",
+        help="serve the stack or a recording to Foxglove (3D arm, goal, subgoal, plots)",
+        description="A Foxglove WebSocket server: open Foxglove, connect to "
+        "ws://HOST:PORT, and import the layout (docs/foxglove_layout.json, or --layout-out).",
+    )
+    view.add_argument("--recording", type=Path, metavar="MCAP",
+                      help="play a recording instead of the live bus")  # fmt: skip
+    view.add_argument("--rate", type=float, default=1.0,
+                      help="with --recording: playback speed (0: as fast as possible)")  # fmt: skip
+    view.add_argument("--host", default="127.0.0.1",
+                      help="address to serve on (default 127.0.0.1; 0.0.0.0: all)")  # fmt: skip
+    view.add_argument("--port", type=int, default=8765, help="WebSocket port (default 8765)")
+    view.add_argument("--max-hz", type=float, default=30.0,
+                      help="messages per topic and second (default 30, max 60)")  # fmt: skip
+    view.add_argument("--layout-out", type=Path, metavar="JSON",
+                      help="write the Foxglove layout to this file and exit")  # fmt: skip
+    add_bus_arguments(view, f"the stack's endpoint (default {DEFAULT_CONNECT})")
+    view.set_defaults(handler=_view)
+
+
+def _view(args: argparse.Namespace) -> int:
+    """Translate until Ctrl-C (or the recording's end); print where to connect."""
+    from dammrl.core.errors import UsageError
+    from dammrl.core.robot import RobotDescription
+    from services.common.runtime import stopping_on_signals
+
+    if not 0 < args.max_hz <= 60:
+        raise UsageError(f"--max-hz must be in (0, 60], got {args.max_hz}")
+    if args.recording is not None and not args.recording.is_file():
+        raise UsageError(f"no such recording: {args.recording}")
+    try:
+        from dammrl.viewer import (
+            FoxgloveServer,
+            SceneTranslator,
+            bus_messages,
+            layout,
+            recording_messages,
+        )
+    except ImportError as exc:
+        raise UsageError(
+            f"dammrl view needs foxglove-sdk: pip install 'dammrl[view]' ({exc})"
+        ) from None
+    if args.layout_out is not None:
+        args.layout_out.write_text(layout() + "\n")
+        print(args.layout_out)
+        return 0
+    robot = RobotDescription.from_urdf()
+    server = FoxgloveServer(robot, args.host, args.port)
+    print_err(f"Foxglove: open ws://{args.host}:{server.port}; import the layout from "
+              "`dammrl view --layout-out layout.json`")  # fmt: skip
+    translator = SceneTranslator(robot, server.log, args.max_hz)
+    try:
+        with stopping_on_signals() as stop:
+            source = (recording_messages(args.recording, args.rate, stop) if args.recording
+                      else bus_messages(bus_settings(args), stop))  # fmt: skip
+            for message, t_ns in source:
+                translator.feed(message, t_ns)
+    finally:
+        server.stop()
+    return 0
