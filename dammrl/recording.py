@@ -14,7 +14,7 @@ import csv
 import json
 import struct
 from collections import Counter, defaultdict
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, BinaryIO
@@ -261,14 +261,70 @@ def sequence_gaps(recording: Recording) -> dict[str, int]:
     return dict(sequence_account(recording).gaps)
 
 
-def _copy_schemas_and_metadata(recording: Recording, writer: Writer) -> dict[int, int]:
-    """Register the recording's schemas and metadata in ``writer``; old -> new schema ids."""
+def _copy_schemas_and_metadata(
+    recording: Recording, writer: Writer, convert: Callable[[bytes], bytes] | None = None
+) -> dict[int, int]:
+    """Register the recording's schemas (through ``convert``) and metadata in ``writer``;
+    old -> new schema ids."""
     for name, data in recording.metadata.items():
         writer.add_metadata(name, data)
     return {
-        sid: writer.register_schema(s.name, s.encoding, s.data)
+        sid: writer.register_schema(s.name, s.encoding, convert(s.data) if convert else s.data)
         for sid, s in recording.schemas.items()
     }
+
+
+FOXGLOVE_TIME = {"type": "object", "title": "time", "required": ["sec", "nsec"],
+                 "properties": {"sec": {"type": "integer", "minimum": 0},
+                                "nsec": {"type": "integer", "minimum": 0,
+                                         "maximum": 999_999_999}}}  # fmt: skip
+
+
+def foxglove_times(value: Any) -> Any:
+    """Every ``*_ns`` integer as Foxglove's ``{sec, nsec}`` under the name without ``_ns``
+    (19-digit nanoseconds lose their last digits in JavaScript); null stays null."""
+    if isinstance(value, dict):
+        return dict(_time_item(k, v) for k, v in value.items())
+    if isinstance(value, list):
+        return [foxglove_times(v) for v in value]
+    return value
+
+
+def _time_item(key: str, value: Any) -> tuple[str, Any]:
+    if not key.endswith("_ns"):
+        return key, foxglove_times(value)
+    if isinstance(value, int) and not isinstance(value, bool):
+        return key[:-3], {"sec": value // 10**9, "nsec": value % 10**9}
+    return key[:-3], value
+
+
+def foxglove_times_schema(data: bytes) -> bytes:
+    """A message JSON Schema with its ``*_ns`` properties as ``{sec, nsec}`` (see
+    :func:`foxglove_times`)."""
+
+    def convert(node: Any) -> Any:
+        if isinstance(node, list):
+            return [convert(n) for n in node]
+        if not isinstance(node, dict):
+            return node
+        out = {k: convert(v) for k, v in node.items()}
+        if isinstance(out.get("properties"), dict):
+            out["properties"] = {
+                (k[:-3] if k.endswith("_ns") else k): (_time_schema(v) if k.endswith("_ns") else v)
+                for k, v in out["properties"].items()
+            }
+            if isinstance(out.get("required"), list):
+                out["required"] = [r[:-3] if r.endswith("_ns") else r for r in out["required"]]
+        return out
+
+    return json.dumps(convert(json.loads(data))).encode()
+
+
+def _time_schema(schema: dict[str, Any]) -> dict[str, Any]:
+    """``{sec, nsec}``, or null where the nanoseconds could be null."""
+    nullable = any(option.get("type") == "null" for option in schema.get("anyOf", []))
+    time = {**FOXGLOVE_TIME, "description": schema.get("description", "")}
+    return {"anyOf": [time, {"type": "null"}]} if nullable else time
 
 
 def repair(path: Path, out: Path) -> dict[str, Any]:
@@ -277,7 +333,7 @@ def repair(path: Path, out: Path) -> dict[str, Any]:
     with open(out, "wb") as stream:
         writer = Writer(stream, compression=CompressionType.ZSTD)
         writer.start(profile="dammrl", library="dammrl recording repair")
-        schema_ids = _copy_schemas_and_metadata(recording, writer)
+        schema_ids = _copy_schemas_and_metadata(recording, writer, foxglove_times_schema)
         channel_ids = {
             cid: writer.register_channel(
                 c.topic, c.message_encoding, schema_ids.get(c.schema_id, 0), c.metadata
@@ -302,7 +358,7 @@ def export_json(path: Path, out: Path) -> int:
     with open(out, "wb") as stream:
         writer = Writer(stream, compression=CompressionType.ZSTD)
         writer.start(profile="", library="dammrl recording export")
-        schema_ids = _copy_schemas_and_metadata(recording, writer)
+        schema_ids = _copy_schemas_and_metadata(recording, writer, foxglove_times_schema)
         channel_ids = {}
         for cid, c in recording.channels.items():
             if c.metadata.get("dammrl.invalid") or c.schema_id not in schema_ids:
@@ -329,7 +385,8 @@ def _as_json(namespace: str, topic: str, payload: bytes) -> bytes | None:
     if message_type is None:
         return None
     try:
-        return decode(message_type, payload).model_dump_json().encode()
+        message = decode(message_type, payload).model_dump(mode="json")
+        return json.dumps(foxglove_times(message)).encode()
     except DecodeError:
         return None
 

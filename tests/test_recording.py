@@ -118,7 +118,11 @@ def test_json_export_decodes_and_validates_against_its_schemas(
         count = 0
         for schema, channel, message in reader.iter_messages():
             assert channel.message_encoding == "json" and schema.encoding == "jsonschema"
-            jsonschema.validate(json.loads(message.data), json.loads(schema.data))
+            decoded = json.loads(message.data)
+            jsonschema.validate(decoded, json.loads(schema.data))
+            stamp = decoded["header"]["stamp"]  # Foxglove's time, exact in JavaScript
+            assert set(stamp) == {"sec", "nsec"} and 0 <= stamp["nsec"] < 10**9
+            assert "_ns" not in message.data.decode()
             count += 1
     assert count == written
 
