@@ -350,8 +350,9 @@ def repair(path: Path, out: Path) -> dict[str, Any]:
             "skipped": dict(recording.skipped)}  # fmt: skip
 
 
-def export_json(path: Path, out: Path) -> int:
-    """A copy with ``json`` message encoding (and the jsonschema schemas) for Foxglove."""
+def export_json(path: Path, out: Path, progress: Callable[[int], None] | None = None) -> int:
+    """A copy with ``json`` message encoding (and the jsonschema schemas) for Foxglove;
+    ``progress(1)`` after each recorded message."""
     recording = read_recording(path)
     namespace = recording.namespace()
     written = 0
@@ -369,38 +370,43 @@ def export_json(path: Path, out: Path) -> int:
         for m in recording.messages:
             if m.channel_id not in channel_ids:
                 continue
-            as_json = _as_json(namespace, recording.topic(m), m.data)
-            if as_json is None:
+            fields = _as_dict(namespace, recording.topic(m), m.data)
+            if progress is not None:
+                progress(1)
+            if fields is None:
                 continue
-            writer.add_message(
-                channel_ids[m.channel_id], m.log_time, as_json, m.publish_time, m.sequence
-            )
+            data = json.dumps(foxglove_times(fields)).encode()
+            writer.add_message(channel_ids[m.channel_id], m.log_time, data, m.publish_time,
+                               m.sequence)  # fmt: skip
             written += 1
         writer.finish()  # type: ignore[no-untyped-call]
     return written
 
 
-def _as_json(namespace: str, topic: str, payload: bytes) -> bytes | None:
+def _as_dict(namespace: str, topic: str, payload: bytes) -> dict[str, Any] | None:
+    """A recorded message as JSON-ready fields; None when it is not a valid message."""
     message_type = type_of(namespace, topic)
     if message_type is None:
         return None
     try:
-        message = decode(message_type, payload).model_dump(mode="json")
-        return json.dumps(foxglove_times(message)).encode()
+        return decode(message_type, payload).model_dump(mode="json")
     except DecodeError:
         return None
 
 
-def export_csv(path: Path, out_dir: Path) -> dict[str, int]:
-    """One CSV per topic (columns: log_time_ns, then the flattened fields)."""
+def export_csv(path: Path, out_dir: Path, progress: Callable[[int], None] | None = None
+               ) -> dict[str, int]:  # fmt: skip
+    """One CSV per topic (columns: log_time_ns, then the flattened fields, times in ns)."""
     recording = read_recording(path)
     namespace = recording.namespace()
     rows: dict[str, list[dict[str, Any]]] = defaultdict(list)
     for m in recording.messages:
         topic = recording.topic(m)
-        as_json = _as_json(namespace, topic, m.data)
-        if as_json is not None:
-            rows[topic].append({"log_time_ns": m.log_time, **_flatten(json.loads(as_json))})
+        fields = _as_dict(namespace, topic, m.data)
+        if progress is not None:
+            progress(1)
+        if fields is not None:
+            rows[topic].append({"log_time_ns": m.log_time, **_flatten(fields)})
     out_dir.mkdir(parents=True, exist_ok=True)
     for topic, table in rows.items():
         columns = list(dict.fromkeys(k for row in table for k in row))

@@ -64,9 +64,11 @@ def replay(
     options: ReplayOptions,
     info: Callable[[str], None] = print,
     stop: threading.Event | None = None,
+    progress: Callable[[int], None] | None = None,
 ) -> int:
     """Publish the selected messages under ``settings.namespace``; return how many.
-    ``stop`` (e.g. set by Ctrl-C) ends the replay early, a loop included."""
+    ``stop`` (e.g. set by Ctrl-C) ends the replay early, a loop included; ``progress(1)``
+    after each message."""
     messages = selected(recording, options)
     if not messages:
         raise JobFailedError("nothing to replay: no message matches the topics and time window")
@@ -87,7 +89,7 @@ def replay(
         }
         info(f"replaying {len(messages)} messages on {len(publishers)} topics")
         while not stop.is_set():
-            sent += _play_once(messages, publishers, options.rate, stop)
+            sent += _play_once(messages, publishers, options.rate, stop, progress)
             if not options.loop:
                 break
     return sent
@@ -98,6 +100,7 @@ def _play_once(
     publishers: dict[str, zenoh.Publisher],
     rate: float,
     stop: threading.Event,
+    progress: Callable[[int], None] | None = None,
 ) -> int:
     """Publish ``messages`` once with their recorded spacing over ``rate``; how many
     went out before ``stop``."""
@@ -107,6 +110,8 @@ def _play_once(
         if stop.wait(delay) if delay > 0 else stop.is_set():
             return sent
         publishers[topic].put(payload)
+        if progress is not None:
+            progress(1)
     return len(messages)
 
 

@@ -140,7 +140,7 @@ def fmt(value: object) -> str:
 
 
 def progress_bar(
-    total: int, description: str, unit: str = "reach"
+    total: int | None, description: str, unit: str = "reach"
 ) -> tuple[Callable[..., None], Callable[[], None]]:
     """A progress bar with ETA on stderr (tqdm; off when stderr is not a terminal):
     ``update(n, postfix=None)`` and ``close()``."""

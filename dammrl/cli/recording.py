@@ -137,12 +137,21 @@ def _counts(counts: dict[str, int]) -> str:
 
 def _export(args: argparse.Namespace) -> int:
     """One JSON-encoded MCAP, or one CSV per topic."""
-    from dammrl.recording import export_csv, export_json
+    from dammrl.recording import export_csv, export_json, read_recording
 
+    total = len(read_recording(args.file).messages)
+    update, close = progress_bar(total, f"export {args.format}", "message")
+    try:
+        if args.format == "json":
+            written = export_json(args.file, args.out, update)
+        else:
+            tables = export_csv(args.file, args.out, update)
+    finally:
+        close()
     if args.format == "json":
-        print(f"wrote {export_json(args.file, args.out)} JSON messages to {args.out}")
+        print(f"wrote {written} JSON messages to {args.out}")
     else:
-        for topic, rows in export_csv(args.file, args.out).items():
+        for topic, rows in tables.items():
             print(f"{topic}: {rows} rows")
     return 0
 
@@ -197,7 +206,7 @@ def _human(args: argparse.Namespace) -> int:
 def _replay(args: argparse.Namespace) -> int:
     """Publish a recording onto the bus, or (``--into-policy``) compare a policy offline."""
     from dammrl.recording import read_recording
-    from dammrl.replay import ReplayOptions, into_policy, replay, write_decisions
+    from dammrl.replay import ReplayOptions, into_policy, replay, selected, write_decisions
     from services.common.runtime import stopping_on_signals
 
     recording = read_recording(args.file)
@@ -210,8 +219,13 @@ def _replay(args: argparse.Namespace) -> int:
         start_s=args.start, end_s=args.end, loop=args.loop, force=args.force,
     )  # fmt: skip
     settings = bus_settings(args, recording.namespace())
-    with stopping_on_signals() as stop:  # Ctrl-C ends the replay, not the process
-        sent = replay(recording, settings, options, info=print_err, stop=stop)
+    total = None if options.loop else len(selected(recording, options))
+    update, close = progress_bar(total, "replay", "message")
+    try:
+        with stopping_on_signals() as stop:  # Ctrl-C ends the replay, not the process
+            sent = replay(recording, settings, options, print_err, stop, update)
+    finally:
+        close()
     print(f"replayed {sent} messages")
     if stop.is_set() and not options.loop:  # a finite job cut short
         print_err("dammrl: interrupted")
