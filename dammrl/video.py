@@ -164,7 +164,7 @@ def _camera(track: Track) -> object:
     camera = mujoco.MjvCamera()
     camera.lookat[:] = (track.ee[0] + track.goal) / 2
     camera.lookat[2] = max(camera.lookat[2], -0.15)
-    camera.distance = 1.25
+    camera.distance = 0.75
     camera.azimuth, camera.elevation = 150.0, -25.0
     return camera
 
