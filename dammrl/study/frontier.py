@@ -4,7 +4,7 @@ shipped weighting, beta = 1) marked on it.
 
 The verdict compares every beta with Reward 1 under rules fixed before any result:
 "faster" when the 95 % interval of the difference in t_total (IQM) lies below zero;
-"at equal success" when the success rate is not lower by more than ``SUCCESS_MARGIN``
+"at equal or better success" when the success rate is not lower by more than ``SUCCESS_MARGIN``
 (the lower end of its difference's 95 % interval).
 """
 
@@ -26,7 +26,7 @@ from dammrl.study.training import (
     summarize,
 )
 
-SUCCESS_MARGIN = 0.02  # a success rate 2 points lower still counts as "equal success"
+SUCCESS_MARGIN = 0.02  # 2 points lower still counts as "equal success"
 REWARD1_BETA, REWARD2_BETA = 0.0, 1.0
 
 
@@ -89,16 +89,16 @@ def _matrices(evaluations: list[dict[str, Any]], arm: str) -> dict[str, np.ndarr
 
 
 def verdict(comparisons: list[Comparison]) -> str:
-    """One paragraph: is any weighting faster than Reward 1 at equal success?"""
+    """One paragraph per arm: is any weighting faster than Reward 1 at equal or better
+    success?"""
     lines = []
     for arm in ARMS:
         rows = [c for c in comparisons if c.arm == arm]
         winners = [c for c in rows if c.faster and c.equal_success]
         shipped = next((c for c in rows if c.beta == REWARD2_BETA), None)
-        text = (f"**{arm} arms**: " + (
-            "faster than Reward 1 at equal success: "
-            + ", ".join(f"beta={c.beta:g} ({c.dt_s.text()} s)" for c in winners)
-            if winners else "no weighting is faster than Reward 1 at equal success"))  # fmt: skip
+        found = ", ".join(f"beta={c.beta:g} ({c.dt_s.text()} s)" for c in winners)
+        claim = "faster than Reward 1 at equal or better success"
+        text = f"**{arm} arms**: " + (f"{claim}: {found}" if winners else f"nothing is {claim}")
         if shipped is not None:
             text += (f". Reward 2 (beta=1, shipped) vs Reward 1: t_total {shipped.dt_s.text()} s,"
                      f" success {shipped.dsuccess.text(100, 1)} points")  # fmt: skip
@@ -158,8 +158,8 @@ def write_report(out: Path, betas: list[float], command: str, wall_s: float) -> 
     summaries, comparisons = analyse(out, betas)
     plot(summaries, out / "frontier.png")
     (out / "frontier.json").write_text(to_json(summaries))
-    rows = ["| beta | arm | Δ t_total vs Reward 1 [s] | Δ success [points] | faster at equal "
-            "success |", "|---|---|---|---|---|"]  # fmt: skip
+    rows = ["| beta | arm | Δ t_total vs Reward 1 [s] | Δ success [points] | faster, success "
+            "not lower |", "|---|---|---|---|---|"]  # fmt: skip
     rows += [
         f"| {c.beta:g} | {c.arm} | {c.dt_s.text()} | {c.dsuccess.text(100, 1)} | "
         f"{'yes' if c.faster and c.equal_success else 'no'} |"

@@ -86,6 +86,7 @@ def train_and_evaluate(job: TrainJob) -> RunResult:
             "arms": {arm: _rollouts(run, job.eval_seeds, on) for arm, on in ARMS.items()},
             "validation": _rollouts(run, job.validation_seeds, True),
         }  # fmt: skip
+        evaluation["wall_s"] = time.monotonic() - started  # training and evaluation
         (run / EVALUATION).write_text(json.dumps(evaluation))
         files = {str(p.relative_to(run)): p.read_bytes() for p in run.rglob("*") if p.is_file()}
     return RunResult(job, files, evaluation, time.monotonic() - started)
