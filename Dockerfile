@@ -1,13 +1,78 @@
 # One image for every dammrl service; compose.yaml picks the command per container.
-FROM python:3.11-slim
+# docs/containers.md: build arguments, image size, the choices made here.
+#
+#   docker build -t dammrl:latest .                         # CPU-only torch (default)
+#   docker build --build-arg PIP_EXTRA_INDEX_URL=https://download.pytorch.org/whl/cu128 \
+#                -t dammrl:cuda .                             # a CUDA build of torch
 
-ENV PYTHONDONTWRITEBYTECODE=1 PYTHONUNBUFFERED=1 PIP_NO_CACHE_DIR=1
-WORKDIR /app
+# ---- requirements: the dependencies of pyproject.toml, as a requirements file ----------
+# Its own stage: the install below is rebuilt only when this list changes, not when
+# anything else in pyproject.toml (tool settings, package data) does.
+FROM python:3.11-slim AS requirements
+WORKDIR /src
+COPY pyproject.toml ./
+RUN python -c "import tomllib; print(*tomllib.load(open('pyproject.toml', 'rb'))['project']['dependencies'], sep='\n')" > requirements.txt
+
+# ---- build: a virtual environment with dammrl and its dependencies -------------------
+FROM python:3.11-slim AS build
+
+# Where torch comes from. PyTorch's CPU index carries torch==X+cpu, which pip prefers to
+# PyPI's X (a CUDA build, 5 GB more): PEP 440 sorts a local version after its public one.
+# A CUDA index (.../whl/cu128) gives a CUDA image; a local wheel server works the same.
+ARG PIP_EXTRA_INDEX_URL=https://download.pytorch.org/whl/cpu
+# a plain-http index (e.g. a local wheel server) must be named trusted; unset by default
+ARG PIP_TRUSTED_HOST
+ENV PIP_NO_CACHE_DIR=1 PIP_DISABLE_PIP_VERSION_CHECK=1 PYTHONDONTWRITEBYTECODE=1
+
+RUN python -m venv /opt/dammrl
+ENV PATH=/opt/dammrl/bin:$PATH
+WORKDIR /src
+
+# The dependencies first: a code change reuses this layer.
+COPY --from=requirements /src/requirements.txt ./
+RUN pip install -r requirements.txt
+# Fail rather than ship CUDA by accident: an unreachable index only warns, and pip then
+# takes PyPI's torch. A CUDA torch is accepted only from a CUDA index (.../cu*).
+RUN python -c "import sys, torch; print('torch', torch.__version__); sys.exit(bool(torch.version.cuda) and '/cu' not in sys.argv[1])" "$PIP_EXTRA_INDEX_URL"
+
+# Build-time only, never read by a running service (~340 MB): C/C++ headers, static
+# libraries, torch's C++ test binaries.
+RUN cd /opt/dammrl/lib/python3.11/site-packages \
+ && rm -rf torch/include torch/test cmeel.prefix/include \
+ && find . -name '*.a' -delete
+
+# The package, with a check that every data file (URDF, policies) was installed too
 COPY pyproject.toml README.md ./
-COPY dammrl ./dammrl
 COPY schemas ./schemas
 COPY services ./services
-RUN pip install .
+COPY dammrl ./dammrl
+RUN pip install --no-deps . \
+ && site=$(python -c "import sysconfig; print(sysconfig.get_paths()['purelib'])") \
+ && missing=$(find dammrl services schemas -type f ! -name '*.py' | while read -r f; do \
+      [ -e "$site/$f" ] || echo "$f"; done) \
+ && { [ -z "$missing" ] || { echo "not installed, add to pyproject.toml" \
+      "[tool.setuptools.package-data]:" $missing; exit 1; }; }
+
+# ---- runtime: the environment on a clean base, shared libraries, a non-root user -----
+FROM python:3.11-slim
+
+# libgomp1: OpenMP runtime of pinocchio (and torch's CPU kernels)
+RUN apt-get update \
+ && apt-get install -y --no-install-recommends libgomp1 \
+ && rm -rf /var/lib/apt/lists/*
+
+COPY --from=build /opt/dammrl /opt/dammrl
+
+# The default user; compose runs the services as the host user instead (user: UID:GID),
+# so recordings in ./sessions belong to whoever started the stack.
+ARG UID=1000
+ARG GID=1000
+RUN groupadd --gid "$GID" dammrl \
+ && useradd --uid "$UID" --gid "$GID" --no-create-home --home-dir /tmp dammrl
+
+ENV PATH=/opt/dammrl/bin:$PATH PYTHONDONTWRITEBYTECODE=1 PYTHONUNBUFFERED=1 HOME=/tmp
+WORKDIR /
+USER dammrl
 
 # Zenoh listens here when a service is given DAMMRL_BUS_LISTEN
 EXPOSE 7447
