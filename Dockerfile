@@ -41,27 +41,36 @@ RUN cd /opt/dammrl/lib/python3.11/site-packages \
  && rm -rf torch/include torch/test cmeel.prefix/include \
  && find . -name '*.a' -delete
 
-# The package, with a check that every data file (URDF, policies) was installed too
+# The package as a wheel, installed in the runtime stage: a code change rebuilds only that
+# small layer, not the copy of the environment. Every data file (URDF, policies) of the
+# source tree must be in the wheel, else the build stops here rather than a service later.
 COPY pyproject.toml README.md ./
 COPY schemas ./schemas
 COPY services ./services
 COPY dammrl ./dammrl
-RUN pip install --no-deps . \
- && site=$(python -c "import sysconfig; print(sysconfig.get_paths()['purelib'])") \
- && missing=$(find dammrl services schemas -type f ! -name '*.py' | while read -r f; do \
-      [ -e "$site/$f" ] || echo "$f"; done) \
- && { [ -z "$missing" ] || { echo "not installed, add to pyproject.toml" \
-      "[tool.setuptools.package-data]:" $missing; exit 1; }; }
+RUN pip wheel --no-deps --wheel-dir /wheels . \
+ && python -c "import pathlib, sys, zipfile; \
+wheel = set(zipfile.ZipFile(next(pathlib.Path('/wheels').glob('*.whl'))).namelist()); \
+data = [p for d in ('dammrl', 'services', 'schemas') for p in pathlib.Path(d).rglob('*.*')]; \
+missing = [str(p) for p in data if p.suffix != '.py' and str(p) not in wheel]; \
+sys.exit('not in the wheel (pyproject.toml [tool.setuptools.package-data]): ' \
+         + ' '.join(missing) if missing else 0)"
 
 # ---- runtime: the environment on a clean base, shared libraries, a non-root user -----
 FROM python:3.11-slim
 
-# libgomp1: OpenMP runtime of pinocchio (and torch's CPU kernels)
+# HOME=/tmp: any user (compose sets the host's UID) has a writable home for caches
+ENV PATH=/opt/dammrl/bin:$PATH PYTHONDONTWRITEBYTECODE=1 PYTHONUNBUFFERED=1 HOME=/tmp \
+    PIP_DISABLE_PIP_VERSION_CHECK=1
+
+# libgomp1: the OpenMP runtime of pinocchio; nothing else was missing when the stack ran
 RUN apt-get update \
  && apt-get install -y --no-install-recommends libgomp1 \
  && rm -rf /var/lib/apt/lists/*
 
 COPY --from=build /opt/dammrl /opt/dammrl
+COPY --from=build /wheels /tmp/wheels
+RUN pip install --no-deps --no-cache-dir /tmp/wheels/*.whl && rm -rf /tmp/wheels
 
 # The default user; compose runs the services as the host user instead (user: UID:GID),
 # so recordings in ./sessions belong to whoever started the stack.
@@ -70,7 +79,6 @@ ARG GID=1000
 RUN groupadd --gid "$GID" dammrl \
  && useradd --uid "$UID" --gid "$GID" --no-create-home --home-dir /tmp dammrl
 
-ENV PATH=/opt/dammrl/bin:$PATH PYTHONDONTWRITEBYTECODE=1 PYTHONUNBUFFERED=1 HOME=/tmp
 WORKDIR /
 USER dammrl
 
