@@ -5,7 +5,8 @@ without them the test skips and says which is missing (it never starts an engine
 this kind of machine `../shared/tools/container-engine start` does). Extra build
 arguments come from DAMMRL_TEST_BUILD_ARGS, e.g. the local wheel server's:
     DAMMRL_TEST_BUILD_ARGS="$(container-engine wheels)" pytest -m slow tests/test_containers.py
-With a warm build cache it takes about two minutes.
+without them the Dockerfile's default torch index must be reachable (else: skipped). With
+a warm build cache (the same build arguments) it takes about a minute.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ import shutil
 import subprocess
 import tempfile
 import time
+import urllib.request
 import uuid
 from collections.abc import Iterator
 from pathlib import Path
@@ -53,6 +55,23 @@ def _base_images() -> list[str]:
     return sorted(set(re.findall(r"^FROM\s+(\S+)", dockerfile, re.MULTILINE)))
 
 
+def _build_args() -> list[str]:
+    return shlex.split(os.environ.get("DAMMRL_TEST_BUILD_ARGS", ""))
+
+
+def _default_index_unreachable() -> str | None:
+    """The Dockerfile's default torch index, when this machine cannot reach it (pip would
+    retry for many minutes, then take PyPI's CUDA torch, which the build refuses)."""
+    dockerfile = (ROOT / "Dockerfile").read_text()
+    index = re.search(r"^ARG PIP_EXTRA_INDEX_URL=(\S+)", dockerfile, re.MULTILINE)
+    assert index is not None, "the Dockerfile names its torch index"
+    try:
+        with urllib.request.urlopen(index[1], timeout=10):
+            return None
+    except (OSError, ValueError):
+        return index[1]
+
+
 def _engine_missing() -> str | None:
     """Why the real thing cannot run here, or None."""
     if shutil.which("docker") is None:
@@ -67,6 +86,13 @@ def _engine_missing() -> str | None:
     for base in _base_images():
         if not _ok("docker", "image", "inspect", base):
             return f"the base image {base} is not present (the test pulls nothing)"
+    if not any(a.startswith("PIP_EXTRA_INDEX_URL=") for a in _build_args()):
+        index = _default_index_unreachable()
+        if index is not None:
+            return (
+                f"torch's index {index} is unreachable and DAMMRL_TEST_BUILD_ARGS names no "
+                'other (here: DAMMRL_TEST_BUILD_ARGS="$(container-engine wheels)")'
+            )
     return None
 
 
@@ -105,9 +131,8 @@ def test_the_virtual_profile_runs_episodes_in_containers_recorded_as_the_host_us
 
 def _build(tag: str) -> None:
     """The image from this checkout (``--no-prune`` at removal keeps the build cache)."""
-    extra = shlex.split(os.environ.get("DAMMRL_TEST_BUILD_ARGS", ""))
     done = subprocess.run(
-        ["docker", "build", "-t", tag, *extra, str(ROOT)],
+        ["docker", "build", "-t", tag, *_build_args(), str(ROOT)],
         capture_output=True, text=True, timeout=BUILD_TIMEOUT_S, check=False,
     )  # fmt: skip
     assert done.returncode == 0, (done.stdout + done.stderr)[-3000:]
