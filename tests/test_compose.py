@@ -1,4 +1,5 @@
-"""compose.yaml, checked without Docker: every service's command runs as written."""
+"""compose.yaml, checked without Docker: every service's command (and health check) runs
+as written. tests/test_containers.py runs the real thing when a Docker engine is there."""
 
 from __future__ import annotations
 
@@ -6,6 +7,7 @@ import json
 import os
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -14,6 +16,9 @@ import pytest
 import yaml
 
 from schemas import EpisodeResult, Intent
+from services.common.bus import Bus
+from services.common.config import BusSettings
+from services.common.healthcheck import check
 from services.common.security import create_credentials
 from services.intent.emulator import DEFAULT_CALIBRATION
 from tests.busutil import Observer, endpoint, free_port, start_patient, wait_for
@@ -25,8 +30,10 @@ SERVICES = {"sim", "policy", "intent", "controller", "recorder"}
 CONTAINER_PATHS = ("DAMMRL_INTENT_PORT", "DAMMRL_INTENT_CALIBRATION_FILE", "DAMMRL_RECORDER_OUT")
 PROFILES = {
     "virtual": {"sim", "policy", "intent", "controller", "recorder"},
-    "semi-virtual": {"sim", "policy", "intent-sensor", "controller", "recorder-sensor"},
+    "semi-virtual": {"sim", "policy", "intent-sensor", "controller-sensor", "recorder-sensor"},
 }
+MAY_MOVE_THE_ARM = {"sim", "controller"}
+"""Restarted, they reset the arm and start an episode: never restarted on their own."""
 
 
 def _compose() -> dict[str, Any]:
@@ -49,7 +56,37 @@ def test_each_profile_has_one_container_per_service_from_one_image(profile: str)
         module = name.removesuffix("-sensor")
         assert service["command"] == ["python", "-m", f"services.{module}"]
         assert all(k.startswith("DAMMRL_") for k in service["environment"])
-        assert set(service.get("depends_on", [])) <= set(services), "compose refuses this"
+        assert set(service.get("depends_on", {})) <= set(services), "compose refuses this"
+
+
+@pytest.mark.parametrize("profile", PROFILES)
+def test_each_service_starts_once_what_it_needs_is_healthy_and_the_controller_last(
+    profile: str,
+) -> None:
+    services = _profile(profile)
+    for name, service in services.items():
+        check = service["healthcheck"]["test"]
+        assert check == ["CMD", "python", "-m", "services.common.healthcheck", _bus_name(name)]
+        needs = service.get("depends_on", {})
+        assert all(n["condition"] == "service_healthy" for n in needs.values()), name
+        assert name == "sim" or "sim" in needs, name
+    controller = next(s for n, s in services.items() if n.startswith("controller"))
+    assert set(controller["depends_on"]) == set(services) - {"controller", "controller-sensor"}
+
+
+def test_services_that_would_move_the_arm_are_never_restarted_the_others_are() -> None:
+    for name, service in _compose()["services"].items():
+        expected = "no" if _bus_name(name) in MAY_MOVE_THE_ARM else "on-failure"
+        assert service["restart"] == expected, name
+
+
+def test_services_run_as_the_host_user_not_root() -> None:
+    for name, service in _compose()["services"].items():
+        assert service["user"] == "${DAMMRL_UID:-1000}:${DAMMRL_GID:-1000}", name
+
+
+def _bus_name(container: str) -> str:
+    return container.removesuffix("-sensor")
 
 
 @pytest.mark.parametrize("profile", PROFILES)
@@ -58,7 +95,15 @@ def test_every_container_joins_the_secured_bus_with_the_mounted_credentials(prof
         env = service["environment"]
         endpoints = json.loads(env.get("DAMMRL_BUS_CONNECT") or env["DAMMRL_BUS_LISTEN"])
         assert all(e.startswith("tls/") for e in endpoints), name
-        assert f"./bus:{env['DAMMRL_BUS_CREDENTIALS']}:ro" in service["volumes"], name
+        bus = {"source": "./bus", "target": env["DAMMRL_BUS_CREDENTIALS"], "read_only": True}
+        assert any(bus.items() <= v.items() for v in service["volumes"]), name
+
+
+def test_host_folders_are_mounted_only_when_they_exist_never_created_root_owned() -> None:
+    for name, service in _compose()["services"].items():
+        for volume in service["volumes"]:
+            assert volume["type"] == "bind" and volume["source"].startswith("./"), name
+            assert volume["bind"] == {"create_host_path": False}, name
 
 
 def test_semi_virtual_profile_passes_the_sensor_and_its_calibration_to_the_intent() -> None:
@@ -67,7 +112,7 @@ def test_semi_virtual_profile_passes_the_sensor_and_its_calibration_to_the_inten
     assert env["DAMMRL_INTENT_SOURCE"] == "serial"
     host, container = intent["devices"][0].rsplit(":", 1)
     assert container == env["DAMMRL_INTENT_PORT"] and "DAMMRL_SENSOR_DEVICE" in host
-    mounts = [volume.split(":")[1] for volume in intent["volumes"]]
+    mounts = [volume["target"] for volume in intent["volumes"]]
     assert any(env["DAMMRL_INTENT_CALIBRATION_FILE"].startswith(m + "/") for m in mounts)
     recorder = _profile("semi-virtual")["recorder-sensor"]["environment"]
     assert recorder["DAMMRL_RECORDER_MODE"] == "semi-virtual"
@@ -90,12 +135,17 @@ def _path_env() -> dict[str, str]:
 
 
 def _local(environment: dict[str, str], port: int, tmp_path: Path) -> dict[str, str]:
-    """The container environment on this machine: endpoints on loopback, paths in tmp."""
+    """The container environment on this machine: endpoints on loopback (the sim's port
+    for the stack, a free one for each other listening service), paths in tmp."""
     local = {}
+    connects = "DAMMRL_BUS_CONNECT" in environment
     for name, value in environment.items():
         if name in ("DAMMRL_BUS_CONNECT", "DAMMRL_BUS_LISTEN"):
             scheme = json.loads(value)[0].split("/")[0]
-            value = json.dumps([endpoint(port).replace("tcp/", f"{scheme}/")])
+            own = name == "DAMMRL_BUS_LISTEN" and connects  # not the sim: its own port
+            value = json.dumps(
+                [endpoint(free_port() if own else port).replace("tcp/", f"{scheme}/")]
+            )
         elif name == "DAMMRL_BUS_CREDENTIALS":
             value = str(tmp_path / "bus")
         elif name in (
@@ -110,22 +160,26 @@ def _local(environment: dict[str, str], port: int, tmp_path: Path) -> dict[str, 
 
 def _run_profile(profile: str, tmp_path: Path, patient: bool = False) -> Observer:
     """Start every container command of the profile as a process; run one episode (with a
-    simulated patient at an emulated pad for the sensor)."""
+    simulated patient at an emulated pad for the sensor); then every health check passes."""
     port, credentials = free_port(), tmp_path / "bus"
     create_credentials(credentials)  # what `dammrl bus init --out bus --host sim` makes
     processes = [start_patient(tmp_path / "ttySENSOR", port, 2, credentials)] if patient else []
-    observer = None
+    observer, checks = None, {}
     try:
-        for service in _profile(profile).values():
+        for name, service in _profile(profile).items():
             env = _path_env() | _local(service["environment"], port, tmp_path)
             env["DAMMRL_TASK_EPISODES"] = "1"
             processes.append(subprocess.Popen(service["command"], env=env))
+            checks[name] = (service["healthcheck"]["test"][1:], env)
             if observer is None:  # the sim listens: the test joins as one more peer
                 time.sleep(1.0)
                 observer = Observer(port, connect=True, credentials=credentials)
         assert observer is not None
         wait_for(lambda: bool(observer.of(EpisodeResult)), 120, "an EpisodeResult")
         assert all(p.poll() is None for p in processes)
+        for name, (command, env) in checks.items():
+            done = subprocess.run(command, env=env, capture_output=True, text=True, timeout=60)
+            assert done.returncode == 0, f"{name}: {done.stdout}{done.stderr}"
         return observer
     finally:
         for process in processes:
@@ -151,3 +205,38 @@ def test_the_semi_virtual_profile_runs_an_episode_from_the_passed_through_sensor
     result = observer.of(EpisodeResult)[0]
     assert isinstance(result, EpisodeResult) and result.success, result.reason
     assert all(isinstance(i, Intent) and i.source == "sensor" for i in observer.of(Intent))
+
+
+def test_the_health_check_fails_with_its_reason_when_the_service_is_not_there(
+    tmp_path: Path,
+) -> None:
+    create_credentials(tmp_path / "bus")
+    env = _path_env() | {
+        "DAMMRL_BUS_LISTEN": json.dumps([endpoint(free_port()).replace("tcp/", "tls/")]),
+        "DAMMRL_BUS_CREDENTIALS": str(tmp_path / "bus"),
+    }
+    command = _profile("virtual")["policy"]["healthcheck"]["test"][1:]
+    done = subprocess.run(command, env=env, capture_output=True, text=True, timeout=60)
+    assert done.returncode == 1 and done.stdout.startswith("cannot join the bus at"), done
+
+
+def test_a_holding_service_is_healthy_and_a_degraded_one_is_not(tmp_path: Path) -> None:
+    create_credentials(tmp_path / "bus")
+    listen = [endpoint(free_port()).replace("tcp/", "tls/")]
+    settings = BusSettings(listen=listen, credentials=tmp_path / "bus")
+    with Bus(settings, "recorder") as bus:
+        bus.declare_alive()
+        for state, problem in (("holding", None), ("degraded", "recorder reports degraded: full")):
+            stop = threading.Event()
+            reporter = threading.Thread(target=_report, args=(bus, state, stop))
+            reporter.start()
+            try:
+                assert check(settings, "recorder", timeout_s=5.0) == problem
+            finally:
+                stop.set()
+                reporter.join()
+
+
+def _report(bus: Bus, state: str, stop: threading.Event) -> None:
+    while not stop.wait(0.1):
+        bus.report_health(state, "full" if state == "degraded" else "", force=True)
