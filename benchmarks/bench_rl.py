@@ -44,12 +44,14 @@ def environment(decisions: int, randomize: bool, seed: int = 0) -> tuple[float, 
     return wall, simulated, round(simulated / runner.sim.timestep_s)
 
 
-def raw_physics(steps: int) -> float:
+def raw_physics(steps: int, randomize: bool) -> float:
     """Wall time of ``steps`` bare mj_step calls (10 per call, as the control loop) on the
-    same model: the ceiling for the environment."""
-    runner = ReachRunner()
+    same model (randomised alike: joint friction adds constraints to solve): the ceiling
+    for the environment."""
+    runner = ReachRunner(ReachSettings().randomized(randomize))
     model, data = runner.sim.model, runner.sim.data
-    runner.episode(0).sim.reset(runner.start_posture(runner.sample(0).start), (0.5, 0.0))
+    start = runner.start_posture(runner.sample(0).start)
+    runner.sim.reset(start, (0.5, 0.0), rng=np.random.default_rng(0))
     start = time.perf_counter()
     for _ in range(steps // 10):
         mujoco.mj_step(model, data, nstep=10)
@@ -101,7 +103,7 @@ def main() -> None:
     environment(100, True)  # warm up (imports, caches)
     for randomize in (False, True):
         wall, simulated, steps = environment(args.decisions, randomize)
-        physics = raw_physics(steps)
+        physics = raw_physics(steps, randomize)
         arm = "randomised" if randomize else "nominal"
         print(f"environment, 1 core, {arm} arm: {args.decisions / wall:.0f} decisions/s "
               f"({simulated / wall:.0f}x real time); raw mj_step for the same {simulated:.0f} s "
