@@ -71,8 +71,8 @@ class DualAgentDQN:
         self.q_human, self.q_robot = self.online.human, self.online.robot
         self.target_human, self.target_robot = self.target.human, self.target.robot
         self.sync_targets()
-        params = list(self.q_human.parameters()) + list(self.q_robot.parameters())
-        self.optimizer = torch.optim.Adam(params, lr=settings.learning_rate)
+        self.parameters = [*self.q_human.parameters(), *self.q_robot.parameters()]
+        self.optimizer = torch.optim.Adam(self.parameters, lr=settings.learning_rate)
         self.updates = 0
 
     def sync_targets(self) -> None:
@@ -111,10 +111,7 @@ class DualAgentDQN:
         loss_r = nn.functional.smooth_l1_loss(q_r, y_r)
         self.optimizer.zero_grad()
         (loss_h + loss_r).backward()  # type: ignore[no-untyped-call]
-        nn.utils.clip_grad_norm_(
-            list(self.q_human.parameters()) + list(self.q_robot.parameters()),
-            self.settings.grad_clip,
-        )
+        nn.utils.clip_grad_norm_(self.parameters, self.settings.grad_clip)
         self.optimizer.step()
         self.updates += 1
         if self.updates % self.settings.target_update_every == 0:
