@@ -114,6 +114,7 @@ def main() -> None:
     many = parallel_environment(args.decisions, cores)
     print(f"environment, {cores} processes: {many:.0f} decisions/s in all "
           f"({many / one:.2f}x one core)")  # fmt: skip
+    training(2)  # warm: imports (TensorBoard, SciPy's filters) outside the timing, as SB3's
     wall, decisions = training(args.train_episodes)
     print(f"training (dammrl dual-agent DQN): {args.train_episodes} episodes, {decisions} "
           f"decisions in {wall:.1f} s ({decisions / wall:.0f}/s with learning)")  # fmt: skip
