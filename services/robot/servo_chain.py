@@ -1,0 +1,270 @@
+"""An emulated chain of Dynamixel X-series servos behind Protocol 2.0: control tables,
+PING / READ / WRITE / SYNC READ / SYNC WRITE, hardware error bits, the bus watchdog and
+faults on demand (CRC errors, a missing servo, no answer, an overload, unplugged).
+
+Each servo's motion comes from a ``Physics`` callback (the MuJoCo arm in the robot
+service's emulation; a first-order servo by default), so the driver under test sees a
+plausible arm. Time is passed in, never read, so tests are deterministic.
+"""
+
+from __future__ import annotations
+
+import math
+import struct
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import dynamixel_sdk as sdk
+
+from services.robot.protocol2 import BROADCAST_ID, CorruptPacket, Instruction, status_packet
+
+# Protocol 2.0 instructions and error numbers (the SDK's constants, typed)
+INST_PING: int = sdk.INST_PING
+INST_READ: int = sdk.INST_READ
+INST_WRITE: int = sdk.INST_WRITE
+INST_SYNC_READ: int = sdk.INST_SYNC_READ
+INST_SYNC_WRITE: int = sdk.INST_SYNC_WRITE
+ERRNUM_INSTRUCTION: int = sdk.ERRNUM_INSTRUCTION
+ERRNUM_DATA_RANGE: int = sdk.ERRNUM_DATA_RANGE
+ERRNUM_DATA_LENGTH: int = sdk.ERRNUM_DATA_LENGTH
+ERRNUM_ACCESS: int = sdk.ERRNUM_ACCESS
+
+# X-series control table (XM430-W350, e-manual), the addresses the driver uses
+MODEL_NUMBER, FIRMWARE_VERSION, SERVO_ID = 0, 6, 7
+OPERATING_MODE, TORQUE_ENABLE, HARDWARE_ERROR_STATUS = 11, 64, 70
+BUS_WATCHDOG, GOAL_CURRENT, GOAL_POSITION = 98, 102, 116
+PRESENT_CURRENT, PRESENT_VELOCITY, PRESENT_POSITION = 126, 128, 132
+PRESENT_INPUT_VOLTAGE, PRESENT_TEMPERATURE = 144, 146
+XM430_W350 = 1020
+TABLE_SIZE = 256
+WRITABLE = {OPERATING_MODE: 1, TORQUE_ENABLE: 1, BUS_WATCHDOG: 1, GOAL_CURRENT: 2,
+            GOAL_POSITION: 4}  # fmt: skip
+"""Address -> size of the fields a host may write (others answer an access error)."""
+WATCHDOG_UNIT_S = 0.020
+ALERT = 0x80  # status-packet error byte: a hardware error is latched
+OVERLOAD_BIT, OVERHEAT_BIT, VOLTAGE_BIT = 0x20, 0x04, 0x01
+TICKS_PER_RAD = 4096 / (2 * math.pi)  # position resolution: 0.088 deg
+RPM_UNIT = 0.229  # present velocity unit [rev/min]
+
+Physics = Callable[[dict[int, float], float], dict[int, float]]
+"""(goal positions [rad] per servo id, time step [s]) -> present positions [rad]."""
+
+
+@dataclass
+class EmulatedServo:
+    servo_id: int
+    table: bytearray = field(default_factory=lambda: bytearray(TABLE_SIZE))
+    watchdog_deadline_s: float | None = None
+
+    def __post_init__(self) -> None:
+        struct.pack_into("<H", self.table, MODEL_NUMBER, XM430_W350)
+        self.table[FIRMWARE_VERSION] = 46
+        self.table[SERVO_ID] = self.servo_id
+        self.table[OPERATING_MODE] = 3  # position control
+        struct.pack_into("<H", self.table, PRESENT_INPUT_VOLTAGE, 120)  # 12.0 V
+        self.table[PRESENT_TEMPERATURE] = 30
+
+    def read(self, address: int, length: int) -> bytes:
+        return bytes(self.table[address : address + length])
+
+    def value(self, address: int, size: int) -> int:
+        return int.from_bytes(self.table[address : address + size], "little", signed=True)
+
+    @property
+    def torque_on(self) -> bool:
+        return self.table[TORQUE_ENABLE] == 1
+
+    @property
+    def hardware_error(self) -> int:
+        return self.table[HARDWARE_ERROR_STATUS]
+
+    @property
+    def watchdog_expired(self) -> bool:
+        return self.table[BUS_WATCHDOG] == 0xFF  # -1: the servo stopped itself
+
+    def write(self, address: int, data: bytes, now_s: float) -> int:
+        """Write a field; 0 or the Protocol 2.0 error number."""
+        size = WRITABLE.get(address)
+        if size is None:
+            return ERRNUM_ACCESS
+        if len(data) != size:
+            return ERRNUM_DATA_LENGTH
+        if address == GOAL_POSITION and (self.watchdog_expired or self.hardware_error):
+            return ERRNUM_DATA_RANGE  # stopped: goals are refused until reset
+        if address == TORQUE_ENABLE and data[0] == 1 and self.hardware_error:
+            return ERRNUM_DATA_RANGE  # a latched error keeps the torque off (reboot clears)
+        self.table[address : address + size] = data
+        if address == BUS_WATCHDOG:
+            value = data[0]
+            self.watchdog_deadline_s = now_s + value * WATCHDOG_UNIT_S if 0 < value < 128 else None
+        return 0
+
+    def heard(self, now_s: float) -> None:
+        """Any instruction for this servo refreshes its watchdog."""
+        value = self.table[BUS_WATCHDOG]
+        if 0 < value < 128:
+            self.watchdog_deadline_s = now_s + value * WATCHDOG_UNIT_S
+
+    def status_error(self) -> int:
+        return ALERT if self.hardware_error else 0
+
+
+def first_order(time_constant_s: float = 0.05) -> Physics:
+    """A servo that follows its goal with a first-order lag (the stand-in physics)."""
+    present: dict[int, float] = {}
+
+    def step(goals: dict[int, float], dt_s: float) -> dict[int, float]:
+        alpha = 1.0 - math.exp(-dt_s / time_constant_s)
+        for servo_id, goal in goals.items():
+            q = present.get(servo_id, goal)
+            present[servo_id] = q + alpha * (goal - q)
+        return dict(present)
+
+    return step
+
+
+@dataclass
+class Faults:
+    """Faults on demand."""
+
+    corrupt_responses: int = 0  # the next N status packets go out with a broken CRC
+    missing: set[int] = field(default_factory=set)  # servos that never answer
+    silent: bool = False  # no servo answers (a timeout on every request)
+    unplugged: bool = False  # the bus is gone: nothing in, nothing out
+
+
+class ServoChain:
+    """The servos on one bus: instruction packets in, status packets out."""
+
+    def __init__(self, ids: list[int], physics: Physics | None = None) -> None:
+        self.servos = {i: EmulatedServo(i) for i in ids}
+        self.physics = physics or first_order()
+        self.faults = Faults()
+        self.now_s = 0.0
+        self._last_step_s = 0.0
+
+    # ---- time and motion -----------------------------------------------------------
+    def advance(self, now_s: float) -> None:
+        """Move the arm to ``now_s``: watchdogs first (a stopped servo holds), then physics."""
+        dt = now_s - self._last_step_s
+        self.now_s = now_s
+        for servo in self.servos.values():
+            deadline = servo.watchdog_deadline_s
+            if servo.torque_on and deadline is not None and now_s >= deadline:
+                servo.table[BUS_WATCHDOG] = 0xFF  # stops by itself: goal := present
+                servo.watchdog_deadline_s = None
+                servo.table[GOAL_POSITION : GOAL_POSITION + 4] = servo.read(PRESENT_POSITION, 4)
+        if dt <= 0:
+            return
+        self._last_step_s = now_s
+        goals = {i: self._goal_rad(s) for i, s in self.servos.items() if s.torque_on}
+        if not goals:
+            return
+        before = {i: self._present_rad(self.servos[i]) for i in goals}
+        for servo_id, q in self.physics(goals, dt).items():
+            servo = self.servos[servo_id]
+            velocity = (q - before.get(servo_id, q)) / dt
+            struct.pack_into("<i", servo.table, PRESENT_POSITION, round(q * TICKS_PER_RAD) + 2048)
+            rpm = velocity * 60 / (2 * math.pi) / RPM_UNIT
+            struct.pack_into("<i", servo.table, PRESENT_VELOCITY, round(rpm))
+
+    def overload(self, servo_id: int) -> None:
+        """Latch an overload error: torque off, the alert bit in every status."""
+        servo = self.servos[servo_id]
+        servo.table[HARDWARE_ERROR_STATUS] |= OVERLOAD_BIT
+        servo.table[TORQUE_ENABLE] = 0
+
+    @staticmethod
+    def _goal_rad(servo: EmulatedServo) -> float:
+        return (servo.value(GOAL_POSITION, 4) - 2048) / TICKS_PER_RAD
+
+    @staticmethod
+    def _present_rad(servo: EmulatedServo) -> float:
+        return (servo.value(PRESENT_POSITION, 4) - 2048) / TICKS_PER_RAD
+
+    # ---- the protocol --------------------------------------------------------------
+    def handle(self, packet: Instruction | CorruptPacket) -> list[bytes]:
+        """The status packets answering one instruction (in bus order)."""
+        if self.faults.unplugged or isinstance(packet, CorruptPacket):
+            return []  # a device ignores a packet whose CRC fails
+        responses = self._answer(packet)
+        if self.faults.silent:
+            return []
+        return [self._maybe_corrupt(r) for r in responses]
+
+    def _answer(self, packet: Instruction) -> list[bytes]:
+        kind = packet.instruction
+        if kind == INST_SYNC_WRITE:
+            self._sync_write(packet.params)
+            return []
+        if kind == INST_SYNC_READ:
+            return self._sync_read(packet.params)
+        targets = self._targets(packet.servo_id)
+        if kind == INST_PING:
+            return [self._ping(s) for s in targets]
+        if packet.servo_id == BROADCAST_ID:
+            return []  # broadcast reads and writes are not answered
+        for servo in targets:
+            servo.heard(self.now_s)
+        if kind == INST_READ:
+            return [self._read(s, packet.params) for s in targets]
+        if kind == INST_WRITE:
+            return [self._write(s, packet.params) for s in targets]
+        return [status_packet(s.servo_id, ERRNUM_INSTRUCTION | s.status_error()) for s in targets]
+
+    def _targets(self, servo_id: int) -> list[EmulatedServo]:
+        present = {i: s for i, s in self.servos.items() if i not in self.faults.missing}
+        if servo_id == BROADCAST_ID:
+            return [present[i] for i in sorted(present)]
+        return [present[servo_id]] if servo_id in present else []
+
+    @staticmethod
+    def _ping(servo: EmulatedServo) -> bytes:
+        identity = servo.read(MODEL_NUMBER, 2) + servo.read(FIRMWARE_VERSION, 1)
+        return status_packet(servo.servo_id, servo.status_error(), identity)
+
+    @staticmethod
+    def _read(servo: EmulatedServo, params: bytes) -> bytes:
+        if len(params) != 4:
+            return status_packet(servo.servo_id, ERRNUM_DATA_LENGTH)
+        address, length = struct.unpack("<HH", params)
+        if address + length > TABLE_SIZE:
+            return status_packet(servo.servo_id, ERRNUM_DATA_RANGE)
+        return status_packet(servo.servo_id, servo.status_error(), servo.read(address, length))
+
+    def _write(self, servo: EmulatedServo, params: bytes) -> bytes:
+        if len(params) < 3:
+            return status_packet(servo.servo_id, ERRNUM_DATA_LENGTH)
+        address = params[0] | params[1] << 8
+        error = servo.write(address, params[2:], self.now_s)
+        return status_packet(servo.servo_id, error | servo.status_error())
+
+    def _sync_read(self, params: bytes) -> list[bytes]:
+        if len(params) < 5:
+            return []
+        address, length = struct.unpack("<HH", params[:4])
+        answers = []
+        for servo_id in params[4:]:  # each answers in the order the host listed them
+            targets = self._targets(servo_id)
+            for servo in targets:
+                servo.heard(self.now_s)
+                answers.append(status_packet(servo_id, servo.status_error(),
+                                             servo.read(address, length)))  # fmt: skip
+        return answers
+
+    def _sync_write(self, params: bytes) -> None:
+        if len(params) < 4:
+            return
+        address, length = struct.unpack("<HH", params[:4])
+        block = 1 + length
+        for start in range(4, len(params) - block + 1, block):
+            servo_id = params[start]
+            for servo in self._targets(servo_id):
+                servo.heard(self.now_s)
+                servo.write(address, params[start + 1 : start + block], self.now_s)
+
+    def _maybe_corrupt(self, response: bytes) -> bytes:
+        if self.faults.corrupt_responses <= 0:
+            return response
+        self.faults.corrupt_responses -= 1
+        return response[:-1] + bytes([response[-1] ^ 0xFF])
