@@ -132,3 +132,43 @@ def test_the_bus_watchdog_stops_a_servo_whose_host_went_quiet(bus) -> None:  # t
     assert abs(packet.read4ByteTxRx(port, 1, PRESENT_POSITION)[0] - held) <= 1  # it stopped
     assert packet.write1ByteTxRx(port, 1, BUS_WATCHDOG, 0)[:2] == (COMM_SUCCESS, 0)
     assert packet.write4ByteTxRx(port, 1, GOAL_POSITION, 2048)[:2] == (COMM_SUCCESS, 0)
+
+
+def test_the_dynamixel_driver_holds_moves_and_reports_through_the_emulated_chain(
+    tmp_path: Path,
+) -> None:
+    """The real driver path, on the emulated bus: connect holds the arm where it is,
+    commands move it, faults become DriverErrors or reported error bits, and the bus
+    watchdog is armed so a dead host stops the servos."""
+    import numpy as np
+
+    from services.robot.driver import Calibration, DriverError, make_driver
+
+    chain = ServoChain(IDS)
+    calibration = Calibration(offsets_rad=(0.1, 0, 0, 0, 0, -0.2), directions=(1, -1, 1, 1, 1, 1))
+    with ServoBusEmulator(chain, tmp_path / "ttyROBOT") as emulator:
+        driver = make_driver("dynamixel", port=str(tmp_path / "ttyROBOT"), calibration=calibration)
+        with driver:  # type: ignore[attr-defined]
+            start = driver.read_state().q_rad
+            target = start + np.array([0.2, -0.1, 0.05, 0.0, 0.1, -0.05])
+            until = time.monotonic() + 0.4
+            while time.monotonic() < until:  # a control loop: the watchdog (0.1 s) stays fed
+                driver.write_command(target)
+                time.sleep(0.01)
+            state = driver.read_state()
+            np.testing.assert_allclose(state.q_rad, target, atol=2 / 651.9)  # 2 ticks
+            assert state.hardware_errors == {}
+            with emulator.lock:
+                assert all(s.table[BUS_WATCHDOG] == 5 for s in chain.servos.values())
+                chain.overload(4)
+            assert driver.read_state().hardware_errors == {4: OVERLOAD_BIT}
+            with emulator.lock:
+                chain.faults.missing = {2}
+            with pytest.raises(DriverError, match="sync read failed"):
+                driver.read_state()
+            with emulator.lock:
+                chain.faults.missing = set()
+    with pytest.raises(DriverError, match="cannot open"):
+        make_driver("dynamixel", port=str(tmp_path / "nothing")).connect()
+    with pytest.raises(Exception, match="unknown robot driver"):
+        make_driver("kuka")

@@ -46,8 +46,9 @@ OVERLOAD_BIT, OVERHEAT_BIT, VOLTAGE_BIT = 0x20, 0x04, 0x01
 TICKS_PER_RAD = 4096 / (2 * math.pi)  # position resolution: 0.088 deg
 RPM_UNIT = 0.229  # present velocity unit [rev/min]
 
-Physics = Callable[[dict[int, float], float], dict[int, float]]
-"""(goal positions [rad] per servo id, time step [s]) -> present positions [rad]."""
+Physics = Callable[[dict[int, float], dict[int, float], float], dict[int, float]]
+"""(goal positions [rad], present positions [rad], time step [s]) -> the new present
+positions, per servo id (the servos with torque on)."""
 
 
 @dataclass
@@ -55,6 +56,7 @@ class EmulatedServo:
     servo_id: int
     table: bytearray = field(default_factory=lambda: bytearray(TABLE_SIZE))
     watchdog_deadline_s: float | None = None
+    angle_rad: float = 0.0  # the shaft's true angle; the encoder reports it in ticks
 
     def __post_init__(self) -> None:
         struct.pack_into("<H", self.table, MODEL_NUMBER, XM430_W350)
@@ -62,6 +64,8 @@ class EmulatedServo:
         self.table[SERVO_ID] = self.servo_id
         self.table[OPERATING_MODE] = 3  # position control
         struct.pack_into("<H", self.table, PRESENT_INPUT_VOLTAGE, 120)  # 12.0 V
+        struct.pack_into("<i", self.table, PRESENT_POSITION, 2048)  # at rest, centred
+        struct.pack_into("<i", self.table, GOAL_POSITION, 2048)
         self.table[PRESENT_TEMPERATURE] = 30
 
     def read(self, address: int, length: int) -> bytes:
@@ -111,14 +115,11 @@ class EmulatedServo:
 
 def first_order(time_constant_s: float = 0.05) -> Physics:
     """A servo that follows its goal with a first-order lag (the stand-in physics)."""
-    present: dict[int, float] = {}
 
-    def step(goals: dict[int, float], dt_s: float) -> dict[int, float]:
+    def step(goals: dict[int, float], present: dict[int, float], dt_s: float
+             ) -> dict[int, float]:  # fmt: skip
         alpha = 1.0 - math.exp(-dt_s / time_constant_s)
-        for servo_id, goal in goals.items():
-            q = present.get(servo_id, goal)
-            present[servo_id] = q + alpha * (goal - q)
-        return dict(present)
+        return {i: present[i] + alpha * (goal - present[i]) for i, goal in goals.items()}
 
     return step
 
@@ -160,10 +161,11 @@ class ServoChain:
         goals = {i: self._goal_rad(s) for i, s in self.servos.items() if s.torque_on}
         if not goals:
             return
-        before = {i: self._present_rad(self.servos[i]) for i in goals}
-        for servo_id, q in self.physics(goals, dt).items():
+        before = {i: self.servos[i].angle_rad for i in goals}
+        for servo_id, q in self.physics(goals, before, dt).items():
             servo = self.servos[servo_id]
-            velocity = (q - before.get(servo_id, q)) / dt
+            servo.angle_rad = q
+            velocity = (q - before[servo_id]) / dt
             struct.pack_into("<i", servo.table, PRESENT_POSITION, round(q * TICKS_PER_RAD) + 2048)
             rpm = velocity * 60 / (2 * math.pi) / RPM_UNIT
             struct.pack_into("<i", servo.table, PRESENT_VELOCITY, round(rpm))
@@ -177,10 +179,6 @@ class ServoChain:
     @staticmethod
     def _goal_rad(servo: EmulatedServo) -> float:
         return (servo.value(GOAL_POSITION, 4) - 2048) / TICKS_PER_RAD
-
-    @staticmethod
-    def _present_rad(servo: EmulatedServo) -> float:
-        return (servo.value(PRESENT_POSITION, 4) - 2048) / TICKS_PER_RAD
 
     # ---- the protocol --------------------------------------------------------------
     def handle(self, packet: Instruction | CorruptPacket) -> list[bytes]:
