@@ -175,3 +175,25 @@ def test_version_and_shell_completion(capsys: pytest.CaptureFixture[str]) -> Non
         main(["--print-completion", "bash"])
     script = capsys.readouterr().out
     assert "complete" in script and "frontier" in script and "--eval-seeds" in script
+
+
+def test_a_missing_extra_is_a_one_line_error_before_any_work(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    """Without foxglove-sdk or PyAV the command says which extra to install, no traceback,
+    and a reach is not run for a video it cannot write."""
+    import importlib.util
+
+    real = importlib.util.find_spec
+
+    def without_extras(name: str, *rest: object) -> object:
+        return None if name in ("foxglove", "av") else real(name, *rest)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(importlib.util, "find_spec", without_extras)
+    assert main(["view", "--port", "1"]) == Exit.USAGE
+    assert "pip install 'dammrl[view]'" in capsys.readouterr().err
+    assert main(["reach", "--video", str(tmp_path / "r.mp4")]) == Exit.USAGE
+    err = capsys.readouterr()
+    assert "pip install 'dammrl[video]'" in err.err and err.out == ""  # no reach ran
+    assert main(["reach", "--video", str(tmp_path / "r.avi")]) == Exit.USAGE
+    assert ".mp4 or .gif" in capsys.readouterr().err

@@ -172,3 +172,16 @@ def headless_gl() -> None:
         if ctypes.util.find_library(library):
             os.environ["MUJOCO_GL"] = backend
             return
+
+
+def check_video_path(path: Path) -> None:
+    """A video's name says its format; MP4 needs PyAV (the ``video`` extra)."""
+    import importlib.util
+
+    from dammrl.core.errors import UsageError
+
+    suffix = path.suffix.lower()
+    if suffix not in (".mp4", ".gif"):
+        raise UsageError(f"video {path}: the name must end in .mp4 or .gif")
+    if suffix == ".mp4" and importlib.util.find_spec("av") is None:
+        raise UsageError("MP4 needs PyAV: pip install 'dammrl[video]' (or write a .gif)")

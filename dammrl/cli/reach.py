@@ -7,7 +7,15 @@ import json
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from dammrl.cli.common import Commands, headless_gl, model_arg, print_err, progress_bar, table
+from dammrl.cli.common import (
+    Commands,
+    check_video_path,
+    headless_gl,
+    model_arg,
+    print_err,
+    progress_bar,
+    table,
+)
 
 if TYPE_CHECKING:
     from dammrl.runner import ReachResult, ReachSettings
@@ -50,6 +58,7 @@ def register(commands: Commands) -> None:
 def _reach(args: argparse.Namespace) -> int:
     """Run the reach once per trigger on the same sampled task; print metrics, maybe plot."""
     if args.video is not None:
+        check_video_path(args.video)  # before the reach runs
         headless_gl()  # before MuJoCo is imported
     from dammrl.runner import ReachRunner
 

@@ -11,6 +11,7 @@ from dammrl.cli.common import (
     Commands,
     add_connect,
     bus_settings,
+    check_video_path,
     headless_gl,
     print_err,
     progress_bar,
@@ -170,6 +171,7 @@ def _plot(args: argparse.Namespace) -> int:
 
 def _video(args: argparse.Namespace) -> int:
     """Render one episode of a recording offscreen; prints the video's path."""
+    check_video_path(args.out)
     headless_gl()  # before MuJoCo is imported
     from dammrl.video import VideoSettings, frame_times, track_of_recording, write_video
 

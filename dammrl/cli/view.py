@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import importlib.util
 from pathlib import Path
 
 from dammrl.cli.common import DEFAULT_CONNECT, Commands, add_bus_arguments, bus_settings, print_err
@@ -41,18 +42,16 @@ def _view(args: argparse.Namespace) -> int:
         raise UsageError(f"--max-hz must be in (0, 60], got {args.max_hz}")
     if args.recording is not None and not args.recording.is_file():
         raise UsageError(f"no such recording: {args.recording}")
-    try:
-        from dammrl.viewer import (
-            FoxgloveServer,
-            SceneTranslator,
-            bus_messages,
-            layout,
-            recording_messages,
-        )
-    except ImportError as exc:
-        raise UsageError(
-            f"dammrl view needs foxglove-sdk: pip install 'dammrl[view]' ({exc})"
-        ) from None
+    if importlib.util.find_spec("foxglove") is None:
+        raise UsageError("dammrl view needs foxglove-sdk: pip install 'dammrl[view]'")
+    from dammrl.viewer import (
+        FoxgloveServer,
+        SceneTranslator,
+        bus_messages,
+        layout,
+        recording_messages,
+    )
+
     if args.layout_out is not None:
         args.layout_out.write_text(layout() + "\n")
         print(args.layout_out)
