@@ -4,38 +4,15 @@ from __future__ import annotations
 
 import contextlib
 import json
-import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass, field
-
-import zenoh
 
 from dammrl.core.errors import DammrlError
 from schemas import DecodeError, Health, decode, type_of
-from services.common.bus import zenoh_config
+from services.common.bus import tool_session
 from services.common.config import BusSettings
 from services.common.runtime import stopping_on_signals
-
-CLOSE_WAIT_S = 1.0
-"""How long a tool waits for its session to close: a hung peer can hold it 10 s."""
-
-
-@contextlib.contextmanager
-def _session(settings: BusSettings) -> Iterator[zenoh.Session]:
-    """A tool's session, closed in bounded time (the process is about to end anyway)."""
-    session = zenoh.open(zenoh_config(settings))
-    try:
-        yield session
-    finally:
-        closer = threading.Thread(target=_close_quietly, args=(session,), daemon=True)
-        closer.start()
-        closer.join(CLOSE_WAIT_S)
-
-
-def _close_quietly(session: zenoh.Session) -> None:
-    with contextlib.suppress(zenoh.ZError):
-        session.close()  # type: ignore[no-untyped-call]
 
 
 @dataclass
@@ -62,7 +39,7 @@ def status(settings: BusSettings, listen_s: float = 2.5) -> tuple[str, bool]:
     whether every service heard of is alive and reporting."""
     ns = settings.namespace
     roll = Roll()
-    with _session(settings) as session:
+    with tool_session(settings) as session:
         health = session.declare_subscriber(f"{ns}/health/*")
         time.sleep(0.3)  # let the connection settle before asking
         roll.alive |= {
@@ -128,7 +105,7 @@ def echo(
         raise DammrlError(f"unknown topic {topic!r}: see `dammrl schemas` for the topics")
     seen, window, window_start = 0, 0, time.monotonic()
     end = None if duration_s is None else time.monotonic() + duration_s
-    with stopping_on_signals() as stop, _session(settings) as session:
+    with stopping_on_signals() as stop, tool_session(settings) as session:
         subscriber = session.declare_subscriber(key_expr)
         while not stop.is_set() and (count is None or seen < count):
             if end is not None and time.monotonic() >= end:

@@ -8,12 +8,14 @@ service's Health reports (``dammrl status``), and the loop carries on.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import queue
 import threading
 import time
 from collections import Counter
+from collections.abc import Iterator
 from types import TracebackType
 from typing import Any, Generic, TypeVar
 
@@ -261,3 +263,25 @@ class Bus:
             **self._roster_fields(),
         )
         self._next_health = now + self.settings.health_period_s
+
+
+TOOL_CLOSE_WAIT_S = 1.0
+"""How long a tool waits for its session to close: a hung peer can hold it 10 s."""
+
+
+@contextlib.contextmanager
+def tool_session(settings: BusSettings) -> Iterator[zenoh.Session]:
+    """A tool's session (status, echo, health check, viewer), closed in bounded time: the
+    process is about to end anyway."""
+    session = zenoh.open(zenoh_config(settings))
+    try:
+        yield session
+    finally:
+        closer = threading.Thread(target=_close_quietly, args=(session,), daemon=True)
+        closer.start()
+        closer.join(TOOL_CLOSE_WAIT_S)
+
+
+def _close_quietly(session: zenoh.Session) -> None:
+    with contextlib.suppress(zenoh.ZError):
+        session.close()  # type: ignore[no-untyped-call]

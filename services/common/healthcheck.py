@@ -18,9 +18,8 @@ from __future__ import annotations
 import argparse
 import contextlib
 import sys
-import threading
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 
 import zenoh
 from pydantic import ValidationError
@@ -28,7 +27,7 @@ from pydantic import ValidationError
 from dammrl.core.errors import ConfigurationError, DammrlError
 from dammrl.core.settings import error_line
 from schemas import DecodeError, Health, decode, key
-from services.common.bus import zenoh_config
+from services.common.bus import tool_session
 from services.common.config import BusSettings
 
 HEALTHY_STATES = ("ok", "holding")
@@ -36,8 +35,6 @@ HEALTHY_STATES = ("ok", "holding")
 controller's first command; the controller waiting for the policy and the human): a sim
 that waits for a controller that waits for a healthy sim would otherwise never start.
 "degraded" (a fallback policy, an unplugged sensor, a recorder that cannot write) is not."""
-CLOSE_WAIT_S = 1.0
-"""How long the check waits for its session to close before exiting anyway [s]."""
 WILDCARD_HOSTS = {"0.0.0.0": "127.0.0.1", "[::]": "[::1]"}
 
 
@@ -68,7 +65,7 @@ def check(settings: BusSettings, service: str, timeout_s: float) -> str | None:
     probe = probe_settings(settings)
     deadline = time.monotonic() + timeout_s
     try:
-        with _session(probe) as session:
+        with tool_session(probe) as session:
             reports = session.declare_subscriber(key(probe.namespace, Health, service))
             alive = f"{probe.namespace}/alive/{service}"
             if not any(r.ok is not None for r in session.liveliness().get(alive, timeout=1.0)):
@@ -95,23 +92,6 @@ def _next_report(
         with contextlib.suppress(DecodeError):
             return decode(Health, sample.payload.to_bytes())
     return None
-
-
-@contextlib.contextmanager
-def _session(settings: BusSettings) -> Iterator[zenoh.Session]:
-    """A session closed in bounded time: the check is about to exit anyway."""
-    session = zenoh.open(zenoh_config(settings, "tool"))
-    try:
-        yield session
-    finally:
-        closer = threading.Thread(target=_close_quietly, args=(session,), daemon=True)
-        closer.start()
-        closer.join(CLOSE_WAIT_S)
-
-
-def _close_quietly(session: zenoh.Session) -> None:
-    with contextlib.suppress(zenoh.ZError):
-        session.close()  # type: ignore[no-untyped-call]
 
 
 def main(argv: Sequence[str] | None = None) -> int:
