@@ -49,7 +49,9 @@ from services.common.security import create_credentials, run_credentials
 MODES = {
     "virtual": ("sim", "policy", "intent", "controller"),
     "semi-virtual": ("sim", "policy", "intent", "controller"),  # intent reads the sensor
+    "real": ("robot", "policy", "intent", "controller"),  # the arm on a servo bus
 }
+EMULATOR_START_S = 15.0
 START_TIMEOUT_S = 60.0
 STOP_TIMEOUT_S = 5.0
 
@@ -70,6 +72,9 @@ class StackOptions:
     lockstep: bool = False  # every service on the robot clock (DAMMRL_BUS_LOCKSTEP); sim only
     credentials: Path | None = None  # from `dammrl bus init`: mutual TLS and the ACL
     insecure: bool = False  # plain tcp on loopback instead of this run's own credentials
+    robot_port: str | None = None  # real: the servo bus's serial device
+    robot_calibration: Path | None = None  # real: from `dammrl robot calibrate`
+    emulate_robot: bool = False  # real: serve the emulated arm at robot_port first
 
 
 def check_port(port: int) -> int:
@@ -128,6 +133,16 @@ def check_options(options: StackOptions) -> None:
         )
     if options.mode == "semi-virtual" and not options.serial_port:
         raise UsageError("semi-virtual mode needs --port (the pressure sensor's serial device)")
+    if options.mode == "real" and options.lockstep:
+        raise UsageError("--lockstep is for simulation only: a real arm runs in real time")
+    if options.mode == "real" and not options.robot_port:
+        raise UsageError("real mode needs --robot-port (the servo bus, or --emulate-robot)")
+    if options.mode != "real" and (options.robot_port or options.emulate_robot):
+        raise UsageError("--robot-port and --emulate-robot are for --mode real")
+    if options.robot_calibration is not None:
+        from services.robot import calibration
+
+        calibration.load_calibration(options.robot_calibration)
     if options.calibration is not None:  # a clear error now, not a dead service
         from services.intent.calibration import load_calibration
         from services.intent.config import IntentSettings
@@ -160,6 +175,7 @@ class Stack:
         scheme = "tcp" if self.credentials is None else "tls"
         self.endpoint = f"{scheme}/127.0.0.1:{port}"
         self.children: dict[str, subprocess.Popen[bytes]] = {}
+        self.emulator: subprocess.Popen[bytes] | None = None
         self.results: list[EpisodeResult] = []
         self.prompts: PatientPrompts | None = None
 
@@ -191,10 +207,14 @@ class Stack:
         if o.episodes is not None:
             env["DAMMRL_TASK_EPISODES"] = str(o.episodes)
         env.setdefault("DAMMRL_LOG_LEVEL", "WARNING")  # progress comes from the launcher
-        if o.mode == "semi-virtual":
+        if o.serial_port is not None:  # semi-virtual, or real with the person at the sensor
             env.update(DAMMRL_INTENT_SOURCE="serial", DAMMRL_INTENT_PORT=str(o.serial_port))
             if o.calibration is not None:
                 env["DAMMRL_INTENT_CALIBRATION_FILE"] = str(o.calibration.resolve())
+        if o.robot_port is not None:
+            env["DAMMRL_ARM_PORT"] = o.robot_port
+        if o.robot_calibration is not None:
+            env["DAMMRL_ARM_CALIBRATION_FILE"] = str(o.robot_calibration.resolve())
         if o.record is not None:
             env.update(DAMMRL_RECORDER_OUT=str(o.record), DAMMRL_RECORDER_MODE=o.mode)
         if o.lockstep:
@@ -219,7 +239,7 @@ class Stack:
             session = zenoh.open(zenoh_config(settings))
             try:
                 results = session.declare_subscriber(key(self.options.namespace, EpisodeResult))
-                if self.options.mode == "semi-virtual" and not self.options.json:
+                if self.options.serial_port is not None and not self.options.json:
                     self.prompts = PatientPrompts(session, self.options.namespace, self.info)
                 self._start_children(session, stop)
                 self._wait_alive(session, stop)
@@ -236,6 +256,8 @@ class Stack:
 
     def _start_children(self, session: zenoh.Session, stop: SignalStop) -> None:
         env = self.environment()
+        if self.options.emulate_robot:
+            self._start_emulator(env)
         for name in self.services():
             self.children[name] = subprocess.Popen(
                 [sys.executable, "-m", f"services.{name}"],
@@ -247,6 +269,25 @@ class Stack:
             if name == "recorder":  # record from the first message of the stack on
                 self._wait_alive(session, stop, quiet=True)
         self.info(f"started {', '.join(self.children)} on {self.endpoint}")
+
+    def _start_emulator(self, env: dict[str, str]) -> None:
+        """The emulated arm, served at the robot port before the robot service opens it."""
+        port = Path(str(self.options.robot_port))
+        port.unlink(missing_ok=True)
+        command = [sys.executable, "-m", "dammrl", "robot", "emulate", "--port", str(port),
+                   "--follow-goals"]  # fmt: skip
+        if self.options.robot_calibration is not None:
+            command += ["--calibration", str(self.options.robot_calibration.resolve())]
+        self.emulator = subprocess.Popen(
+            command, env=env, preexec_fn=_die_with_parent, stdin=subprocess.DEVNULL,
+            start_new_session=True,
+        )  # fmt: skip
+        deadline = time.monotonic() + EMULATOR_START_S
+        while not port.exists():
+            if self.emulator.poll() is not None or time.monotonic() > deadline:
+                raise JobFailedError(f"the emulated arm did not come up at {port}")
+            time.sleep(0.05)
+        self.info(f"emulated arm at {port}")
 
     def _wait_alive(self, session: zenoh.Session, stop: SignalStop, quiet: bool = False) -> None:
         deadline = time.monotonic() + START_TIMEOUT_S
@@ -322,11 +363,17 @@ class Stack:
                 raise JobFailedError(f"service {name} exited unexpectedly with code {code}")
 
     def _stop_children(self) -> None:
-        for child in self.children.values():
+        self._stop_processes(list(self.children.values()))
+        if self.emulator is not None:  # last: the robot service leaves the arm holding
+            self._stop_processes([self.emulator])
+
+    @staticmethod
+    def _stop_processes(children: list[subprocess.Popen[bytes]]) -> None:
+        for child in children:
             if child.poll() is None:
                 child.send_signal(signal.SIGTERM)
         deadline = time.monotonic() + STOP_TIMEOUT_S
-        for child in self.children.values():
+        for child in children:
             try:
                 child.wait(max(0.1, deadline - time.monotonic()))
             except subprocess.TimeoutExpired:

@@ -4,6 +4,7 @@ from schemas.codec import DecodeError, decode, encode
 from schemas.keys import DEFAULT_NAMESPACE, TOPICS, key, type_of
 from schemas.messages import (
     DecisionRequest,
+    EmergencyStop,
     EpisodeResult,
     Header,
     Health,
@@ -22,6 +23,7 @@ __all__ = [
     "TOPICS",
     "DecisionRequest",
     "DecodeError",
+    "EmergencyStop",
     "EpisodeResult",
     "Header",
     "Health",

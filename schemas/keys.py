@@ -7,6 +7,7 @@ from __future__ import annotations
 
 from schemas.messages import (
     DecisionRequest,
+    EmergencyStop,
     EpisodeResult,
     Health,
     Intent,
@@ -31,6 +32,7 @@ TOPICS: dict[str, type[Message]] = {
     "task/goal": TaskGoal,
     "task/result": EpisodeResult,
     "sensor/sample": SensorSample,
+    "safety/stop": EmergencyStop,
     "health/*": Health,  # one key per service: health/<service>
 }
 

@@ -199,7 +199,9 @@ class Health(Message):
     """A service's periodic health report."""
 
     service: str = Field(min_length=1, max_length=64)
-    state: Literal["ok", "holding", "degraded"]
+    state: Literal["ok", "holding", "degraded", "stopped"] = Field(
+        description="stopped: an arm held by an emergency stop or a fault until released"
+    )
     detail: str = ""
     rejected: dict[str, int] = Field(default_factory=dict, description="rejected messages per key")
     rates_hz: dict[str, Finite] = Field(default_factory=dict, description="publish rate per key")
@@ -212,3 +214,12 @@ class Health(Message):
         description="services this one saw alive that are gone: when it last saw each "
         "(Unix time) [s]",
     )
+
+
+class EmergencyStop(Message):
+    """Stop every arm (sim and robot) within one control period, until released. Latched:
+    a stopped arm holds where it is with low gains (or torque off, by its settings) and
+    takes no command; a release returns it to its ordinary hold, not to motion."""
+
+    engaged: bool = Field(description="true: stop now; false: release a stop")
+    reason: str = Field("", max_length=200, description="who stopped and why (for the record)")

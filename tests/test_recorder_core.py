@@ -13,7 +13,7 @@ from dammrl.recording import RecordingError, info, read_recording, repair
 from schemas import Header, encode
 from services.recorder.config import RecorderSettings
 from services.recorder.core import McapRecorder
-from services.recorder.gaps import SequenceAccount, publisher_of
+from services.recorder.gaps import SequenceAccount, publishers_of
 from tests.test_schemas import EXAMPLES
 
 STATE = EXAMPLES[0]
@@ -52,12 +52,12 @@ def test_every_payload_is_kept_and_gaps_are_counted(tmp_path: Path) -> None:
 
 
 # ---- sequence accounting ------------------------------------------------------------
-def test_the_publisher_of_a_key_is_the_role_allowed_to_publish_it() -> None:
-    assert publisher_of("dammrl", KEY) == "sim"
-    assert publisher_of("dammrl", "dammrl/task/goal") == "controller"
-    assert publisher_of("dammrl", "dammrl/health/intent") == "intent"
-    assert publisher_of("dammrl", "dammrl/elsewhere") is None
-    assert publisher_of("lab2", KEY) is None
+def test_the_publishers_of_a_key_is_the_role_allowed_to_publish_it() -> None:
+    assert publishers_of("dammrl", KEY) == {"sim", "robot"}
+    assert publishers_of("dammrl", "dammrl/task/goal") == {"controller"}
+    assert publishers_of("dammrl", "dammrl/health/intent") == {"intent"}
+    assert publishers_of("dammrl", "dammrl/elsewhere") is None
+    assert publishers_of("lab2", KEY) is None
 
 
 def test_a_fuzzed_sequence_number_is_an_anomaly_not_four_billion_lost_messages() -> None:

@@ -15,7 +15,7 @@ import shtab
 from pydantic import ValidationError
 
 from dammrl import __version__
-from dammrl.cli import bus, reach, recording, rl, sensor, stack, study, view
+from dammrl.cli import bus, reach, recording, rl, robot, sensor, stack, study, view
 from dammrl.core.errors import EXIT_CODES_HELP, DammrlError, Exit
 from dammrl.core.settings import error_line
 
@@ -24,10 +24,12 @@ GROUPS = (
     stack.register,
     recording.register,
     sensor.register,
+    robot.register,
     rl.register,
     study.register,
     view.register,
     bus.register,
+    robot.register_stop,
     stack.register_schemas,
 )
 """In the order of ``dammrl --help``."""

@@ -58,8 +58,10 @@ def _add_up(commands: Commands) -> None:
         help="launch the service stack of a mode",
         description="Start the services as processes on the bus; Ctrl-C stops them all.",
     )
-    up.add_argument("--mode", choices=["virtual", "semi-virtual"], default="virtual",
-                    help="virtual: simulated human; semi-virtual: the pressure sensor")  # fmt: skip
+    up.add_argument("--mode", choices=["virtual", "semi-virtual", "real"], default="virtual",
+                    help="virtual: simulated human and arm; semi-virtual: the pressure sensor, "
+                         "simulated arm; real: the arm on a servo bus (--robot-port), the human "
+                         "simulated or at the sensor (--port)")  # fmt: skip
     up.add_argument(
         "--episodes", type=int, help="run this many episodes, then stop (default: until Ctrl-C)"
     )
@@ -69,7 +71,12 @@ def _add_up(commands: Commands) -> None:
     up.add_argument("--trigger", choices=["event", "fixed"], default="event",
                     help="progression: event-triggered (default) or fixed-frequency")  # fmt: skip
     up.add_argument("--lockstep", action="store_true", help=LOCKSTEP_HELP)
-    up.add_argument("--port", help="semi-virtual: the pressure sensor's serial device")
+    up.add_argument("--port", help="semi-virtual (or real): the pressure sensor's serial device")
+    up.add_argument("--robot-port", help="real: the servo bus's serial device")
+    up.add_argument("--robot-calibration", type=Path,
+                    help="real: the arm's file from `dammrl robot calibrate`")  # fmt: skip
+    up.add_argument("--emulate-robot", action="store_true",
+                    help="real: serve the emulated arm at --robot-port (no hardware)")  # fmt: skip
     up.add_argument("--calibration", type=Path,
                     help="semi-virtual: file from `dammrl sensor calibrate`")  # fmt: skip
     up.add_argument(
@@ -97,6 +104,8 @@ def _up(args: argparse.Namespace) -> int:
         trigger=args.trigger, port=args.bus_port, namespace=args.namespace, json=args.json,
         serial_port=args.port, calibration=args.calibration, record=args.record,
         lockstep=args.lockstep, credentials=args.credentials, insecure=args.insecure,
+        robot_port=args.robot_port, robot_calibration=args.robot_calibration,
+        emulate_robot=args.emulate_robot,
     )  # fmt: skip
     return Stack(options, out=print_out, info=print_err).run()
 

@@ -30,13 +30,14 @@ from dammrl.core.errors import DammrlError
 # the keys (under the namespace) each role may publish, besides its health and liveliness
 PUBLISHES: dict[str, tuple[str, ...]] = {
     "sim": ("robot/state",),
+    "robot": ("robot/state",),  # the real arm (stage S3): the sim's contract
     "controller": (
         "robot/command", "intent/request", "controller/step", "task/goal", "task/result",
     ),
     "intent": ("intent", "sensor/sample"),
     "policy": ("policy/model",),
     "recorder": (),
-    "tool": (),  # status, echo, the launcher, recorders of sessions: read only
+    "tool": ("safety/stop",),  # status, echo, the launcher, `dammrl stop`: read, and stop
 }  # fmt: skip
 ROLES = tuple(PUBLISHES)
 CA_FILE = "ca.pem"

@@ -109,7 +109,7 @@ class ControllerNode:
             for t in (JointCommand, StepEvent, DecisionRequest, TaskGoal, EpisodeResult)
         }
         bus.subscribe(RobotState, Intent, ModelChoice)
-        bus.expect(RobotState, "sim")
+        bus.expect(RobotState, "sim", "robot")  # the simulated or the real arm
         bus.expect(Intent, "intent")
         bus.expect(ModelChoice, "policy")
 

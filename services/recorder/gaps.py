@@ -27,14 +27,15 @@ MAX_STREAMS = 8
 """Streams remembered per publisher (the most recently continued ones)."""
 
 
-def publisher_of(namespace: str, key_expr: str) -> str | None:
-    """The service that publishes on ``key_expr`` (None: not a key of the stack)."""
+def publishers_of(namespace: str, key_expr: str) -> frozenset[str] | None:
+    """The services that may publish on ``key_expr`` (None: not a key of the stack)."""
     topic = key_expr.removeprefix(f"{namespace}/")
     if topic == key_expr:
         return None
     if topic.startswith("health/"):
-        return topic.removeprefix("health/")
-    return next((role for role, topics in PUBLISHES.items() if topic in topics), None)
+        return frozenset({topic.removeprefix("health/")})
+    roles = frozenset(role for role, topics in PUBLISHES.items() if topic in topics)
+    return roles or None
 
 
 @dataclass
@@ -62,8 +63,8 @@ class SequenceAccount:
     def see(self, key: str, source: str, seq: int, log_time_ns: int, session: str = "") -> int:
         """Account one message; return how many messages before it are missing."""
         self.messages[key] += 1
-        expected = publisher_of(self.namespace, key)
-        if expected is not None and source != expected:
+        expected = publishers_of(self.namespace, key)
+        if expected is not None and source not in expected:
             self.foreign[key] += 1
             return 0
         streams = self._streams.setdefault((key, source, session), [])

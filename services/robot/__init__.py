@@ -1,2 +1,3 @@
-"""Stage S3, the real arm: a Dynamixel Protocol 2.0 servo chain (the emulated chain so far;
-the robot service and its driver are issue 16's next steps)."""
+"""Stage S3, the real arm: the robot service (the sim's contract on a Dynamixel Protocol 2.0
+chain), its driver, the arm's calibration and an emulated servo chain for work without
+hardware."""

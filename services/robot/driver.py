@@ -2,12 +2,17 @@
 writes joint commands and disconnects (a context manager), in the style of LeRobot's
 ``Robot``. Backends register by name; settings choose one.
 
-The Dynamixel backend (Protocol 2.0, the official dynamixel-sdk) runs the servos in
-position mode: each servo's own PID holds q_ref at its internal rate, the driver writes
-goals by group sync write and reads position, velocity and current by one group sync
-read. Joint angles go through the arm's calibration (servo ids, zero offsets,
-directions). The servo's bus watchdog is armed on connect, so the servos stop by
-themselves if this process dies.
+The Dynamixel backend (Protocol 2.0, the official dynamixel-sdk) realises the joint law
+tau = tau_ff + kp (q_ref - q) + kd (dq_ref - dq) through each servo's own position loop
+(current-based position mode): the servo's P and D gains are kp and kd through the
+calibration, its goal is q_ref shifted by (tau_ff + kd dq_ref) / kp, so that
+P (goal - q) - D dq is the law, and its goal current is the torque limit. The servo
+closes that loop at its own rate, so the law does not depend on the host's timing and
+the arm holds if the host stalls (see README, "Running on your arm", for the measured
+alternative). One sync read per cycle returns position, velocity and current with each
+servo's alert bit; one sync write sends the goals (gains and limits only when changed).
+The servo's bus watchdog is armed on connect, so the servos stop by themselves if this
+process dies.
 """
 
 from __future__ import annotations
@@ -18,18 +23,24 @@ import struct
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from types import TracebackType
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 
 from dammrl.core.errors import DammrlError
+from services.robot.calibration import Calibration
 
-TICKS_PER_RAD = 4096 / (2 * math.pi)
-CENTRE_TICKS = 2048
 RPM_UNIT, CURRENT_UNIT_A = 0.229, 0.00269  # present velocity [rev/min], current [A] per unit
-ADDRESS = {"torque_enable": 64, "hardware_error": 70, "watchdog": 98, "goal_position": 116,
-           "present": 126}  # fmt: skip
+KP_UNIT_A_PER_RAD, KD_UNIT_AS_PER_RAD = 0.01, 0.001  # the position P and D gain units
+ADDRESS = {"operating_mode": 11, "torque_enable": 64, "hardware_error": 70, "gains": 80,
+           "watchdog": 98, "goal_current": 102, "goal_position": 116, "present": 126,
+           "model": 0}  # fmt: skip
 PRESENT_BYTES = 10  # current (2), velocity (4), position (4): one sync read
+CURRENT_BASED_POSITION = 5
+MAX_GAIN_UNITS, MAX_CURRENT_UNITS = 16383, 1193
+ALERT = 0x80
+ERROR_BITS = {0x01: "input voltage", 0x04: "overheating", 0x08: "motor encoder",
+              0x10: "electrical shock", 0x20: "overload"}  # fmt: skip
 
 
 class DriverError(DammrlError):
@@ -42,31 +53,35 @@ class JointState:
     dq_rad_s: np.ndarray
     tau_nm: np.ndarray
     hardware_errors: dict[int, int]  # servo id -> its error bits, where any are set
+    button_travel_m: float = 0.0
 
 
 @dataclass(frozen=True)
-class Calibration:
-    """One arm's servos: ids, zero offsets [rad], directions (+1/-1), current to torque."""
+class ServoCommand:
+    """The joint law to realise (joint frame, SI) and the torque limit per joint."""
 
-    ids: tuple[int, ...] = (1, 2, 3, 4, 5, 6)
-    offsets_rad: tuple[float, ...] = (0.0,) * 6
-    directions: tuple[int, ...] = (1,) * 6
-    torque_per_amp_nm: tuple[float, ...] = (1.8,) * 6
+    q_ref: np.ndarray
+    dq_ref: np.ndarray
+    tau_ff: np.ndarray
+    kp: np.ndarray
+    kd: np.ndarray
+    torque_limit_nm: np.ndarray
 
-    def to_ticks(self, q_rad: np.ndarray) -> list[int]:
-        servo = np.asarray(self.directions) * (np.asarray(q_rad) + self.offsets_rad)
-        return [round(float(a) * TICKS_PER_RAD) + CENTRE_TICKS for a in servo]
 
-    def to_rad(self, ticks: list[int]) -> np.ndarray:
-        servo = (np.asarray(ticks, dtype=float) - CENTRE_TICKS) / TICKS_PER_RAD
-        return np.asarray(servo * self.directions - self.offsets_rad)
+def describe_errors(bits: int) -> str:
+    names = [name for bit, name in ERROR_BITS.items() if bits & bit]
+    return ", ".join(names) or f"error bits 0x{bits:02x}"
 
 
 class Driver(Protocol):
-    def connect(self) -> None: ...
+    def connect(self, torque: bool = True) -> None: ...
     def read_state(self) -> JointState: ...
-    def write_command(self, q_ref_rad: np.ndarray) -> None: ...
+    def write_command(self, command: ServoCommand) -> None: ...
+    def torque_off(self) -> None: ...
     def disconnect(self) -> None: ...
+    def __enter__(self) -> Driver: ...
+    def __exit__(self, kind: type[BaseException] | None, value: BaseException | None,
+                 trace: TracebackType | None) -> None: ...  # fmt: skip
 
 
 DRIVERS: dict[str, Callable[..., Driver]] = {}
@@ -89,14 +104,16 @@ def make_driver(name: str, **options: object) -> Driver:
 @register("dynamixel")
 @dataclass
 class DynamixelDriver:
-    """Dynamixel X-series servos on one Protocol 2.0 bus."""
+    """Dynamixel X-series servos (and the button board) on one Protocol 2.0 bus."""
 
     port: str
     calibration: Calibration = field(default_factory=Calibration)
     baud: int = 1_000_000
     watchdog_s: float = 0.1  # the servos stop by themselves this long after the last packet
-    _port: object = None
-    _packet: object = None
+    max_goal_offset_rad: float = 0.5  # the feed-forward's shift of the goal, at most [rad]
+    _port: Any = None
+    _packet: Any = None
+    _written: dict[str, tuple[int, ...]] = field(default_factory=dict)
 
     def __enter__(self) -> DynamixelDriver:
         self.connect()
@@ -106,8 +123,14 @@ class DynamixelDriver:
                  trace: TracebackType | None) -> None:  # fmt: skip
         self.disconnect()
 
-    def connect(self) -> None:
-        """Open the port, find every servo, arm the watchdog, hold where they are."""
+    @property
+    def ids(self) -> tuple[int, ...]:
+        return self.calibration.ids
+
+    def connect(self, torque: bool = True) -> None:
+        """Open the port, find every servo, refuse latched errors, hold where they are
+        with zero gains (the caller ramps them up), torque on, the watchdog armed.
+        ``torque=False``: the torque stays off (the arm is moved by hand: calibration)."""
         import dynamixel_sdk as sdk
 
         port = sdk.PortHandler(self.port)
@@ -117,82 +140,148 @@ class DynamixelDriver:
             raise DriverError(f"cannot open the servo bus at {self.port}: {exc}") from None
         if not opened:
             raise DriverError(f"cannot open the servo bus at {self.port}")
-        self._port, self._packet = port, sdk.PacketHandler(2.0)
-        for servo_id in self.calibration.ids:
-            _, result, _ = self._packet.ping(port, servo_id)  # type: ignore[attr-defined]
+        self._port, self._packet, self._written = port, sdk.PacketHandler(2.0), {}
+        try:
+            self._power_up(torque)
+        except DriverError:
+            self._close()
+            raise
+
+    def _power_up(self, torque: bool) -> None:
+        import dynamixel_sdk as sdk
+
+        devices = self.ids + (() if self.calibration.button_id is None
+                              else (self.calibration.button_id,))  # fmt: skip
+        for servo_id in devices:
+            _, result, _ = self._packet.ping(self._port, servo_id)
             if result != sdk.COMM_SUCCESS:
-                self.disconnect()
                 raise DriverError(f"servo {servo_id} does not answer on {self.port}")
-        held = self.read_state().q_rad
-        self.write_command(held)  # the goal is where the arm is before the torque comes on
-        ticks = max(1, min(127, round(self.watchdog_s / 0.02)))
-        for servo_id in self.calibration.ids:
+        for servo_id in self.ids:
+            bits = self._read1(servo_id, ADDRESS["hardware_error"])
+            if bits:
+                raise DriverError(
+                    f"servo {servo_id} reports {describe_errors(bits)}: inspect the arm, "
+                    "then power-cycle the servos"
+                )
             self._write1(servo_id, ADDRESS["watchdog"], 0)  # a stopped servo restarts
+            self._write1(servo_id, ADDRESS["torque_enable"], 0)
+            self._write1(servo_id, ADDRESS["operating_mode"], CURRENT_BASED_POSITION)
+        if not torque:
+            return
+        state = self.read_state()
+        zeros = np.zeros(6)
+        limit = self.calibration.joint_torque(np.full(6, MAX_CURRENT_UNITS * CURRENT_UNIT_A))
+        self.write_command(ServoCommand(state.q_rad, zeros, zeros, zeros, zeros, np.abs(limit)))
+        ticks = max(1, min(127, round(self.watchdog_s / 0.02)))
+        for servo_id in self.ids:
             self._write1(servo_id, ADDRESS["torque_enable"], 1)
             self._write1(servo_id, ADDRESS["watchdog"], ticks)
 
+    # ---- reading -----------------------------------------------------------------------
     def read_state(self) -> JointState:
+        """Position, velocity and current of every servo (and the button's travel) in one
+        sync read; the error register of any servo whose status raised its alert bit."""
         import dynamixel_sdk as sdk
 
-        reader = sdk.GroupSyncRead(self._port, self._packet, ADDRESS["present"], PRESENT_BYTES)
-        for servo_id in self.calibration.ids:
-            reader.addParam(servo_id)
-        result = reader.txRxPacket()
+        devices = list(self.ids)
+        if self.calibration.button_id is not None:
+            devices.append(self.calibration.button_id)
+        # the SDK's GroupSyncRead drops each status's error byte: its two steps, by hand
+        result = self._packet.syncReadTx(self._port, ADDRESS["present"], PRESENT_BYTES,
+                                         devices, len(devices), False)  # fmt: skip
         if result != sdk.COMM_SUCCESS:
-            raise DriverError(f"sync read failed: {self._packet.getTxRxResult(result)}")  # type: ignore[attr-defined]
-        current, velocity, position = [], [], []
-        for servo_id in self.calibration.ids:
-            if not reader.isAvailable(servo_id, ADDRESS["present"], PRESENT_BYTES):
-                raise DriverError(f"servo {servo_id} missing from the sync read")
-            raw = bytes(reader.data_dict[servo_id])
-            c, v, p = struct.unpack("<hii", raw)
-            current.append(c)
-            velocity.append(v)
-            position.append(p)
-        directions = np.asarray(self.calibration.directions)
-        dq = np.asarray(velocity) * RPM_UNIT * 2 * math.pi / 60 * directions
-        tau = (np.asarray(current) * CURRENT_UNIT_A * directions
-               * np.asarray(self.calibration.torque_per_amp_nm))  # fmt: skip
-        return JointState(self.calibration.to_rad(position), dq, tau, self._hardware_errors())
+            raise DriverError(f"sync read failed: {self._packet.getTxRxResult(result)}")
+        rows, alerts = {}, []
+        for servo_id in devices:
+            data, result, error = self._packet.readRx(self._port, servo_id, PRESENT_BYTES)
+            if result != sdk.COMM_SUCCESS:
+                why = self._packet.getTxRxResult(result)
+                raise DriverError(f"servo {servo_id} missing from the sync read: {why}")
+            rows[servo_id] = struct.unpack("<hii", bytes(data))
+            if error & ALERT and servo_id in self.ids:
+                alerts.append(servo_id)
+        current, velocity, position = (np.array([rows[i][k] for i in self.ids]) for k in range(3))
+        button_m = 0.0
+        if self.calibration.button_id is not None:
+            button_m = rows[self.calibration.button_id][2] * 1e-6  # travel [um]
+        return JointState(
+            self.calibration.to_rad(list(position)),
+            self.calibration.joint_velocity(velocity * RPM_UNIT * 2 * math.pi / 60),
+            self.calibration.joint_torque(current * CURRENT_UNIT_A),
+            {i: self._read1(i, ADDRESS["hardware_error"]) for i in alerts},
+            button_m,
+        )
 
-    def _hardware_errors(self) -> dict[int, int]:
-        """Each servo's hardware error bits (overload, overheating, voltage...), where set.
-        The SDK's sync read drops the status error byte, so the register is read."""
+    # ---- writing -----------------------------------------------------------------------
+    def write_command(self, command: ServoCommand) -> None:
+        """The law as servo goals (every call), gains and current limits (when changed)."""
+        cal = self.calibration
+        kp_servo = cal.servo_gain(command.kp)
+        kd_servo = cal.servo_gain(command.kd)
+        p_units = np.clip(np.round(kp_servo / KP_UNIT_A_PER_RAD), 0, MAX_GAIN_UNITS).astype(int)
+        d_units = np.clip(np.round(kd_servo / KD_UNIT_AS_PER_RAD), 0, MAX_GAIN_UNITS).astype(int)
+        current = cal.servo_current(command.torque_limit_nm)
+        c_units = np.clip(np.round(current / CURRENT_UNIT_A), 0, MAX_CURRENT_UNITS).astype(int)
+        gains = [list(struct.pack("<HHH", d, 0, p)) for d, p in zip(d_units, p_units, strict=True)]
+        self._sync_write_if_changed("gains", gains)
+        self._sync_write_if_changed("goal_current", [list(struct.pack("<h", c)) for c in c_units])
+        # tau_ff + kd dq_ref through the position law: P (goal - q) = tau_ff + kd dq_ref + ...
+        kp = np.maximum(command.kp, 1e-9)
+        shift = (command.tau_ff + command.kd * command.dq_ref) / kp
+        reach = np.minimum(command.torque_limit_nm / kp, self.max_goal_offset_rad)
+        goal = command.q_ref + np.where(command.kp > 0, np.clip(shift, -reach, reach), 0.0)
+        ticks = [list(struct.pack("<i", t)) for t in cal.to_ticks(goal)]
+        self._sync_write("goal_position", ticks)
+
+    def _sync_write_if_changed(self, field_name: str, rows: list[list[int]]) -> None:
+        flat = tuple(b for row in rows for b in row)
+        if self._written.get(field_name) != flat:
+            self._sync_write(field_name, rows)
+            self._written[field_name] = flat
+
+    def _sync_write(self, field_name: str, rows: list[list[int]]) -> None:
         import dynamixel_sdk as sdk
 
-        reader = sdk.GroupSyncRead(self._port, self._packet, ADDRESS["hardware_error"], 1)
-        for servo_id in self.calibration.ids:
-            reader.addParam(servo_id)
-        if reader.txRxPacket() != sdk.COMM_SUCCESS:
-            raise DriverError("sync read of the hardware error status failed")
-        bits = {i: reader.getData(i, ADDRESS["hardware_error"], 1) for i in self.calibration.ids}
-        return {i: int(b) for i, b in bits.items() if b}
-
-    def write_command(self, q_ref_rad: np.ndarray) -> None:
-        import dynamixel_sdk as sdk
-
-        writer = sdk.GroupSyncWrite(self._port, self._packet, ADDRESS["goal_position"], 4)
-        for servo_id, ticks in zip(self.calibration.ids, self.calibration.to_ticks(q_ref_rad),
-                                   strict=True):  # fmt: skip
-            writer.addParam(servo_id, list(struct.pack("<i", ticks)))
+        writer = sdk.GroupSyncWrite(self._port, self._packet, ADDRESS[field_name], len(rows[0]))
+        for servo_id, row in zip(self.ids, rows, strict=True):
+            writer.addParam(servo_id, row)
         result = writer.txPacket()
         if result != sdk.COMM_SUCCESS:
-            raise DriverError(f"sync write failed: {self._packet.getTxRxResult(result)}")  # type: ignore[attr-defined]
+            raise DriverError(f"sync write failed: {self._packet.getTxRxResult(result)}")
+
+    def torque_off(self) -> None:
+        """Torque off on every servo that answers (the arm goes limp)."""
+        for servo_id in self.ids:
+            with contextlib.suppress(DriverError):
+                self._write1(servo_id, ADDRESS["torque_enable"], 0)
 
     def disconnect(self) -> None:
-        """Torque off on every servo that answers, then close the port."""
+        """Leave the servos holding where they are, then close the port; their watchdog
+        stops them anyway once the host is silent (a rehabilitation arm is not dropped
+        on the person because its software stopped)."""
         if self._port is None:
             return
-        for servo_id in self.calibration.ids:
-            with contextlib.suppress(DriverError):  # unplugged: its watchdog stops it anyway
-                self._write1(servo_id, ADDRESS["torque_enable"], 0)
-        self._port.closePort()  # type: ignore[attr-defined]
+        with contextlib.suppress(DriverError):  # unplugged: the watchdog holds them anyway
+            held = self.calibration.to_ticks(self.read_state().q_rad)
+            self._sync_write("goal_position", [list(struct.pack("<i", t)) for t in held])
+        self._close()
+
+    def _close(self) -> None:
+        self._port.closePort()
         self._port = None
+
+    def _read1(self, servo_id: int, address: int) -> int:
+        import dynamixel_sdk as sdk
+
+        value, result, _ = self._packet.read1ByteTxRx(self._port, servo_id, address)
+        if result != sdk.COMM_SUCCESS:
+            raise DriverError(f"servo {servo_id}: reading address {address} failed")
+        return int(value)
 
     def _write1(self, servo_id: int, address: int, value: int) -> None:
         import dynamixel_sdk as sdk
 
-        result, error = self._packet.write1ByteTxRx(self._port, servo_id, address, value)  # type: ignore[attr-defined]
-        if result != sdk.COMM_SUCCESS or error:
+        result, error = self._packet.write1ByteTxRx(self._port, servo_id, address, value)
+        if result != sdk.COMM_SUCCESS or error & 0x7F:
             raise DriverError(f"servo {servo_id}: writing {value} at {address} failed "
-                              f"(result {result}, error {error})")  # fmt: skip
+                              f"({self._packet.getTxRxResult(result)}, error {error})")  # fmt: skip

@@ -11,8 +11,8 @@ from __future__ import annotations
 
 import math
 import struct
-from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Protocol
 
 import dynamixel_sdk as sdk
 
@@ -32,40 +32,81 @@ ERRNUM_ACCESS: int = sdk.ERRNUM_ACCESS
 # X-series control table (XM430-W350, e-manual), the addresses the driver uses
 MODEL_NUMBER, FIRMWARE_VERSION, SERVO_ID = 0, 6, 7
 OPERATING_MODE, TORQUE_ENABLE, HARDWARE_ERROR_STATUS = 11, 64, 70
+POSITION_D_GAIN, POSITION_I_GAIN, POSITION_P_GAIN = 80, 82, 84
 BUS_WATCHDOG, GOAL_CURRENT, GOAL_POSITION = 98, 102, 116
 PRESENT_CURRENT, PRESENT_VELOCITY, PRESENT_POSITION = 126, 128, 132
 PRESENT_INPUT_VOLTAGE, PRESENT_TEMPERATURE = 144, 146
 XM430_W350 = 1020
+CURRENT_BASED_POSITION = 5  # operating mode: position PID, current limited, multi-turn
 TABLE_SIZE = 256
-WRITABLE = {OPERATING_MODE: 1, TORQUE_ENABLE: 1, BUS_WATCHDOG: 1, GOAL_CURRENT: 2,
-            GOAL_POSITION: 4}  # fmt: skip
-"""Address -> size of the fields a host may write (others answer an access error)."""
+WRITABLE = {OPERATING_MODE: 1, TORQUE_ENABLE: 1, POSITION_D_GAIN: 2, POSITION_I_GAIN: 2,
+            POSITION_P_GAIN: 2, BUS_WATCHDOG: 1, GOAL_CURRENT: 2, GOAL_POSITION: 4}  # fmt: skip
+"""Address -> size of the fields a host may write (others answer an access error); a
+write may cover several adjacent fields (the gains in one packet)."""
 WATCHDOG_UNIT_S = 0.020
 ALERT = 0x80  # status-packet error byte: a hardware error is latched
 OVERLOAD_BIT, OVERHEAT_BIT, VOLTAGE_BIT = 0x20, 0x04, 0x01
 TICKS_PER_RAD = 4096 / (2 * math.pi)  # position resolution: 0.088 deg
+CENTRE_TICKS = 2048  # the horn's middle: angle 0 of the servo frame
 RPM_UNIT = 0.229  # present velocity unit [rev/min]
+CURRENT_UNIT_A = 0.00269  # present and goal current unit [A]
+# The emulated firmware's position law, in the servo's frame, at every physics step:
+#   i = clip(P * KP_UNIT (goal - angle) - D * KD_UNIT * velocity, +-goal current)  [A]
+# (D acts on the measured velocity). These two units are the emulator's model, stated
+# here; a real servo's gain units come from its e-manual and go in the arm's calibration.
+KP_UNIT_A_PER_RAD = 0.01
+KD_UNIT_AS_PER_RAD = 0.001
+BUTTON_MODEL = 0x4254  # the emulated button board on the same bus ("BT")
+BUTTON_TRAVEL_UM = 132  # int32: the cap's travel [um], where a servo has its position, so
+# one sync read covers the servos and the button
 
-Physics = Callable[[dict[int, float], dict[int, float], float], dict[int, float]]
-"""(goal positions [rad], present positions [rad], time step [s]) -> the new present
-positions, per servo id (the servos with torque on)."""
+
+@dataclass(frozen=True)
+class ServoDrive:
+    """What a powered servo's firmware asks of its motor (servo frame, SI)."""
+
+    goal_rad: float
+    kp_a_per_rad: float
+    kd_as_per_rad: float
+    current_limit_a: float
+
+
+@dataclass(frozen=True)
+class ServoReading:
+    angle_rad: float
+    velocity_rad_s: float
+    current_a: float
+
+
+class Physics(Protocol):
+    """What moves the servos: a first-order stand-in, or the MuJoCo arm."""
+
+    def step(self, drives: dict[int, ServoDrive | None], dt_s: float) -> dict[int, ServoReading]:
+        """Advance ``dt_s`` under the drives (None: torque off); every servo's reading."""
+        ...
+
+    def button_travel_m(self) -> float:
+        """How far the button cap is pressed [m] (0 without a button)."""
+        ...
 
 
 @dataclass
 class EmulatedServo:
     servo_id: int
+    model: int = XM430_W350
     table: bytearray = field(default_factory=lambda: bytearray(TABLE_SIZE))
     watchdog_deadline_s: float | None = None
     angle_rad: float = 0.0  # the shaft's true angle; the encoder reports it in ticks
 
     def __post_init__(self) -> None:
-        struct.pack_into("<H", self.table, MODEL_NUMBER, XM430_W350)
+        struct.pack_into("<H", self.table, MODEL_NUMBER, self.model)
         self.table[FIRMWARE_VERSION] = 46
         self.table[SERVO_ID] = self.servo_id
-        self.table[OPERATING_MODE] = 3  # position control
+        self.table[OPERATING_MODE] = CURRENT_BASED_POSITION
         struct.pack_into("<H", self.table, PRESENT_INPUT_VOLTAGE, 120)  # 12.0 V
-        struct.pack_into("<i", self.table, PRESENT_POSITION, 2048)  # at rest, centred
-        struct.pack_into("<i", self.table, GOAL_POSITION, 2048)
+        struct.pack_into("<H", self.table, POSITION_P_GAIN, 800)  # factory-like defaults
+        struct.pack_into("<H", self.table, POSITION_D_GAIN, 0)
+        struct.pack_into("<h", self.table, GOAL_CURRENT, 1193)  # 3.2 A
         self.table[PRESENT_TEMPERATURE] = 30
 
     def read(self, address: int, length: int) -> bytes:
@@ -88,10 +129,10 @@ class EmulatedServo:
 
     def write(self, address: int, data: bytes, now_s: float) -> int:
         """Write a field; 0 or the Protocol 2.0 error number."""
-        size = WRITABLE.get(address)
+        size = _span(address, len(data))
         if size is None:
             return ERRNUM_ACCESS
-        if len(data) != size:
+        if size != len(data):
             return ERRNUM_DATA_LENGTH
         if address == GOAL_POSITION and (self.watchdog_expired or self.hardware_error):
             return ERRNUM_DATA_RANGE  # stopped: goals are refused until reset
@@ -112,16 +153,55 @@ class EmulatedServo:
     def status_error(self) -> int:
         return ALERT if self.hardware_error else 0
 
+    def drive(self) -> ServoDrive | None:
+        """The firmware's law as configured (None: torque off)."""
+        if not self.torque_on:
+            return None
+        return ServoDrive(
+            (self.value(GOAL_POSITION, 4) - CENTRE_TICKS) / TICKS_PER_RAD,
+            self.value(POSITION_P_GAIN, 2) * KP_UNIT_A_PER_RAD,
+            self.value(POSITION_D_GAIN, 2) * KD_UNIT_AS_PER_RAD,
+            self.value(GOAL_CURRENT, 2) * CURRENT_UNIT_A,
+        )
 
-def first_order(time_constant_s: float = 0.05) -> Physics:
+    def show(self, reading: ServoReading) -> None:
+        """The encoder, tachometer and current sensor report ``reading``."""
+        self.angle_rad = reading.angle_rad
+        rpm = reading.velocity_rad_s * 60 / (2 * math.pi) / RPM_UNIT
+        ticks = round(reading.angle_rad * TICKS_PER_RAD) + CENTRE_TICKS
+        struct.pack_into("<i", self.table, PRESENT_POSITION, ticks)
+        struct.pack_into("<i", self.table, PRESENT_VELOCITY, round(rpm))
+        current = max(-32768, min(32767, round(reading.current_a / CURRENT_UNIT_A)))
+        struct.pack_into("<h", self.table, PRESENT_CURRENT, current)
+
+
+def _span(address: int, length: int) -> int | None:
+    """Bytes of the writable fields from ``address`` covering ``length`` (None: not one)."""
+    covered = 0
+    while address + covered in WRITABLE and covered < length:
+        covered += WRITABLE[address + covered]
+    return covered or None
+
+
+@dataclass
+class FirstOrder:
     """A servo that follows its goal with a first-order lag (the stand-in physics)."""
 
-    def step(goals: dict[int, float], present: dict[int, float], dt_s: float
-             ) -> dict[int, float]:  # fmt: skip
-        alpha = 1.0 - math.exp(-dt_s / time_constant_s)
-        return {i: present[i] + alpha * (goal - present[i]) for i, goal in goals.items()}
+    time_constant_s: float = 0.05
+    angles: dict[int, float] = field(default_factory=dict)
 
-    return step
+    def step(self, drives: dict[int, ServoDrive | None], dt_s: float) -> dict[int, ServoReading]:
+        alpha = 1.0 - math.exp(-dt_s / self.time_constant_s)
+        readings = {}
+        for servo_id, drive in drives.items():
+            before = self.angles.get(servo_id, 0.0)
+            after = before if drive is None else before + alpha * (drive.goal_rad - before)
+            self.angles[servo_id] = after
+            readings[servo_id] = ServoReading(after, (after - before) / dt_s, 0.0)
+        return readings
+
+    def button_travel_m(self) -> float:
+        return 0.0
 
 
 @dataclass
@@ -137,19 +217,29 @@ class Faults:
 class ServoChain:
     """The servos on one bus: instruction packets in, status packets out."""
 
-    def __init__(self, ids: list[int], physics: Physics | None = None) -> None:
+    def __init__(
+        self, ids: list[int], physics: Physics | None = None, button_id: int | None = None
+    ) -> None:
+        """``button_id``: the goal button's sensor board answers on the bus at this id."""
         self.servos = {i: EmulatedServo(i) for i in ids}
-        self.physics = physics or first_order()
+        if button_id is not None:
+            self.servos[button_id] = EmulatedServo(button_id, model=BUTTON_MODEL)
+        self.button_id = button_id
+        self.physics: Physics = physics or FirstOrder()
         self.faults = Faults()
         self.now_s = 0.0
         self._last_step_s = 0.0
+
+    @property
+    def motors(self) -> dict[int, EmulatedServo]:
+        return {i: s for i, s in self.servos.items() if i != self.button_id}
 
     # ---- time and motion -----------------------------------------------------------
     def advance(self, now_s: float) -> None:
         """Move the arm to ``now_s``: watchdogs first (a stopped servo holds), then physics."""
         dt = now_s - self._last_step_s
         self.now_s = now_s
-        for servo in self.servos.values():
+        for servo in self.motors.values():
             deadline = servo.watchdog_deadline_s
             if servo.torque_on and deadline is not None and now_s >= deadline:
                 servo.table[BUS_WATCHDOG] = 0xFF  # stops by itself: goal := present
@@ -158,27 +248,18 @@ class ServoChain:
         if dt <= 0:
             return
         self._last_step_s = now_s
-        goals = {i: self._goal_rad(s) for i, s in self.servos.items() if s.torque_on}
-        if not goals:
-            return
-        before = {i: self.servos[i].angle_rad for i in goals}
-        for servo_id, q in self.physics(goals, before, dt).items():
-            servo = self.servos[servo_id]
-            servo.angle_rad = q
-            velocity = (q - before[servo_id]) / dt
-            struct.pack_into("<i", servo.table, PRESENT_POSITION, round(q * TICKS_PER_RAD) + 2048)
-            rpm = velocity * 60 / (2 * math.pi) / RPM_UNIT
-            struct.pack_into("<i", servo.table, PRESENT_VELOCITY, round(rpm))
+        drives = {i: s.drive() for i, s in self.motors.items()}
+        for servo_id, reading in self.physics.step(drives, dt).items():
+            self.servos[servo_id].show(reading)
+        if self.button_id is not None:
+            travel_um = round(self.physics.button_travel_m() * 1e6)
+            struct.pack_into("<i", self.servos[self.button_id].table, BUTTON_TRAVEL_UM, travel_um)
 
     def overload(self, servo_id: int) -> None:
         """Latch an overload error: torque off, the alert bit in every status."""
         servo = self.servos[servo_id]
         servo.table[HARDWARE_ERROR_STATUS] |= OVERLOAD_BIT
         servo.table[TORQUE_ENABLE] = 0
-
-    @staticmethod
-    def _goal_rad(servo: EmulatedServo) -> float:
-        return (servo.value(GOAL_POSITION, 4) - 2048) / TICKS_PER_RAD
 
     # ---- the protocol --------------------------------------------------------------
     def handle(self, packet: Instruction | CorruptPacket) -> list[bytes]:

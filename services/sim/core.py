@@ -83,10 +83,14 @@ class Simulation:
         mujoco.mj_resetData(self.model, self.data)
         self._last_command = None
         self._randomize()
-        self.model.body_pos[self._button_body, :2] = button_xy
+        self.place_button(button_xy)
         self.data.qpos[: self._n] = q - self.joint_offset  # the encoders read q
         mujoco.mj_forward(self.model, self.data)
         return self.read()
+
+    def place_button(self, button_xy: tuple[float, float]) -> None:
+        """Put the button centred under ``button_xy`` [m] on the table."""
+        self.model.body_pos[self._button_body, :2] = button_xy
 
     def apply(self, command: JointCommand) -> None:
         """Latch a joint command; MuJoCo applies it at every step until the next one."""

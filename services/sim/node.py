@@ -26,8 +26,9 @@ from dammrl.core.robot import RobotSettings
 from dammrl.core.safety import ArmCaps, goal_violation, guard_command
 from dammrl.core.state import JointCommand as CoreCommand
 from dammrl.core.task import TaskSettings, scene_layout, seed_streams
-from schemas import JointCommand, RobotState, TaskGoal
+from schemas import EmergencyStop, JointCommand, RobotState, TaskGoal
 from services.common import convert
+from services.common.arm import CommandFreshness, StopLatch
 from services.common.bus import Bus
 from services.common.entry import run_service
 from services.common.runtime import Pacer
@@ -61,15 +62,17 @@ class SimNode:
             settings.max_relative_target_rad, settings.reference_speed_fraction,
         )  # fmt: skip
         answerable = max(1, round(settings.command_max_age_s * settings.state_rate_hz))
-        self.recent_stamps: deque[int] = deque(maxlen=answerable)  # states a command may answer
-        self.last_answered_ns = -1  # the state the last applied command answered
+        self.freshness = CommandFreshness(answerable)
+        self.stop_latch = StopLatch()
+        self.reported_stopped = False
         self.in_force_answers_ns: int | None = None  # ... while that command is in force
         self.last_apply_t_s = 0.0
         self.clamped = 0  # commands the caps changed
         self.last_stamp_ns = -1
-        bus.subscribe(JointCommand, TaskGoal)
+        bus.subscribe(JointCommand, TaskGoal, EmergencyStop)
         bus.expect(JointCommand, "controller")
         bus.expect(TaskGoal, "controller")
+        bus.expect(EmergencyStop, "tool")  # `dammrl stop` (the operator)
         state = self.sim.reset(np.array(task.home_q_rad), (0.45, 0.0))
         self._hold(state.q)
         self.state = state
@@ -108,13 +111,18 @@ class SimNode:
             )
         )
         self.last_stamp_ns = message.header.stamp_ns
-        self.recent_stamps.append(self.last_stamp_ns)
+        self.freshness.published(self.last_stamp_ns)
         self.answered = False
         detail = (
             f"missed {self.pacer.missed} of {self.pacer.ticks} deadlines, "
             f"{self.clamped} commands clamped"
         )
-        self.bus.report_health("holding" if self.holding else "ok", detail)
+        stopped = self.stop_latch.engaged
+        changed, self.reported_stopped = stopped != self.reported_stopped, stopped
+        if stopped:
+            self.bus.report_health("stopped", f"{self.stop_latch.reason}; {detail}", changed)
+        else:
+            self.bus.report_health("holding" if self.holding else "ok", detail, changed)
 
     def _await_answer(self) -> None:
         """Lockstep: take messages until the command answering the last state (bounded)."""
@@ -129,14 +137,32 @@ class SimNode:
         """Dispatch what has arrived (waiting up to ``timeout_s`` for the first)."""
         message = self.bus.receive(timeout_s)
         while message is not None:
-            if isinstance(message, TaskGoal):
+            if isinstance(message, EmergencyStop):
+                self._take_stop(message)
+            elif isinstance(message, TaskGoal):
                 self._reset(message)
             elif isinstance(message, JointCommand) and message.episode == self.episode:
                 self._take_command(message)
             message = self.bus.receive(0)
 
+    def _take_stop(self, message: EmergencyStop) -> None:
+        """Stop: hold where the arm is with the hold gains (low: a person can move it) and
+        take no command until released; a release leaves the arm holding."""
+        if not self.stop_latch.take(message):
+            return
+        if self.stop_latch.engaged:
+            log.warning("%s: holding", self.stop_latch.reason)
+            self.command = None  # the stop's gains are the hold gains, not the last command's
+            self._hold(self.state.q)
+        else:
+            log.warning("emergency stop released by %s: holding until commands resume",
+                        message.header.source)  # fmt: skip
+
     def _take_command(self, message: JointCommand) -> None:
-        reason = self._stale(message.state_stamp_ns)
+        if self.stop_latch.engaged:
+            self.bus.reject(self.bus.key(JointCommand), self.stop_latch.reason or "stopped")
+            return
+        reason = self.freshness.why_stale(message.state_stamp_ns)
         applied = self.sim.applied  # the reference in force, a hold's included
         guarded = guard_command(
             convert.joint_command(message),
@@ -155,7 +181,7 @@ class SimNode:
             if self.clamped <= 5 or self.clamped % 100 == 0:
                 log.warning("command #%d clamped: %s", self.clamped, guarded.reason)
         self.command = guarded.command
-        self.last_answered_ns = message.state_stamp_ns
+        self.freshness.applied(message.state_stamp_ns)
         self.in_force_answers_ns = message.state_stamp_ns
         self.last_apply_t_s = self.state.t_s
         self.command_wall_s = time.monotonic()
@@ -172,14 +198,6 @@ class SimNode:
         cannot jump by the time it stood."""
         since = self.state.t_s - self.last_apply_t_s
         return min(max(since, 0.0), 2 * self.pacer.period_s)
-
-    def _stale(self, state_stamp_ns: int) -> str | None:
-        """Why a command answering the state stamped ``state_stamp_ns`` is too old."""
-        if state_stamp_ns not in self.recent_stamps:
-            return "answers no recent state of this arm (stale or replayed)"
-        if state_stamp_ns < self.last_answered_ns:
-            return "answers an older state than the last applied command (out of order)"
-        return None
 
     def _hold_if_stale(self, lockstep: bool) -> None:
         if lockstep:
@@ -214,6 +232,9 @@ class SimNode:
     def _reset(self, goal: TaskGoal) -> None:
         if goal.episode == self.episode:
             return  # a repeated announcement
+        if self.stop_latch.engaged:
+            self.bus.reject(self.bus.key(TaskGoal), self.stop_latch.reason or "stopped")
+            return
         q_start = np.array(goal.q_start_rad)
         reason = goal_violation(
             q_start, goal.goal_m, self.sim.robot, self.sim.layout, self.settings.limit_tolerance_rad

@@ -1,0 +1,75 @@
+"""The real arm's service settings: one class, environment prefix ``DAMMRL_ARM_`` (the arm's
+description stays ``DAMMRL_ROBOT_*``, shared with the sim and the controller)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal
+
+from pydantic import Field
+from pydantic_settings import SettingsConfigDict
+
+from dammrl.core.settings import PerJointNonNegative, Settings
+
+
+class ArmSettings(Settings):
+    """The servo bus, the arm's limits for a person attached, and its stop."""
+
+    model_config = SettingsConfigDict(env_prefix="DAMMRL_ARM_")
+
+    driver: str = "dynamixel"
+    """The driver backend (see ``services.robot.driver.DRIVERS``)."""
+    port: str = "/dev/ttyUSB0"
+    """The servo bus's serial device (a U2D2 or another USB adapter)."""
+    baud: int = Field(1_000_000, gt=0)
+    calibration_file: Path | None = None
+    """From ``dammrl robot calibrate``; None: the default calibration (the emulated arm)."""
+    loop_rate_hz: float = Field(100.0, ge=10, le=1000)
+    """Driver loop: one sync read, one sync write and one RobotState per period [Hz]."""
+    watchdog_s: float = Field(0.1, ge=0.02, le=2.54)
+    """The servos stop by themselves when the bus is silent this long [s]."""
+
+    # ---- limits with a person attached (never above the URDF's) --------------------------
+    torque_fraction: float = Field(0.6, gt=0, le=1.0)
+    """Each servo's torque is limited (its goal current) to this fraction of the URDF's
+    effort limit; commands asking for more feed-forward are rejected."""
+    speed_fraction: float = Field(0.9, gt=0, le=1.0)
+    """References move, and measured joints may move, at most this fraction of the URDF's
+    velocity limits (the sim allows 1.0)."""
+    overspeed_factor: float = Field(1.3, ge=1.0, le=2.0)
+    """A measured joint speed above this times the arm's speed limit stops the arm."""
+    limit_tolerance_rad: float = Field(0.03, ge=0, le=0.2)
+    """q_ref may exceed the arm's joint limits by this much before rejection; a measured
+    joint beyond its limit by this much stops the arm [rad]."""
+    max_kp_nm_per_rad: float = Field(1000.0, gt=0, le=10_000)
+    max_kd_nms_per_rad: float = Field(100.0, gt=0, le=1_000)
+    max_relative_target_rad: float = Field(0.15, gt=0, le=1.0)
+    """The applied q_ref stays this close to the measured posture, per joint [rad]."""
+
+    # ---- holds, the stop, the start -----------------------------------------------------
+    command_stale_s: float = Field(0.1, gt=0)
+    """No valid command for this long: hold where the arm is [s]."""
+    command_max_age_s: float = Field(0.05, gt=0, le=1.0)
+    """A command must answer a state published at most this long ago [s]."""
+    hold_kp_nm_per_rad: PerJointNonNegative = (300.0, 300.0, 150.0, 150.0, 40.0, 40.0)
+    """Stiffness of a hold before any command (then: the last command's) [N m/rad]."""
+    hold_kd_nms_per_rad: PerJointNonNegative = (25.0, 25.0, 10.0, 10.0, 1.5, 1.5)
+    stop_action: Literal["hold", "torque_off"] = "hold"
+    """What an emergency stop or a fault does: hold where the arm is with the stop gains
+    and gravity compensation (the arm does not fall on the person), or torque off."""
+    stop_kp_nm_per_rad: PerJointNonNegative = (120.0, 120.0, 60.0, 60.0, 15.0, 15.0)
+    """Stiffness of a stop: low, so a person can move the arm against it [N m/rad]."""
+    stop_kd_nms_per_rad: PerJointNonNegative = (20.0, 20.0, 8.0, 8.0, 1.0, 1.0)
+    soft_start_s: float = Field(1.0, ge=0, le=10)
+    """After torque on, the gains ramp from ``soft_start_fraction`` to full over this [s]."""
+    soft_start_fraction: float = Field(0.1, ge=0, le=1)
+    homing_speed_rad_s: float = Field(0.3, gt=0, le=1.0)
+    """A new episode moves the arm to its start posture at most this fast [rad/s]."""
+    rest_speed_rad_s: float = Field(0.05, gt=0, le=1.0)
+    """An episode starts (homing ends) once no joint moves faster [rad/s]."""
+    homing_tolerance_rad: float = Field(0.02, gt=0, le=0.2)
+    max_bus_errors: int = Field(3, ge=1, le=100)
+    """Consecutive failed bus cycles before a fault (the servos hold their last goal in
+    between) [-]."""
+    reconnect_s: float = Field(1.0, gt=0)
+    """After a bus fault, try to reconnect this often (an unplugged cable) [s]."""
