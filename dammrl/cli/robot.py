@@ -37,7 +37,7 @@ def register(commands: Commands) -> None:
     helptext = "serial ports, and the servos on a bus: ids, models, firmware"
     scan = actions.add_parser("scan", help=helptext, description=helptext)
     scan.add_argument("--port", help=PORT_HELP)
-    scan.add_argument("--baud", type=int, default=1_000_000)
+    scan.add_argument("--baud", type=int, default=1_000_000, help="bus speed (default 1 Mbaud)")
     scan.set_defaults(handler=_scan)
     _add_jog(actions)
     _add_calibrate(actions)

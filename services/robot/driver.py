@@ -20,7 +20,7 @@ from __future__ import annotations
 import contextlib
 import math
 import struct
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from types import TracebackType
 from typing import Any, Protocol
@@ -68,13 +68,23 @@ class ServoCommand:
     torque_limit_nm: np.ndarray
 
 
+@contextlib.contextmanager
+def _bus_io(port: str) -> Iterator[None]:
+    """The serial device failing (a USB adapter pulled out) is a DriverError, as a silent
+    servo is."""
+    try:
+        yield
+    except OSError as exc:
+        raise DriverError(f"the servo bus at {port} failed: {exc}") from None
+
+
 def describe_errors(bits: int) -> str:
     names = [name for bit, name in ERROR_BITS.items() if bits & bit]
     return ", ".join(names) or f"error bits 0x{bits:02x}"
 
 
 class Driver(Protocol):
-    def connect(self, torque: bool = True) -> None: ...
+    def connect(self, torque: bool = True) -> bool: ...
     def read_state(self) -> JointState: ...
     def write_command(self, command: ServoCommand) -> None: ...
     def torque_off(self) -> None: ...
@@ -127,27 +137,31 @@ class DynamixelDriver:
     def ids(self) -> tuple[int, ...]:
         return self.calibration.ids
 
-    def connect(self, torque: bool = True) -> None:
-        """Open the port, find every servo, refuse latched errors, hold where they are
-        with zero gains (the caller ramps them up), torque on, the watchdog armed.
-        ``torque=False``: the torque stays off (the arm is moved by hand: calibration)."""
+    def connect(self, torque: bool = True) -> bool:
+        """Open the port (unless open), find every servo, refuse latched errors, clear a
+        watchdog stop, arm the watchdog. Servos with the torque off start holding where
+        they are with zero gains (the caller ramps them up). True when every servo was
+        already holding with the torque on (a reconnection: no soft start needed).
+        ``torque=False``: the torque goes off (the arm is moved by hand: calibration)."""
         import dynamixel_sdk as sdk
 
-        port = sdk.PortHandler(self.port)
+        if self._port is None:
+            port = sdk.PortHandler(self.port)
+            try:
+                opened = port.openPort() and port.setBaudRate(self.baud)
+            except OSError as exc:  # pyserial's SerialException: no device, no permission
+                raise DriverError(f"cannot open the servo bus at {self.port}: {exc}") from None
+            if not opened:
+                raise DriverError(f"cannot open the servo bus at {self.port}")
+            self._port, self._packet, self._written = port, sdk.PacketHandler(2.0), {}
         try:
-            opened = port.openPort() and port.setBaudRate(self.baud)
-        except OSError as exc:  # pyserial's SerialException: no such device, no permission
-            raise DriverError(f"cannot open the servo bus at {self.port}: {exc}") from None
-        if not opened:
-            raise DriverError(f"cannot open the servo bus at {self.port}")
-        self._port, self._packet, self._written = port, sdk.PacketHandler(2.0), {}
-        try:
-            self._power_up(torque)
+            with _bus_io(self.port):
+                return self._power_up(torque)
         except DriverError:
             self._close()
             raise
 
-    def _power_up(self, torque: bool) -> None:
+    def _power_up(self, torque: bool) -> bool:
         import dynamixel_sdk as sdk
 
         devices = self.ids + (() if self.calibration.button_id is None
@@ -156,6 +170,7 @@ class DynamixelDriver:
             _, result, _ = self._packet.ping(self._port, servo_id)
             if result != sdk.COMM_SUCCESS:
                 raise DriverError(f"servo {servo_id} does not answer on {self.port}")
+        holding = True
         for servo_id in self.ids:
             bits = self._read1(servo_id, ADDRESS["hardware_error"])
             if bits:
@@ -163,7 +178,23 @@ class DynamixelDriver:
                     f"servo {servo_id} reports {describe_errors(bits)}: inspect the arm, "
                     "then power-cycle the servos"
                 )
-            self._write1(servo_id, ADDRESS["watchdog"], 0)  # a stopped servo restarts
+            holding &= (self._read1(servo_id, ADDRESS["torque_enable"]) == 1
+                        and self._read1(servo_id, ADDRESS["operating_mode"])
+                        == CURRENT_BASED_POSITION)  # fmt: skip
+            self._write1(servo_id, ADDRESS["watchdog"], 0)  # clears a watchdog stop
+        if holding and torque:
+            self._written = {}  # gains and limits are written again with the next command
+        else:
+            self._start(torque)
+        ticks = max(1, min(127, round(self.watchdog_s / 0.02)))
+        for servo_id in self.ids if torque else ():
+            self._write1(servo_id, ADDRESS["watchdog"], ticks)
+        return holding and torque
+
+    def _start(self, torque: bool) -> None:
+        """Torque off, current-based position mode, then (``torque``) on, holding where
+        the arm is with zero gains."""
+        for servo_id in self.ids:
             self._write1(servo_id, ADDRESS["torque_enable"], 0)
             self._write1(servo_id, ADDRESS["operating_mode"], CURRENT_BASED_POSITION)
         if not torque:
@@ -172,15 +203,18 @@ class DynamixelDriver:
         zeros = np.zeros(6)
         limit = self.calibration.joint_torque(np.full(6, MAX_CURRENT_UNITS * CURRENT_UNIT_A))
         self.write_command(ServoCommand(state.q_rad, zeros, zeros, zeros, zeros, np.abs(limit)))
-        ticks = max(1, min(127, round(self.watchdog_s / 0.02)))
         for servo_id in self.ids:
             self._write1(servo_id, ADDRESS["torque_enable"], 1)
-            self._write1(servo_id, ADDRESS["watchdog"], ticks)
 
     # ---- reading -----------------------------------------------------------------------
     def read_state(self) -> JointState:
         """Position, velocity and current of every servo (and the button's travel) in one
         sync read; the error register of any servo whose status raised its alert bit."""
+        self._require_open()
+        with _bus_io(self.port):
+            return self._read_state()
+
+    def _read_state(self) -> JointState:
         import dynamixel_sdk as sdk
 
         devices = list(self.ids)
@@ -215,6 +249,15 @@ class DynamixelDriver:
     # ---- writing -----------------------------------------------------------------------
     def write_command(self, command: ServoCommand) -> None:
         """The law as servo goals (every call), gains and current limits (when changed)."""
+        self._require_open()
+        with _bus_io(self.port):
+            self._write_command(command)
+
+    def _require_open(self) -> None:
+        if self._port is None:
+            raise DriverError(f"the servo bus at {self.port} is not open")
+
+    def _write_command(self, command: ServoCommand) -> None:
         cal = self.calibration
         kp_servo = cal.servo_gain(command.kp)
         kd_servo = cal.servo_gain(command.kd)
@@ -252,7 +295,7 @@ class DynamixelDriver:
     def torque_off(self) -> None:
         """Torque off on every servo that answers (the arm goes limp)."""
         for servo_id in self.ids:
-            with contextlib.suppress(DriverError):
+            with contextlib.suppress(DriverError), _bus_io(self.port):
                 self._write1(servo_id, ADDRESS["torque_enable"], 0)
 
     def disconnect(self) -> None:
@@ -263,11 +306,14 @@ class DynamixelDriver:
             return
         with contextlib.suppress(DriverError):  # unplugged: the watchdog holds them anyway
             held = self.calibration.to_ticks(self.read_state().q_rad)
-            self._sync_write("goal_position", [list(struct.pack("<i", t)) for t in held])
+            with _bus_io(self.port):
+                self._sync_write("goal_position", [list(struct.pack("<i", t)) for t in held])
         self._close()
 
     def _close(self) -> None:
-        self._port.closePort()
+        if self._port is not None:
+            with contextlib.suppress(OSError):
+                self._port.closePort()
         self._port = None
 
     def _read1(self, servo_id: int, address: int) -> int:

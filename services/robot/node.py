@@ -148,6 +148,7 @@ class RobotNode:
         self.last_q_ref: np.ndarray | None = None
         self.last_apply_s = 0.0
         self.joint: JointState | None = None
+        self.last_written: ServoCommand | None = None  # the law last sent to the servos
         self.clamped = 0
         self.periods_s: deque[float] = deque(maxlen=10_000)
         self.latencies_s: deque[float] = deque(maxlen=10_000)  # command stamp -> written
@@ -177,6 +178,8 @@ class RobotNode:
             self.periods_s.append(now - self.last_cycle_s)
         self.last_cycle_s = now
         self._take_messages()
+        if not self.connected and self.bus_fault is not None:
+            self._hold_blind()
         if not self.connected:
             self._try_connect(now)
         if self.connected:
@@ -190,6 +193,7 @@ class RobotNode:
             law = self._law(joint, now)
             if law is not None:
                 self.driver.write_command(law)
+                self.last_written = law
                 if self.latency_pending:  # a new command's first write
                     self.latencies_s.append(time.time() - self.command_stamp_ns * 1e-9)
                     self.latency_pending = False
@@ -390,13 +394,15 @@ class RobotNode:
             return
         self.next_connect_s = now + self.settings.reconnect_s
         try:
-            self.driver.connect()
+            holding = self.driver.connect()
         except DriverError as exc:
             if self.bus_fault != str(exc):
                 log.error("%s: retrying every %.1f s", exc, self.settings.reconnect_s)
             self.bus_fault = str(exc)
             return
-        self.connected, self.torque_on_s = True, time.monotonic()
+        # servos that held with the torque on need no soft start (it would drop the arm)
+        self.connected = True
+        self.torque_on_s = time.monotonic() - (self.settings.soft_start_s if holding else 0.0)
         if self.bus_fault is not None:
             log.warning("the servo bus answers again: holding where the arm is")
         self.bus_fault = None
@@ -412,19 +418,25 @@ class RobotNode:
         self.next_connect_s = 0.0
 
     def _bus_error(self, exc: DriverError) -> None:
-        """A failed cycle: the servos keep their last goal; too many in a row: a fault."""
+        """A failed cycle: the servos keep their last goal; too many in a row: a fault.
+        Then the last law is still sent every period (a sync write needs no answer): the
+        servos that still hear it hold with gravity compensation; the others' watchdog
+        stops them where they are."""
         self.bus_errors += 1
         if self.bus_errors < self.settings.max_bus_errors:
             log.warning("bus cycle failed (%d in a row): %s", self.bus_errors, exc)
             return
         self.bus_fault = f"servo bus lost: {exc}"
-        log.error("%s: the servos' watchdog stops them; reconnecting", self.bus_fault)
+        log.error("%s: holding blind, reconnecting", self.bus_fault)
         self.connected = False
         self.joint = None
         self.command, self.homing, self.held = None, None, None
         self.next_connect_s = time.monotonic() + self.settings.reconnect_s
-        with contextlib.suppress(DriverError):
-            self.driver.disconnect()
+
+    def _hold_blind(self) -> None:
+        if self.last_written is not None:
+            with contextlib.suppress(DriverError):
+                self.driver.write_command(self.last_written)
 
     # ---- the bus: out ------------------------------------------------------------------
     def _publish_state(self, joint: JointState, now: float) -> None:

@@ -279,12 +279,12 @@ class ServoChain:
         if kind == INST_SYNC_READ:
             return self._sync_read(packet.params)
         targets = self._targets(packet.servo_id)
+        for servo in targets:
+            servo.heard(self.now_s)  # any instruction feeds the watchdog
         if kind == INST_PING:
             return [self._ping(s) for s in targets]
         if packet.servo_id == BROADCAST_ID:
             return []  # broadcast reads and writes are not answered
-        for servo in targets:
-            servo.heard(self.now_s)
         if kind == INST_READ:
             return [self._read(s, packet.params) for s in targets]
         if kind == INST_WRITE:

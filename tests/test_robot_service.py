@@ -1,0 +1,273 @@
+"""The robot service on the emulated arm: the real driver path (dynamixel-sdk, Protocol 2.0
+on a pseudo-terminal, the MuJoCo arm behind the servos), its joint law, holds, homing,
+the emergency stop and every injected fault: a stop or a hold, reported, no jump."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from dammrl.arm import EmulatedArm, emulated_arm, inject
+from dammrl.core.errors import ConfigurationError
+from dammrl.core.robot import RobotSettings
+from dammrl.core.task import TaskSettings
+from schemas import EmergencyStop, Header, JointCommand, Message, RobotState, TaskGoal
+from services.robot.calibration import Calibration, load_calibration, save_calibration
+from services.robot.config import ArmSettings
+from services.robot.driver import DynamixelDriver, ServoCommand
+from services.robot.node import RobotNode
+from services.robot.servo_chain import (
+    GOAL_POSITION,
+    KD_UNIT_AS_PER_RAD,
+    KP_UNIT_A_PER_RAD,
+    POSITION_D_GAIN,
+    POSITION_P_GAIN,
+    TICKS_PER_RAD,
+)
+
+CALIBRATION = Calibration(
+    offsets_rad=(0.1, -0.05, 0.0, 0.2, 0.0, -0.1),
+    directions=(1, -1, 1, -1, 1, 1),
+    gear_ratios=(2.0, 1.0, 1.5, 1.0, 1.0, 1.0),
+)
+
+
+# ---- the calibration ----------------------------------------------------------------------
+def test_calibration_frames_round_trip_and_refuse_limits_beyond_the_urdf(tmp_path: Path) -> None:
+    q = np.array([0.3, 1.1, -0.2, 1.5, 0.4, -0.3])
+    np.testing.assert_allclose(CALIBRATION.joint_rad(CALIBRATION.servo_rad(q)), q)
+    np.testing.assert_allclose(CALIBRATION.to_rad(CALIBRATION.to_ticks(q)), q, atol=1 / 651)
+    path = tmp_path / "arm.json"
+    save_calibration(CALIBRATION, path)
+    assert load_calibration(path) == CALIBRATION
+    path.write_text('{"ids": [1, 1, 2, 3, 4, 5]}')
+    with pytest.raises(ConfigurationError, match=r"arm calibration .*six different ids"):
+        load_calibration(path)
+    wide = Calibration(q_min_rad=(-2.0, -1, -1, 0, -1, -1), q_max_rad=(1, 1, 1, 1, 1, 1))
+    with pytest.raises(ConfigurationError, match="not inside the URDF"):
+        wide.limits(RobotSettings().load())
+
+
+# ---- the driver on the emulated bus -------------------------------------------------------
+@pytest.fixture()
+def arm(tmp_path: Path) -> Iterator[EmulatedArm]:
+    with emulated_arm(tmp_path / "ttyROBOT", CALIBRATION) as emulated:
+        yield emulated
+
+
+def test_the_servo_law_is_the_joint_law(arm: EmulatedArm) -> None:
+    """Goal shift, P and D written by the driver make each servo's own law
+    P (goal - angle) - D velocity equal tau_ff + kp (q_ref - q) + kd (dq_ref - dq)."""
+    rng = np.random.default_rng(3)
+    driver = DynamixelDriver(str(arm.bus.link), CALIBRATION)
+    with driver:
+        q_ref = driver.read_state().q_rad + rng.uniform(-0.05, 0.05, 6)
+        command = ServoCommand(
+            q_ref, rng.uniform(-0.3, 0.3, 6), rng.uniform(-5, 5, 6),
+            np.array([400.0, 400, 200, 200, 50, 50]), np.array([30.0, 30, 12, 12, 1.5, 1.5]),
+            np.full(6, 30.0),
+        )  # fmt: skip
+        driver.write_command(command)
+        driver.read_state()  # answered after the write was taken up
+        with arm.bus.lock:
+            servos = [arm.chain.servos[i] for i in CALIBRATION.ids]
+            goal = np.array([(s.value(GOAL_POSITION, 4) - 2048) / TICKS_PER_RAD for s in servos])
+            p = np.array([s.value(POSITION_P_GAIN, 2) for s in servos]) * KP_UNIT_A_PER_RAD
+            d = np.array([s.value(POSITION_D_GAIN, 2) for s in servos]) * KD_UNIT_AS_PER_RAD
+    q, dq = q_ref + rng.uniform(-0.02, 0.02, 6), rng.uniform(-0.5, 0.5, 6)  # any state
+    scale = np.asarray(CALIBRATION.directions) * np.asarray(CALIBRATION.gear_ratios)
+    current = p * (goal - CALIBRATION.servo_rad(q)) - d * scale * dq
+    servo_torque = CALIBRATION.joint_torque(current)
+    law = command.tau_ff + command.kp * (q_ref - q) + command.kd * (command.dq_ref - dq)
+    np.testing.assert_allclose(servo_torque, law, atol=0.02 * np.abs(law).max() + 0.05)
+
+
+# ---- the node, driven cycle by cycle --------------------------------------------------------
+HEADER = Header(stamp_ns=1, seq=0, source="test")
+
+
+@dataclass
+class _Publisher:
+    bus: QueueBus
+    kind: type[Message]
+
+    def publish(self, **fields: Any) -> Message:
+        stamp = time.time_ns()
+        message = self.kind(header=Header(stamp_ns=stamp, seq=0, source="robot"), **fields)
+        self.bus.published.append(message)
+        return message
+
+
+@dataclass
+class QueueBus:
+    """The node's bus in-process: messages in through ``send``, out in ``published``."""
+
+    inbox: list[Message] = field(default_factory=list)
+    published: list[Message] = field(default_factory=list)
+    rejected: list[str] = field(default_factory=list)
+    health: list[tuple[str, str]] = field(default_factory=list)
+
+    def publisher(self, kind: type[Message]) -> _Publisher:
+        return _Publisher(self, kind)
+
+    def subscribe(self, *kinds: type[Message]) -> None: ...
+    def expect(self, kind: type[Message], *sources: str) -> None: ...
+
+    def key(self, kind: type[Message]) -> str:
+        return kind.__name__
+
+    def receive(self, timeout_s: float | None) -> Message | None:
+        return self.inbox.pop(0) if self.inbox else None
+
+    def reject(self, key: str, reason: str) -> None:
+        self.rejected.append(reason)
+
+    def report_health(self, state: str = "ok", detail: str = "", force: bool = False) -> None:
+        self.health.append((state, detail))
+
+    def send(self, message: Message) -> None:
+        self.inbox.append(message)
+
+    def states(self) -> list[RobotState]:
+        return [m for m in self.published if isinstance(m, RobotState)]
+
+
+@dataclass
+class Rig:
+    node: RobotNode
+    bus: QueueBus
+    arm: EmulatedArm
+    speeds: list[np.ndarray] = field(default_factory=list)  # true joint speeds per cycle
+    gaps: list[np.ndarray] = field(default_factory=list)  # |q_ref applied - q| per cycle
+
+    def run(self, seconds: float, each: Callable[[Rig], None] | None = None) -> None:
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            self.node.cycle()
+            if each is not None:
+                each(self)
+            self.speeds.append(self.arm.joint_speeds())
+            state = self.bus.states()[-1] if self.bus.states() else None
+            if state is not None and state.q_ref_applied_rad is not None:
+                self.gaps.append(np.abs(np.subtract(state.q_ref_applied_rad, state.q_rad)))
+            time.sleep(0.01)
+
+    def fastest(self, since: int = 0, joints: list[int] | None = None) -> float:
+        """The fastest any of ``joints`` (default all) moved since cycle ``since`` [rad/s]."""
+        rows = np.array(self.speeds[since:])
+        return float(rows[:, joints if joints is not None else slice(None)].max())
+
+    @property
+    def last_health(self) -> tuple[str, str]:
+        return self.bus.health[-1]
+
+
+@pytest.fixture()
+def rig(arm: EmulatedArm, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[Rig]:
+    path = tmp_path / "arm.json"
+    save_calibration(CALIBRATION, path)
+    settings = ArmSettings(port=str(arm.bus.link), calibration_file=path, soft_start_s=0.3,
+                           homing_speed_rad_s=0.6)  # fmt: skip
+    bus = QueueBus()
+    node = RobotNode(settings, TaskSettings(), RobotSettings(), bus)  # type: ignore[arg-type]
+    yield Rig(node, bus, arm)
+    if node.connected:
+        node.driver.disconnect()
+
+
+def _goal(episode: int, q_start: tuple[float, ...] = (0.1, 0.9, 0.0, 1.5, 0.1, 0.3)) -> TaskGoal:
+    return TaskGoal(header=Header(stamp_ns=1, seq=episode, source="controller"),
+                    episode=episode, seed=episode, start_m=(0.3, 0, 0), goal_m=(0.45, 0, 0),
+                    q_start_rad=q_start)  # fmt: skip
+
+
+def _answer(rig: Rig, offset: np.ndarray) -> None:
+    """A controller: each new state answered with a reference ``offset`` from home."""
+    state = rig.bus.states()[-1]
+    if state.episode == 0 or rig.node.homing is not None:
+        return
+    q_ref = np.array(_goal(1).q_start_rad) + offset
+    gravity = rig.node.arm.inverse_dynamics(q_ref, np.zeros(6), np.zeros(6))
+    rig.bus.send(JointCommand(
+        header=Header(stamp_ns=time.time_ns(), seq=0, source="controller"),
+        episode=state.episode, state_stamp_ns=state.header.stamp_ns, q_ref_rad=tuple(q_ref),
+        dq_ref_rad_s=(0.0,) * 6, tau_ff_nm=tuple(gravity),
+        kp_nm_per_rad=(400.0, 400, 200, 200, 50, 50), kd_nms_per_rad=(30.0, 30, 12, 12, 1.5, 1.5),
+    ))  # fmt: skip
+
+
+def _started(rig: Rig) -> None:
+    """Connected, soft-started, homed to episode 1's start and following commands."""
+    rig.run(0.5)
+    assert rig.node.connected and rig.last_health[0] == "holding"
+    rig.bus.send(_goal(1))
+    rig.run(4.0, lambda r: _answer(r, np.zeros(6)))
+    assert rig.node.episode == 1, rig.bus.rejected
+    assert rig.last_health[0] == "ok"
+
+
+def test_the_node_homes_follows_commands_and_holds_when_they_stop(rig: Rig) -> None:
+    _started(rig)
+    target = np.array([0.05, -0.05, 0.05, 0.05, 0.0, 0.0])
+    rig.run(1.5, lambda r: _answer(r, target))
+    state = rig.bus.states()[-1]
+    np.testing.assert_allclose(state.q_rad, np.array(_goal(1).q_start_rad) + target, atol=0.01)
+    assert 1.5 < state.t_s < 5.5 and not state.holding  # robot time: from the episode start
+    rig.run(0.5)  # the controller went quiet
+    assert rig.bus.states()[-1].holding and rig.last_health[0] == "holding"
+    assert rig.fastest(len(rig.speeds) - 20) < 0.02
+
+
+def test_the_emergency_stop_holds_within_one_period_and_refuses_commands(rig: Rig) -> None:
+    _started(rig)
+    rig.run(0.2, lambda r: _answer(r, np.array([0.3, 0, 0, 0, 0, 0])))  # moving away
+    assert rig.fastest(len(rig.speeds) - 5) > 0.1
+    rig.bus.send(EmergencyStop(header=Header(stamp_ns=1, seq=0, source="tool"), engaged=True))
+    rig.node.cycle()  # one period
+    assert rig.last_health[0] == "stopped"
+    assert rig.node.held is not None and rig.node.command is None
+    cycles = len(rig.speeds)
+    rig.run(1.0, lambda r: _answer(r, np.array([0.3, 0, 0, 0, 0, 0])))
+    stopped_at = next(i for i, s in enumerate(rig.speeds[cycles:]) if s.max() < 0.02)
+    assert stopped_at * 0.011 < 0.5, rig.speeds[cycles:]  # at rest within half a second
+    assert any("emergency stop" in r for r in rig.bus.rejected)
+    rig.bus.send(EmergencyStop(header=Header(stamp_ns=2, seq=1, source="tool"), engaged=False))
+    rig.run(0.3)
+    assert rig.last_health[0] == "holding"  # released: it holds until commands resume
+
+
+@pytest.mark.parametrize(
+    ("fault", "health", "recovery"),
+    [("corrupt 2", "ok", None), ("missing 3", "degraded", "present 3"),
+     ("silent", "degraded", "talk"), ("unplug", "degraded", "replug"),
+     ("overload 6", "stopped", None)],
+)  # fmt: skip
+def test_every_fault_ends_in_a_hold_or_a_stop_without_a_jump(
+    rig: Rig, fault: str, health: str, recovery: str | None
+) -> None:
+    """The reference never leaves the arm (|q_ref - q| as in normal running) and nothing
+    moves but what gravity does to a servo its own firmware or watchdog stopped."""
+    _started(rig)
+    rig.run(0.3, lambda r: _answer(r, np.zeros(6)))
+    before, steady = len(rig.speeds), max(float(g.max()) for g in rig.gaps[-20:])
+    inject(rig.arm, fault)
+    rig.run(1.5, lambda r: _answer(r, np.zeros(6)))
+    assert rig.last_health[0] == health, rig.bus.health[-3:]
+    others = [0, 1, 2, 3, 4] if fault.startswith("overload") else None  # servo 6 is cut
+    gaps = np.array(rig.gaps[before:])[:, others if others else slice(None)]
+    assert gaps.max() < steady + 0.01, (gaps.max(), steady)  # held where it was: no jump
+    if others:
+        assert rig.fastest(before, others) < 0.05
+    else:  # the watchdog's stop holds without gravity compensation: a slow settle
+        assert rig.fastest(before) < 0.3
+    if recovery is not None:  # the bus comes back: the arm holds where it is
+        inject(rig.arm, recovery)
+        rig.run(2.0)
+        assert rig.last_health[0] == "holding", rig.bus.health[-3:]
+        assert rig.fastest(len(rig.speeds) - 50) < 0.05
