@@ -32,7 +32,7 @@ from services.robot.config import ArmSettings
 from services.robot.driver import DynamixelDriver, ServoCommand
 from services.robot.emulator import ServoBusEmulator
 from services.robot.node import arm_limits
-from services.robot.servo_chain import ServoChain, ServoDrive, ServoReading
+from services.robot.servo_chain import FAULT_HELP, ServoChain, ServoDrive, ServoReading
 from services.sim.config import SimSettings
 from services.sim.core import Simulation
 
@@ -138,12 +138,6 @@ def emulated_arm(port: Path, calibration: Calibration | None = None) -> Iterator
     chain = ServoChain(list(calibration.ids), physics, calibration.button_id)
     with ServoBusEmulator(chain, port) as bus:
         yield EmulatedArm(chain, physics, bus)
-
-
-FAULT_HELP = (
-    "faults on stdin, one per line: overload ID | missing ID | present ID | corrupt N | "
-    "silent | talk | unplug | replug"
-)
 
 
 def inject(arm: EmulatedArm, line: str) -> str:
@@ -319,43 +313,3 @@ def direction_of(before_rad: float, after_rad: float, min_motion_rad: float = 0.
             f"at least {math.degrees(min_motion_rad):.0f} deg in its positive direction"
         )
     return 1 if after_rad > before_rad else -1
-
-
-# ---- the emergency stop -----------------------------------------------------------------
-ARM_SERVICES = ("sim", "robot")
-
-
-@dataclass(frozen=True)
-class StopReport:
-    acknowledged: dict[str, float]  # arm service -> seconds until its Health confirmed
-    silent: list[str]  # arm services seen on the bus that did not confirm in time
-
-
-def emergency_stop(
-    settings: BusSettings, engaged: bool = True, reason: str = "", timeout_s: float = 2.0
-) -> StopReport:
-    """Publish an emergency stop (or its release) until every arm service on the bus
-    confirms it in its Health ("stopped", or no longer "stopped"), or ``timeout_s``."""
-    from schemas import EmergencyStop, Health
-    from services.common.bus import Bus
-
-    acknowledged: dict[str, float] = {}
-    with Bus(settings, "tool") as bus:
-        bus.subscribe(Health)
-        publisher = bus.publisher(EmergencyStop)
-        start = time.monotonic()
-        next_send = start
-        while (now := time.monotonic()) - start < timeout_s:
-            if now >= next_send:  # repeated: a stop must not hang on one lost message
-                publisher.publish(engaged=engaged, reason=reason)
-                next_send = now + 0.02
-            message = bus.receive(0.005)
-            if isinstance(message, Health) and message.service in ARM_SERVICES:
-                now_stopped = message.state == "stopped"
-                if now_stopped == engaged:
-                    acknowledged.setdefault(message.service, time.monotonic() - start)
-            arms = {p for p in bus.alive_peers() if p in ARM_SERVICES}
-            if arms and arms <= set(acknowledged) and now - start > 0.1:
-                break
-        silent = sorted({p for p in bus.alive_peers() if p in ARM_SERVICES} - set(acknowledged))
-    return StopReport(acknowledged, silent)

@@ -26,13 +26,14 @@ from tests.busutil import Observer, endpoint, free_port, start_patient, wait_for
 pytestmark = pytest.mark.slow  # real processes on a real bus
 
 COMPOSE = Path(__file__).resolve().parent.parent / "compose.yaml"
-SERVICES = {"sim", "policy", "intent", "controller", "recorder"}
+SERVICES = {"sim", "robot", "policy", "intent", "controller", "recorder"}
 CONTAINER_PATHS = ("DAMMRL_INTENT_PORT", "DAMMRL_INTENT_CALIBRATION_FILE", "DAMMRL_RECORDER_OUT")
 PROFILES = {
     "virtual": {"sim", "policy", "intent", "controller", "recorder"},
     "semi-virtual": {"sim", "policy", "intent-sensor", "controller-sensor", "recorder-sensor"},
+    "real": {"robot", "policy-real", "intent-real", "controller-real", "recorder-real"},
 }
-MAY_MOVE_THE_ARM = {"sim", "controller"}
+MAY_MOVE_THE_ARM = {"sim", "robot", "controller"}
 """Restarted, they reset the arm and start an episode: never restarted on their own."""
 
 
@@ -53,7 +54,7 @@ def test_each_profile_has_one_container_per_service_from_one_image(profile: str)
     assert set(services) == PROFILES[profile]
     assert {s["image"] for s in services.values()} == {"dammrl:latest"}
     for name, service in services.items():
-        module = name.removesuffix("-sensor")
+        module = name.removesuffix("-sensor").removesuffix("-real")
         assert service["command"] == ["python", "-m", f"services.{module}"]
         assert all(k.startswith("DAMMRL_") for k in service["environment"])
         assert set(service.get("depends_on", {})) <= set(services), "compose refuses this"
@@ -69,9 +70,10 @@ def test_each_service_starts_once_what_it_needs_is_healthy_and_the_controller_la
         assert check == ["CMD", "python", "-m", "services.common.healthcheck", _bus_name(name)]
         needs = service.get("depends_on", {})
         assert all(n["condition"] == "service_healthy" for n in needs.values()), name
-        assert name == "sim" or "sim" in needs, name
-    controller = next(s for n, s in services.items() if n.startswith("controller"))
-    assert set(controller["depends_on"]) == set(services) - {"controller", "controller-sensor"}
+        arm = {"sim", "robot"}
+        assert name in arm or arm & set(needs), name  # the arm's service is the hub
+    name, controller = next((n, s) for n, s in services.items() if n.startswith("controller"))
+    assert set(controller["depends_on"]) == set(services) - {name}
 
 
 def test_services_that_would_move_the_arm_are_never_restarted_the_others_are() -> None:
@@ -86,7 +88,7 @@ def test_services_run_as_the_host_user_not_root() -> None:
 
 
 def _bus_name(container: str) -> str:
-    return container.removesuffix("-sensor")
+    return container.removesuffix("-sensor").removesuffix("-real")
 
 
 @pytest.mark.parametrize("profile", PROFILES)
@@ -116,6 +118,16 @@ def test_semi_virtual_profile_passes_the_sensor_and_its_calibration_to_the_inten
     assert any(env["DAMMRL_INTENT_CALIBRATION_FILE"].startswith(m + "/") for m in mounts)
     recorder = _profile("semi-virtual")["recorder-sensor"]["environment"]
     assert recorder["DAMMRL_RECORDER_MODE"] == "semi-virtual"
+
+
+def test_real_profile_passes_the_servo_bus_and_the_arm_calibration_to_the_robot() -> None:
+    robot = _profile("real")["robot"]
+    env = robot["environment"]
+    host, container = robot["devices"][0].rsplit(":", 1)
+    assert container == env["DAMMRL_ARM_PORT"] and "DAMMRL_ROBOT_DEVICE" in host
+    mounts = [volume["target"] for volume in robot["volumes"]]
+    assert any(env["DAMMRL_ARM_CALIBRATION_FILE"].startswith(m + "/") for m in mounts)
+    assert _profile("real")["recorder-real"]["environment"]["DAMMRL_RECORDER_MODE"] == "real"
 
 
 def test_every_service_answers_help() -> None:
@@ -152,6 +164,8 @@ def _local(environment: dict[str, str], port: int, tmp_path: Path) -> dict[str, 
             "DAMMRL_INTENT_PORT",
             "DAMMRL_INTENT_CALIBRATION_FILE",
             "DAMMRL_RECORDER_OUT",
+            "DAMMRL_ARM_PORT",
+            "DAMMRL_ARM_CALIBRATION_FILE",
         ):
             value = str(tmp_path / Path(value).name)
         local[name] = str(value)
@@ -205,6 +219,20 @@ def test_the_semi_virtual_profile_runs_an_episode_from_the_passed_through_sensor
     result = observer.of(EpisodeResult)[0]
     assert isinstance(result, EpisodeResult) and result.success, result.reason
     assert all(isinstance(i, Intent) and i.source == "sensor" for i in observer.of(Intent))
+
+
+def test_the_real_profile_runs_an_episode_on_the_passed_through_servo_bus(
+    tmp_path: Path,
+) -> None:
+    """The emulated arm stands in for the device at the robot's DAMMRL_ARM_PORT."""
+    from dammrl.arm import emulated_arm
+    from services.robot.calibration import Calibration, save_calibration
+
+    save_calibration(Calibration(), tmp_path / "arm_calibration.json")
+    with emulated_arm(tmp_path / "ttyROBOT"):
+        observer = _run_profile("real", tmp_path)
+    assert observer.of(EpisodeResult)
+    assert list((tmp_path / "sessions").glob("*.mcap")), "the recorder wrote the session"
 
 
 def test_the_health_check_fails_with_its_reason_when_the_service_is_not_there(

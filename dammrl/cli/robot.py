@@ -23,6 +23,7 @@ from dammrl.core.errors import DammrlError, Exit
 
 if TYPE_CHECKING:
     from dammrl.arm import EmulatedArm
+    from dammrl.stop import StopReport
     from services.robot.calibration import Calibration
     from services.robot.config import ArmSettings
 
@@ -61,6 +62,9 @@ def register_stop(commands: Commands) -> None:
     stop.add_argument("--reason", default="", help="recorded with the stop")
     stop.add_argument("--timeout", type=positive, default=2.0,
                       help="seconds to wait for every arm to confirm")  # fmt: skip
+    stop.add_argument("--console", action="store_true",
+                      help="stay connected: Enter stops, 'release' releases, Ctrl-D quits "
+                           "(a stop then costs no start-up)")  # fmt: skip
     stop.set_defaults(handler=_stop)
 
 
@@ -105,7 +109,7 @@ def _add_calibrate(actions: Commands) -> None:
 
 
 def _add_emulate(actions: Commands) -> None:
-    from dammrl.arm import FAULT_HELP
+    from services.robot.servo_chain import FAULT_HELP
 
     emulate = actions.add_parser(
         "emulate",
@@ -252,14 +256,29 @@ def _faults(arm: EmulatedArm, stop: threading.Event) -> None:
 
 
 def _stop(args: argparse.Namespace) -> int:
-    from dammrl.arm import emergency_stop
+    from dammrl.stop import StopConsole
 
-    what = "release" if args.release else "stop"
-    report = emergency_stop(bus_settings(args), not args.release, args.reason, args.timeout)
+    console = StopConsole(bus_settings(args))
+    try:
+        if not args.console:
+            return _say_stop(console.send(not args.release, args.reason, args.timeout),
+                             "release" if args.release else "stop", args.timeout)  # fmt: skip
+        print_err("stop console: Enter stops every arm, 'release' releases, Ctrl-D quits")
+        for line in sys.stdin:
+            release = line.strip() == "release"
+            report = console.send(not release, args.reason or "from the stop console",
+                                  args.timeout)  # fmt: skip
+            _say_stop(report, "release" if release else "stop", args.timeout)
+        return Exit.OK
+    finally:
+        console.close()
+
+
+def _say_stop(report: StopReport, what: str, timeout_s: float) -> int:
     for service, seconds in sorted(report.acknowledged.items()):
         print_out(f"{service}: {what} confirmed after {seconds * 1000:.0f} ms")
     for service in report.silent:
-        print_err(f"dammrl: {service} did not confirm the {what} within {args.timeout:.1f} s")
+        print_err(f"dammrl: {service} did not confirm the {what} within {timeout_s:.1f} s")
     if not report.acknowledged:
         print_err(f"dammrl: no arm confirmed the {what}: is a stack running (dammrl status)?")
     return Exit.OK if report.acknowledged and not report.silent else Exit.FAILED

@@ -47,6 +47,10 @@ class DriverError(DammrlError):
     """The servo bus failed: a timeout, a corrupt answer, a missing servo, an error bit."""
 
 
+class PortLostError(DriverError):
+    """The serial device itself failed (a USB adapter pulled out): it must be reopened."""
+
+
 @dataclass(frozen=True)
 class JointState:
     q_rad: np.ndarray
@@ -75,7 +79,7 @@ def _bus_io(port: str) -> Iterator[None]:
     try:
         yield
     except OSError as exc:
-        raise DriverError(f"the servo bus at {port} failed: {exc}") from None
+        raise PortLostError(f"the servo bus at {port} failed: {exc}") from None
 
 
 def describe_errors(bits: int) -> str:
@@ -126,7 +130,11 @@ class DynamixelDriver:
     _written: dict[str, tuple[int, ...]] = field(default_factory=dict)
 
     def __enter__(self) -> DynamixelDriver:
-        self.connect()
+        try:
+            self.connect()
+        except DriverError:
+            self._close()
+            raise
         return self
 
     def __exit__(self, kind: type[BaseException] | None, value: BaseException | None,
@@ -157,8 +165,8 @@ class DynamixelDriver:
         try:
             with _bus_io(self.port):
                 return self._power_up(torque)
-        except DriverError:
-            self._close()
+        except PortLostError:
+            self._close()  # reopened at the next try
             raise
 
     def _power_up(self, torque: bool) -> bool:

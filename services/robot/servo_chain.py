@@ -204,6 +204,12 @@ class FirstOrder:
         return 0.0
 
 
+FAULT_HELP = (
+    "faults on stdin, one per line: overload ID | missing ID | present ID | corrupt N | "
+    "silent | talk | unplug | replug"
+)
+
+
 @dataclass
 class Faults:
     """Faults on demand."""
@@ -227,6 +233,8 @@ class ServoChain:
         self.button_id = button_id
         self.physics: Physics = physics or FirstOrder()
         self.faults = Faults()
+        self.writes: list[tuple[float, int]] = []  # (time, address) of sync writes, if kept
+        self.keep_writes = False  # benchmarks: when the goals arrive
         self.now_s = 0.0
         self._last_step_s = 0.0
 
@@ -335,6 +343,8 @@ class ServoChain:
         if len(params) < 4:
             return
         address, length = struct.unpack("<HH", params[:4])
+        if self.keep_writes:
+            self.writes.append((self.now_s, address))
         block = 1 + length
         for start in range(4, len(params) - block + 1, block):
             servo_id = params[start]

@@ -1,0 +1,148 @@
+"""Stage S3 with real processes on a real bus, the arm emulated on a pty behind the real
+driver path: a whole episode, the watchdog after kill -9, the emergency stop under load."""
+
+from __future__ import annotations
+
+import multiprocessing
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from dammrl.arm import EmulatedArm, emulated_arm
+from schemas import EpisodeResult, Header, Health, TaskGoal, encode
+from tests.busutil import Observer, client_settings, endpoint, free_port, start_service, wait_for
+
+pytestmark = pytest.mark.slow  # real processes on a real bus
+FAR_START = (0.6, 1.0, 0.0, 1.6, 0.0, 0.3)  # 0.6 rad from the parked posture on joint 0
+
+
+@pytest.fixture()
+def arm(tmp_path: Path) -> Iterator[EmulatedArm]:
+    with emulated_arm(tmp_path / "ttyROBOT") as emulated:
+        yield emulated
+
+
+def _robot(arm: EmulatedArm, port: int, **env: str) -> subprocess.Popen[bytes]:
+    return start_service("robot", port, DAMMRL_ARM_PORT=str(arm.bus.link), **env)
+
+
+def _home_to(observer: Observer, q_start: tuple[float, ...]) -> None:
+    """Announce an episode as the controller would: the robot moves to its start."""
+    goal = TaskGoal(header=Header(stamp_ns=time.time_ns(), seq=0, source="controller"),
+                    episode=1, seed=1, start_m=(0.3, 0.0, 0.0), goal_m=(0.45, 0.0, 0.0),
+                    q_start_rad=q_start)  # fmt: skip
+    observer.put(TaskGoal, encode(goal))
+
+
+def _states(observer: Observer, state: str) -> list[Health]:
+    return [h for h in observer.of(Health) if isinstance(h, Health) and h.service == "robot"
+            and h.state == state]  # fmt: skip
+
+
+def _moving(arm: EmulatedArm, observer: Observer) -> None:
+    wait_for(lambda: bool(_states(observer, "holding")), 30, "the robot service to hold")
+    _home_to(observer, FAR_START)
+    wait_for(lambda: arm.joint_speeds().max() > 0.15, 10, "the arm to move to its start")
+
+
+def _time_to_rest(arm: EmulatedArm, since: float, speed: float = 0.02) -> float:
+    wait_for(lambda: arm.joint_speeds().max() < speed, 5, "the arm to stop")
+    return time.monotonic() - since
+
+
+def test_an_episode_on_the_emulated_chain_reaches_the_goal(arm: EmulatedArm) -> None:
+    """Robot, policy, intent and controller as processes; the emulated servos answer the
+    official SDK; the button follows the episode's goal (the therapist's job)."""
+    port = free_port()
+    observer = Observer(port)
+    stop = threading.Event()
+    follower = threading.Thread(target=arm.follow_goals, args=(client_settings(port), stop))
+    follower.start()
+    processes = [
+        _robot(arm, port),
+        start_service("policy", port),
+        start_service("intent", port),
+        start_service("controller", port, DAMMRL_TASK_EPISODES="1", DAMMRL_TASK_SEED="0"),
+    ]
+    try:
+        wait_for(lambda: bool(observer.of(EpisodeResult)), 150, "the episode to end")
+    finally:
+        for process in processes:
+            process.terminate()
+        for process in processes:
+            process.wait(15)
+        stop.set()
+        follower.join(5)
+        observer.close()
+    result = observer.of(EpisodeResult)[0]
+    assert isinstance(result, EpisodeResult) and result.success, result.reason
+    assert result.final_error_m < 0.04
+
+
+def test_the_servos_stop_by_themselves_when_the_robot_service_is_killed(
+    arm: EmulatedArm,
+) -> None:
+    port = free_port()
+    observer = Observer(port)
+    robot = _robot(arm, port, DAMMRL_ARM_WATCHDOG_S="0.1")
+    try:
+        _moving(arm, observer)
+        robot.send_signal(signal.SIGKILL)
+        killed = time.monotonic()
+        motors = list(arm.chain.motors.values())
+        wait_for(lambda: all(s.watchdog_expired for s in motors), 2, "every watchdog to expire")
+        expired = time.monotonic() - killed
+        rest = _time_to_rest(arm, killed, 0.05)
+    finally:
+        robot.kill()
+        robot.wait(10)
+        observer.close()
+    assert expired < 0.1 + 0.05  # the watchdog time, and the emulator's 2 ms tick
+    assert rest < 1.0, rest
+
+
+def _burn(seconds: float) -> None:
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        pass
+
+
+def test_dammrl_stop_stops_the_arm_within_a_period_and_releases_it_under_load(
+    arm: EmulatedArm,
+) -> None:
+    port = free_port()
+    observer = Observer(port)
+    robot = _robot(arm, port)
+    context = multiprocessing.get_context("spawn")
+    load = [context.Process(target=_burn, args=(60,), daemon=True) for _ in range(2)]
+    stop = [sys.executable, "-m", "dammrl", "stop", "--connect", endpoint(port)]
+    try:
+        _moving(arm, observer)
+        for process in load:
+            process.start()
+        started = time.monotonic()
+        done = subprocess.run(stop, capture_output=True, text=True, timeout=60)
+        assert done.returncode == 0, done.stderr
+        assert "robot: stop confirmed after" in done.stdout
+        confirmed_ms = float(done.stdout.split("after ")[1].split(" ms")[0])
+        rest = _time_to_rest(arm, started)
+        assert robot.poll() is None and _states(observer, "stopped")
+        released = subprocess.run([*stop, "--release"], capture_output=True, text=True,
+                                  timeout=60)  # fmt: skip
+        assert released.returncode == 0, released.stderr
+        wait_for(lambda: bool(_states(observer, "holding")), 5, "the hold after the release")
+    finally:
+        for process in load:
+            process.terminate()
+        robot.terminate()
+        robot.wait(15)
+        observer.close()
+    assert confirmed_ms < 500  # the stop published, obeyed and reported, under load
+    assert np.isfinite(rest)
