@@ -22,6 +22,7 @@ import services.controller.config
 import services.intent.config
 import services.policy.config
 import services.recorder.config
+import services.robot.config
 import services.sim.config
 from dammrl.cli import main
 from dammrl.core import human, models, task
@@ -34,7 +35,7 @@ CLASSES: list[type[Settings]] = [
     services.intent.config.IntentSettings, services.policy.config.PolicySettings,
     services.recorder.config.RecorderSettings, services.sim.config.SimSettings,
     dammrl.rl.config.TrainSettings, human.HumanModel, models.ModelSet, task.TaskSettings,
-    robot.RobotSettings,
+    robot.RobotSettings, services.robot.config.ArmSettings,
 ]  # fmt: skip
 BAD = ("abc", "inf", "-inf", "nan", "-1", "1e309", "[1,", "[1, 2]", '{"x": 1}', "", "\x7f")
 

@@ -142,18 +142,22 @@ def test_the_dynamixel_driver_holds_moves_and_reports_through_the_emulated_chain
     watchdog is armed so a dead host stops the servos."""
     import numpy as np
 
-    from services.robot.driver import Calibration, DriverError, make_driver
+    from services.robot.calibration import Calibration
+    from services.robot.driver import DriverError, ServoCommand, make_driver
 
-    chain = ServoChain(IDS)
-    calibration = Calibration(offsets_rad=(0.1, 0, 0, 0, 0, -0.2), directions=(1, -1, 1, 1, 1, 1))
+    chain = ServoChain(IDS)  # first-order servos: they follow their goals
+    calibration = Calibration(offsets_rad=(0.1, 0, 0, 0, 0, -0.2), directions=(1, -1, 1, 1, 1, 1),
+                              button_id=None)  # fmt: skip
     with ServoBusEmulator(chain, tmp_path / "ttyROBOT") as emulator:
         driver = make_driver("dynamixel", port=str(tmp_path / "ttyROBOT"), calibration=calibration)
         with driver:  # type: ignore[attr-defined]
             start = driver.read_state().q_rad
             target = start + np.array([0.2, -0.1, 0.05, 0.0, 0.1, -0.05])
+            zeros, gains = np.zeros(6), np.full(6, 100.0)
+            command = ServoCommand(target, zeros, zeros, gains, zeros, np.full(6, 10.0))
             until = time.monotonic() + 0.4
             while time.monotonic() < until:  # a control loop: the watchdog (0.1 s) stays fed
-                driver.write_command(target)
+                driver.write_command(command)
                 time.sleep(0.01)
             state = driver.read_state()
             np.testing.assert_allclose(state.q_rad, target, atol=2 / 651.9)  # 2 ticks
@@ -164,7 +168,7 @@ def test_the_dynamixel_driver_holds_moves_and_reports_through_the_emulated_chain
             assert driver.read_state().hardware_errors == {4: OVERLOAD_BIT}
             with emulator.lock:
                 chain.faults.missing = {2}
-            with pytest.raises(DriverError, match="sync read failed"):
+            with pytest.raises(DriverError, match="servo 2 missing from the sync read"):
                 driver.read_state()
             with emulator.lock:
                 chain.faults.missing = set()

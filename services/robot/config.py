@@ -17,9 +17,9 @@ class ArmSettings(Settings):
 
     model_config = SettingsConfigDict(env_prefix="DAMMRL_ARM_")
 
-    driver: str = "dynamixel"
+    driver: str = Field("dynamixel", min_length=1)
     """The driver backend (see ``services.robot.driver.DRIVERS``)."""
-    port: str = "/dev/ttyUSB0"
+    port: str = Field("/dev/ttyUSB0", min_length=1)
     """The servo bus's serial device (a U2D2 or another USB adapter)."""
     baud: int = Field(1_000_000, gt=0)
     calibration_file: Path | None = None
