@@ -71,12 +71,18 @@ def _timed(call: Callable[[], object], seconds: float) -> list[float]:
 
 # ---- (b) the service's loop --------------------------------------------------------------
 def loop_periods(arm: EmulatedArm, rate_hz: int, seconds: float = 10.0) -> None:
+    """The robot service holding the arm where it is, commanded by a stand-in controller
+    that answers every state (so the command-to-servo latency is measured too)."""
     port = free_port()
     observer = Observer(port)
     robot = start_service("robot", port, DAMMRL_ARM_PORT=str(arm.bus.link),
                           DAMMRL_ARM_LOOP_RATE_HZ=str(rate_hz))  # fmt: skip
+    stop = threading.Event()
+    controller = threading.Thread(target=_answer_states, args=(port, stop))
     try:
         wait_for(lambda: _health(observer, "holding"), 30, "the robot to hold")
+        controller.start()
+        wait_for(lambda: _health(observer, "ok"), 10, "the robot to follow commands")
         with arm.bus.lock:
             arm.chain.writes.clear()
             arm.chain.keep_writes = True
@@ -84,13 +90,43 @@ def loop_periods(arm: EmulatedArm, rate_hz: int, seconds: float = 10.0) -> None:
         with arm.bus.lock:
             arm.chain.keep_writes = False
             times = [t for t, address in arm.chain.writes if address == GOAL_POSITION]
+        latency = _health(observer, "ok")[-1].detail.split("command to servo ")[-1]
     finally:
+        stop.set()
         robot.terminate()
         robot.wait(15)
+        controller.join(5)
         observer.close()
     periods = list(np.diff(times))
     print(f"(b) robot service at {rate_hz} Hz: goal writes {len(times) / seconds:.0f}/s, period "
-          f"{pct(periods)} ms (emulator's clock)")  # fmt: skip
+          f"{pct(periods)} ms (emulator's clock); JointCommand stamped -> goals written: "
+          f"{latency.split(',')[0]}, {latency.split(',')[1].strip()}")  # fmt: skip
+
+
+def _answer_states(port: int, stop: threading.Event) -> None:
+    """A stand-in controller: every state answered with a hold where the arm is."""
+    from dammrl.core.dynamics import ArmModel
+    from dammrl.core.robot import RobotSettings
+    from schemas import JointCommand
+    from services.common.bus import Bus
+    from tests.busutil import client_settings
+
+    model = ArmModel(RobotSettings().load())
+    zeros = np.zeros(6)
+    with Bus(client_settings(port), "controller") as bus:
+        bus.subscribe(RobotState)
+        publisher = bus.publisher(JointCommand)
+        while not stop.is_set():
+            state = bus.receive(0.1)
+            if not isinstance(state, RobotState):
+                continue
+            q = np.array(state.q_rad)
+            publisher.publish(
+                episode=state.episode, state_stamp_ns=state.header.stamp_ns, q_ref_rad=state.q_rad,
+                dq_ref_rad_s=(0.0,) * 6, tau_ff_nm=tuple(model.inverse_dynamics(q, zeros, zeros)),
+                kp_nm_per_rad=(400.0, 400, 200, 200, 50, 50),
+                kd_nms_per_rad=(30.0, 30, 12, 12, 1.5, 1.5),
+            )  # fmt: skip
 
 
 def _health(observer: Observer, state: str, service: str = "robot") -> list[Health]:

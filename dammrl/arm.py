@@ -29,7 +29,7 @@ from dammrl.core.task import TaskSettings, scene_layout
 from services.common.config import BusSettings
 from services.robot.calibration import Calibration
 from services.robot.config import ArmSettings
-from services.robot.driver import DynamixelDriver, ServoCommand
+from services.robot.driver import DriverError, DynamixelDriver, ServoCommand
 from services.robot.emulator import ServoBusEmulator
 from services.robot.node import arm_limits
 from services.robot.servo_chain import FAULT_HELP, ServoChain, ServoDrive, ServoReading
@@ -123,6 +123,17 @@ class EmulatedArm:
                 if isinstance(goal, TaskGoal) and goal.episode != placed:
                     self.place_button((goal.goal_m[0], goal.goal_m[1]))
                     placed = goal.episode
+
+    def move_by_hand(self, q_rad: np.ndarray) -> None:
+        """A person puts the (unpowered) arm at the joint angles ``q_rad``."""
+        import mujoco
+
+        with self.bus.lock:
+            sim = self.physics.sim
+            sim.data.qpos[:6] = q_rad
+            sim.data.qvel[:6] = 0.0
+            mujoco.mj_forward(sim.model, sim.data)
+            self.physics.state = sim.read()
 
     def joint_speeds(self) -> np.ndarray:
         """The true joint speeds now [rad/s] (what a stop must bring to zero)."""
@@ -225,7 +236,7 @@ def jog(
         duration = max(0.5, 1.875 * abs(target[joint] - q0[joint]) / speed_rad_s)
         progress(f"joint {robot.joint_names[joint]}: {q0[joint]:+.3f} -> {target[joint]:+.3f} rad "
                  f"in {duration:.1f} s")  # fmt: skip
-        start = time.monotonic()
+        start, failures = time.monotonic(), 0
         end = start + duration + 1.0 + settings.soft_start_s  # settle, after the soft start
         while (now := time.monotonic()) < end:
             s = min(max((now - start - settings.soft_start_s) / duration, 0.0), 1.0)
@@ -233,12 +244,25 @@ def jog(
             ramp = min((now - start) / max(settings.soft_start_s, 1e-9), 1.0)
             share = settings.soft_start_fraction + (1 - settings.soft_start_fraction) * ramp
             gravity = arm.inverse_dynamics(q_ref, np.zeros(6), np.zeros(6))
-            driver.read_state()
-            driver.write_command(ServoCommand(q_ref, np.zeros(6), gravity, kp * share,
-                                              kd * share, limits.tau_max))  # fmt: skip
+            law = ServoCommand(q_ref, np.zeros(6), gravity, kp * share, kd * share,
+                               limits.tau_max)  # fmt: skip
+            failures = _cycle(driver, law, failures, settings.max_bus_errors)
             time.sleep(period)
         moved = float(driver.read_state().q_rad[joint] - q0[joint])
     return moved
+
+
+def _cycle(driver: DynamixelDriver, law: ServoCommand, failures: int, allowed: int) -> int:
+    """One read and write; a failed cycle leaves the servos on their last goal, ``allowed``
+    in a row end the jog (the watchdog then stops the servos)."""
+    try:
+        driver.read_state()
+        driver.write_command(law)
+    except DriverError:
+        if failures + 1 >= allowed:
+            raise
+        return failures + 1
+    return 0
 
 
 # ---- calibrate --------------------------------------------------------------------------

@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from dammrl.arm import EmulatedArm, emulated_arm, inject
+from dammrl.arm import EmulatedArm, emulated_arm, guided_calibration, inject, jog, scan
 from dammrl.core.errors import ConfigurationError
 from dammrl.core.robot import RobotSettings
 from dammrl.core.task import TaskSettings
@@ -23,12 +23,14 @@ from services.robot.config import ArmSettings
 from services.robot.driver import DynamixelDriver, ServoCommand
 from services.robot.node import RobotNode
 from services.robot.servo_chain import (
+    BUTTON_MODEL,
     GOAL_POSITION,
     KD_UNIT_AS_PER_RAD,
     KP_UNIT_A_PER_RAD,
     POSITION_D_GAIN,
     POSITION_P_GAIN,
     TICKS_PER_RAD,
+    XM430_W350,
 )
 
 CALIBRATION = Calibration(
@@ -86,6 +88,53 @@ def test_the_servo_law_is_the_joint_law(arm: EmulatedArm) -> None:
     servo_torque = CALIBRATION.joint_torque(current)
     law = command.tau_ff + command.kp * (q_ref - q) + command.kd * (command.dq_ref - dq)
     np.testing.assert_allclose(servo_torque, law, atol=0.02 * np.abs(law).max() + 0.05)
+
+
+# ---- the tools: scan, jog, calibrate -----------------------------------------------------
+def test_scan_finds_every_servo_and_the_button(arm: EmulatedArm) -> None:
+    devices = scan(str(arm.bus.link))
+    assert [d.servo_id for d in devices] == [1, 2, 3, 4, 5, 6, 100]
+    assert {d.model for d in devices} == {XM430_W350, BUTTON_MODEL} and devices[0].firmware == 46
+
+
+def test_jog_moves_one_joint_by_what_was_asked_and_holds_the_others(arm: EmulatedArm) -> None:
+    driver = DynamixelDriver(str(arm.bus.link), CALIBRATION)
+    settings = ArmSettings(soft_start_s=0.2)
+    before = arm.physics.state.q.copy()
+    moved = jog(driver, settings, 3, -0.1, 0.3, lambda _: None)
+    assert moved == pytest.approx(-0.1, abs=0.01)
+    after = arm.physics.state.q
+    assert after[3] - before[3] == pytest.approx(-0.1, abs=0.01)
+    np.testing.assert_allclose(np.delete(after, 3), np.delete(before, 3), atol=0.01)
+
+
+def test_the_guided_calibration_finds_directions_offsets_and_limits(arm: EmulatedArm) -> None:
+    """The person moves the unpowered emulated arm by hand as each prompt asks."""
+    robot = RobotSettings().load()
+    q = arm.physics.state.q.copy()
+    lower = robot.q_min + 0.2
+    upper = robot.q_max - 0.3
+
+    def person(prompt: str) -> None:
+        joint = next((j for j, n in enumerate(robot.joint_names) if f" {n} " in prompt), None)
+        if "positive direction" in prompt and joint is not None:
+            q[joint] += 0.2
+        elif "reference posture" in prompt:
+            q[:] = 0.0
+        elif "lower end" in prompt and joint is not None:
+            q[joint] = lower[joint]
+        elif "upper end" in prompt and joint is not None:
+            q[joint] = upper[joint]
+        arm.move_by_hand(q)
+
+    base = Calibration(gear_ratios=CALIBRATION.gear_ratios)
+    found = guided_calibration(str(arm.bus.link), base, True, person, lambda _: None)
+    assert found.directions == CALIBRATION.directions
+    np.testing.assert_allclose(found.offsets_rad, CALIBRATION.offsets_rad, atol=2 / 651.9)
+    np.testing.assert_allclose(found.q_min_rad or (), lower, atol=0.01)
+    np.testing.assert_allclose(found.q_max_rad or (), upper, atol=0.01)
+    with arm.bus.lock:
+        assert not any(s.torque_on for s in arm.chain.motors.values())  # never powered
 
 
 # ---- the node, driven cycle by cycle --------------------------------------------------------

@@ -146,3 +146,26 @@ def test_dammrl_stop_stops_the_arm_within_a_period_and_releases_it_under_load(
         observer.close()
     assert confirmed_ms < 500  # the stop published, obeyed and reported, under load
     assert np.isfinite(rest)
+
+
+def test_the_sim_obeys_the_emergency_stop_too() -> None:
+    """Every arm service: the virtual stack's sim holds, refuses commands, reports it."""
+    port = free_port()
+    observer = Observer(port)
+    sim = start_service("sim", port)
+    stop = [sys.executable, "-m", "dammrl", "stop", "--connect", endpoint(port)]
+    try:
+        wait_for(lambda: any(isinstance(h, Health) and h.service == "sim"
+                             for h in observer.of(Health)), 30, "the sim")  # fmt: skip
+        done = subprocess.run([*stop, "--reason", "test"], capture_output=True, text=True,
+                              timeout=60)  # fmt: skip
+        assert done.returncode == 0 and "sim: stop confirmed" in done.stdout, done.stderr
+        stopped = [h for h in observer.of(Health) if isinstance(h, Health) and h.state == "stopped"]
+        assert stopped and "emergency stop from tool: test" in stopped[-1].detail
+        released = subprocess.run([*stop, "--release"], capture_output=True, text=True,
+                                  timeout=60)  # fmt: skip
+        assert released.returncode == 0 and "sim: release confirmed" in released.stdout
+    finally:
+        sim.terminate()
+        sim.wait(15)
+        observer.close()
