@@ -19,7 +19,8 @@ import zenoh
 from dammrl.core.errors import DammrlError, JobFailedError
 from dammrl.core.models import ModelSet
 from dammrl.recording import Recording
-from schemas import DecisionRequest, ModelChoice
+from schemas import DecisionRequest, EmergencyStop, ModelChoice
+from schemas.keys import topic_of
 from services.common.bus import zenoh_config
 from services.common.config import BusSettings
 
@@ -37,6 +38,10 @@ class ReplayOptions:
     force: bool = False
 
 
+NEVER_REPLAYED = frozenset({topic_of(EmergencyStop)})
+"""An emergency stop, or its release, is an operator's act now, never a recording's."""
+
+
 def selected(recording: Recording, options: ReplayOptions) -> list[tuple[str, int, bytes]]:
     """(relative topic, log time ns, payload) of the messages to replay, in order."""
     namespace = recording.namespace()
@@ -49,6 +54,8 @@ def selected(recording: Recording, options: ReplayOptions) -> list[tuple[str, in
         if channel.metadata.get("dammrl.invalid") or not channel.topic.startswith(namespace + "/"):
             continue
         topic = channel.topic[len(namespace) + 1 :]
+        if topic in NEVER_REPLAYED:
+            continue
         offset_s = (message.log_time - first) * 1e-9
         if options.topics and not topic.startswith(options.topics):
             continue

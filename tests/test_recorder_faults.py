@@ -52,8 +52,8 @@ def _valid(message: BusMessage, seq: int, source: str) -> bytes:
     return encode(message.model_copy(update={"header": header}))
 
 
-_SOURCES = {"RobotState": "sim", "SensorSample": "intent", "Intent": "intent", "Health": "sim",
-            "ModelChoice": "policy"}  # fmt: skip
+_SOURCES = {"EmergencyStop": "tool", "RobotState": "sim", "SensorSample": "intent",
+            "Intent": "intent", "Health": "sim", "ModelChoice": "policy"}  # fmt: skip
 
 
 def _session(writer: Writer) -> dict[str, int]:
@@ -240,7 +240,9 @@ def test_replay_selects_only_readable_messages_of_every_crafted_file(
     for name, path in crafted.items():
         if name not in UNREADABLE:
             recording = read_recording(path)
-            assert len(selected(recording, ReplayOptions())) <= len(recording.messages)
+            chosen = selected(recording, ReplayOptions())
+            assert len(chosen) <= len(recording.messages)
+            assert all(topic != "safety/stop" for topic, _, _ in chosen)  # never replayed
 
 
 # ---- the recorder as a process ------------------------------------------------------
