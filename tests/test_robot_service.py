@@ -291,6 +291,37 @@ def test_the_emergency_stop_holds_within_one_period_and_refuses_commands(rig: Ri
     assert rig.last_health[0] == "holding"  # released: it holds until commands resume
 
 
+def test_after_a_stall_longer_than_the_watchdog_the_servos_obey_again(
+    rig: Rig, caplog: pytest.LogCaptureFixture
+) -> None:
+    """The watchdog stopped the servos while this process was silent; they refuse goals
+    (silently, in a sync write) until re-armed: the node re-arms them and goes on."""
+    _started(rig)
+    time.sleep(0.3)  # a stall: three watchdog periods without a packet
+    with rig.arm.bus.lock:
+        assert all(s.watchdog_expired for s in rig.arm.chain.motors.values())
+    target = np.array([0.05, -0.05, 0.05, 0.05, 0.0, 0.0])
+    rig.run(1.5, lambda r: _answer(r, target))
+    state = rig.bus.states()[-1]
+    np.testing.assert_allclose(state.q_rad, np.array(_goal(1).q_start_rad) + target, atol=0.01)
+    assert "the watchdog had stopped servos [1, 2, 3, 4, 5, 6]" in caplog.text
+
+
+def test_a_start_posture_never_reached_refuses_the_episode_and_holds(rig: Rig) -> None:
+    """Blocked (here: a tolerance no arm meets), the move gives up and the arm holds."""
+    rig.node.settings = rig.node.settings.model_copy(
+        update={"homing_tolerance_rad": 1e-6, "homing_timeout_s": 0.3}
+    )
+    rig.run(0.5)
+    rig.bus.send(_goal(1))
+    rig.run(4.0, lambda r: r.bus.send(_goal(1)))  # the controller announces it again
+    assert rig.node.episode == 0 and rig.node.homing is None
+    assert sum("start posture not reached" in r for r in rig.bus.rejected) > 1
+    state, detail = rig.last_health
+    assert state == "holding" and "episode 1: the start posture not reached" in detail
+    assert rig.fastest(len(rig.speeds) - 20) < 0.02
+
+
 @pytest.mark.parametrize(
     ("fault", "health", "recovery"),
     [("corrupt 2", "ok", None), ("missing 3", "degraded", "present 3"),

@@ -68,6 +68,9 @@ class ArmSettings(Settings):
     rest_speed_rad_s: float = Field(0.05, gt=0, le=1.0)
     """An episode starts (homing ends) once no joint moves faster [rad/s]."""
     homing_tolerance_rad: float = Field(0.02, gt=0, le=0.2)
+    homing_timeout_s: float = Field(5.0, gt=0, le=60)
+    """Not at rest at the start posture this long after the move's end (blocked by the
+    table, or held by the person): the episode is refused and the arm holds where it is."""
     max_bus_errors: int = Field(3, ge=1, le=100)
     """Consecutive failed bus cycles before a fault (the servos hold their last goal in
     between) [-]."""

@@ -92,6 +92,7 @@ class Driver(Protocol):
     def read_state(self) -> JointState: ...
     def write_command(self, command: ServoCommand) -> None: ...
     def torque_off(self) -> None: ...
+    def rearm_watchdog(self) -> list[int]: ...
     def disconnect(self) -> None: ...
     def __enter__(self) -> Driver: ...
     def __exit__(self, kind: type[BaseException] | None, value: BaseException | None,
@@ -194,10 +195,26 @@ class DynamixelDriver:
             self._written = {}  # gains and limits are written again with the next command
         else:
             self._start(torque)
-        ticks = max(1, min(127, round(self.watchdog_s / 0.02)))
         for servo_id in self.ids if torque else ():
-            self._write1(servo_id, ADDRESS["watchdog"], ticks)
+            self._write1(servo_id, ADDRESS["watchdog"], self._watchdog_ticks)
         return holding and torque
+
+    @property
+    def _watchdog_ticks(self) -> int:
+        return max(1, min(127, round(self.watchdog_s / 0.02)))
+
+    def rearm_watchdog(self) -> list[int]:
+        """After the host was silent too long: the servos whose watchdog stopped them
+        (they hold where they were and refuse goals, silently in a sync write), re-armed."""
+        self._require_open()
+        stopped = []
+        with _bus_io(self.port):
+            for servo_id in self.ids:
+                if self._read1(servo_id, ADDRESS["watchdog"]) == 0xFF:  # -1: expired
+                    self._write1(servo_id, ADDRESS["watchdog"], 0)
+                    self._write1(servo_id, ADDRESS["watchdog"], self._watchdog_ticks)
+                    stopped.append(servo_id)
+        return stopped
 
     def _start(self, torque: bool) -> None:
         """Torque off, current-based position mode, then (``torque``) on, holding where

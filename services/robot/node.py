@@ -139,6 +139,8 @@ class RobotNode:
         self.episode = 0
         self.episode_t0_s = time.monotonic()
         self.homing: Homing | None = None
+        self.unreachable_episode = -1  # its start posture was not reached: refused
+        self.homing_failure: str | None = None
         self.command: CoreCommand | None = None  # the controller's, after the caps
         self.command_wall_s = 0.0
         self.command_stamp_ns = 0  # header stamp of the command in force
@@ -149,6 +151,7 @@ class RobotNode:
         self.last_apply_s = 0.0
         self.joint: JointState | None = None
         self.last_written: ServoCommand | None = None  # the law last sent to the servos
+        self.last_write_s = float("inf")  # when (monotonic); inf: not since connecting
         self.clamped = 0
         self.periods_s: deque[float] = deque(maxlen=10_000)
         self.latencies_s: deque[float] = deque(maxlen=10_000)  # command stamp -> written
@@ -190,10 +193,12 @@ class RobotNode:
         try:
             joint = self.driver.read_state()
             self._check(joint)
+            if now - self.last_write_s > self.settings.watchdog_s:
+                self._after_stall(joint, now)
             law = self._law(joint, now)
             if law is not None:
                 self.driver.write_command(law)
-                self.last_written = law
+                self.last_written, self.last_write_s = law, now
                 if self.latency_pending:  # a new command's first write
                     self.latencies_s.append(time.time() - self.command_stamp_ns * 1e-9)
                     self.latency_pending = False
@@ -232,6 +237,9 @@ class RobotNode:
             self.homing and self.homing.goal.episode == goal.episode
         ):
             return  # a repeated announcement
+        if goal.episode == self.unreachable_episode:
+            self.bus.reject(self.bus.key(TaskGoal), self.homing_failure or "unreachable")
+            return
         reason = self.stop_latch.reason or self.fault or self.bus_fault
         joint = self.joint
         if reason is None and joint is None:
@@ -318,6 +326,8 @@ class RobotNode:
 
     def _law(self, joint: JointState, now: float) -> ServoCommand | None:
         """The joint law to write this period (None: the torque is off)."""
+        if (self.stop_latch.engaged or self.fault is not None) and self.held is None:
+            self._stop(joint.q_rad)  # stopped while the bus was away: hold where it is now
         if self.limp:
             return None
         if self.homing is not None:
@@ -335,6 +345,22 @@ class RobotNode:
         return ServoCommand(
             law.q_ref, law.dq_ref, law.tau_ff, law.kp * ramp, law.kd * ramp, self.limits.tau_max
         )
+
+    def _after_stall(self, joint: JointState, now: float) -> None:
+        """This process was silent longer than the servos' watchdog (a stall, a swap): the
+        servos stopped by themselves and refuse goals until re-armed. Re-arm them and hold
+        where the arm is (a homing move starts again from there): nothing resumes a
+        motion planned before the stall."""
+        stopped = self.driver.rearm_watchdog()
+        if not stopped:
+            return
+        log.warning("silent %.0f ms: the watchdog had stopped servos %s; holding where the "
+                    "arm is", (now - self.last_write_s) * 1000, stopped)  # fmt: skip
+        if self.homing is not None:
+            goal = self.homing.goal
+            self.homing = Homing.plan(goal, joint.q_rad, self.settings.homing_speed_rad_s, now)
+        elif self.held is None:
+            self._begin_hold(joint.q_rad)
 
     def _begin_hold(self, q: np.ndarray) -> CoreCommand:
         """Commands went stale (or never came): hold here with the last command's gains."""
@@ -361,14 +387,30 @@ class RobotNode:
         there = (
             float(np.max(np.abs(joint.q_rad - homing.q_to))) < self.settings.homing_tolerance_rad
         )
-        if now - homing.t0_s >= homing.duration_s and resting and there:
+        late = now - homing.t0_s - homing.duration_s
+        if late >= 0 and resting and there:
             self._begin_episode(homing.goal, now)
+        elif late > self.settings.homing_timeout_s:
+            return self._give_up_homing(homing, joint)
         gravity = self.arm.inverse_dynamics(q_ref, np.zeros(6), np.zeros(6))
         kp, kd = (
             np.array(self.settings.hold_kp_nm_per_rad),
             np.array(self.settings.hold_kd_nms_per_rad),
         )
         return CoreCommand(q_ref, dq_ref, gravity, kp, kd)
+
+    def _give_up_homing(self, homing: Homing, joint: JointState) -> CoreCommand:
+        """The start posture was not reached: refuse the episode, hold where the arm is."""
+        miss = float(np.max(np.abs(joint.q_rad - homing.q_to)))
+        self.homing_failure = (
+            f"episode {homing.goal.episode}: the start posture not reached ({miss:.3f} rad "
+            f"away {self.settings.homing_timeout_s:.1f} s after the move): holding"
+        )
+        log.error("%s", self.homing_failure)
+        self.unreachable_episode = homing.goal.episode
+        self.bus.reject(self.bus.key(TaskGoal), self.homing_failure)
+        self.homing = None
+        return self._begin_hold(joint.q_rad)
 
     def _begin_episode(self, goal: TaskGoal, now: float) -> None:
         self.homing = None
@@ -403,13 +445,12 @@ class RobotNode:
         # servos that held with the torque on need no soft start (it would drop the arm)
         self.connected = True
         self.torque_on_s = time.monotonic() - (self.settings.soft_start_s if holding else 0.0)
+        self.last_write_s = float("inf")  # connect armed the watchdog: no stall to look for
         if self.bus_fault is not None:
             log.warning("the servo bus answers again: holding where the arm is")
         self.bus_fault = None
         self.bus_errors = 0
-        self.command, self.homing, self.held = None, None, None
-        if self.stop_latch.engaged or self.fault is not None:
-            self._stop(self.driver.read_state().q_rad)
+        self.command, self.homing, self.held = None, None, None  # a stop is taken up by _law
 
     def _reconnect_now(self) -> None:
         if self.connected:
@@ -471,7 +512,8 @@ class RobotNode:
         elif self.bus_fault is not None:
             state, detail = "degraded", self.bus_fault
         else:
-            state, detail = ("holding" if self.command is None else "ok"), self.timing()
+            state = "holding" if self.command is None else "ok"
+            detail = "; ".join(filter(None, (self.homing_failure, self.timing())))
         changed = (state == "stopped") != self.reported_stopped
         self.reported_stopped = state == "stopped"
         self.bus.report_health(state, detail, force=changed)
