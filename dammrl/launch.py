@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
+import importlib
 import json
 import os
 import shutil
@@ -17,8 +18,9 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -35,9 +37,11 @@ from schemas import (
     DecisionRequest,
     DecodeError,
     EpisodeResult,
+    Health,
     Intent,
     Message,
     ModelChoice,
+    RobotState,
     decode,
     key,
 )
@@ -53,6 +57,10 @@ MODES = {
 }
 EMULATOR_START_S = 15.0
 START_TIMEOUT_S = 60.0
+FIRST_STATE_S = 30.0
+"""The arm publishes its first state this soon after every service is alive [s]."""
+QUIET_S = 30.0
+"""Without an episode result this long, ``dammrl up`` says what each service reports [s]."""
 STOP_TIMEOUT_S = 5.0
 
 
@@ -151,6 +159,28 @@ def check_options(options: StackOptions) -> None:
         PressDecoder(load_calibration(options.calibration), IntentSettings().decoder)
 
 
+def check_settings(services: tuple[str, ...], env: dict[str, str]) -> None:
+    """Build every settings class the services will read, from the environment they will
+    get: a bad value is one line naming its variable now, before anything starts."""
+    with _environment(env):
+        BusSettings()
+        for name in services:
+            for settings in importlib.import_module(f"services.{name}.config").SETTINGS:
+                settings()
+
+
+@contextlib.contextmanager
+def _environment(env: dict[str, str]) -> Iterator[None]:
+    saved = dict(os.environ)
+    os.environ.clear()
+    os.environ.update(env)
+    try:
+        yield
+    finally:
+        os.environ.clear()
+        os.environ.update(saved)
+
+
 def _die_with_parent() -> None:
     """In the child: receive SIGTERM when the launcher dies, even by kill -9 (Linux)."""
     libc = ctypes.CDLL(None, use_errno=True)
@@ -178,6 +208,8 @@ class Stack:
         self.emulator: subprocess.Popen[bytes] | None = None
         self.results: list[EpisodeResult] = []
         self.prompts: PatientPrompts | None = None
+        check_settings(self.services(), self.environment())
+        self.progress: Progress | None = None
 
     def _secured(self) -> dict[str, str]:
         """The children's credentials (each proves its own role with them)."""
@@ -243,6 +275,7 @@ class Stack:
                     self.prompts = PatientPrompts(session, self.options.namespace, self.info)
                 self._start_children(session, stop)
                 self._wait_alive(session, stop)
+                self.progress = Progress(session, self.options.namespace, self.info)
                 return self._watch(results, stop)
             finally:
                 self._stop_children()
@@ -291,7 +324,7 @@ class Stack:
 
     def _wait_alive(self, session: zenoh.Session, stop: SignalStop, quiet: bool = False) -> None:
         deadline = time.monotonic() + START_TIMEOUT_S
-        wanted = set(self.children)
+        wanted, alive = set(self.children), set[str]()
         while time.monotonic() < deadline and not stop.is_set():
             self._check_children()
             replies = session.liveliness().get(f"{self.options.namespace}/alive/*", timeout=1.0)
@@ -302,7 +335,10 @@ class Stack:
                 return
             time.sleep(0.2)
         if not stop.is_set():
-            raise JobFailedError(f"services not alive after {START_TIMEOUT_S:.0f} s")
+            missing = ", ".join(sorted(wanted - alive))
+            raise JobFailedError(
+                f"services not alive after {START_TIMEOUT_S:.0f} s: {missing} (their logs say why)"
+            )
 
     def _watch(
         self, results: zenoh.Subscriber[zenoh.handlers.Handler[zenoh.Sample]], stop: SignalStop
@@ -312,6 +348,8 @@ class Stack:
             self._check_children()
             if self.prompts is not None:
                 self.prompts.show()
+            if self.progress is not None:
+                self.progress.check()
             sample = results.try_recv()
             if sample is None:
                 time.sleep(0.02)
@@ -319,6 +357,8 @@ class Stack:
             result = self._accept(sample.payload.to_bytes())
             if result is None:
                 continue
+            if self.progress is not None:
+                self.progress.advanced()
             self.results.append(result)
             self._report(result)
             if total is not None and len(self.results) >= total:
@@ -379,6 +419,57 @@ class Stack:
             except subprocess.TimeoutExpired:
                 child.kill()
                 child.wait()
+
+
+class Progress:
+    """``dammrl up`` never waits silently: the arm's first state must come within
+    ``FIRST_STATE_S`` of the services being alive (else the run fails, with what the
+    services' Health says), and every ``QUIET_S`` without an episode result prints what
+    each service reports."""
+
+    def __init__(self, session: zenoh.Session, namespace: str, out: Callable[[str], None]):
+        self.out = out
+        self.health: dict[str, Health] = {}
+        self.first_state = threading.Event()
+        self.since = time.monotonic()
+        self.said = self.since
+        self._lock = threading.Lock()
+        self._subscribers = [
+            session.declare_subscriber(f"{namespace}/health/*", self._on_health),
+            session.declare_subscriber(key(namespace, RobotState), self._on_state),
+        ]
+
+    def _on_health(self, sample: zenoh.Sample) -> None:
+        with contextlib.suppress(DecodeError):
+            health = decode(Health, sample.payload.to_bytes())
+            with self._lock:
+                self.health[health.service] = health
+
+    def _on_state(self, sample: zenoh.Sample) -> None:
+        self.first_state.set()
+
+    def advanced(self) -> None:
+        self.since = self.said = time.monotonic()
+
+    def check(self) -> None:
+        now = time.monotonic()
+        if not self.first_state.is_set() and now - self.since > FIRST_STATE_S:
+            raise JobFailedError(
+                f"no robot state {FIRST_STATE_S:.0f} s after the start: {self.report()}"
+            )
+        if now - self.said > QUIET_S:
+            self.said = now
+            self.out(f"no episode ended for {now - self.since:.0f} s: {self.report()}")
+
+    def report(self) -> str:
+        """What each service's last Health says, on one line."""
+        with self._lock:
+            healths = sorted(self.health.values(), key=lambda h: h.service)
+        if not healths:
+            return "no service reported its health"
+        return "; ".join(
+            f"{h.service} {h.state}" + (f" ({h.detail})" if h.detail else "") for h in healths
+        )
 
 
 class PatientPrompts:

@@ -27,6 +27,12 @@ PerJoint: TypeAlias = tuple[float, float, float, float, float, float]
 PerJointNonNegative: TypeAlias = tuple[
     _NonNegative, _NonNegative, _NonNegative, _NonNegative, _NonNegative, _NonNegative
 ]
+_Gain = Annotated[float, Field(ge=0, le=2000)]
+_Damping = Annotated[float, Field(ge=0, le=200)]
+PerJointGain: TypeAlias = tuple[_Gain, _Gain, _Gain, _Gain, _Gain, _Gain]
+"""Joint stiffness, one per joint, 0-2000 N m/rad (the largest any arm side accepts)."""
+PerJointDamping: TypeAlias = tuple[_Damping, _Damping, _Damping, _Damping, _Damping, _Damping]
+"""Joint damping, one per joint, 0-200 N m s/rad."""
 
 
 class Settings(BaseSettings):
@@ -75,9 +81,19 @@ def invalid_line(settings: type[BaseSettings], exc: ValidationError) -> str:
     """Every error of ``exc`` on one line: ``VARIABLE=given: expected``."""
     parts = []
     for error in exc.errors(include_url=False):
+        if not error["loc"]:  # a rule across fields: its message names them
+            parts.append(_named(settings, str(error["msg"]).removeprefix("Value error, ")))
+            continue
         given = _shown(error.get("input"))
         parts.append(f"{variable(settings, tuple(error['loc']))}={given}: {error['msg']}")
     return "invalid setting: " + "; ".join(parts)
+
+
+def _named(settings: type[BaseSettings], message: str) -> str:
+    """``message`` with each field name of ``settings`` as its environment variable."""
+    for name in sorted(settings.model_fields, key=len, reverse=True):
+        message = re.sub(rf"\b{name}\b", variable(settings, (name,)), message)
+    return message
 
 
 def error_line(exc: Exception) -> str:

@@ -31,8 +31,8 @@ class BusSettings(Settings):
     """Discover peers by UDP multicast on the LAN (off: only explicit endpoints)."""
     namespace: str = Field(DEFAULT_NAMESPACE, pattern=r"^[A-Za-z0-9_\-]+(/[A-Za-z0-9_\-]+)*$")
     """Key-expression prefix: stacks with different namespaces share a network unseen."""
-    health_period_s: float = Field(1.0, gt=0)
-    """How often the service publishes its Health [s]."""
+    health_period_s: float = Field(1.0, ge=0.05, le=60)
+    """How often the service publishes its Health [s] (0.05-60 s)."""
     inbox_size: int = Field(4096, ge=16, le=1_000_000)
     """Messages buffered between the Zenoh callback and the service loop."""
     credentials: Path | None = None

@@ -8,7 +8,10 @@ from pydantic import Field
 from pydantic_settings import SettingsConfigDict
 
 from dammrl.core.ik import IKSolverName, LatencyMode
-from dammrl.core.settings import PerJointNonNegative, Settings
+from dammrl.core.models import ModelSet
+from dammrl.core.robot import RobotSettings
+from dammrl.core.settings import PerJointDamping, PerJointGain, Settings
+from dammrl.core.task import TaskSettings
 
 Trigger = Literal["event", "fixed"]
 Feedforward = Literal["inverse_dynamics", "resolved_acceleration"]
@@ -21,7 +24,7 @@ class ControllerSettings(Settings):
 
     trigger: Trigger = "event"
     """'event': next step when ||x - x_m|| <= eps and dV/dt <= 0; 'fixed': on a timer."""
-    fixed_period_s: float = Field(0.1, gt=0)
+    fixed_period_s: float = Field(0.1, ge=0.01, le=5.0)
     """Timer period of the fixed-frequency baseline [s]."""
     fixed_step_from: Literal["measured", "subgoal"] = "measured"
     """Where a fixed-rate step starts: the measured end-effector position, or the last
@@ -32,7 +35,7 @@ class ControllerSettings(Settings):
     fixed_decisions: Literal["latest", "fresh"] = "latest"
     """Fixed rate: each tick re-uses the human's latest decision (the paper), or takes a
     fresh one and waits for it (one decision per step, as the event trigger does)."""
-    control_rate_hz: float = Field(100.0, gt=0, le=1000)
+    control_rate_hz: float = Field(100.0, ge=20, le=1000)
     """Rate at which the reference is sampled into joint commands and the trigger checked."""
     primary_axis: Literal[0, 1, 2] = 0
     """Task axis driven by the human's binary command (0 = x, 1 = y, 2 = z)."""
@@ -60,38 +63,40 @@ class ControllerSettings(Settings):
     the end-effector position is itself computed from the joint angles.)"""
     ik_accept_error_m: float = Field(1e-3, gt=0)
     """An IK solution farther than this from its target is a failure [m]."""
-    max_joint_step_rad: float = Field(0.5, gt=0)
+    max_joint_step_rad: float = Field(0.5, gt=0, le=1.0)
     """IK searches within the seed +- this per joint, so a micro-step never jumps [rad]."""
 
-    peak_speed_m_per_s: float = Field(0.2, gt=0)
+    peak_speed_m_per_s: float = Field(0.2, gt=0, le=1.0)
     """Peak Cartesian speed of a micro-step's minimum-jerk profile [m/s]."""
     joint_speed_fraction: float = Field(0.5, gt=0, le=1)
     """Peak joint speed as a fraction of the URDF velocity limit."""
-    min_segment_s: float = Field(0.08, gt=0)
+    min_segment_s: float = Field(0.08, ge=0.01, le=5.0)
     """Shortest duration of one micro-step segment [s]."""
-    kp: PerJointNonNegative = (400.0, 400.0, 200.0, 200.0, 50.0, 50.0)
-    """Joint stiffness [N m/rad]."""
-    kd: PerJointNonNegative = (30.0, 30.0, 12.0, 12.0, 1.5, 1.5)
-    """Joint damping gains [N m s/rad]."""
+    kp: PerJointGain = (400.0, 400.0, 200.0, 200.0, 50.0, 50.0)
+    """Joint stiffness [N m/rad] (0-2000 each: the sim's default maximum; the real arm's
+    is 1000)."""
+    kd: PerJointDamping = (30.0, 30.0, 12.0, 12.0, 1.5, 1.5)
+    """Joint damping gains [N m s/rad] (0-200 each)."""
     feedforward: Feedforward = "inverse_dynamics"
     """'inverse_dynamics': RNEA along the joint reference; 'resolved_acceleration': the
     paper's J# (xdd - Jd qd) + (I - J# J) z with a joint-limit-avoiding null-space term."""
-    null_space_gain: float = Field(2.0, ge=0)
+    null_space_gain: float = Field(2.0, ge=0, le=50)
     """Joint-limit avoidance acceleration at a limit, applied in the null space [rad/s^2]."""
 
-    joint_limit_margin_rad: float = Field(0.02, ge=0)
+    joint_limit_margin_rad: float = Field(0.02, ge=0, le=0.3)
     """IK targets stay this far inside the joint limits [rad]."""
     workspace_min_m: tuple[float, float, float] = (0.1, -0.45, -0.235)
     """Lower corner of the allowed end-effector box in the task frame [m]."""
     workspace_max_m: tuple[float, float, float] = (0.72, 0.45, 0.20)
     """Upper corner of the allowed end-effector box [m]."""
-    trigger_timeout_s: float = Field(3.0, gt=0)
+    trigger_timeout_s: float = Field(3.0, ge=0.1, le=60)
     """A step whose trigger has not fired after this long ends in a hold [s]."""
 
     # --- the node (bus) ---
-    state_stale_s: float = Field(0.1, gt=0)
-    """No RobotState for this long: stop stepping and hold the last reference [s]."""
-    policy_wait_s: float = Field(20.0, ge=0)
+    state_stale_s: float = Field(0.1, ge=0.02, le=1.0)
+    """No RobotState for this long: stop stepping and hold the last reference [s] (0.02-1
+    s: the watchdog cannot be switched off by a large number)."""
+    policy_wait_s: float = Field(20.0, ge=0, le=600)
     """How long the first episode waits for the policy's first ModelChoice and for the
     human (intent) service to be alive [s]."""
     request_resend_s: float = Field(2.0, gt=0, le=60)
@@ -103,3 +108,7 @@ class ControllerSettings(Settings):
     """Model used until the policy's first ModelChoice arrives (i: 1 = E_big)."""
     robot_model: int = Field(1, ge=1, le=8)
     """Model used until the policy's first ModelChoice arrives (j: step vector)."""
+
+
+SETTINGS: tuple[type[Settings], ...] = (ControllerSettings, TaskSettings, RobotSettings, ModelSet)
+"""Every settings class this service reads (the launcher checks them before a start)."""

@@ -8,6 +8,8 @@ from typing import Literal
 from pydantic import Field
 from pydantic_settings import SettingsConfigDict
 
+from dammrl.core.human import HumanModel
+from dammrl.core.models import ModelSet
 from dammrl.core.settings import Settings
 from services.intent.decoder import DecoderSettings
 
@@ -30,9 +32,13 @@ class IntentSettings(Settings):
     """Press thresholds, filter and timing, e.g. DAMMRL_INTENT_DECODER__LONG_PRESS_S=0.7."""
     calibration_file: Path | None = None
     """JSON from `dammrl sensor calibrate`; None: the emulator's default calibration."""
-    sensor_stale_s: float = Field(0.5, gt=0)
+    sensor_stale_s: float = Field(0.5, ge=0.05, le=5.0)
     """No valid frame for this long: the sensor is reported silent [s]."""
-    reconnect_max_s: float = Field(5.0, gt=0)
+    reconnect_max_s: float = Field(5.0, ge=0.1, le=60)
     """Longest wait between attempts to reopen a lost serial device [s]."""
-    policy_wait_s: float = Field(0.2, gt=0)
+    policy_wait_s: float = Field(0.2, gt=0, le=5.0)
     """How long a decision request waits for the policy's ModelChoice [s]."""
+
+
+SETTINGS: tuple[type[Settings], ...] = (IntentSettings, HumanModel, ModelSet)
+"""Every settings class this service reads (the launcher checks them before a start)."""

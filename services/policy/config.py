@@ -9,6 +9,8 @@ from typing import Literal
 from pydantic import Field
 from pydantic_settings import SettingsConfigDict
 
+from dammrl.core.human import HumanModel
+from dammrl.core.models import ModelSet
 from dammrl.core.settings import Settings
 
 SHIPPED_POLICY = Path(str(resources.files("dammrl").joinpath("policies/reward2/checkpoint.pt")))
@@ -35,5 +37,9 @@ class PolicySettings(Settings):
     estimate_human: Literal["auto", "always", "never"] = "auto"
     """Estimate the human sub-model from their decisions (posterior) and use its MAP
     radius: 'auto' when the intents come from a real sensor, or always, or never."""
-    publish_period_s: float = Field(0.5, gt=0)
+    publish_period_s: float = Field(0.5, ge=0.05, le=10)
     """The latest ModelChoice is repeated this often, so late joiners learn it [s]."""
+
+
+SETTINGS: tuple[type[Settings], ...] = (PolicySettings, HumanModel, ModelSet)
+"""Every settings class this service reads (the launcher checks them before a start)."""

@@ -19,14 +19,18 @@ class RecorderSettings(Settings):
     """A .mcap file, or a directory that receives session-<UTC time>.mcap files."""
     max_bytes: int | None = Field(None, ge=1_000_000)
     """Start a new file once the current one holds this many bytes (None: never)."""
-    max_duration_s: float | None = Field(None, gt=0)
-    """Start a new file after this long (None: never) [s]."""
+    max_duration_s: float | None = Field(None, ge=1.0)
+    """Start a new file after this long (None: never) [s] (at least 1 s)."""
     chunk_bytes: int = Field(1_000_000, ge=4096)
     """A chunk is closed once it holds this many (uncompressed) bytes..."""
-    chunk_s: float = Field(0.5, gt=0, le=60)
+    chunk_s: float = Field(0.5, ge=0.05, le=60)
     """... or once it is this old, and closed chunks are handed to the OS at once: a
     ``kill -9`` loses at most about this much [s]."""
-    retry_s: float = Field(5.0, gt=0, le=3600)
+    retry_s: float = Field(5.0, ge=0.1, le=3600)
     """After a write error (disk full), try a new file this often [s]."""
     mode: str = "virtual"
     """Stack mode written into the recording's metadata."""
+
+
+SETTINGS: tuple[type[Settings], ...] = (RecorderSettings,)
+"""Every settings class this service reads (the launcher checks them before a start)."""

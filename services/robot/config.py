@@ -4,12 +4,14 @@ description stays ``DAMMRL_ROBOT_*``, shared with the sim and the controller).""
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Literal
+from typing import Literal, Self
 
-from pydantic import Field
+from pydantic import Field, model_validator
 from pydantic_settings import SettingsConfigDict
 
-from dammrl.core.settings import PerJointNonNegative, Settings
+from dammrl.core.robot import RobotSettings
+from dammrl.core.settings import PerJointDamping, PerJointGain, Settings
+from dammrl.core.task import TaskSettings
 
 
 class ArmSettings(Settings):
@@ -47,19 +49,20 @@ class ArmSettings(Settings):
     """The applied q_ref stays this close to the measured posture, per joint [rad]."""
 
     # ---- holds, the stop, the start -----------------------------------------------------
-    command_stale_s: float = Field(0.1, gt=0)
-    """No valid command for this long: hold where the arm is [s]."""
+    command_stale_s: float = Field(0.1, ge=0.02, le=1.0)
+    """No valid command for this long: hold where the arm is [s] (0.02-1 s: the watchdog
+    cannot be switched off by a large number)."""
     command_max_age_s: float = Field(0.05, gt=0, le=1.0)
     """A command must answer a state published at most this long ago [s]."""
-    hold_kp_nm_per_rad: PerJointNonNegative = (300.0, 300.0, 150.0, 150.0, 40.0, 40.0)
+    hold_kp_nm_per_rad: PerJointGain = (300.0, 300.0, 150.0, 150.0, 40.0, 40.0)
     """Stiffness of a hold before any command (then: the last command's) [N m/rad]."""
-    hold_kd_nms_per_rad: PerJointNonNegative = (25.0, 25.0, 10.0, 10.0, 1.5, 1.5)
+    hold_kd_nms_per_rad: PerJointDamping = (25.0, 25.0, 10.0, 10.0, 1.5, 1.5)
     stop_action: Literal["hold", "torque_off"] = "hold"
     """What an emergency stop or a fault does: hold where the arm is with the stop gains
     and gravity compensation (the arm does not fall on the person), or torque off."""
-    stop_kp_nm_per_rad: PerJointNonNegative = (120.0, 120.0, 60.0, 60.0, 15.0, 15.0)
+    stop_kp_nm_per_rad: PerJointGain = (120.0, 120.0, 60.0, 60.0, 15.0, 15.0)
     """Stiffness of a stop: low, so a person can move the arm against it [N m/rad]."""
-    stop_kd_nms_per_rad: PerJointNonNegative = (20.0, 20.0, 8.0, 8.0, 1.0, 1.0)
+    stop_kd_nms_per_rad: PerJointDamping = (20.0, 20.0, 8.0, 8.0, 1.0, 1.0)
     soft_start_s: float = Field(1.0, ge=0, le=10)
     """After torque on, the gains ramp from ``soft_start_fraction`` to full over this [s]."""
     soft_start_fraction: float = Field(0.1, ge=0, le=1)
@@ -74,5 +77,22 @@ class ArmSettings(Settings):
     max_bus_errors: int = Field(3, ge=1, le=100)
     """Consecutive failed bus cycles before a fault (the servos hold their last goal in
     between) [-]."""
-    reconnect_s: float = Field(1.0, gt=0)
+    reconnect_s: float = Field(1.0, ge=0.1, le=60)
     """After a bus fault, try to reconnect this often (an unplugged cable) [s]."""
+
+    @model_validator(mode="after")
+    def _consistent(self) -> Self:
+        """Holds and stops no stiffer than a command may be; a watchdog of two periods."""
+        for name in ("hold_kp_nm_per_rad", "stop_kp_nm_per_rad"):
+            if max(getattr(self, name)) > self.max_kp_nm_per_rad:
+                raise ValueError(f"{name} must not exceed max_kp_nm_per_rad")
+        for name in ("hold_kd_nms_per_rad", "stop_kd_nms_per_rad"):
+            if max(getattr(self, name)) > self.max_kd_nms_per_rad:
+                raise ValueError(f"{name} must not exceed max_kd_nms_per_rad")
+        if self.command_stale_s < 2 / self.loop_rate_hz:
+            raise ValueError("command_stale_s must span at least two loop periods")
+        return self
+
+
+SETTINGS: tuple[type[Settings], ...] = (ArmSettings, TaskSettings, RobotSettings)
+"""Every settings class this service reads (the launcher checks them before a start)."""

@@ -2,10 +2,14 @@
 
 from __future__ import annotations
 
-from pydantic import BaseModel, Field
+from typing import Self
+
+from pydantic import BaseModel, Field, model_validator
 from pydantic_settings import SettingsConfigDict
 
+from dammrl.core.robot import RobotSettings
 from dammrl.core.settings import FINITE, Settings
+from dammrl.core.task import TaskSettings
 
 
 class DomainRandomization(BaseModel):
@@ -41,20 +45,21 @@ class SimSettings(Settings):
 
     model_config = SettingsConfigDict(env_prefix="DAMMRL_SIM_")
 
-    timestep_s: float = Field(0.001, gt=0, le=0.005)
-    """Physics step [s]."""
+    timestep_s: float = Field(0.001, ge=2e-4, le=0.005)
+    """Physics step [s] (0.2-5 ms: shorter steps cannot keep real time on a PC)."""
     button_press_travel_m: float = Field(0.003, gt=0)
     """Cap travel at which the button counts as pressed [m]."""
     randomization: DomainRandomization = DomainRandomization()
 
     # --- the node (bus) ---
-    state_rate_hz: float = Field(100.0, gt=0, le=1000)
+    state_rate_hz: float = Field(100.0, ge=50, le=1000)
     """RobotState publication rate; also the rate at which commands are taken up [Hz]."""
-    command_stale_s: float = Field(0.1, gt=0)
-    """No valid command for this long: hold position (gravity compensation + damping) [s]."""
-    hold_kp_nm_per_rad: float = Field(100.0, ge=0)
+    command_stale_s: float = Field(0.1, ge=0.02, le=1.0)
+    """No valid command for this long: hold position (gravity compensation + damping)
+    [s] (0.02-1 s: the watchdog cannot be switched off by a large number)."""
+    hold_kp_nm_per_rad: float = Field(100.0, ge=0, le=2000)
     """Stiffness of a hold before any command arrived (then: the last command's) [N m/rad]."""
-    hold_kd_nms_per_rad: float = Field(10.0, ge=0)
+    hold_kd_nms_per_rad: float = Field(10.0, ge=0, le=200)
     """Damping of a hold before any command arrived (then: the last command's) [N m s/rad]."""
     max_kp_nm_per_rad: float = Field(2000.0, gt=0, le=10_000)
     """Commands asking for more stiffness are rejected [N m/rad]."""
@@ -73,3 +78,18 @@ class SimSettings(Settings):
     command_max_age_s: float = Field(0.05, gt=0, le=1.0)
     """A command must answer a state published at most this long ago (in state periods;
     in lockstep the last state); older or out-of-order answers are rejected [s]."""
+
+    @model_validator(mode="after")
+    def _consistent(self) -> Self:
+        """A hold no stiffer than a command may be; a watchdog longer than two periods."""
+        if self.hold_kp_nm_per_rad > self.max_kp_nm_per_rad:
+            raise ValueError("hold_kp_nm_per_rad must not exceed max_kp_nm_per_rad")
+        if self.hold_kd_nms_per_rad > self.max_kd_nms_per_rad:
+            raise ValueError("hold_kd_nms_per_rad must not exceed max_kd_nms_per_rad")
+        if self.command_stale_s < 2 / self.state_rate_hz:
+            raise ValueError("command_stale_s must span at least two state periods")
+        return self
+
+
+SETTINGS: tuple[type[Settings], ...] = (SimSettings, TaskSettings, RobotSettings)
+"""Every settings class this service reads (the launcher checks them before a start)."""
