@@ -90,11 +90,39 @@ def test_a_forged_source_cannot_touch_the_real_publishers_counts() -> None:
     assert account.anomalies() == {"foreign_source": {KEY: 20}}
 
 
-def test_a_real_outage_is_still_counted_as_missing_messages() -> None:
+def test_a_real_outage_is_counted_as_missing_once_the_stream_goes_on() -> None:
     account = SequenceAccount("dammrl")
-    account.see(KEY, "sim", 0, 0)
-    assert account.see(KEY, "sim", 1001, 2_000 * MS) == 1000  # 2 s without state at 500 Hz
+    for seq in range(600):  # 1.2 s at 500 Hz
+        account.see(KEY, "sim", seq, seq * 2 * MS)
+    assert account.see(KEY, "sim", 1600, 3_200 * MS) == 0  # 2 s without state: pending
+    assert account.see(KEY, "sim", 1601, 3_202 * MS) == 1000  # it goes on: loss
     assert account.gaps == {KEY: 1000} and account.anomalies() == {}
+
+
+def test_a_forged_number_between_real_ones_is_a_jump_not_loss() -> None:
+    """One task/goal with seq 1000 from the controller's own role after 60 s of silence,
+    then the real controller goes on (the adversary's measurement: 976 'lost')."""
+    account = SequenceAccount("dammrl")
+    goal = "dammrl/task/goal"
+    for seq in range(24):  # announced every 0.5 s
+        account.see(goal, "controller", seq, seq * 500 * MS)
+    account.see(goal, "controller", 1000, 70_000 * MS)
+    account.see(goal, "controller", 24, 75_000 * MS)
+    account.see(goal, "controller", 25, 75_500 * MS)
+    assert account.gaps == {}
+    assert account.anomalies() == {"implausible_jumps": {goal: 1}}
+
+
+def test_a_slow_publisher_cannot_be_made_to_lose_more_than_its_rate_allows() -> None:
+    """Two consecutive forged numbers far ahead of a 2 Hz stream: a new stream (jump)."""
+    account = SequenceAccount("dammrl")
+    goal = "dammrl/task/goal"
+    for seq in range(10):
+        account.see(goal, "controller", seq, seq * 500 * MS)
+    account.see(goal, "controller", 1000, 65_000 * MS)
+    account.see(goal, "controller", 1001, 65_100 * MS)
+    assert account.gaps == {}
+    assert account.anomalies() == {"implausible_jumps": {goal: 1}}
 
 
 def test_streams_of_two_zenoh_sessions_are_kept_apart() -> None:
