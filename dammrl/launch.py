@@ -62,6 +62,7 @@ FIRST_STATE_S = 30.0
 QUIET_S = 30.0
 """Without an episode result this long, ``dammrl up`` says what each service reports [s]."""
 STOP_TIMEOUT_S = 5.0
+ARM_SERVICES = ("sim", "robot")
 
 
 @dataclass(frozen=True)
@@ -431,6 +432,7 @@ class Progress:
         self.out = out
         self.health: dict[str, Health] = {}
         self.first_state = threading.Event()
+        self.stopped: dict[str, bool] = {}
         self.since = time.monotonic()
         self.said = self.since
         self._lock = threading.Lock()
@@ -452,6 +454,7 @@ class Progress:
         self.since = self.said = time.monotonic()
 
     def check(self) -> None:
+        self._say_stops()
         now = time.monotonic()
         if not self.first_state.is_set() and now - self.since > FIRST_STATE_S:
             raise JobFailedError(
@@ -460,6 +463,17 @@ class Progress:
         if now - self.said > QUIET_S:
             self.said = now
             self.out(f"no episode ended for {now - self.since:.0f} s: {self.report()}")
+
+    def _say_stops(self) -> None:
+        """An arm that stops (an emergency stop, a fault) is said at once, once."""
+        with self._lock:
+            arms = [h for h in self.health.values() if h.service in ARM_SERVICES]
+        for health in arms:
+            stopped = health.state == "stopped"
+            if stopped and not self.stopped.get(health.service):
+                reason = health.detail.split(";")[0]
+                self.out(f"{health.service} stopped: {reason} (it holds; Ctrl-C ends the run)")
+            self.stopped[health.service] = stopped
 
     def report(self) -> str:
         """What each service's last Health says, on one line."""

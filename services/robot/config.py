@@ -38,8 +38,10 @@ class ArmSettings(Settings):
     speed_fraction: float = Field(0.9, gt=0, le=1.0)
     """References move, and measured joints may move, at most this fraction of the URDF's
     velocity limits (the sim allows 1.0)."""
-    overspeed_factor: float = Field(1.3, ge=1.0, le=2.0)
-    """A measured joint speed above this times the arm's speed limit stops the arm."""
+    overspeed_stop_fraction: float = Field(1.0, gt=0, le=1.0)
+    """A measured joint speed above this fraction of the URDF's velocity limit stops the
+    arm (above ``speed_fraction``: references stay below it, the arm's own motion may
+    overshoot them a little)."""
     limit_tolerance_rad: float = Field(0.03, ge=0, le=0.2)
     """q_ref may exceed the arm's joint limits by this much before rejection; a measured
     joint beyond its limit by this much stops the arm [rad]."""
@@ -89,6 +91,8 @@ class ArmSettings(Settings):
         for name in ("hold_kd_nms_per_rad", "stop_kd_nms_per_rad"):
             if max(getattr(self, name)) > self.max_kd_nms_per_rad:
                 raise ValueError(f"{name} must not exceed max_kd_nms_per_rad")
+        if self.speed_fraction >= self.overspeed_stop_fraction:
+            raise ValueError("speed_fraction must stay below overspeed_stop_fraction")
         if self.command_stale_s < 2 / self.loop_rate_hz:
             raise ValueError("command_stale_s must span at least two loop periods")
         return self

@@ -303,7 +303,7 @@ class RobotNode:
         else:
             reason = limit_violation(
                 self.limits, joint.q_rad, joint.dq_rad_s, self.settings.limit_tolerance_rad,
-                self.settings.overspeed_factor,
+                self.settings.overspeed_stop_fraction / self.settings.speed_fraction,
             )  # fmt: skip
         if reason is not None:
             self.fault = reason

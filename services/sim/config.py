@@ -70,9 +70,16 @@ class SimSettings(Settings):
     max_relative_target_rad: float = Field(0.15, gt=0, le=1.0)
     """The applied q_ref stays this close to the measured posture, per joint [rad] (the
     controller's own references stay within 0.054 rad)."""
-    reference_speed_fraction: float = Field(1.0, gt=0, le=1.0)
+    reference_speed_fraction: float = Field(0.9, gt=0, le=1.0)
     """The applied reference moves, and asks to move, at most this fraction of the URDF
-    velocity limits."""
+    velocity limits (the controller's own stay within 0.7 of them)."""
+    speed_governor_fraction: float = Field(0.95, gt=0, le=1.0)
+    """The simulated drives give no torque that would speed a joint past this fraction of
+    its URDF velocity limit (checked at every physics step, on the bus only)."""
+    overspeed_stop_fraction: float = Field(1.0, gt=0, le=1.0)
+    """A measured joint speed above this fraction of the URDF velocity limit, or a joint
+    beyond its limits by ``limit_tolerance_rad``, stops the arm (a fault: it holds, takes
+    no command and refuses new episodes until the service restarts), as on the real arm."""
     rest_speed_rad_s: float = Field(0.05, gt=0, le=1.0)
     """A new episode (TaskGoal) resets the arm only when no joint moves faster [rad/s]."""
     command_max_age_s: float = Field(0.05, gt=0, le=1.0)
@@ -86,6 +93,10 @@ class SimSettings(Settings):
             raise ValueError("hold_kp_nm_per_rad must not exceed max_kp_nm_per_rad")
         if self.hold_kd_nms_per_rad > self.max_kd_nms_per_rad:
             raise ValueError("hold_kd_nms_per_rad must not exceed max_kd_nms_per_rad")
+        if not self.reference_speed_fraction <= self.speed_governor_fraction:
+            raise ValueError("reference_speed_fraction must not exceed speed_governor_fraction")
+        if self.speed_governor_fraction >= self.overspeed_stop_fraction:
+            raise ValueError("speed_governor_fraction must stay below overspeed_stop_fraction")
         if self.command_stale_s < 2 / self.state_rate_hz:
             raise ValueError("command_stale_s must span at least two state periods")
         return self

@@ -20,6 +20,11 @@ from dammrl.core.robot.scene import SENSOR_LAYOUT, SceneLayout, build_scene
 from dammrl.core.state import JointCommand, RobotState
 from services.sim.config import SimSettings
 
+GOVERNOR_ENGAGES = 0.8
+"""The speed governor looks at a joint from this share of its governed speed on."""
+GOVERNOR_SPAN = 0.05
+"""The governor's full torque acts this far (a share of the governed speed) past it."""
+
 
 class Simulation:
     """A MuJoCo scene of the arm, a table and the goal button."""
@@ -52,6 +57,9 @@ class Simulation:
             SENSOR_LAYOUT[k] for k in ("q", "dq", "tau", "ee_pos", "ee_vel", "button")
         )
         self._last_command: JointCommand | None = None
+        self._govern_speed = settings.speed_governor_fraction * robot.dq_max
+        self._govern_from = GOVERNOR_ENGAGES * self._govern_speed
+        self._governor_gain = robot.tau_max / (GOVERNOR_SPAN * self._govern_speed)
         self._state = np.zeros(mujoco.mj_stateSize(self.model, mujoco.mjtState.mjSTATE_FULLPHYSICS))
 
     @property
@@ -110,6 +118,36 @@ class Simulation:
     def step(self, n_steps: int) -> None:
         """Advance ``n_steps`` physics steps in one MuJoCo call."""
         mujoco.mj_step(self.model, self.data, nstep=n_steps)
+
+    def step_governed(self, n_steps: int) -> None:
+        """Advance ``n_steps`` physics steps with the drives' speed governor (the bus's arm,
+        which takes commands from whoever holds the controller's role): at every step a
+        joint near ``speed_governor_fraction`` of its velocity limit gets no torque that
+        would speed it up further, as a drive's velocity limit does (the soft limits of
+        ros_control, k_v (v_max - |dq|)); below it the law is untouched (bitwise the
+        same as ``step``)."""
+        n = self._n
+        for _ in range(n_steps):
+            dq = self.data.qvel[:n]
+            if np.logical_or.reduce(np.abs(dq) > self._govern_from):
+                self._governed_step(dq)
+            else:
+                mujoco.mj_step(self.model, self.data)
+
+    def _governed_step(self, dq: np.ndarray) -> None:
+        n, ctrl = self._n, self.data.ctrl[: self._n].copy()
+        q = self.data.qpos[:n]
+        bias = self.model.actuator_biasprm[:n]
+        force = ctrl + bias[:, 1] * q + bias[:, 2] * dq
+        low = -self._governor_gain * (dq + self._govern_speed)
+        high = -self._governor_gain * (dq - self._govern_speed)
+        governed = np.clip(force, low, high)
+        if np.array_equal(governed, force):  # far from the bound: the law untouched
+            mujoco.mj_step(self.model, self.data)
+            return
+        self.data.ctrl[:n] = governed - bias[:, 1] * q - bias[:, 2] * dq
+        mujoco.mj_step(self.model, self.data)
+        self.data.ctrl[:n] = ctrl  # the command stays latched
 
     def read(self) -> RobotState:
         """The arm's state from MuJoCo's sensors, with sensor noise when randomisation is on.

@@ -23,7 +23,7 @@ import numpy as np
 
 from dammrl.core.dynamics import ArmModel
 from dammrl.core.robot import RobotSettings
-from dammrl.core.safety import ArmCaps, goal_violation, guard_command
+from dammrl.core.safety import ArmCaps, LimitMonitor, goal_violation, guard_command
 from dammrl.core.state import JointCommand as CoreCommand
 from dammrl.core.task import TaskSettings, scene_layout, seed_streams
 from schemas import EmergencyStop, JointCommand, RobotState, TaskGoal
@@ -64,6 +64,10 @@ class SimNode:
         answerable = max(1, round(settings.command_max_age_s * settings.state_rate_hz))
         self.freshness = CommandFreshness(answerable)
         self.stop_latch = StopLatch()
+        self.fault: str | None = None  # the arm beyond a limit or its speed: latched
+        self.monitor = LimitMonitor(
+            self.sim.robot, settings.limit_tolerance_rad, settings.overspeed_stop_fraction
+        )
         self.reported_stopped = False
         self.in_force_answers_ns: int | None = None  # ... while that command is in force
         self.last_apply_t_s = 0.0
@@ -96,8 +100,9 @@ class SimNode:
             if self.reset_pending:
                 continue  # the reset state is published before any step
             self._hold_if_stale(lockstep)
-            self.sim.step(self.substeps)
+            self.sim.step_governed(self.substeps)
             self.state = self.sim.read()
+            self._check_limits()
 
     def _publish_state(self) -> None:
         self.reset_pending = False
@@ -117,10 +122,11 @@ class SimNode:
             f"missed {self.pacer.missed} of {self.pacer.ticks} deadlines, "
             f"{self.clamped} commands clamped"
         )
-        stopped = self.stop_latch.engaged
+        reason = self.stop_latch.reason or self.fault
+        stopped = reason is not None
         changed, self.reported_stopped = stopped != self.reported_stopped, stopped
         if stopped:
-            self.bus.report_health("stopped", f"{self.stop_latch.reason}; {detail}", changed)
+            self.bus.report_health("stopped", f"{reason}; {detail}", changed)
         else:
             self.bus.report_health("holding" if self.holding else "ok", detail, changed)
 
@@ -158,9 +164,23 @@ class SimNode:
             log.warning("emergency stop released by %s: holding until commands resume",
                         message.header.source)  # fmt: skip
 
+    def _check_limits(self) -> None:
+        """Latch a fault when a joint is beyond its limits or its speed (the robot service's
+        rule): hold where the arm is with the hold gains, take nothing until a restart."""
+        if self.fault is not None:
+            return
+        reason = self.monitor.check(self.state.q, self.state.dq)
+        if reason is None:
+            return
+        self.fault = f"arm fault: {reason}"
+        log.error("%s: stopping until the service restarts", self.fault)
+        self.command = None
+        self._hold(self.state.q)
+
     def _take_command(self, message: JointCommand) -> None:
-        if self.stop_latch.engaged:
-            self.bus.reject(self.bus.key(JointCommand), self.stop_latch.reason or "stopped")
+        blocked = self.stop_latch.reason or self.fault
+        if blocked is not None:
+            self.bus.reject(self.bus.key(JointCommand), blocked)
             return
         reason = self.freshness.why_stale(message.state_stamp_ns)
         applied = self.sim.applied  # the reference in force, a hold's included
@@ -232,8 +252,9 @@ class SimNode:
     def _reset(self, goal: TaskGoal) -> None:
         if goal.episode == self.episode:
             return  # a repeated announcement
-        if self.stop_latch.engaged:
-            self.bus.reject(self.bus.key(TaskGoal), self.stop_latch.reason or "stopped")
+        blocked = self.stop_latch.reason or self.fault
+        if blocked is not None:
+            self.bus.reject(self.bus.key(TaskGoal), blocked)
             return
         q_start = np.array(goal.q_start_rad)
         reason = goal_violation(
