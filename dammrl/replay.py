@@ -6,6 +6,7 @@ topics into a namespace where a sim (or robot) is alive needs ``force``.
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import threading
 import time
@@ -23,6 +24,7 @@ from schemas import DecisionRequest, EmergencyStop, ModelChoice
 from schemas.keys import topic_of
 from services.common.bus import zenoh_config
 from services.common.config import BusSettings
+from services.common.security import roles_publishing
 
 COMMAND_TOPICS = ("robot/command", "task/goal")
 ARM_SERVICES = ("sim", "robot")
@@ -81,18 +83,24 @@ def replay(
         raise JobFailedError("nothing to replay: no message matches the topics and time window")
     stop = stop or threading.Event()
     commands = sorted({t for t, _, _ in messages if t.startswith(COMMAND_TOPICS)})
+    roles = publishing_roles(sorted({t for t, _, _ in messages}), settings)
     sent = 0
-    with zenoh.open(zenoh_config(settings)) as session:
+    with contextlib.ExitStack() as sessions:
+        opened = {
+            role: sessions.enter_context(zenoh.open(zenoh_config(settings, role)))
+            for role in sorted(set(roles.values()))
+        }
+        session = next(iter(opened.values()))
         stop.wait(1.0)  # let the session connect (and learn who is alive) before publishing
         if commands and not options.force:
             _refuse_if_an_arm_listens(session, settings.namespace, commands)
         publishers = {
-            topic: session.declare_publisher(
+            topic: opened[role].declare_publisher(
                 f"{settings.namespace}/{topic}",
                 express=True,
                 congestion_control=zenoh.CongestionControl.BLOCK,  # a replay never drops
             )
-            for topic in {t for t, _, _ in messages}
+            for topic, role in roles.items()
         }
         info(f"replaying {len(messages)} messages on {len(publishers)} topics")
         while not stop.is_set():
@@ -100,6 +108,30 @@ def replay(
             if not options.loop:
                 break
     return sent
+
+
+def publishing_roles(topics: list[str], settings: BusSettings) -> dict[str, str]:
+    """The role whose session publishes each topic. On a plain bus one session does (the
+    tool's); on a secured bus each topic goes out as a role the access control lets
+    publish it, with that role's certificate from the credentials (``settings.role``
+    when set), or the replay is refused before anything is sent: the ACL would drop it."""
+    if settings.credentials is None:
+        return dict.fromkeys(topics, settings.role or "tool")
+    folder = settings.credentials
+    roles = {}
+    for topic in topics:
+        allowed = roles_publishing(topic)
+        usable = [r for r in allowed if (folder / f"{r}.key").is_file()]
+        if settings.role is not None:
+            usable = [settings.role] if settings.role in allowed else []
+        if not usable:
+            who = f"role {settings.role!r}" if settings.role else f"the credentials in {folder}"
+            raise DammrlError(
+                f"cannot replay {topic} on this secured bus: {who} may not publish it (only "
+                f"{', '.join(allowed) or 'no role'} may); leave it out with --topics"
+            )
+        roles[topic] = usable[0]
+    return roles
 
 
 def _play_once(

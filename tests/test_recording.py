@@ -167,6 +167,35 @@ def test_replay_as_fast_as_possible_reproduces_the_sequence(
     assert got == expected
 
 
+def test_replay_on_a_secured_bus_publishes_each_topic_as_its_role(
+    session_recording: tuple[Path, Seen], tmp_path: Path
+) -> None:
+    """Each topic goes out with the certificate of a role the ACL lets publish it (here
+    sim, intent and, for intent/request, controller); a role
+    that may not is refused before anything is sent (the ACL would drop it silently)."""
+    from services.common.bus import zenoh_config
+    from services.common.security import create_credentials
+
+    credentials = tmp_path / "bus"
+    create_credentials(credentials)
+    recording = read_recording(session_recording[0])
+    options = ReplayOptions(rate=0.0, topics=("robot/state", "intent"))
+    port = free_port()
+    listen = BusSettings(listen=[f"tls/127.0.0.1:{port}"], mode="router",
+                         namespace="replay", credentials=credentials)  # fmt: skip
+    got: list[str] = []
+    with zenoh.open(zenoh_config(listen, "tool")) as session:
+        session.declare_subscriber("replay/**", lambda s: got.append(str(s.key_expr)))
+        settings = BusSettings(connect=[f"tls/127.0.0.1:{port}"], namespace="replay",
+                               credentials=credentials)  # fmt: skip
+        sent = replay(recording, settings, options)
+        wait_for(lambda: len(got) >= sent, 10, "every replayed message")
+        as_tool = settings.model_copy(update={"role": "tool"})
+        with pytest.raises(DammrlError, match="role 'tool' may not publish"):
+            replay(recording, as_tool, options)
+    assert set(got) == {"replay/robot/state", "replay/intent", "replay/intent/request"}
+
+
 def test_replay_in_real_time_keeps_the_inter_arrival_times(
     session_recording: tuple[Path, Seen],
 ) -> None:

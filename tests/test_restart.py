@@ -8,6 +8,7 @@ timeout.
 
 from __future__ import annotations
 
+import signal
 import time
 
 import pytest
@@ -64,6 +65,36 @@ def test_each_service_killed_and_restarted_mid_episode_the_stack_goes_on() -> No
         recovered = {name: _restart(stack, observer, name) for name in SERVICES}
         assert all(stack.alive().values()), stack.alive()
         print("recovery after restart [s]:", {k: round(v, 1) for k, v in recovered.items()})
+    finally:
+        stack.stop()
+        observer.close()
+
+
+def _frozen(stack: Stack, observer: Observer, name: str) -> EpisodeResult:
+    """Freeze ``name`` (SIGSTOP) for a second mid-reach, then let it go on; the episode
+    it broke."""
+    mark = len(observer.received)
+    wait_for(lambda: _progress(observer.received[mark:]), 60, "a reach under way")
+    mark = len(observer.received)
+    stack.processes[name].send_signal(signal.SIGSTOP)
+    time.sleep(1.0)
+    stack.processes[name].send_signal(signal.SIGCONT)
+    wait_for(lambda: bool([m for m in observer.received[mark:] if isinstance(m, EpisodeResult)]),
+             30, "the broken episode's result")  # fmt: skip
+    return next(m for m in observer.received[mark:] if isinstance(m, EpisodeResult))
+
+
+def test_a_hold_names_who_went_silent() -> None:
+    """A frozen controller is reported as the controller's stall, a frozen sim as the sim
+    alive but silent (never the one for the other)."""
+    port = free_port()
+    observer = Observer(port)
+    stack = Stack(port, DAMMRL_TASK_EPISODES="100", DAMMRL_LOG_LEVEL="WARNING")
+    try:
+        controller = _frozen(stack, observer, "controller")
+        assert "the controller itself stalled" in controller.reason, controller.reason
+        sim = _frozen(stack, observer, "sim")
+        assert "sim alive but silent" in sim.reason, sim.reason
     finally:
         stack.stop()
         observer.close()

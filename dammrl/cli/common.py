@@ -89,23 +89,34 @@ def bus_settings(args: argparse.Namespace, namespace: str | None = None) -> BusS
 
     environment = BusSettings()  # DAMMRL_BUS_* where the flags are silent
     credentials = getattr(args, "credentials", None) or environment.credentials
-    connect = args.connect or environment.connect
-    if credentials is None and not connect:  # the local `dammrl up`'s own credentials
-        credentials = _local_stack_credentials()
-    default = DEFAULT_CONNECT.replace("tcp/", "tls/") if credentials else DEFAULT_CONNECT
+    connect = list(args.connect or environment.connect or [DEFAULT_CONNECT])
+    if credentials is None:  # a local `dammrl up` on that port: its own credentials
+        credentials = _local_stack_credentials(connect)
+    if credentials is not None:  # a secured stack speaks TLS only
+        connect = [e.replace("tcp/", "tls/", 1) if e.startswith("tcp/") else e for e in connect]
     return BusSettings(
-        connect=connect or [default],
+        connect=connect,
         namespace=args.namespace or namespace,
         credentials=credentials,
     )
 
 
-def _local_stack_credentials() -> Path | None:
-    """The credentials of a `dammrl up` running on the default port, if there is one."""
+LOOPBACK = ("127.0.0.1", "localhost", "[::1]")
+
+
+def _local_stack_credentials(endpoints: list[str]) -> Path | None:
+    """The credentials of the `dammrl up` this machine runs on one of ``endpoints``' ports
+    (loopback endpoints only), if there is one."""
     from services.common.security import CA_FILE, run_credentials
 
-    folder = run_credentials(int(DEFAULT_CONNECT.rsplit(":", 1)[1]))
-    return folder if (folder / CA_FILE).is_file() else None
+    for endpoint in endpoints:
+        _, _, address = endpoint.partition("/")
+        host, _, port = address.rpartition(":")
+        if host in LOOPBACK and port.isdigit():
+            folder = run_credentials(int(port))
+            if (folder / CA_FILE).is_file():
+                return folder
+    return None
 
 
 def print_out(line: str) -> None:

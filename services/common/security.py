@@ -40,6 +40,16 @@ PUBLISHES: dict[str, tuple[str, ...]] = {
     "tool": ("safety/stop",),  # status, echo, the launcher, `dammrl stop`: read, and stop
 }  # fmt: skip
 ROLES = tuple(PUBLISHES)
+
+
+def roles_publishing(topic: str) -> tuple[str, ...]:
+    """The roles allowed to publish ``topic`` (relative to the namespace), in ROLES order."""
+    if topic.startswith("health/"):
+        role = topic.removeprefix("health/")
+        return (role,) if role in PUBLISHES else ()
+    return tuple(role for role, topics in PUBLISHES.items() if topic in topics)
+
+
 CA_FILE = "ca.pem"
 VALID_DAYS = 825
 _EVERY_MESSAGE = [
@@ -155,6 +165,18 @@ def _check_private(folder: Path) -> None:
         )
 
 
+def _check_key(path: Path) -> None:
+    """Refuse a private key that others may read, or that another user owns (as ssh does):
+    whoever reads it can join the bus as its role."""
+    info = path.stat()
+    if info.st_mode & 0o077 or os.getuid() not in (info.st_uid, 0):  # root reads any
+        raise CredentialsError(
+            f"{path} is readable by others or not yours (mode {oct(info.st_mode & 0o777)}, "
+            f"owner uid {info.st_uid}): whoever reads it joins the bus as its role; "
+            f"`chmod 600 {path}` (and keep its folder private)"
+        )
+
+
 # ---- Zenoh configuration ------------------------------------------------------------------
 def tls_settings(credentials: Path, role: str) -> dict[str, Any]:
     """``transport/link/tls`` for ``role``: its certificate both ways, mutual TLS."""
@@ -165,6 +187,7 @@ def tls_settings(credentials: Path, role: str) -> dict[str, Any]:
                 f"{path} is missing: {credentials} holds no credentials for role {role!r} "
                 f"({name}); create them with `dammrl bus init --out {credentials}`"
             )
+    _check_key(files[f"{role}.key"])
     cert, key = str(files[f"{role}.pem"]), str(files[f"{role}.key"])
     return {
         "root_ca_certificate": str(files[CA_FILE]),

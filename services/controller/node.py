@@ -96,6 +96,7 @@ class ControllerNode:
         self.started = False  # the sim has answered the episode's TaskGoal
         self.announced_s = 0.0
         self.last_state_s = time.monotonic()
+        self.loop_s = time.monotonic()  # when the loop last ran
         self.last_t = 0.0
         self.request = 0
         self.request_t_s = 0.0
@@ -123,6 +124,19 @@ class ControllerNode:
             self._watch()
             holding = self.reach is not None and self.reach.controller.hold_reason is not None
             self.bus.report_health("holding" if holding else "ok", self._waiting_for())
+
+    def _stalled_itself(self, now: float) -> bool:
+        """Whether this process stopped running for longer than the state's staleness since
+        the last look (frozen, swapped out, starved): the arm held meanwhile for lack of
+        commands, and the episode ends in a hold that names the controller, not the arm."""
+        silent, self.loop_s = now - self.loop_s, now
+        if silent <= self.stale_s or self.reach is None or not self.started:
+            return False
+        reason = f"the controller itself stalled for {silent:.2f} s (the arm held)"
+        log.warning("%s", reason)
+        self.reach.end("hold", reason, self.last_t)
+        self._finish()
+        return True
 
     def _waiting_for(self) -> str:
         """What the controller waits for, and since when (Health detail)."""
@@ -282,9 +296,11 @@ class ControllerNode:
     # ---- episodes -----------------------------------------------------------------
     def _watch(self) -> None:
         """Announce the running episode until it starts; end it when the state is stale."""
+        now = time.monotonic()
+        if self._stalled_itself(now):
+            return
         self._answer_if_complete()
         self._resend_if_unanswered()
-        now = time.monotonic()
         if (
             self.episode is not None
             and not self.started
@@ -293,9 +309,17 @@ class ControllerNode:
             self._announce(self.episode)
         stale = now - self.last_state_s > self.stale_s
         if self.reach is not None and self.started and stale:
-            reason = f"robot state stale: none for {self.stale_s:.2f} s"
-            self.reach.end("hold", reason, self.last_t)
+            self.reach.end("hold", self._why_no_state(), self.last_t)
             self._finish()
+
+    def _why_no_state(self) -> str:
+        """Who went silent: the arm's service (alive but silent, or gone)."""
+        alive = self.bus.alive_peers()
+        arm = next((a for a in ("robot", "sim") if a in alive), None)
+        silent = f"for {self.stale_s:.2f} s"
+        if arm is None:
+            return f"robot state stale: no arm service alive (sim or robot gone) {silent}"
+        return f"robot state stale: {arm} alive but silent {silent}"
 
     def _next_episode(self) -> None:
         number = 1 if self.episode is None else self.episode.number + 1

@@ -22,7 +22,7 @@ from __future__ import annotations
 from collections import Counter
 from dataclasses import dataclass, field
 
-from services.common.security import PUBLISHES
+from services.common.security import roles_publishing
 
 MAX_RATE_HZ = 100_000.0
 """No publisher of the stack sends faster (the recorder benchmark's flood is 10 k/s)."""
@@ -42,10 +42,7 @@ def publishers_of(namespace: str, key_expr: str) -> frozenset[str] | None:
     topic = key_expr.removeprefix(f"{namespace}/")
     if topic == key_expr:
         return None
-    if topic.startswith("health/"):
-        return frozenset({topic.removeprefix("health/")})
-    roles = frozenset(role for role, topics in PUBLISHES.items() if topic in topics)
-    return roles or None
+    return frozenset(roles_publishing(topic)) or None
 
 
 @dataclass

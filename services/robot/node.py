@@ -365,8 +365,9 @@ class RobotNode:
     def _begin_hold(self, q: np.ndarray) -> CoreCommand:
         """Commands went stale (or never came): hold here with the last command's gains."""
         if self.command is not None:
-            log.warning("no valid command for %.2f s: holding position",
-                        self.settings.command_stale_s)  # fmt: skip
+            who = "alive but silent" if "controller" in self.bus.alive_peers() else "gone"
+            log.warning("no valid command from the controller (%s) for %.2f s: holding",
+                        who, self.settings.command_stale_s)  # fmt: skip
         last = self.command
         kp = last.kp if last is not None else np.array(self.settings.hold_kp_nm_per_rad)
         kd = last.kd if last is not None else np.array(self.settings.hold_kd_nms_per_rad)

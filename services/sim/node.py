@@ -226,7 +226,9 @@ class SimNode:
             stale = time.monotonic() - self.command_wall_s > self.settings.command_stale_s
         if self.holding or not stale:
             return
-        log.warning("no valid command for %.2f s: holding position", self.settings.command_stale_s)
+        who = "alive but silent" if "controller" in self.bus.alive_peers() else "gone"
+        log.warning("no valid command from the controller (%s) for %.2f s: holding position",
+                    who, self.settings.command_stale_s)  # fmt: skip
         self._hold(self.state.q)
 
     def _hold(self, q: np.ndarray) -> None:
