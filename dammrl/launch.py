@@ -48,7 +48,11 @@ from schemas import (
 from services.common.bus import zenoh_config
 from services.common.config import BusSettings
 from services.common.runtime import SignalStop, stopping_on_signals
-from services.common.security import create_credentials, run_credentials
+from services.common.security import (
+    claim_run_credentials,
+    create_credentials,
+    run_credentials,
+)
 
 MODES = {
     "virtual": ("sim", "policy", "intent", "controller"),
@@ -63,6 +67,8 @@ QUIET_S = 30.0
 """Without an episode result this long, ``dammrl up`` says what each service reports [s]."""
 STOP_TIMEOUT_S = 5.0
 ARM_SERVICES = ("sim", "robot")
+MAX_RESTARTS = 5
+"""How often ``dammrl up`` restarts a recorder that died before it gives up."""
 
 
 @dataclass(frozen=True)
@@ -148,6 +154,11 @@ def check_options(options: StackOptions) -> None:
         raise UsageError("real mode needs --robot-port (the servo bus, or --emulate-robot)")
     if options.mode != "real" and (options.robot_port or options.emulate_robot):
         raise UsageError("--robot-port and --emulate-robot are for --mode real")
+    if options.record is not None and options.record.suffix != ".mcap":
+        raise UsageError(f"--record {options.record}: the file name must end in .mcap")
+    if options.record is not None and options.record.exists():
+        raise UsageError(f"--record {options.record} exists: choose another name (nothing "
+                         "is overwritten)")  # fmt: skip
     if options.robot_calibration is not None:
         from services.robot import calibration
 
@@ -158,6 +169,14 @@ def check_options(options: StackOptions) -> None:
         from services.intent.decoder import PressDecoder
 
         PressDecoder(load_calibration(options.calibration), IntentSettings().decoder)
+
+
+def cut_recordings(record: Path) -> list[Path]:
+    """The recorder's files of ``record`` (``record`` and its rotations) that a death cut."""
+    from services.recorder.core import complete_mcap
+
+    files = [record, *sorted(record.parent.glob(f"{record.stem}-[0-9][0-9][0-9].mcap"))]
+    return [f for f in files if f.exists() and not complete_mcap(f)]
 
 
 def check_settings(services: tuple[str, ...], env: dict[str, str]) -> None:
@@ -209,6 +228,7 @@ class Stack:
         self.emulator: subprocess.Popen[bytes] | None = None
         self.results: list[EpisodeResult] = []
         self.prompts: PatientPrompts | None = None
+        self.recorder_restarts = 0
         check_settings(self.services(), self.environment())
         self.progress: Progress | None = None
 
@@ -225,6 +245,7 @@ class Stack:
             DAMMRL_BUS_CONNECT=json.dumps([self.endpoint]),
             **self._secured(),
             DAMMRL_BUS_NAMESPACE=o.namespace,
+            DAMMRL_BUS_LAUNCHER_PID=str(os.getpid()),
             DAMMRL_TASK_SEED=str(o.seed),
             DAMMRL_CONTROLLER_TRIGGER=o.trigger,
         )
@@ -268,6 +289,7 @@ class Stack:
             assert self.credentials is not None
             shutil.rmtree(self.credentials, ignore_errors=True)
             create_credentials(self.credentials)
+            claim_run_credentials(self.credentials)  # its services remove it if we die
         with stopping_on_signals() as stop:
             session = zenoh.open(zenoh_config(settings))
             try:
@@ -293,13 +315,7 @@ class Stack:
         if self.options.emulate_robot:
             self._start_emulator(env)
         for name in self.services():
-            self.children[name] = subprocess.Popen(
-                [sys.executable, "-m", f"services.{name}"],
-                env=env,
-                preexec_fn=_die_with_parent,
-                stdin=subprocess.DEVNULL,
-                start_new_session=True,  # Ctrl-C reaches the launcher only; it stops them
-            )
+            self.children[name] = self._spawn(name, env)
             if name == "recorder":  # record from the first message of the stack on
                 self._wait_alive(session, stop, quiet=True)
         self.info(f"started {', '.join(self.children)} on {self.endpoint}")
@@ -395,13 +411,38 @@ class Stack:
             + ("" if result.success else f" ({result.reason})")
         )
 
+    @staticmethod
+    def _spawn(name: str, env: dict[str, str]) -> subprocess.Popen[bytes]:
+        return subprocess.Popen(
+            [sys.executable, "-m", f"services.{name}"],
+            env=env,
+            preexec_fn=_die_with_parent,
+            stdin=subprocess.DEVNULL,
+            start_new_session=True,  # Ctrl-C reaches the launcher only; it stops them
+        )
+
     def _check_children(self) -> None:
         for name, child in self.children.items():
             code = child.poll()
             if code == Exit.BAD_INPUT:
                 raise ConfigurationError(f"service {name} cannot start (its log says why)")
-            if code is not None:
+            if code is not None and name == "recorder" and self.recorder_restarts < MAX_RESTARTS:
+                self._restart_recorder(code)
+            elif code is not None:
                 raise JobFailedError(f"service {name} exited unexpectedly with code {code}")
+
+    def _restart_recorder(self, code: int) -> None:
+        """The session must not depend on its logger: complete the file the recorder was
+        cut off in, and start it again into a new file (the stack goes on meanwhile)."""
+        from dammrl.recording import repair_in_place
+
+        self.recorder_restarts += 1
+        assert self.options.record is not None
+        repaired = [repair_in_place(p) for p in cut_recordings(self.options.record)]
+        self.children["recorder"] = self._spawn("recorder", self.environment())
+        saved = "".join(f"; {r['to']} completed ({r['messages']} messages)" for r in repaired)
+        self.info(f"the recorder exited with code {code}: restarted into a new file "
+                  f"({self.recorder_restarts} of {MAX_RESTARTS} restarts){saved}")  # fmt: skip
 
     def _stop_children(self) -> None:
         self._stop_processes(list(self.children.values()))

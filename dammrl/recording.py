@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import csv
 import json
+import os
 import struct
 from collections import Counter, defaultdict
 from collections.abc import Callable, Iterator
@@ -348,6 +349,15 @@ def repair(path: Path, out: Path) -> dict[str, Any]:
     return {"from": str(path), "to": str(out), "messages": len(recording.messages),
             "was_complete": recording.complete, "why": recording.truncated_reason,
             "skipped": dict(recording.skipped)}  # fmt: skip
+
+
+def repair_in_place(path: Path) -> dict[str, Any]:
+    """Complete ``path`` (cut by a crash) where it is: its readable part rewritten to a
+    temporary file that then replaces it."""
+    temporary = path.with_name(f".{path.name}.repairing")
+    summary = repair(path, temporary)
+    os.replace(temporary, path)
+    return summary | {"to": str(path)}
 
 
 def export_json(path: Path, out: Path, progress: Callable[[int], None] | None = None) -> int:

@@ -396,3 +396,38 @@ def test_replay_of_a_crafted_file_publishes_what_is_readable(
     finally:
         observer.close()
     assert "replayed 10 messages" in capsys.readouterr().out
+
+
+def test_dammrl_up_restarts_a_killed_recorder_into_a_new_file_and_completes_the_cut_one(
+    tmp_path: Path,
+) -> None:
+    """With a person attached the session must not depend on its logger: kill -9 of the
+    recorder under `dammrl up` leaves the episodes running; the cut file is completed
+    where it is (mcap's default reader reads it) and a new recorder writes the next."""
+    port, record = free_port(), tmp_path / "session.mcap"
+    launcher = subprocess.Popen(
+        [sys.executable, "-m", "dammrl", "up", "--episodes", "2", "--model", "2,1",
+         "--bus-port", str(port), "--record", str(record), "--insecure"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        wait_for(lambda: record.exists() and record.stat().st_size > 20_000, 90, "a recording")
+        recorder = subprocess.run(
+            ["pgrep", "-P", str(launcher.pid), "-f", "services.recorder"],
+            capture_output=True,
+            text=True,
+            check=False,
+        ).stdout.split()
+        os.kill(int(recorder[0]), signal.SIGKILL)
+        out, err = launcher.communicate(timeout=240)
+    finally:
+        if launcher.poll() is None:
+            launcher.kill()
+    assert launcher.returncode == 0, err
+    assert "recorder exited with code -9: restarted into a new file" in err
+    assert len([line for line in out.splitlines() if line.startswith("episode ")]) == 2
+    second = tmp_path / "session-001.mcap"
+    for path in (record, second):
+        with open(path, "rb") as stream:  # mcap's own default reader, no repair
+            assert sum(1 for _ in make_reader(stream).iter_messages()) > 100
+    assert info(record)["complete"] and info(second)["complete"]

@@ -180,6 +180,9 @@ class QueueBus:
     def report_health(self, state: str = "ok", detail: str = "", force: bool = False) -> None:
         self.health.append((state, detail))
 
+    def alive_peers(self) -> set[str]:
+        return {"controller"}
+
     def send(self, message: Message) -> None:
         self.inbox.append(message)
 

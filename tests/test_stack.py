@@ -11,6 +11,7 @@ import subprocess
 import sys
 import time
 from collections.abc import Iterator
+from pathlib import Path
 
 import msgpack
 import numpy as np
@@ -236,3 +237,51 @@ def test_dammrl_up_exits_non_zero_when_a_service_dies(port: int) -> None:
     assert launcher.stderr is not None and "exited unexpectedly" in launcher.stderr.read()
     time.sleep(0.5)
     assert not [pid for pid in children[1:] if os.path.exists(f"/proc/{pid}")]
+
+
+def test_a_stop_finds_the_runs_credentials_and_a_killed_launchers_services_and_keys_go(
+    port: int,
+) -> None:
+    """`dammrl stop --connect tls/127.0.0.1:PORT` without --credentials stops the secured
+    run on PORT; after `kill -9` of the launcher, every service exits within seconds and
+    the run's credentials (every role's key) are removed by the last of them."""
+    from services.common.security import run_credentials
+
+    launcher, children = _launch_until_alive(port)
+    folder = run_credentials(port)
+    assert (folder / "controller.key").is_file()
+    for endpoint in (f"tls/127.0.0.1:{port}", f"tcp/127.0.0.1:{port}"):
+        for flag in ((), ("--release",)):
+            command = [sys.executable, "-m", "dammrl", "stop", "--connect", endpoint, *flag]
+            done = subprocess.run(command, capture_output=True, text=True, timeout=30, check=False)
+            assert done.returncode == 0 and "sim: " in done.stdout, done.stderr
+    launcher.send_signal(signal.SIGKILL)
+    launcher.wait(10)
+    killed = time.monotonic()
+    wait_for(lambda: not [p for p in children if os.path.exists(f"/proc/{p}")], 10,
+             "every service to exit")  # fmt: skip
+    print(f"services gone {time.monotonic() - killed:.1f} s after kill -9 of the launcher")
+    wait_for(lambda: not folder.exists(), 5, "the run's credentials to be removed")
+
+
+def test_a_service_stuck_in_native_code_still_exits_on_sigterm(tmp_path: Path) -> None:
+    """A main thread blocked on a futex never runs Python's signal handlers; the watcher
+    of the signal's wakeup descriptor stops the process within its grace anyway."""
+    script = tmp_path / "stuck.py"
+    script.write_text(
+        "import ctypes, threading\n"
+        "from services.common.runtime import exit_within, stop_on_signals\n"
+        "exit_within(stop_on_signals(), grace_s=1.0)\n"
+        "libc = ctypes.CDLL(None)\n"
+        "mutex = ctypes.create_string_buffer(64)\n"  # pthread_mutex_t, zeroed: unlocked
+        "libc.pthread_mutex_lock(mutex)\n"
+        "print('stuck', flush=True)\n"
+        "libc.pthread_mutex_lock(mutex)\n"  # a default mutex locked twice: blocked forever
+    )
+    stuck = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, text=True,
+                             env=os.environ | {"PYTHONPATH": os.getcwd()})  # fmt: skip
+    assert stuck.stdout is not None and stuck.stdout.readline().strip() == "stuck"
+    stuck.send_signal(signal.SIGTERM)
+    started = time.monotonic()
+    assert stuck.wait(10) == 128 + signal.SIGTERM
+    assert time.monotonic() - started < 3.0

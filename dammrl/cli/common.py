@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import shutil
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -107,13 +108,15 @@ LOOPBACK = ("127.0.0.1", "localhost", "[::1]")
 def _local_stack_credentials(endpoints: list[str]) -> Path | None:
     """The credentials of the `dammrl up` this machine runs on one of ``endpoints``' ports
     (loopback endpoints only), if there is one."""
-    from services.common.security import CA_FILE, run_credentials
+    from services.common.security import CA_FILE, run_credentials, stale_run_credentials
 
     for endpoint in endpoints:
         _, _, address = endpoint.partition("/")
         host, _, port = address.rpartition(":")
         if host in LOOPBACK and port.isdigit():
             folder = run_credentials(int(port))
+            if stale_run_credentials(folder):  # its launcher is gone: useless, removed
+                shutil.rmtree(folder, ignore_errors=True)
             if (folder / CA_FILE).is_file():
                 return folder
     return None

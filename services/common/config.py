@@ -41,6 +41,10 @@ class BusSettings(Settings):
     control. None: plain tcp, anyone who reaches the endpoint is on the bus."""
     role: str | None = None
     """Certificate role of this session (default: the service's name; tools: 'tool')."""
+    launcher_pid: int | None = Field(None, ge=1)
+    """The ``dammrl up`` process that started this service (set by it): when that
+    process is gone, even killed with -9, the service stops, and removes the run's own
+    credentials (those marked with the launcher's pid), which nothing else may use."""
     realtime: bool = True
     """The arm's loop goes first: robot states and commands travel at Zenoh's real-time
     priority (ahead of any other traffic on a link), and the services that close the loop

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import argparse
+import logging
+import os
 import threading
 from collections.abc import Callable, Sequence
 from typing import Protocol
@@ -14,7 +16,8 @@ from dammrl.core.settings import error_line
 from services.common.bus import Bus
 from services.common.config import BusSettings
 from services.common.logs import setup_logging
-from services.common.runtime import TIME_CRITICAL, prioritise, stop_on_signals
+from services.common.runtime import TIME_CRITICAL, exit_within, prioritise, stop_on_signals
+from services.common.security import remove_run_credentials
 
 EPILOG = """\
 Every setting can also come from the environment: DAMMRL_BUS_* for the bus (MODE,
@@ -61,8 +64,12 @@ def run_service(
         k: v for k in ("mode", "listen", "connect", "namespace") if (v := getattr(args, k))
     }
     stop = stop_on_signals()
+    exit_within(stop)  # a main thread stuck in native code cannot make it linger
+    settings: BusSettings | None = None
     try:
         settings = BusSettings(**overrides)
+        if settings.launcher_pid is not None:
+            follow_launcher(settings.launcher_pid, stop)
         if settings.realtime:
             log.info(prioritise(name in TIME_CRITICAL))
         with Bus(settings, name) as bus:
@@ -73,5 +80,36 @@ def run_service(
     except (ValidationError, DammrlError) as exc:
         log.error("cannot start: %s", error_line(exc))
         return Exit.BAD_INPUT
+    finally:
+        if settings is not None:
+            _remove_an_orphaned_runs_credentials(settings)
     log.info("stopped")
     return Exit.OK
+
+
+LAUNCHER_CHECK_S = 0.5
+"""How often a service started by ``dammrl up`` checks that its launcher still runs."""
+
+
+def follow_launcher(launcher_pid: int, stop: threading.Event) -> None:
+    """Stop when the launcher is gone, even killed with -9 (the parent-death signal it
+    asked for covers Linux; this covers a signal that never came)."""
+
+    def watch() -> None:
+        while not stop.wait(LAUNCHER_CHECK_S):
+            if os.getppid() != launcher_pid:
+                logging.getLogger("dammrl").error("the launcher (pid %d) is gone: stopping",
+                                                  launcher_pid)  # fmt: skip
+                stop.set()
+
+    if os.getppid() != launcher_pid:
+        stop.set()  # it died before we looked
+    threading.Thread(target=watch, name="follow-launcher", daemon=True).start()
+
+
+def _remove_an_orphaned_runs_credentials(settings: BusSettings) -> None:
+    """The launcher removes its run's credentials when it ends; if it was killed, the
+    last of its services does (any of them: the first to get here)."""
+    pid, folder = settings.launcher_pid, settings.credentials
+    if pid is not None and folder is not None and os.getppid() != pid:
+        remove_run_credentials(folder, pid)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import os
 import signal
 import threading
@@ -48,6 +49,40 @@ def stop_on_signals() -> SignalStop:
     for signum in SIGNALS:
         signal.signal(signum, stop.handle)
     return stop
+
+
+EXIT_GRACE_S = 5.0
+"""After SIGINT/SIGTERM a service has this long to stop cleanly, then it exits anyway."""
+
+
+def exit_within(stop: SignalStop, grace_s: float = EXIT_GRACE_S) -> None:
+    """Make a SIGINT or SIGTERM end this process within ``grace_s``, whatever its main
+    thread is doing. Python runs signal handlers in the main thread only, between
+    bytecodes: a main thread blocked in native code (a Zenoh call waiting on a futex
+    for a peer that is gone) would never see them. The kernel's signal still writes
+    to a wakeup file descriptor, which a watcher thread reads: it sets ``stop`` for a
+    clean end, and exits the process (code 128 + signal) if the clean end takes longer
+    than ``grace_s``. Call it from the main thread, after ``stop_on_signals``."""
+    read_fd, write_fd = os.pipe()
+    os.set_blocking(write_fd, False)
+    signal.set_wakeup_fd(write_fd, warn_on_full_buffer=False)
+    threading.Thread(
+        target=_watch_signals, args=(read_fd, stop, grace_s), name="exit-within", daemon=True
+    ).start()
+
+
+def _watch_signals(read_fd: int, stop: SignalStop, grace_s: float) -> None:
+    signum = 0
+    while signum not in SIGNALS:  # every handled signal writes its number
+        signum = os.read(read_fd, 1)[0]
+    stop.signum = stop.signum or signum
+    stop.set()
+    time.sleep(grace_s)
+    logging.getLogger("dammrl").error(
+        "still running %.0f s after signal %d: exiting without a clean stop", grace_s, signum
+    )
+    logging.shutdown()
+    os._exit(128 + signum)
 
 
 @contextmanager

@@ -15,6 +15,7 @@ import datetime as dt
 import ipaddress
 import json
 import os
+import shutil
 import tempfile
 from collections.abc import Iterable
 from pathlib import Path
@@ -153,6 +154,45 @@ def run_credentials(port: int) -> Path:
         folder.mkdir(exist_ok=True, mode=0o700)
         _check_private(folder)
     return private / f"bus-{port}"
+
+
+OWNER_FILE = "launcher.pid"
+"""In a run's own credentials: the pid of the ``dammrl up`` they belong to."""
+
+
+def claim_run_credentials(folder: Path) -> None:
+    """Mark ``folder`` as this process's run's own credentials."""
+    (folder / OWNER_FILE).write_text(f"{os.getpid()}\n")
+
+
+def run_owner(folder: Path) -> int | None:
+    """The pid of the launcher whose run owns ``folder`` (None: not a run's own)."""
+    try:
+        return int((folder / OWNER_FILE).read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def stale_run_credentials(folder: Path) -> bool:
+    """Whether ``folder`` holds a run's own credentials whose launcher is gone."""
+    owner = run_owner(folder)
+    if owner is None:
+        return False
+    try:
+        os.kill(owner, 0)
+    except ProcessLookupError:
+        return True
+    except PermissionError:  # alive, another user's
+        return False
+    return False
+
+
+def remove_run_credentials(folder: Path, launcher_pid: int) -> bool:
+    """Remove ``folder`` if it is the run's own of ``launcher_pid``; whether it was."""
+    if run_owner(folder) != launcher_pid:
+        return False
+    shutil.rmtree(folder, ignore_errors=True)
+    return True
 
 
 def _check_private(folder: Path) -> None:

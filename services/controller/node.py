@@ -97,6 +97,7 @@ class ControllerNode:
         self.announced_s = 0.0
         self.last_state_s = time.monotonic()
         self.loop_s = time.monotonic()  # when the loop last ran
+        self.superseded = 0  # states observed, not answered: a newer one was waiting
         self.last_t = 0.0
         self.request = 0
         self.request_t_s = 0.0
@@ -120,7 +121,7 @@ class ControllerNode:
         while not stop.is_set():
             message = self.bus.receive(0.02)
             if message is not None:
-                self._dispatch(message)
+                self._dispatch_all([message, *self._queued()])
             self._watch()
             holding = self.reach is not None and self.reach.controller.hold_reason is not None
             self.bus.report_health("holding" if holding else "ok", self._waiting_for())
@@ -139,11 +140,13 @@ class ControllerNode:
         return True
 
     def _waiting_for(self) -> str:
-        """What the controller waits for, and since when (Health detail)."""
+        """What the controller waits for, and since when; states it had to skip (Health
+        detail)."""
+        late = f"{self.superseded} states superseded before answered"
         if self.reach is not None and self.reach.asked:
             since = time.monotonic() - self.request_sent_s
-            return f"waiting for the answer to request {self.request} ({since:.1f} s)"
-        return ""
+            return f"waiting for the answer to request {self.request} ({since:.1f} s); {late}"
+        return late
 
     def _wait_for_peers(self, stop: threading.Event) -> None:
         """Start the first episode once the policy speaks (its first ModelChoice), so every
@@ -170,6 +173,24 @@ class ControllerNode:
             log.warning("no intent service alive: starting; requests repeat until one answers")
 
     # ---- messages -----------------------------------------------------------------
+    def _queued(self) -> list[Message]:
+        """Every message already waiting (none is waited for)."""
+        messages = []
+        while (message := self.bus.receive(0)) is not None:
+            messages.append(message)
+        return messages
+
+    def _dispatch_all(self, messages: list[Message]) -> None:
+        """In arrival order; of several states waiting, only the newest is answered (a
+        command planned from an older state would reach the arm late and be clamped by
+        its caps): the others are observed (logged, judged), not answered."""
+        states = [i for i, m in enumerate(messages) if isinstance(m, RobotState)]
+        for i, message in enumerate(messages):
+            if isinstance(message, RobotState) and i != states[-1]:
+                self._on_state(message, answer=False)
+            else:
+                self._dispatch(message)
+
     def _dispatch(self, message: Message) -> None:
         if isinstance(message, RobotState):
             self._on_state(message)
@@ -186,7 +207,7 @@ class ControllerNode:
             self.choices[message.request] = message
             self._answer_if_complete()
 
-    def _on_state(self, message: RobotState) -> None:
+    def _on_state(self, message: RobotState, answer: bool = True) -> None:
         episode, reach = self.episode, self.reach
         if episode is None or reach is None or message.episode != episode.number:
             return
@@ -198,6 +219,11 @@ class ControllerNode:
         if not self.started:
             self.started = True
             log.info("episode %d started (seed %d)", episode.number, episode.seed)
+        if not answer:
+            self.superseded += 1
+            if reach.observe(state) is not None:
+                self._finish()
+            return
         tick = reach.tick(state)
         if tick.ask:
             self._request_decision(state.ee_pos, episode)

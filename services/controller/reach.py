@@ -174,6 +174,18 @@ class Reach:
             self._end(ended, state.t_s)
         return Tick(output.command, output.steps, ask, ended)
 
+    def observe(self, state: RobotState) -> tuple[str, str] | None:
+        """A state a newer one superseded before it was answered (the composition ran
+        late): logged and judged like a tick, but no command (the newest state gets the
+        command, planned from where the arm is). The end, if the reach ended there."""
+        if not self.started:
+            return None  # the reach starts at the first state it answers
+        self._record(state)
+        if self.ended is None and (ended := self._judge(state)) is not None:
+            self._end(ended, state.t_s)
+            return ended
+        return None
+
     def answer(self, answer: Answer) -> None:
         """The human's decision for the open request; delivered when due."""
         self.pending = answer

@@ -35,6 +35,19 @@ PROFILE = "dammrl"
 log = logging.getLogger("dammrl.recorder")
 
 
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+
+
+def complete_mcap(path: Path) -> bool:
+    """Whether ``path`` ends as a finished MCAP file does (its closing magic bytes)."""
+    try:
+        with open(path, "rb") as stream:
+            stream.seek(-len(MCAP_MAGIC), 2)
+            return stream.read() == MCAP_MAGIC
+    except OSError:
+        return False
+
+
 def header_of(payload: bytes) -> dict[str, Any] | None:
     """The header map of a msgpack message, without validating the rest (None if absent)."""
     try:

@@ -29,7 +29,7 @@ from dammrl.core.errors import DammrlError
 from services.common.bus import Bus
 from services.common.entry import run_service
 from services.recorder.config import RecorderSettings
-from services.recorder.core import McapRecorder
+from services.recorder.core import McapRecorder, complete_mcap
 
 log = logging.getLogger("dammrl.recorder")
 
@@ -49,6 +49,7 @@ class RecorderNode:
         self.problem = ""  # why nothing is recorded ("" while recording)
         self.retry_at = 0.0
         self.files: list[Path] = []
+        self.took_over = ""  # what this recorder found of a predecessor's cut file
         self.recorder: McapRecorder | None = None
         self._try_open(startup=True)
         self._subscriber = bus.session.declare_subscriber(f"{bus.namespace}/**", self._enqueue)
@@ -135,7 +136,8 @@ class RecorderNode:
             return self.problem + suffix
         r = self.recorder
         total = sum(r.loss.messages.values()) + sum(r.invalid.values())
-        return f"{total} messages in {r.path.name}{suffix}"
+        after = f" ({self.took_over})" if self.took_over else ""
+        return f"{total} messages in {r.path.name}{after}{suffix}"
 
     def _degrade(self, exc: OSError) -> None:
         """Leave the file being written (readable up to its last chunk) after an error."""
@@ -181,17 +183,35 @@ class RecorderNode:
         log.info("recording to %s", path)
 
     def _next_path(self) -> Path:
+        """The next file: ``out`` itself, then ``<stem>-001.mcap``, ... (a folder: one
+        timestamped file each); never a file that exists (a restarted recorder's
+        predecessor, cut by its death, is kept for repair)."""
         out = self.settings.out
-        if out.suffix == ".mcap":
-            rotated = out.with_name(f"{out.stem}-{len(self.files):03d}.mcap")
-            path = rotated if self.files else out
-        else:
-            path = out / f"session-{datetime.now(UTC):%Y%m%d-%H%M%S-%f}.mcap"
         try:
-            path.parent.mkdir(parents=True, exist_ok=True)
+            out.parent.mkdir(parents=True, exist_ok=True)
+            if out.suffix != ".mcap":
+                out.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
-            raise DammrlError(f"cannot create {path.parent}: {exc}") from exc
-        return path
+            raise DammrlError(f"cannot create {out if out.suffix != '.mcap' else out.parent}: "
+                              f"{exc}") from exc  # fmt: skip
+        if out.suffix != ".mcap":
+            return out / f"session-{datetime.now(UTC):%Y%m%d-%H%M%S-%f}.mcap"
+        candidates = [out, *(out.with_name(f"{out.stem}-{n:03d}.mcap") for n in range(1, 10_000))]
+        for path in candidates:
+            if not path.exists():
+                self._note_cut(path, candidates)
+                return path
+        raise DammrlError(f"{out}: 10,000 files of that name exist already")
+
+    def _note_cut(self, path: Path, candidates: list[Path]) -> None:
+        """Say in Health when the file before ``path`` was cut (no MCAP footer): this
+        recorder took over after one that died."""
+        index = candidates.index(path)
+        if self.files or index == 0 or complete_mcap(candidates[index - 1]):
+            return
+        self.took_over = f"after a restart: {candidates[index - 1].name} was cut"
+        log.warning("recording %s; the previous recorder's %s was cut (dammrl recording "
+                    "repair completes it)", path.name, candidates[index - 1].name)  # fmt: skip
 
     def _finish(self, recorder: McapRecorder) -> None:
         recorder.finish()

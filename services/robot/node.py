@@ -148,7 +148,6 @@ class RobotNode:
         self.in_force_answers_ns: int | None = None
         self.held: CoreCommand | None = None  # a hold or a stop's law, fixed when it began
         self.last_q_ref: np.ndarray | None = None
-        self.last_apply_s = 0.0
         self.joint: JointState | None = None
         self.last_written: ServoCommand | None = None  # the law last sent to the servos
         self.last_write_s = float("inf")  # when (monotonic); inf: not since connecting
@@ -268,7 +267,7 @@ class RobotNode:
             return
         reason = self.freshness.why_stale(message.state_stamp_ns)
         now_s = time.monotonic()
-        dt = min(max(now_s - self.last_apply_s, 0.0), 2 * self.pacer.period_s)
+        dt = self.freshness.allowance_s(message.state_stamp_ns, 2 * self.pacer.period_s)
         guarded = guard_command(
             convert.joint_command(message), self.joint.q_rad, self.last_q_ref, dt,
             self.limits, self.caps,
@@ -289,7 +288,6 @@ class RobotNode:
         self.command_wall_s = now_s
         self.command_stamp_ns = message.header.stamp_ns
         self.latency_pending = True
-        self.last_apply_s = now_s
 
     # ---- deciding the law --------------------------------------------------------------
     def _check(self, joint: JointState) -> None:
@@ -377,6 +375,7 @@ class RobotNode:
         return self.held
 
     def _hold_law(self, q: np.ndarray, kp: np.ndarray, kd: np.ndarray) -> CoreCommand:
+        self.freshness.held(time.monotonic() - self.episode_t0_s)
         zeros = np.zeros(6)
         return CoreCommand(q.copy(), zeros, self.arm.inverse_dynamics(q, zeros, zeros), kp, kd)
 
@@ -503,7 +502,7 @@ class RobotNode:
                 None if holding else self.in_force_answers_ns,
             )
         )
-        self.freshness.published(message.header.stamp_ns)
+        self.freshness.published(message.header.stamp_ns, state.t_s)
 
     def _report_health(self) -> None:
         """Health every period of the bus's, and at once when the arm stops or resumes."""

@@ -70,7 +70,6 @@ class SimNode:
         )
         self.reported_stopped = False
         self.in_force_answers_ns: int | None = None  # ... while that command is in force
-        self.last_apply_t_s = 0.0
         self.clamped = 0  # commands the caps changed
         self.last_stamp_ns = -1
         bus.subscribe(JointCommand, TaskGoal, EmergencyStop)
@@ -116,7 +115,7 @@ class SimNode:
             )
         )
         self.last_stamp_ns = message.header.stamp_ns
-        self.freshness.published(self.last_stamp_ns)
+        self.freshness.published(self.last_stamp_ns, self.state.t_s)
         self.answered = False
         detail = (
             f"missed {self.pacer.missed} of {self.pacer.ticks} deadlines, "
@@ -188,7 +187,7 @@ class SimNode:
             convert.joint_command(message),
             self.state.q,
             None if applied is None else applied.q_ref,
-            self._rate_allowance_s(),
+            self.freshness.allowance_s(message.state_stamp_ns, 2 * self.pacer.period_s),
             self.sim.robot,
             self.caps,
         )
@@ -203,7 +202,6 @@ class SimNode:
         self.command = guarded.command
         self.freshness.applied(message.state_stamp_ns)
         self.in_force_answers_ns = message.state_stamp_ns
-        self.last_apply_t_s = self.state.t_s
         self.command_wall_s = time.monotonic()
         self.answered |= message.state_stamp_ns == self.last_stamp_ns
         self.round_trips_s.append((self.bus.arrival_ns - message.state_stamp_ns) * 1e-9)
@@ -211,13 +209,6 @@ class SimNode:
         if self.holding:
             log.info("commands resumed: leaving the hold")
         self.holding = False
-
-    def _rate_allowance_s(self) -> float:
-        """Robot time over which the reference may move: since the last applied reference,
-        at most two periods (one late command), so a reference that stood still (a hold)
-        cannot jump by the time it stood."""
-        since = self.state.t_s - self.last_apply_t_s
-        return min(max(since, 0.0), 2 * self.pacer.period_s)
 
     def _hold_if_stale(self, lockstep: bool) -> None:
         if lockstep:
@@ -247,7 +238,7 @@ class SimNode:
                 kd=kd,
             )
         )
-        self.last_apply_t_s = self.sim.t_s
+        self.freshness.held(self.sim.t_s)
         self.in_force_answers_ns = None
         self.holding = True
 
