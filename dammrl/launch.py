@@ -18,13 +18,13 @@ import signal
 import socket
 import subprocess
 import sys
-import threading
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
 import zenoh
+from zenoh.handlers import RingChannel
 
 from dammrl.core.errors import (
     ConfigurationError,
@@ -229,6 +229,7 @@ class Stack:
         self.results: list[EpisodeResult] = []
         self.prompts: PatientPrompts | None = None
         self.recorder_restarts = 0
+        self.ignored = 0  # messages on task/result that were not an episode's result
         check_settings(self.services(), self.environment())
         self.progress: Progress | None = None
 
@@ -291,7 +292,7 @@ class Stack:
             create_credentials(self.credentials)
             claim_run_credentials(self.credentials)  # its services remove it if we die
         with stopping_on_signals() as stop:
-            session = zenoh.open(zenoh_config(settings))
+            session = zenoh.open(zenoh_config(settings, rate_limits=True))  # the services' hub
             try:
                 results = session.declare_subscriber(key(self.options.namespace, EpisodeResult))
                 if self.options.serial_port is not None and not self.options.json:
@@ -391,14 +392,20 @@ class Stack:
         try:
             result = decode(EpisodeResult, payload)
         except DecodeError as exc:
-            self.info(f"ignored a message on task/result: {exc}")
+            self._ignored(f"a message on task/result: {exc}")
             return None
         counted = {r.episode for r in self.results}
         if result.header.source != "controller" or result.episode in counted:
             why = "a repeat" if result.episode in counted else f"from {result.header.source!r}"
-            self.info(f"ignored an episode result ({why})")
+            self._ignored(f"an episode result ({why})")
             return None
         return result
+
+    def _ignored(self, what: str) -> None:
+        """Say the first few, then every 1000th (a flood must not flood the terminal)."""
+        self.ignored += 1
+        if self.ignored <= 3 or self.ignored % 1000 == 0:
+            self.info(f"ignored {what} ({self.ignored} so far)")
 
     def _report(self, result: EpisodeResult) -> None:
         if self.options.json:
@@ -472,32 +479,31 @@ class Progress:
     def __init__(self, session: zenoh.Session, namespace: str, out: Callable[[str], None]):
         self.out = out
         self.health: dict[str, Health] = {}
-        self.first_state = threading.Event()
-        self.stopped: dict[str, bool] = {}
+        self.first_state = False
         self.since = time.monotonic()
         self.said = self.since
-        self._lock = threading.Lock()
-        self._subscribers = [
-            session.declare_subscriber(f"{namespace}/health/*", self._on_health),
-            session.declare_subscriber(key(namespace, RobotState), self._on_state),
-        ]
+        self.stopped: dict[str, bool] = {}
+        self._healths = session.declare_subscriber(f"{namespace}/health/*", RingChannel(256))
+        self._states = session.declare_subscriber(key(namespace, RobotState), RingChannel(1))
 
-    def _on_health(self, sample: zenoh.Sample) -> None:
-        with contextlib.suppress(DecodeError):
-            health = decode(Health, sample.payload.to_bytes())
-            with self._lock:
+    def _take(self) -> None:
+        """What arrived (rings filled by Zenoh without Python: a flood costs nothing here)."""
+        while (sample := self._healths.try_recv()) is not None:
+            with contextlib.suppress(DecodeError):
+                health = decode(Health, sample.payload.to_bytes())
                 self.health[health.service] = health
-
-    def _on_state(self, sample: zenoh.Sample) -> None:
-        self.first_state.set()
+        if not self.first_state and self._states.try_recv() is not None:
+            self.first_state = True
+            self._states.undeclare()  # type: ignore[no-untyped-call]
 
     def advanced(self) -> None:
         self.since = self.said = time.monotonic()
 
     def check(self) -> None:
+        self._take()
         self._say_stops()
         now = time.monotonic()
-        if not self.first_state.is_set() and now - self.since > FIRST_STATE_S:
+        if not self.first_state and now - self.since > FIRST_STATE_S:
             raise JobFailedError(
                 f"no robot state {FIRST_STATE_S:.0f} s after the start: {self.report()}"
             )
@@ -507,8 +513,7 @@ class Progress:
 
     def _say_stops(self) -> None:
         """An arm that stops (an emergency stop, a fault) is said at once, once."""
-        with self._lock:
-            arms = [h for h in self.health.values() if h.service in ARM_SERVICES]
+        arms = [h for h in self.health.values() if h.service in ARM_SERVICES]
         for health in arms:
             stopped = health.state == "stopped"
             if stopped and not self.stopped.get(health.service):
@@ -518,8 +523,7 @@ class Progress:
 
     def report(self) -> str:
         """What each service's last Health says, on one line."""
-        with self._lock:
-            healths = sorted(self.health.values(), key=lambda h: h.service)
+        healths = sorted(self.health.values(), key=lambda h: h.service)
         if not healths:
             return "no service reported its health"
         return "; ".join(

@@ -124,7 +124,9 @@ class ModelChoice(Message):
         Annotated[float, Field(gt=0, le=0.1, allow_inf_nan=False)],
         Annotated[float, Field(gt=0, le=0.1, allow_inf_nan=False)],
     ]
-    posterior: tuple[Annotated[float, Field(ge=0, le=1, allow_inf_nan=False)], ...] | None = None
+    posterior: tuple[Annotated[float, Field(ge=0, le=1, allow_inf_nan=False)], ...] | None = Field(
+        None, max_length=64
+    )
 
 
 class StepEvent(Message):
@@ -166,7 +168,7 @@ class EpisodeResult(Message):
     success: bool = Field(description="the button pressed and held for the dwell time")
     reached: bool = Field(description="the paper's criterion ||x - x_g|| <= eps_g was met")
     outcome: Literal["success", "hold", "timeout"]
-    reason: str
+    reason: str = Field(max_length=500)
     t_total_s: Finite
     t_step_mean_s: Finite | None = Field(description="None when no step was taken")
     final_error_m: Finite
@@ -202,9 +204,13 @@ class Health(Message):
     state: Literal["ok", "holding", "degraded", "stopped"] = Field(
         description="stopped: an arm held by an emergency stop or a fault until released"
     )
-    detail: str = ""
-    rejected: dict[str, int] = Field(default_factory=dict, description="rejected messages per key")
-    rates_hz: dict[str, Finite] = Field(default_factory=dict, description="publish rate per key")
+    detail: str = Field("", max_length=2000)
+    rejected: dict[Annotated[str, Field(max_length=200)], int] = Field(
+        default_factory=dict, max_length=64, description="rejected messages per key and why"
+    )
+    rates_hz: dict[Annotated[str, Field(max_length=300)], Finite] = Field(
+        default_factory=dict, max_length=64, description="publish rate per key"
+    )
     uptime_s: Finite = Field(ge=0)
     peers: list[str] = Field(
         default_factory=list, max_length=64, description="services this one sees alive"

@@ -60,6 +60,7 @@ def test_malformed_input_is_rejected_counted_and_reported() -> None:
         bad_state["q_rad"][0] = float("nan")
         for payload in (b"\x00\xff not msgpack", msgpack.packb([1, 2]), msgpack.packb(bad_state)):
             fuzzer.session.put(key, payload)
+            time.sleep(0.01)  # slower than the key's rate limit on one link
         fuzzer.session.put(key, encode(STATE))  # one good message after the garbage
         assert _receive(victim) == STATE
         assert victim.rejected[key] == 3

@@ -174,6 +174,10 @@ class QueueBus:
     def receive(self, timeout_s: float | None) -> Message | None:
         return self.inbox.pop(0) if self.inbox else None
 
+    def receive_all(self, timeout_s: float) -> list[Message]:
+        taken, self.inbox = self.inbox, []
+        return taken
+
     def reject(self, key: str, reason: str) -> None:
         self.rejected.append(reason)
 

@@ -11,10 +11,9 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
-import queue
 import threading
 import time
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Iterator
 from types import TracebackType
 from typing import Any, Generic, TypeVar
@@ -23,6 +22,7 @@ import zenoh
 
 from schemas import (
     DecodeError,
+    EmergencyStop,
     Header,
     Health,
     JointCommand,
@@ -33,22 +33,44 @@ from schemas import (
     key,
     type_of,
 )
+from schemas.keys import MAX_MESSAGE_BYTES, downsampling
+from services.common.admission import Admission
 from services.common.config import BusSettings
 from services.common.security import ROLES, secure_config_entries
 
 M = TypeVar("M", bound=Message)
 MAX_NAME, MAX_PEERS = 64, 32
 ARM_LOOP: tuple[type[Message], ...] = (RobotState, JointCommand)
+UNLIMITED_ROLES = ("recorder", "tool")
+"""Sessions that take every message that comes (no per-link rate limit): the recorder
+keeps everything; the tools look (replay as fast as possible into a recorder works)."""
 """The loop's messages (100 Hz each way): a late one stalls the arm, so they go first."""
 log = logging.getLogger("dammrl.bus")
+MAX_DETAIL, MAX_REJECTED = 2000, 63  # Health.detail's and .rejected's bounds (schemas)
 
 
-def zenoh_config(settings: BusSettings, role: str = "tool") -> zenoh.Config:
+def _priority(message_type: type[Message] | None) -> int:
+    """0: an emergency stop; 1: the arm's loop; 2: everything else."""
+    if message_type is EmergencyStop:
+        return 0
+    return 1 if message_type in ARM_LOOP else 2
+
+
+def zenoh_config(
+    settings: BusSettings, role: str = "tool", rate_limits: bool = False
+) -> zenoh.Config:
     """The session's Zenoh configuration; with ``settings.credentials``, mutual TLS as
-    ``role`` (``settings.role`` wins) and the stack's access control."""
+    ``role`` (``settings.role`` wins) and the stack's access control; ``rate_limits``:
+    each key's rate per link (the services in the arm's loop and the hub that routes for
+    them; a recorder and the tools take everything that comes)."""
     config = zenoh.Config()
     config.insert_json5("mode", json.dumps(settings.mode))
     config.insert_json5("scouting/multicast/enabled", json.dumps(settings.multicast_scouting))
+    # Zenoh drops a larger message while reassembling it, before any subscriber sees it,
+    # and a faster one per key and link (schemas.keys.LIMITS)
+    config.insert_json5("transport/link/rx/max_message_size", json.dumps(MAX_MESSAGE_BYTES))
+    if rate_limits:
+        config.insert_json5("downsampling", json.dumps(downsampling(settings.namespace)))
     if settings.listen:
         config.insert_json5("listen/endpoints", json.dumps(settings.listen))
     elif settings.credentials is not None and settings.mode == "peer":
@@ -104,9 +126,15 @@ class Bus:
         self.session: zenoh.Session
         self.rejected: Counter[str] = Counter()
         self.dropped = 0
-        self._inbox: queue.Queue[tuple[str, bytes, int]] = queue.Queue(settings.inbox_size)
-        self.arrival_ns = 0  # when the message last returned by receive() reached this process
-        self._subscribers: list[Any] = []
+        self.admission = Admission(settings.namespace)
+        # the arm's loop and an emergency stop are taken out before anything else waiting
+        # one ring per key, filled by Zenoh's own threads without Python (no GIL taken per
+        # message: a flood cannot starve the loop); taken out stop first, then the loop's
+        self._rings: list[tuple[int, Any]] = []  # (priority, subscriber), by priority
+        self._taken: deque[tuple[Message, int]] = deque()  # decoded, not yet received
+        self._doorbell = threading.Event()  # set by Zenoh's threads when a ring got one
+        self._doorbells: list[Any] = []
+        self.arrival_ns = 0  # when the last message receive() returned was taken from its ring
         self._publishers: list[Publisher[Any]] = []
         self._started = time.monotonic()
         self._next_health = 0.0
@@ -120,7 +148,8 @@ class Bus:
 
     def __enter__(self) -> Bus:
         role = self.service if self.service in ROLES else "tool"
-        self.session = zenoh.open(zenoh_config(self.settings, role))
+        limited = role not in UNLIMITED_ROLES
+        self.session = zenoh.open(zenoh_config(self.settings, role, rate_limits=limited))
         self._roster = self.session.liveliness().declare_subscriber(
             f"{self.namespace}/alive/*", self._on_liveliness, history=True
         )
@@ -191,46 +220,90 @@ class Bus:
 
     def subscribe_key(self, key_expr: str) -> None:
         """Deliver everything published on ``key_expr`` (wildcards allowed)."""
-        self._subscribers.append(self.session.declare_subscriber(key_expr, self._enqueue))
+        ring: zenoh.handlers.RingChannel[zenoh.Sample] = zenoh.handlers.RingChannel(
+            self.settings.inbox_size
+        )
+        subscriber = self.session.declare_subscriber(key_expr, ring)
+        message_type = type_of(self.namespace, key_expr.replace("*", "x"))
+        self._rings.append((_priority(message_type), subscriber))
+        self._rings.sort(key=lambda entry: entry[0])
+        # the doorbell: a waiting loop wakes when something arrives (one flag set, no copy)
+        self._doorbells.append(self.session.declare_subscriber(key_expr, self._ring_doorbell))
 
-    def _enqueue(self, sample: zenoh.Sample) -> None:
-        try:
-            item = (str(sample.key_expr), sample.payload.to_bytes(), time.time_ns())
-            self._inbox.put_nowait(item)
-        except queue.Full:
-            self.dropped += 1  # the loop is behind; counted in Health
+    def _ring_doorbell(self, sample: zenoh.Sample) -> None:
+        self._doorbell.set()
+
+    def receive_all(self, timeout_s: float) -> list[Message]:
+        """Every message waiting (waiting up to ``timeout_s`` for a first one): an
+        emergency stop first, then the arm's loop, then the rest, each key in arrival
+        order; at most a ring's worth per key (under a flood the loop goes on)."""
+        first = self.receive(timeout_s)
+        if first is None:
+            return []
+        self._take()
+        messages = [first]
+        while self._taken:
+            messages.append(self._next())
+        return messages
 
     def receive(self, timeout_s: float | None) -> Message | None:
         """The next valid message, or None after ``timeout_s`` (0: do not wait)."""
         deadline = None if timeout_s is None else time.monotonic() + timeout_s
-        while True:
-            remaining = None if deadline is None else max(0.0, deadline - time.monotonic())
-            try:
-                key_expr, payload, self.arrival_ns = (
-                    self._inbox.get_nowait()
-                    if remaining == 0.0
-                    else self._inbox.get(timeout=remaining)
-                )
-            except queue.Empty:
+        while not self._taken:
+            self._doorbell.clear()
+            self._take()
+            if self._taken:
+                break
+            remaining = None if deadline is None else deadline - time.monotonic()
+            if remaining is not None and remaining <= 0:
                 return None
-            message = self._decode(key_expr, payload)
-            if message is not None:
-                return message
+            self._doorbell.wait(remaining)
+        return self._next()
+
+    def _next(self) -> Message:
+        message, self.arrival_ns = self._taken.popleft()
+        return message
+
+    def _take(self) -> None:
+        """Move what the rings hold into ``_taken``: admitted, decoded, from the expected
+        source; the rest counted."""
+        for _, subscriber in self._rings:
+            taken = 0
+            while (sample := subscriber.try_recv()) is not None:
+                taken += 1
+                message = self._admit(sample)
+                if message is not None:
+                    self._taken.append((message, time.time_ns()))
+            if taken >= self.settings.inbox_size:
+                self.dropped += 1  # the ring was full: older ones were overwritten
+
+    def _admit(self, sample: zenoh.Sample) -> Message | None:
+        key_expr = str(sample.key_expr)
+        if not self.admission.admit(key_expr, len(sample.payload)):
+            return None  # too large for its key: dropped before any copy, counted
+        message = self._decode(key_expr, sample.payload.to_bytes())
+        if message is None or not self._from_expected_source(message):
+            return None
+        return message
 
     def _decode(self, key_expr: str, payload: bytes) -> Message | None:
         message_type = type_of(self.namespace, key_expr)
         if message_type is None:
             return None  # not one of ours (e.g. a liveliness or foreign key)
         try:
-            message = decode(message_type, payload)
+            return decode(message_type, payload)
         except DecodeError as exc:
             self.reject(key_expr, str(exc))
             return None
-        allowed = self._sources.get(message_type)
-        if allowed is not None and message.header.source not in allowed:
-            self.reject(key_expr, f"from {message.header.source!r}, expected {sorted(allowed)}")
-            return None
-        return message
+
+    def _from_expected_source(self, message: Message) -> bool:
+        """Checked as the loop takes it (``expect`` may come after ``subscribe``)."""
+        allowed = self._sources.get(type(message))
+        if allowed is None or message.header.source in allowed:
+            return True
+        key_expr = self.key(type(message))
+        self.reject(key_expr, f"from {message.header.source!r}, expected {sorted(allowed)}")
+        return False
 
     def reject(self, key_expr: str, reason: str) -> None:
         """Count a refused input; log the first few per key, then every 100th."""
@@ -250,13 +323,14 @@ class Bus:
             count, since = p.reported
             rates[p.key_expr] = (p.count - count) / max(now - since, 1e-3)
             p.reported = (p.count, now)
-        rejected = dict(self.rejected)
+        counts = (self.rejected + self.admission.refused).most_common(MAX_REJECTED)
+        rejected = {why[:200]: n for why, n in counts}
         if self.dropped:
-            rejected["inbox overflow"] = self.dropped
+            rejected["inbox overflow (a ring full: older messages overwritten)"] = self.dropped
         self._health.publish(
             service=self.service,
             state=state,
-            detail=detail,
+            detail=detail[:MAX_DETAIL],
             rejected=rejected,
             rates_hz=rates,
             uptime_s=uptime,

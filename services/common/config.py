@@ -33,8 +33,9 @@ class BusSettings(Settings):
     """Key-expression prefix: stacks with different namespaces share a network unseen."""
     health_period_s: float = Field(1.0, ge=0.05, le=60)
     """How often the service publishes its Health [s] (0.05-60 s)."""
-    inbox_size: int = Field(4096, ge=16, le=1_000_000)
-    """Messages buffered between the Zenoh callback and the service loop."""
+    inbox_size: int = Field(256, ge=16, le=65_536)
+    """Messages kept per subscribed key until the service loop takes them (a ring: when
+    the loop is that far behind, the oldest are overwritten, and counted)."""
     credentials: Path | None = None
     """Folder from `dammrl bus init` (CA, one certificate per role): the session speaks only
     mutual TLS (endpoints tls/HOST:PORT) as its role and enforces the stack's access

@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 import os
 import signal
+import sys
 import threading
 import time
 from collections.abc import Iterator
@@ -14,6 +15,7 @@ SIGNALS = (signal.SIGINT, signal.SIGTERM)
 TIME_CRITICAL = ("sim", "controller")
 """The services that close the arm's loop (a late state or command stalls the arm)."""
 CRITICAL_NICE = -10
+CRITICAL_SWITCH_INTERVAL_S = 0.0002
 
 
 def prioritise(critical: bool) -> str:
@@ -22,6 +24,10 @@ def prioritise(critical: bool) -> str:
     the Zenoh session: on Linux a priority is per thread, and threads inherit it when they
     start. Returns what it did, for the log."""
     wanted = CRITICAL_NICE if critical else 0
+    if critical:
+        # the loop's thread takes the GIL back within this, however busy Zenoh's callback
+        # threads are (Python's default, 5 ms, is half a period per GIL hand-over)
+        sys.setswitchinterval(CRITICAL_SWITCH_INTERVAL_S)
     try:
         os.setpriority(os.PRIO_PROCESS, 0, wanted)
     except PermissionError:

@@ -119,9 +119,7 @@ class ControllerNode:
         self._wait_for_peers(stop)
         self._next_episode()
         while not stop.is_set():
-            message = self.bus.receive(0.02)
-            if message is not None:
-                self._dispatch_all([message, *self._queued()])
+            self._dispatch_all(self.bus.receive_all(0.02))
             self._watch()
             holding = self.reach is not None and self.reach.controller.hold_reason is not None
             self.bus.report_health("holding" if holding else "ok", self._waiting_for())
@@ -173,23 +171,19 @@ class ControllerNode:
             log.warning("no intent service alive: starting; requests repeat until one answers")
 
     # ---- messages -----------------------------------------------------------------
-    def _queued(self) -> list[Message]:
-        """Every message already waiting (none is waited for)."""
-        messages = []
-        while (message := self.bus.receive(0)) is not None:
-            messages.append(message)
-        return messages
-
     def _dispatch_all(self, messages: list[Message]) -> None:
-        """In arrival order; of several states waiting, only the newest is answered (a
-        command planned from an older state would reach the arm late and be clamped by
-        its caps): the others are observed (logged, judged), not answered."""
-        states = [i for i, m in enumerate(messages) if isinstance(m, RobotState)]
-        for i, message in enumerate(messages):
-            if isinstance(message, RobotState) and i != states[-1]:
-                self._on_state(message, answer=False)
-            else:
+        """The answers (intent, model choice) first: they carry their own due times; then
+        the states, of which only the newest is answered (a command planned from an
+        older state would reach the arm late and be clamped by its caps): the others are
+        observed (logged, judged), not answered."""
+        states = [m for m in messages if isinstance(m, RobotState)]
+        for message in messages:
+            if not isinstance(message, RobotState):
                 self._dispatch(message)
+        for state in states[:-1]:
+            self._on_state(state, answer=False)
+        if states:
+            self._on_state(states[-1])
 
     def _dispatch(self, message: Message) -> None:
         if isinstance(message, RobotState):
@@ -382,6 +376,7 @@ class ControllerNode:
         summary = episode_summary(
             metrics, self.settings.trigger, self.choice, episode.seed, episode.task
         )
+        summary["reason"] = str(summary["reason"])[:500]  # the message's bound
         self.publish[EpisodeResult].publish(episode=episode.number, **summary)
         log.info(
             "episode %d: %s (%s) in %.1f s",

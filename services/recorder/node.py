@@ -36,6 +36,9 @@ log = logging.getLogger("dammrl.recorder")
 WRITE_SLICE_S = 0.1
 """The longest the loop writes before it looks at the clock again [s]."""
 
+MAX_QUEUED_BYTES = 256 << 20
+"""The writer's backlog in payload bytes beyond which new messages are dropped (counted)."""
+
 Received = tuple[str, bytes, int, str]  # key, payload, receipt time [ns], Zenoh session id
 
 
@@ -45,6 +48,7 @@ class RecorderNode:
         self.bus = bus
         self.inbox: queue.Queue[Received] = queue.Queue(2_000_000)
         self.dropped = 0  # inbox overflow
+        self.queued_bytes = 0  # payload bytes waiting to be written (approximate)
         self.not_recorded = 0  # received while no file could be written
         self.problem = ""  # why nothing is recorded ("" while recording)
         self.retry_at = 0.0
@@ -55,12 +59,18 @@ class RecorderNode:
         self._subscriber = bus.session.declare_subscriber(f"{bus.namespace}/**", self._enqueue)
 
     def _enqueue(self, sample: zenoh.Sample) -> None:
+        key_expr = str(sample.key_expr)
+        if not self.bus.admission.admit(key_expr, len(sample.payload)):
+            return  # too large or too fast for its key: counted in Health, never queued
         source = sample.source_info  # set only by publishers that declare it
         session = "" if source is None else str(source.source_id.zid)
+        if self.queued_bytes > MAX_QUEUED_BYTES:
+            self.dropped += 1  # the writer is far behind: memory stays bounded
+            return
+        payload = sample.payload.to_bytes()
         try:
-            self.inbox.put_nowait(
-                (str(sample.key_expr), sample.payload.to_bytes(), time.time_ns(), session)
-            )
+            self.inbox.put_nowait((key_expr, payload, time.time_ns(), session))
+            self.queued_bytes += len(payload)
         except queue.Full:
             self.dropped += 1
 
@@ -89,6 +99,7 @@ class RecorderNode:
             return
 
     def _write(self, item: Received) -> None:
+        self.queued_bytes -= len(item[1])
         if self.recorder is None:
             self.not_recorded += 1
             return

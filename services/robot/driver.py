@@ -20,8 +20,9 @@ from __future__ import annotations
 import contextlib
 import math
 import struct
+import time
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from types import TracebackType
 from typing import Any, Protocol
 
@@ -39,6 +40,9 @@ PRESENT_BYTES = 10  # current (2), velocity (4), position (4): one sync read
 CURRENT_BASED_POSITION = 5
 MAX_GAIN_UNITS, MAX_CURRENT_UNITS = 16383, 1193
 ALERT = 0x80
+COMM_SUCCESS = 0  # dynamixel_sdk.COMM_SUCCESS
+FIRST_PING_S = 0.05  # a rebooted servo is first looked for this long after the REBOOT [s]
+PING_EVERY_S = 0.05  # then this often (an unanswered ping costs the SDK's timeout, ~34 ms)
 ERROR_BITS = {0x01: "input voltage", 0x04: "overheating", 0x08: "motor encoder",
               0x10: "electrical shock", 0x20: "overload"}  # fmt: skip
 
@@ -58,6 +62,8 @@ class JointState:
     tau_nm: np.ndarray
     hardware_errors: dict[int, int]  # servo id -> its error bits, where any are set
     button_travel_m: float = 0.0
+    rebooting: frozenset[int] = frozenset()
+    """Joints whose servo is rebooting (silent, no torque): their values are the last read."""
 
 
 @dataclass(frozen=True)
@@ -93,6 +99,7 @@ class Driver(Protocol):
     def write_command(self, command: ServoCommand) -> None: ...
     def torque_off(self) -> None: ...
     def rearm_watchdog(self) -> list[int]: ...
+    def reboot(self, joint: int) -> None: ...
     def disconnect(self) -> None: ...
     def __enter__(self) -> Driver: ...
     def __exit__(self, kind: type[BaseException] | None, value: BaseException | None,
@@ -129,6 +136,8 @@ class DynamixelDriver:
     _port: Any = None
     _packet: Any = None
     _written: dict[str, tuple[int, ...]] = field(default_factory=dict)
+    _booting: dict[int, float] = field(default_factory=dict)  # servo id -> next ping [s]
+    _last: JointState | None = None
 
     def __enter__(self) -> DynamixelDriver:
         try:
@@ -216,6 +225,47 @@ class DynamixelDriver:
                     stopped.append(servo_id)
         return stopped
 
+    # ---- a servo's reboot ---------------------------------------------------------------
+    def reboot(self, joint: int) -> None:
+        """Clear the latched error of ``joint``'s servo (REBOOT: the only way, and its
+        torque is off until it is up again). Returns at once: the servo is left out of
+        every read and write while it boots, and put back holding where its shaft is,
+        with the gains last written, as soon as it answers a ping."""
+        self._require_open()
+        servo_id = self.ids[joint]
+        with _bus_io(self.port):
+            self._packet.reboot(self._port, servo_id)  # no answer expected once it boots
+        self._booting[servo_id] = time.monotonic() + FIRST_PING_S
+
+    def _poll_booting(self) -> None:
+        """Ping one booting servo whose turn it is; one that answers is put back."""
+        now = time.monotonic()
+        due = [i for i, at in self._booting.items() if at <= now]
+        if not due:
+            return
+        servo_id = due[0]
+        _, result, _ = self._packet.ping(self._port, servo_id)
+        if result != COMM_SUCCESS:
+            self._booting[servo_id] = time.monotonic() + PING_EVERY_S
+            return
+        self._restore(servo_id)
+        del self._booting[servo_id]
+
+    def _restore(self, servo_id: int) -> None:
+        """A rebooted servo holding where its shaft is: its mode, the gains and current
+        limit last written, the goal at its present position, the torque on, the bus
+        watchdog armed."""
+        self._write1(servo_id, ADDRESS["operating_mode"], CURRENT_BASED_POSITION)
+        index = self.ids.index(servo_id)
+        for name, size in (("gains", 6), ("goal_current", 2)):
+            row = self._written.get(name, ())[index * size : (index + 1) * size]
+            if row:
+                self._write_bytes(servo_id, ADDRESS[name], bytes(row))
+        present = self._read4(servo_id, ADDRESS["present"] + 6)
+        self._write_bytes(servo_id, ADDRESS["goal_position"], struct.pack("<i", present))
+        self._write1(servo_id, ADDRESS["torque_enable"], 1)
+        self._write1(servo_id, ADDRESS["watchdog"], self._watchdog_ticks)
+
     def _start(self, torque: bool) -> None:
         """Torque off, current-based position mode, then (``torque``) on, holding where
         the arm is with zero gains."""
@@ -242,7 +292,8 @@ class DynamixelDriver:
     def _read_state(self) -> JointState:
         import dynamixel_sdk as sdk
 
-        devices = list(self.ids)
+        self._poll_booting()
+        devices = [i for i in self.ids if i not in self._booting]
         if self.calibration.button_id is not None:
             devices.append(self.calibration.button_id)
         # the SDK's GroupSyncRead drops each status's error byte: its two steps, by hand
@@ -259,16 +310,31 @@ class DynamixelDriver:
             rows[servo_id] = struct.unpack("<hii", bytes(data))
             if error & ALERT and servo_id in self.ids:
                 alerts.append(servo_id)
-        current, velocity, position = (np.array([rows[i][k] for i in self.ids]) for k in range(3))
         button_m = 0.0
         if self.calibration.button_id is not None:
             button_m = rows[self.calibration.button_id][2] * 1e-6  # travel [um]
+        state = self._joint_state(rows, button_m)
+        errors = {i: self._read1(i, ADDRESS["hardware_error"]) for i in alerts}
+        self._last = replace(state, hardware_errors=errors)
+        return self._last
+
+    def _joint_state(self, rows: dict[int, tuple[int, int, int]], button_m: float) -> JointState:
+        """The read rows in joint units; a rebooting servo's joint keeps its last values
+        (and no speed, no torque)."""
+        missing = [j for j, i in enumerate(self.ids) if i not in rows]
+        ticks = [rows[i][2] if i in rows else 0 for i in self.ids]
+        q = self.calibration.to_rad(ticks)
+        velocity = np.array([rows[i][1] if i in rows else 0 for i in self.ids])
+        current = np.array([rows[i][0] if i in rows else 0 for i in self.ids])
+        if missing and self._last is not None:
+            q[missing] = self._last.q_rad[missing]
         return JointState(
-            self.calibration.to_rad(list(position)),
+            q,
             self.calibration.joint_velocity(velocity * RPM_UNIT * 2 * math.pi / 60),
             self.calibration.joint_torque(current * CURRENT_UNIT_A),
-            {i: self._read1(i, ADDRESS["hardware_error"]) for i in alerts},
+            {},
             button_m,
+            frozenset(missing),
         )
 
     # ---- writing -----------------------------------------------------------------------
@@ -312,7 +378,8 @@ class DynamixelDriver:
 
         writer = sdk.GroupSyncWrite(self._port, self._packet, ADDRESS[field_name], len(rows[0]))
         for servo_id, row in zip(self.ids, rows, strict=True):
-            writer.addParam(servo_id, row)
+            if servo_id not in self._booting:  # it would not hear it: it is put back later
+                writer.addParam(servo_id, row)
         result = writer.txPacket()
         if result != sdk.COMM_SUCCESS:
             raise DriverError(f"sync write failed: {self._packet.getTxRxResult(result)}")
@@ -348,6 +415,23 @@ class DynamixelDriver:
         if result != sdk.COMM_SUCCESS:
             raise DriverError(f"servo {servo_id}: reading address {address} failed")
         return int(value)
+
+    def _read4(self, servo_id: int, address: int) -> int:
+        import dynamixel_sdk as sdk
+
+        value, result, _ = self._packet.read4ByteTxRx(self._port, servo_id, address)
+        if result != sdk.COMM_SUCCESS:
+            raise DriverError(f"servo {servo_id}: reading address {address} failed")
+        return int(struct.unpack("<i", struct.pack("<I", value))[0])
+
+    def _write_bytes(self, servo_id: int, address: int, data: bytes) -> None:
+        import dynamixel_sdk as sdk
+
+        result, error = self._packet.writeTxRx(self._port, servo_id, address, len(data),
+                                               list(data))  # fmt: skip
+        if result != sdk.COMM_SUCCESS or error & 0x7F:
+            raise DriverError(f"servo {servo_id}: writing {len(data)} bytes at {address} failed "
+                              f"({self._packet.getTxRxResult(result)}, error {error})")  # fmt: skip
 
     def _write1(self, servo_id: int, address: int, value: int) -> None:
         import dynamixel_sdk as sdk

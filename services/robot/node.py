@@ -210,15 +210,13 @@ class RobotNode:
 
     # ---- the bus: messages in ----------------------------------------------------------
     def _take_messages(self) -> None:
-        message = self.bus.receive(0)
-        while message is not None:
+        for message in self.bus.receive_all(0):
             if isinstance(message, EmergencyStop):
                 self._take_stop(message)
             elif isinstance(message, TaskGoal):
                 self._take_goal(message)
             elif isinstance(message, JointCommand):
                 self._take_command(message)
-            message = self.bus.receive(0)
 
     def _take_stop(self, message: EmergencyStop) -> None:
         if not self.stop_latch.take(message):

@@ -1,6 +1,12 @@
 """An emulated chain of Dynamixel X-series servos behind Protocol 2.0: control tables,
-PING / READ / WRITE / SYNC READ / SYNC WRITE, hardware error bits, the bus watchdog and
-faults on demand (CRC errors, a missing servo, no answer, an overload, unplugged).
+PING / READ / WRITE / SYNC READ / SYNC WRITE / REBOOT, hardware error bits, the bus
+watchdog and faults on demand (CRC errors, a missing servo, no answer, an overload,
+unplugged).
+
+REBOOT is the only way to clear a latched hardware error (the e-manual): the servo
+answers, then boots for ``ServoChain.boot_s`` (silent, torque off: its joint is free),
+and comes back with its RAM at the factory values (torque off, default gains, no
+watchdog, no error, the goal where the shaft is); the operating mode (EEPROM) stays.
 
 Each servo's motion comes from a ``Physics`` callback (the MuJoCo arm in the robot
 service's emulation; a first-order servo by default), so the driver under test sees a
@@ -24,6 +30,7 @@ INST_READ: int = sdk.INST_READ
 INST_WRITE: int = sdk.INST_WRITE
 INST_SYNC_READ: int = sdk.INST_SYNC_READ
 INST_SYNC_WRITE: int = sdk.INST_SYNC_WRITE
+INST_REBOOT: int = sdk.INST_REBOOT
 ERRNUM_INSTRUCTION: int = sdk.ERRNUM_INSTRUCTION
 ERRNUM_DATA_RANGE: int = sdk.ERRNUM_DATA_RANGE
 ERRNUM_DATA_LENGTH: int = sdk.ERRNUM_DATA_LENGTH
@@ -97,12 +104,23 @@ class EmulatedServo:
     table: bytearray = field(default_factory=lambda: bytearray(TABLE_SIZE))
     watchdog_deadline_s: float | None = None
     angle_rad: float = 0.0  # the shaft's true angle; the encoder reports it in ticks
+    booting_until_s: float | None = None  # rebooting: silent and powerless until then
 
     def __post_init__(self) -> None:
+        self.factory_ram()
+
+    def factory_ram(self) -> None:
+        """The control table as the servo boots (its EEPROM's operating mode kept)."""
+        mode = self.table[OPERATING_MODE] or CURRENT_BASED_POSITION
+        present = self.read(PRESENT_CURRENT, 10)  # current, velocity, position
+        self.table[:] = bytearray(TABLE_SIZE)
+        self.table[PRESENT_CURRENT : PRESENT_CURRENT + 10] = present
+        self.table[GOAL_POSITION : GOAL_POSITION + 4] = present[6:10]  # where the shaft is
+        self.watchdog_deadline_s = None
         struct.pack_into("<H", self.table, MODEL_NUMBER, self.model)
         self.table[FIRMWARE_VERSION] = 46
         self.table[SERVO_ID] = self.servo_id
-        self.table[OPERATING_MODE] = CURRENT_BASED_POSITION
+        self.table[OPERATING_MODE] = mode
         struct.pack_into("<H", self.table, PRESENT_INPUT_VOLTAGE, 120)  # 12.0 V
         struct.pack_into("<H", self.table, POSITION_P_GAIN, 800)  # factory-like defaults
         struct.pack_into("<H", self.table, POSITION_D_GAIN, 0)
@@ -220,17 +238,29 @@ class Faults:
     unplugged: bool = False  # the bus is gone: nothing in, nothing out
 
 
+BOOT_S = 0.3
+"""How long an emulated servo takes to boot after a REBOOT [s]. An assumption: a real
+servo's boot time was not measured here (``dammrl robot`` on the lab's arm can); the
+fall of a joint whose servo reboots grows with it."""
+
+
 class ServoChain:
     """The servos on one bus: instruction packets in, status packets out."""
 
     def __init__(
-        self, ids: list[int], physics: Physics | None = None, button_id: int | None = None
+        self,
+        ids: list[int],
+        physics: Physics | None = None,
+        button_id: int | None = None,
+        boot_s: float = BOOT_S,
     ) -> None:
-        """``button_id``: the goal button's sensor board answers on the bus at this id."""
+        """``button_id``: the goal button's sensor board answers on the bus at this id;
+        ``boot_s``: a servo's boot time after a REBOOT [s]."""
         self.servos = {i: EmulatedServo(i) for i in ids}
         if button_id is not None:
             self.servos[button_id] = EmulatedServo(button_id, model=BUTTON_MODEL)
         self.button_id = button_id
+        self.boot_s = boot_s
         self.physics: Physics = physics or FirstOrder()
         self.faults = Faults()
         self.writes: list[tuple[float, int]] = []  # (time, address) of sync writes, if kept
@@ -248,6 +278,9 @@ class ServoChain:
         dt = now_s - self._last_step_s
         self.now_s = now_s
         for servo in self.motors.values():
+            if servo.booting_until_s is not None and now_s >= servo.booting_until_s:
+                servo.booting_until_s = None
+                servo.factory_ram()  # up again: torque off, factory RAM
             deadline = servo.watchdog_deadline_s
             if servo.torque_on and deadline is not None and now_s >= deadline:
                 servo.table[BUS_WATCHDOG] = 0xFF  # stops by itself: goal := present
@@ -297,10 +330,13 @@ class ServoChain:
             return [self._read(s, packet.params) for s in targets]
         if kind == INST_WRITE:
             return [self._write(s, packet.params) for s in targets]
+        if kind == INST_REBOOT:
+            return [self._reboot(s) for s in targets]
         return [status_packet(s.servo_id, ERRNUM_INSTRUCTION | s.status_error()) for s in targets]
 
     def _targets(self, servo_id: int) -> list[EmulatedServo]:
-        present = {i: s for i, s in self.servos.items() if i not in self.faults.missing}
+        present = {i: s for i, s in self.servos.items()
+                   if i not in self.faults.missing and s.booting_until_s is None}  # fmt: skip
         if servo_id == BROADCAST_ID:
             return [present[i] for i in sorted(present)]
         return [present[servo_id]] if servo_id in present else []
@@ -325,6 +361,13 @@ class ServoChain:
         address = params[0] | params[1] << 8
         error = servo.write(address, params[2:], self.now_s)
         return status_packet(servo.servo_id, error | servo.status_error())
+
+    def _reboot(self, servo: EmulatedServo) -> bytes:
+        """Answer, then boot: the torque goes off at once (the joint is free) and the
+        servo is silent for ``boot_s``."""
+        servo.table[TORQUE_ENABLE] = 0
+        servo.booting_until_s = self.now_s + self.boot_s
+        return status_packet(servo.servo_id, 0)
 
     def _sync_read(self, params: bytes) -> list[bytes]:
         if len(params) < 5:

@@ -140,15 +140,13 @@ class SimNode:
 
     def _take_messages(self, timeout_s: float) -> None:
         """Dispatch what has arrived (waiting up to ``timeout_s`` for the first)."""
-        message = self.bus.receive(timeout_s)
-        while message is not None:
+        for message in self.bus.receive_all(timeout_s):
             if isinstance(message, EmergencyStop):
                 self._take_stop(message)
             elif isinstance(message, TaskGoal):
                 self._reset(message)
             elif isinstance(message, JointCommand) and message.episode == self.episode:
                 self._take_command(message)
-            message = self.bus.receive(0)
 
     def _take_stop(self, message: EmergencyStop) -> None:
         """Stop: hold where the arm is with the hold gains (low: a person can move it) and

@@ -1,0 +1,88 @@
+"""The limits of every subscription: per-key size in the callback, per-link rate in Zenoh."""
+
+from __future__ import annotations
+
+import time
+
+import zenoh
+
+from schemas import EmergencyStop, Health, JointCommand, RobotState, encode, key
+from schemas.keys import LIMITS, TOPICS, limits_of
+from services.common.admission import MAX_KEYS, Admission
+from services.common.bus import _priority, zenoh_config
+from services.common.config import BusSettings
+from tests.busutil import free_port
+from tests.test_schemas import EXAMPLES
+
+INTENT = "dammrl/intent"
+
+
+def test_every_topic_of_the_contract_has_limits() -> None:
+    assert set(LIMITS) == set(TOPICS)
+    assert limits_of("dammrl", "dammrl/health/sim") is LIMITS["health/*"]
+    assert limits_of("lab2", "lab2/intent") is LIMITS["intent"]
+
+
+def test_a_payload_larger_than_its_key_allows_is_refused_and_counted() -> None:
+    gate = Admission("dammrl")
+    limit = LIMITS["intent"].max_bytes
+    assert gate.admit(INTENT, limit)
+    assert not gate.admit(INTENT, limit + 1)
+    assert not gate.admit(INTENT, 10_000_000)
+    assert gate.refused == {f"{INTENT}: larger than {limit} bytes": 2}
+
+
+def test_random_keys_cannot_grow_the_gate() -> None:
+    gate = Admission("dammrl")
+    for n in range(10 * MAX_KEYS):
+        gate.admit(f"dammrl/junk/{n}", 10**6)
+    assert len(gate.refused) <= MAX_KEYS + 1
+
+
+def test_a_stop_and_the_arms_loop_are_taken_out_before_anything_else() -> None:
+    assert _priority(EmergencyStop) < _priority(RobotState) == _priority(JointCommand)
+    assert _priority(RobotState) < _priority(None)
+
+
+def test_the_stacks_messages_stay_far_below_their_keys_size_limits() -> None:
+    for example in EXAMPLES:
+        topic = key("dammrl", type(example), "sim")
+        assert len(encode(example)) <= limits_of("dammrl", topic).max_bytes / 4
+    largest = next(e for e in EXAMPLES if isinstance(e, Health)).model_copy(
+        update={"detail": "x" * 2000, "rejected": {f"{n:0200d}": n for n in range(64)}}
+    )
+    assert len(encode(largest)) <= LIMITS["health/*"].max_bytes
+
+
+def test_zenoh_cuts_a_flooding_peer_to_the_keys_rate_on_its_own_link() -> None:
+    """One peer floods intent as fast as it can; the subscriber's session (configured as
+    every session of the stack is) sees at most the key's rate from that link, and a
+    second peer's messages on the same key all get through."""
+    port = free_port()
+    listen = BusSettings(listen=[f"tcp/127.0.0.1:{port}"], mode="router")
+    connect = BusSettings(connect=[f"tcp/127.0.0.1:{port}"])
+    got: list[bytes] = []
+    with zenoh.open(zenoh_config(listen, rate_limits=True)) as hub:
+        hub.declare_subscriber(INTENT, lambda s: got.append(s.payload.to_bytes()))
+        with (
+            zenoh.open(zenoh_config(connect)) as flooder,
+            zenoh.open(zenoh_config(connect)) as peer,
+        ):
+            time.sleep(0.5)
+            flood, start, sent, real_sent = (
+                flooder.declare_publisher(INTENT),
+                time.monotonic(),
+                0,
+                0,
+            )
+            while time.monotonic() - start < 1.0:
+                flood.put(b"junk")
+                sent += 1
+                if time.monotonic() - start > real_sent / 50:  # 50 Hz: a genuine stream
+                    peer.put(INTENT, b"real")
+                    real_sent += 1
+            time.sleep(0.3)
+    real, junk = got.count(b"real"), got.count(b"junk")
+    assert sent > 5 * LIMITS["intent"].max_rate_hz  # it was a flood
+    assert junk <= 1.2 * LIMITS["intent"].max_rate_hz  # cut to the key's rate
+    assert real == real_sent  # the other peer's messages were not crowded out
