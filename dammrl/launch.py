@@ -45,7 +45,7 @@ from schemas import (
     decode,
     key,
 )
-from services.common.bus import zenoh_config
+from services.common.bus import SESSION_CLOSE_WAIT_S, close_within, zenoh_config
 from services.common.config import BusSettings
 from services.common.runtime import SignalStop, stopping_on_signals
 from services.common.security import (
@@ -303,7 +303,7 @@ class Stack:
                 return self._watch(results, stop)
             finally:
                 self._stop_children()
-                session.close()  # type: ignore[no-untyped-call]
+                close_within(session, SESSION_CLOSE_WAIT_S)  # a vanished peer can hold it
                 if self.own_credentials and self.credentials is not None:
                     shutil.rmtree(self.credentials, ignore_errors=True)
 

@@ -349,8 +349,8 @@ def test_every_fault_ends_in_a_hold_or_a_stop_without_a_jump(
     others = [0, 1, 2, 3, 4] if fault.startswith("overload") else None  # servo 6 is cut
     gaps = np.array(rig.gaps[before:])[:, others if others else slice(None)]
     assert gaps.max() < steady + 0.01, (gaps.max(), steady)  # held where it was: no jump
-    if others:
-        assert rig.fastest(before, others) < 0.05
+    if others:  # they hold; the wrist's fall and its catch after the reboot shake them
+        assert rig.fastest(before, others) < 0.3
     else:  # the watchdog's stop holds without gravity compensation: a slow settle
         assert rig.fastest(before) < 0.3
     if recovery is not None:  # the bus comes back: the arm holds where it is
@@ -358,3 +358,35 @@ def test_every_fault_ends_in_a_hold_or_a_stop_without_a_jump(
         rig.run(2.0)
         assert rig.last_health[0] == "holding", rig.bus.health[-3:]
         assert rig.fastest(len(rig.speeds) - 50) < 0.05
+
+
+def _true_q(rig: Rig) -> np.ndarray:
+    with rig.arm.bus.lock:
+        return np.array(rig.arm.physics.state.q)
+
+
+def test_an_overloaded_servo_is_rebooted_and_holds_where_its_joint_is(rig: Rig) -> None:
+    """Servo 6 (wrist pitch, loaded by the hand's weight) cuts its torque mid-motion: the
+    arm stops, the servo is rebooted at once and, back after its boot, holds the joint
+    where it is then (not pulled back up); the other joints hold meanwhile. A second
+    overload beyond max_reboots leaves it off, said in Health."""
+    rig.arm.chain.boot_s = 0.1
+    rig.node.recovery.max_reboots = 1
+    _started(rig)
+    rig.run(0.3, lambda r: _answer(r, np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.2])))  # moving
+    q0 = _true_q(rig)
+    inject(rig.arm, "overload 6")
+    rig.run(1.5)
+    state, detail = rig.last_health
+    assert state == "stopped" and "servo 6 back after a reboot" in detail, detail
+    q1 = _true_q(rig)
+    fall = abs(q1[5] - q0[5])
+    print(f"wrist pitch fell {fall:.3f} rad during a 0.1 s reboot")
+    assert fall < 0.6, fall  # measured 0.05-0.2 rad at a 0.1 s boot (without: to the limit)
+    assert np.abs(q1[:5] - q0[:5]).max() < 0.02  # the others held
+    rig.run(1.0)
+    assert np.abs(_true_q(rig) - q1).max() < 0.01  # back: held there, no jump
+    assert rig.fastest(len(rig.speeds) - 50) < 0.05
+    inject(rig.arm, "overload 6")
+    rig.run(0.5)
+    assert "left off after 1 reboots: support the arm" in rig.last_health[1]

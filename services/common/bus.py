@@ -170,7 +170,7 @@ class Bus:
         exc: BaseException | None,
         tb: TracebackType | None,
     ) -> None:
-        _close_within(self.session, SESSION_CLOSE_WAIT_S)
+        close_within(self.session, SESSION_CLOSE_WAIT_S)
 
     def _on_liveliness(self, sample: zenoh.Sample) -> None:
         """Remember who went away (and forget it when it is back): a dead service shows
@@ -351,14 +351,14 @@ def tool_session(settings: BusSettings) -> Iterator[zenoh.Session]:
     try:
         yield session
     finally:
-        _close_within(session, TOOL_CLOSE_WAIT_S)
+        close_within(session, TOOL_CLOSE_WAIT_S)
 
 
 SESSION_CLOSE_WAIT_S = 2.0
 """How long a service waits for its session to close before it goes on to exit."""
 
 
-def _close_within(session: zenoh.Session, wait_s: float) -> None:
+def close_within(session: zenoh.Session, wait_s: float) -> None:
     """Close ``session``, waiting at most ``wait_s``: a peer that vanished (a launcher
     killed with -9) can hold a close for many seconds, and the process is ending."""
     closer = threading.Thread(target=_close_quietly, args=(session,), daemon=True)

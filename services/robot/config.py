@@ -76,6 +76,9 @@ class ArmSettings(Settings):
     homing_timeout_s: float = Field(5.0, gt=0, le=60)
     """Not at rest at the start posture this long after the move's end (blocked by the
     table, or held by the person): the episode is refused and the arm holds where it is."""
+    max_reboots: int = Field(2, ge=0, le=10)
+    """A servo whose overload cut its torque is rebooted and put back holding where its
+    joint is, at most this many times per run; then it stays off (support the arm)."""
     max_bus_errors: int = Field(3, ge=1, le=100)
     """Consecutive failed bus cycles before a fault (the servos hold their last goal in
     between) [-]."""

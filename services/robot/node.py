@@ -53,6 +53,7 @@ from services.robot.driver import (
     describe_errors,
     make_driver,
 )
+from services.robot.recovery import ServoRecovery
 
 log = logging.getLogger("dammrl.robot")
 BUTTON_PRESS_TRAVEL_M = 0.003  # as the sim's button
@@ -129,6 +130,7 @@ class RobotNode:
         self.freshness = CommandFreshness(round(settings.command_max_age_s * settings.loop_rate_hz))
         self.stop_latch = StopLatch()
         self.fault: str | None = None  # the arm's own stop (error bits, limits), latched
+        self.recovery = ServoRecovery(settings.max_reboots)
         self.reported_stopped = False
         self.bus_fault: str | None = None  # the bus is gone: reconnecting
         self.connected = False
@@ -289,22 +291,49 @@ class RobotNode:
 
     # ---- deciding the law --------------------------------------------------------------
     def _check(self, joint: JointState) -> None:
-        """Latch a fault on an error bit, a joint beyond its limits or its speed."""
-        if self.fault is not None:
-            return
-        reason = None
+        """Latch a fault on an error bit, a joint beyond its limits or its speed; reboot a
+        servo that cut its torque, and hold its joint where it is once it is back."""
+        for j in self.recovery.rebooting - joint.rebooting:  # read this cycle: it is back
+            self._servo_back(j, joint)
         if joint.hardware_errors:
             reason = "; ".join(f"servo {i}: {describe_errors(bits)}"
                                for i, bits in joint.hardware_errors.items())  # fmt: skip
-        else:
-            reason = limit_violation(
+            self._latch(reason, joint.q_rad)
+            for servo_id, bits in joint.hardware_errors.items():
+                self._recover(servo_id, bits)
+        elif self.fault is None:
+            beyond = limit_violation(
                 self.limits, joint.q_rad, joint.dq_rad_s, self.settings.limit_tolerance_rad,
                 self.settings.overspeed_stop_fraction / self.settings.speed_fraction,
             )  # fmt: skip
-        if reason is not None:
+            if beyond is not None:
+                self._latch(beyond, joint.q_rad)
+
+    def _latch(self, reason: str, q: np.ndarray) -> None:
+        if self.fault is None:
             self.fault = reason
             log.error("arm fault: %s: stopping", reason)
-            self._stop(joint.q_rad)
+            self._stop(q)
+
+    def _recover(self, servo_id: int, bits: int) -> None:
+        """Reboot a servo whose overload cut its torque (the others hold meanwhile)."""
+        if servo_id not in self.calibration.ids or self.settings.stop_action != "hold":
+            return
+        joint = self.calibration.ids.index(servo_id)
+        if self.recovery.fault(joint, servo_id, bits):
+            log.error("%s", self.recovery.notes[joint])
+            self.driver.reboot(joint)
+        elif joint in self.recovery.off:
+            log.error("%s", self.recovery.notes[joint])
+
+    def _servo_back(self, j: int, joint: JointState) -> None:
+        """A rebooted servo holds where its joint is now: the stop's law there too."""
+        self.recovery.back(j, self.calibration.ids[j], float(joint.q_rad[j]))
+        log.warning("%s", self.recovery.notes[j])
+        if self.held is not None:
+            q_ref = self.held.q_ref.copy()
+            q_ref[j] = joint.q_rad[j]
+            self.held = self._hold_law(q_ref, self.held.kp, self.held.kd)
 
     def _stop(self, q: np.ndarray | None = None) -> None:
         """Hold where the arm is now, with the stop gains; or torque off."""
@@ -506,7 +535,7 @@ class RobotNode:
         """Health every period of the bus's, and at once when the arm stops or resumes."""
         reason = self.stop_latch.reason or self.fault
         if reason is not None:
-            state, detail = "stopped", reason
+            state, detail = "stopped", "; ".join(filter(None, (reason, self.recovery.detail())))
         elif self.bus_fault is not None:
             state, detail = "degraded", self.bus_fault
         else:
