@@ -328,7 +328,7 @@ def test_a_full_disk_degrades_the_recorder_which_resumes_when_space_comes_back(
     recorder = _recorder(port, small_disk, log, **fast)
     try:
         wait_for(lambda: bool(_recorder_health(observer)), 30, "the recorder")
-        noise = (observer.session, 200.0, stop, lambda seq: os.urandom(8192))  # incompressible
+        noise = (observer.session, 200.0, stop, lambda seq: os.urandom(4000))  # incompressible
         threading.Thread(target=_publish, args=noise, daemon=True).start()  # full in ~0.2 s
         wait_for(lambda: _recorder_health(observer)[-1].state == "degraded", 15, "degraded")
         time.sleep(1.5)  # several retries on the full disk
