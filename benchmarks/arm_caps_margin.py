@@ -14,10 +14,10 @@ import argparse
 
 import numpy as np
 
-from dammrl.core.state import JointCommand
 from dammrl.runner import ReachRunner, ReachSettings
-from services.sim.config import DomainRandomization, SimSettings
-from services.sim.core import Simulation
+from dammrl_core.sim.settings import DomainRandomization, SimSettings
+from dammrl_core.sim.simulation import Simulation
+from dammrl_core.state import JointCommand
 
 
 def main() -> None:

@@ -20,8 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
-from dammrl.core.robot import RobotDescription
 from dammrl.recording import read_recording
+from dammrl_core.robot import RobotDescription
 from schemas import EpisodeResult, Health, RobotState
 from tests.busutil import free_port
 

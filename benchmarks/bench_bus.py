@@ -29,12 +29,12 @@ from pathlib import Path
 import numpy as np
 import zenoh
 
-from dammrl.core.robot import RobotSettings
-from dammrl.core.task import TaskSettings
+from dammrl_core.robot import RobotSettings
+from dammrl_core.sim.settings import SimSettings
+from dammrl_core.task import TaskSettings
 from services.common.bus import Bus, zenoh_config
 from services.common.config import BusSettings
 from services.common.security import create_credentials
-from services.sim.config import SimSettings
 from services.sim.node import SimNode
 
 PAYLOAD_BYTES = 420  # about one msgpack RobotState

@@ -18,9 +18,9 @@ import time
 import mujoco
 import numpy as np
 
-from dammrl.core.ik import DampedLeastSquaresIK, IkpyIK
 from dammrl.runner import ReachRunner, ReachSettings
-from services.controller.config import ControllerSettings
+from dammrl_core.control.settings import ControllerSettings
+from dammrl_core.ik import DampedLeastSquaresIK, IkpyIK
 
 
 def raw_mj_step_rates(runner: ReachRunner, n_steps: int = 200_000) -> tuple[float, float]:

@@ -30,10 +30,11 @@ from pathlib import Path
 
 import numpy as np
 
-from dammrl.arm import EmulatedArm, emulated_arm, inject
+from dammrl.emulators.arm import EmulatedArm, emulated_arm, inject
+from dammrl.emulators.servo_chain import GOAL_POSITION
+from dammrl_core.arm.driver import DriveCommand
+from dammrl_core.arm.dynamixel.driver import DynamixelDriver
 from schemas import Header, Health, RobotState, TaskGoal, encode
-from services.robot.driver import DynamixelDriver, ServoCommand
-from services.robot.servo_chain import GOAL_POSITION
 from tests.busutil import Observer, endpoint, free_port, start_service, wait_for
 
 FAR_START = (0.6, 1.0, 0.0, 1.6, 0.0, 0.3)
@@ -50,7 +51,7 @@ def bus_floor(arm: EmulatedArm, seconds: float = 3.0) -> None:
     driver = DynamixelDriver(str(arm.bus.link))
     with driver:
         state = driver.read_state()
-        hold = ServoCommand(state.q_rad, np.zeros(6), np.zeros(6), np.full(6, 100.0),
+        hold = DriveCommand(state.q_rad, np.zeros(6), np.zeros(6), np.full(6, 100.0),
                             np.full(6, 5.0), np.full(6, 10.0))  # fmt: skip
         cycles = _timed(lambda: (driver.read_state(), driver.write_command(hold)), seconds)
         port, packet = driver._port, driver._packet
@@ -75,7 +76,7 @@ def loop_periods(arm: EmulatedArm, rate_hz: int, seconds: float = 10.0) -> None:
     that answers every state (so the command-to-servo latency is measured too)."""
     port = free_port()
     observer = Observer(port)
-    robot = start_service("robot", port, DAMMRL_ARM_PORT=str(arm.bus.link),
+    robot = start_service("robot", port, DAMMRL_DYNAMIXEL_PORT=str(arm.bus.link),
                           DAMMRL_ARM_LOOP_RATE_HZ=str(rate_hz))  # fmt: skip
     stop = threading.Event()
     controller = threading.Thread(target=_answer_states, args=(port, stop))
@@ -105,8 +106,8 @@ def loop_periods(arm: EmulatedArm, rate_hz: int, seconds: float = 10.0) -> None:
 
 def _answer_states(port: int, stop: threading.Event) -> None:
     """A stand-in controller: every state answered with a hold where the arm is."""
-    from dammrl.core.dynamics import ArmModel
-    from dammrl.core.robot import RobotSettings
+    from dammrl_core.dynamics import ArmModel
+    from dammrl_core.robot import RobotSettings
     from schemas import JointCommand
     from services.common.bus import Bus
     from tests.busutil import client_settings
@@ -121,12 +122,13 @@ def _answer_states(port: int, stop: threading.Event) -> None:
             if not isinstance(state, RobotState):
                 continue
             q = np.array(state.q_rad)
-            publisher.publish(
-                episode=state.episode, state_stamp_ns=state.header.stamp_ns, q_ref_rad=state.q_rad,
+            publisher.send(JointCommand(
+                header=publisher.stamp(), episode=state.episode,
+                state_stamp_ns=state.header.stamp_ns, q_ref_rad=state.q_rad,
                 dq_ref_rad_s=(0.0,) * 6, tau_ff_nm=tuple(model.inverse_dynamics(q, zeros, zeros)),
                 kp_nm_per_rad=(400.0, 400, 200, 200, 50, 50),
                 kd_nms_per_rad=(30.0, 30, 12, 12, 1.5, 1.5),
-            )  # fmt: skip
+            ))  # fmt: skip
 
 
 def _health(observer: Observer, state: str, service: str = "robot") -> list[Health]:
@@ -172,7 +174,7 @@ def faults(arm: EmulatedArm) -> None:
     for fault, recovery in FAULTS:
         port = free_port()
         observer = Observer(port)
-        robot = start_service("robot", port, DAMMRL_ARM_PORT=str(arm.bus.link))
+        robot = start_service("robot", port, DAMMRL_DYNAMIXEL_PORT=str(arm.bus.link))
         try:
             wait_for(lambda o=observer: _health(o, "holding"), 30, "the robot to hold")  # type: ignore[misc]
             time.sleep(1.5)  # the soft start is over
@@ -251,7 +253,7 @@ def stops(arm: EmulatedArm, repeats: int) -> None:
 
     port = free_port()
     observer = Observer(port)
-    robot = start_service("robot", port, DAMMRL_ARM_PORT=str(arm.bus.link))
+    robot = start_service("robot", port, DAMMRL_DYNAMIXEL_PORT=str(arm.bus.link))
     context = multiprocessing.get_context("spawn")
     load = [context.Process(target=_burn, args=(3600,), daemon=True) for _ in range(2)]
     command = [sys.executable, "-m", "dammrl", "stop", "--connect", endpoint(port)]
@@ -295,7 +297,7 @@ def watchdog(arm: EmulatedArm, repeats: int) -> None:
     for _ in range(repeats):
         port = free_port()
         observer = Observer(port)
-        robot = start_service("robot", port, DAMMRL_ARM_PORT=str(arm.bus.link))
+        robot = start_service("robot", port, DAMMRL_DYNAMIXEL_PORT=str(arm.bus.link))
         try:
             wait_for(lambda o=observer: _health(o, "holding"), 30, "hold")  # type: ignore[misc]
             time.sleep(1.2)

@@ -20,11 +20,11 @@ import gymnasium as gym
 import numpy as np
 from stable_baselines3 import DQN
 
-from dammrl.core.task import HELD_OUT_START, held_out_seeds
 from dammrl.rl.config import RewardWeights, TrainSettings
 from dammrl.rl.env import ACTIONS, OBSERVATION_SIZE, ReachEnv
 from dammrl.rl.train import evaluate, train
 from dammrl.runner import ReachRunner, ReachSettings
+from dammrl_core.task import HELD_OUT_START, held_out_seeds
 
 
 class JointActionEnv(gym.Env):  # type: ignore[misc]

@@ -26,12 +26,12 @@ from typing import Any
 
 import numpy as np
 
+from dammrl.emulators.pad import SensorEmulator
+from dammrl_core.intent.pad.protocol import BAUD_RATE
+from dammrl_core.intent.pad.serial import SerialSensor
 from schemas import DecisionRequest, Health, Intent, SensorSample, decode, type_of
 from services.common.bus import Bus
 from services.common.config import BusSettings
-from services.intent.emulator import SensorEmulator
-from services.intent.protocol import BAUD_RATE
-from services.intent.serial_sensor import SerialSensor
 
 NS = "dammrl"
 UART_FRAME_BYTES = 16  # "$P,1234,2048*HH\r\n" with a 4-digit sequence number
@@ -65,8 +65,8 @@ class Stack:
         self.bus.session.declare_subscriber(f"{NS}/**", self._on_sample)
         env = os.environ | {
             "DAMMRL_BUS_CONNECT": json.dumps([self.endpoint]),
-            "DAMMRL_INTENT_SOURCE": "serial",
-            "DAMMRL_INTENT_PORT": str(self.link),
+            "DAMMRL_INTENT_SOURCE": "pad",
+            "DAMMRL_PAD_PORT": str(self.link),
             "DAMMRL_LOG_LEVEL": "ERROR",
         }
         self.intent = subprocess.Popen([sys.executable, "-m", "services.intent"], env=env)
@@ -121,8 +121,9 @@ def latency(link: Path, presses: int) -> dict[str, list[float]]:
         request = stack.bus.publisher(DecisionRequest)
         releases = []
         for k in range(presses):
-            request.publish(episode=1, seed=1, request=k, t_s=0.0, ee_pos_m=(0.0, 0.0, 0.0),
-                            goal_m=(0.3, 0.0, 0.0), primary_axis=0, human_model=1)  # fmt: skip
+            request.send(DecisionRequest(header=request.stamp(), episode=1, seed=1, request=k,
+                                         t_s=0.0, ee_pos_m=(0.0, 0.0, 0.0), goal_m=(0.3, 0.0, 0.0),
+                                         primary_axis=0, human_model=1))  # fmt: skip
             time.sleep(0.1)
             pad.press(1.0, 0.2)
             releases.append(time.monotonic() + 0.2)  # the pad is back at rest

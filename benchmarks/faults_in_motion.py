@@ -10,7 +10,7 @@ the fingertip above the table) is the goal of a homing move that swings the join
 adapter unplugged (the last three recovered after 1 s). Per joint and fault: the worst
 excursion of that joint from where it was at the fault [rad], its fastest speed [rad/s],
 and the other joints' worst excursion, over 3 s. The overload is run with no reboot
-(``DAMMRL_ARM_MAX_REBOOTS=0``: what the service did before) and with the reboot, at two
+(``DAMMRL_ARM_MAX_RESTARTS=0``: what the service did before) and with the reboot, at two
 boot times of the emulated servo (a real one's was not measured here).
 
     PYTHONPATH=. python benchmarks/faults_in_motion.py [--boot 0.05 0.3]
@@ -25,9 +25,9 @@ from pathlib import Path
 
 import numpy as np
 
-from dammrl.arm import EmulatedArm, emulated_arm, inject
-from dammrl.core.dynamics import ArmModel
-from dammrl.core.robot import RobotSettings
+from dammrl.emulators.arm import EmulatedArm, emulated_arm, inject
+from dammrl_core.dynamics import ArmModel
+from dammrl_core.robot import RobotSettings
 from schemas import Header, Health, TaskGoal, encode
 from tests.busutil import Observer, free_port, start_service, wait_for
 
@@ -70,8 +70,8 @@ def run_fault(arm: EmulatedArm, joint: int, posture: np.ndarray, fault: str,
               reboots: int) -> tuple[float, float, float]:  # fmt: skip
     port = free_port()
     observer = Observer(port)
-    robot = start_service("robot", port, DAMMRL_ARM_PORT=str(arm.bus.link),
-                          DAMMRL_ARM_MAX_REBOOTS=str(reboots),
+    robot = start_service("robot", port, DAMMRL_DYNAMIXEL_PORT=str(arm.bus.link),
+                          DAMMRL_ARM_MAX_RESTARTS=str(reboots),
                           DAMMRL_LOG_LEVEL="ERROR")  # fmt: skip
     start = posture.copy()
     start[joint] -= SWING_RAD

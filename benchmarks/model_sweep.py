@@ -13,11 +13,11 @@ import time
 
 import numpy as np
 
-from dammrl.core.metrics import ReachMetrics
-from dammrl.core.models import HUMAN_MODELS, ROBOT_MODELS, parse_model
-from dammrl.core.task import held_out_seeds
 from dammrl.runner import ReachRunner
 from dammrl.study.stats import wilson
+from dammrl_core.metrics import ReachMetrics
+from dammrl_core.models import HUMAN_MODELS, ROBOT_MODELS, parse_model
+from dammrl_core.task import held_out_seeds
 
 
 def summarise(trigger: str, model: tuple[int, int], rows: list[ReachMetrics]) -> str:

@@ -4,7 +4,7 @@ Event-triggered M_2,1 on held-out seeds, two measurements:
 
 1. The same noise-free paths, counted as they are and with the simulator's end-effector
    noise (0.25 mm, white, at the control rate) added: the count's own sensitivity, with
-   the motion estimate (``dammrl.core.metrics.motion_estimate``) and with the deadband
+   the motion estimate (``dammrl_core.metrics.motion_estimate``) and with the deadband
    alone.
 2. Closed loop: the reaches run again with only the sensor noise switched on (masses,
    damping and friction nominal). N_osc on the measured path and on the simulator's
@@ -20,11 +20,11 @@ import argparse
 
 import numpy as np
 
-from dammrl.core.metrics import MOTION_CUTOFF_HZ, n_oscillations
-from dammrl.core.task import held_out_seeds
 from dammrl.runner import ReachResult, ReachRunner, ReachSettings
 from dammrl.study.stats import bootstrap_mean, paired_difference
-from services.sim.config import DomainRandomization, SimSettings
+from dammrl_core.metrics import MOTION_CUTOFF_HZ, n_oscillations
+from dammrl_core.sim.settings import DomainRandomization, SimSettings
+from dammrl_core.task import held_out_seeds
 
 NOISE_M = 2.5e-4
 

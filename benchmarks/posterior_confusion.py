@@ -23,12 +23,12 @@ from pathlib import Path
 
 import numpy as np
 
-from dammrl.core.human import HumanModel
-from dammrl.core.models import HUMAN_MODELS, ModelSet
-from dammrl.core.person import SimulatedPerson
-from dammrl.core.posterior import HumanModelPosterior
 from dammrl.study.stats import wilson
-from services.intent.core import SimulatedHuman
+from dammrl_core.human import HumanModel
+from dammrl_core.intent.simulated import SimulatedHuman
+from dammrl_core.models import HUMAN_MODELS, ModelSet
+from dammrl_core.person import SimulatedPerson
+from dammrl_core.posterior import HumanModelPosterior
 
 CHECKPOINTS = (5, 10, 20)  # decisions after which the MAP is compared with the truth
 GOAL = np.array([0.5, 0.0, -0.2])

@@ -19,10 +19,10 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
-from dammrl.core.models import ModelSet
-from dammrl.core.task import held_out_seeds
 from dammrl.rl.train import Rollout, greedy_rollouts
 from dammrl.study.stats import bootstrap_mean, wilson
+from dammrl_core.models import ModelSet
+from dammrl_core.task import held_out_seeds
 
 BINS_M = np.array([0.0, 0.01, 0.02, 0.04, 0.08, 0.16, 0.5])
 

@@ -13,9 +13,9 @@ import argparse
 import os
 import time
 
-from dammrl.core.task import held_out_seeds
 from dammrl.study.configs import paper_configurations
 from dammrl.study.run import Job, Record, ordered, run_local, run_ray
+from dammrl_core.task import held_out_seeds
 
 
 def main() -> None:

@@ -1,3 +1,7 @@
-"""dammrl: event-triggered human-robot co-adaptation for a 6-DoF rehabilitation arm."""
+"""dammrl's tools and compositions: the command line, the in-process runner, RL training,
+the studies, the launcher, recordings, viewers. Built on the services, the library
+(:mod:`dammrl_core`) and the contract (:mod:`schemas`)."""
 
-__version__ = "0.1.0"
+from dammrl_core import __version__
+
+__all__ = ["__version__"]

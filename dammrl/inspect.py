@@ -8,7 +8,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-from dammrl.core.errors import DammrlError
+from dammrl_core.errors import DammrlError
 from schemas import DecodeError, Health, decode, type_of
 from services.common.bus import tool_session
 from services.common.config import BusSettings

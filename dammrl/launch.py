@@ -22,17 +22,24 @@ import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import zenoh
+from pydantic_settings import BaseSettings
 from zenoh.handlers import RingChannel
 
-from dammrl.core.errors import (
+from dammrl_core.arm.settings import ArmSettings
+from dammrl_core.control.settings import ControllerSettings
+from dammrl_core.errors import (
     ConfigurationError,
     DammrlError,
     Exit,
     JobFailedError,
     UsageError,
 )
+from dammrl_core.policy.settings import PolicySettings
+from dammrl_core.settings import environment_of
+from dammrl_core.task import TaskSettings
 from schemas import (
     DecisionRequest,
     DecodeError,
@@ -53,6 +60,8 @@ from services.common.security import (
     create_credentials,
     run_credentials,
 )
+from services.intent.config import IntentSettings
+from services.recorder.config import RecorderSettings
 
 MODES = {
     "virtual": ("sim", "policy", "intent", "controller"),
@@ -82,14 +91,14 @@ class StackOptions:
     namespace: str = "dammrl"
     json: bool = False
     record: Path | None = None  # also run the recorder into this MCAP file
-    serial_port: str | None = None  # semi-virtual: the pressure sensor's serial device
-    calibration: Path | None = None  # semi-virtual: from `dammrl sensor calibrate`
+    pad_port: str | None = None  # the pressure pad's serial device (semi-virtual, or real)
+    pad_calibration: Path | None = None  # from `dammrl sensor calibrate`
     lockstep: bool = False  # every service on the robot clock (DAMMRL_BUS_LOCKSTEP); sim only
     credentials: Path | None = None  # from `dammrl bus init`: mutual TLS and the ACL
     insecure: bool = False  # plain tcp on loopback instead of this run's own credentials
-    robot_port: str | None = None  # real: the servo bus's serial device
-    robot_calibration: Path | None = None  # real: from `dammrl robot calibrate`
-    emulate_robot: bool = False  # real: serve the emulated arm at robot_port first
+    robot_port: str | None = None  # real: the arm driver's port setting
+    robot_calibration: Path | None = None  # real: the arm driver's calibration file
+    emulate_robot: bool = False  # real: serve the emulated (Dynamixel) arm at robot_port first
 
 
 def check_port(port: int) -> int:
@@ -146,12 +155,15 @@ def check_options(options: StackOptions) -> None:
             "--lockstep is for simulation only: in semi-virtual mode a person at the sensor "
             "needs real time"
         )
-    if options.mode == "semi-virtual" and not options.serial_port:
-        raise UsageError("semi-virtual mode needs --port (the pressure sensor's serial device)")
+    if options.mode == "semi-virtual" and not options.pad_port:
+        raise UsageError("semi-virtual mode needs --port (the pressure pad's serial device)")
     if options.mode == "real" and options.lockstep:
         raise UsageError("--lockstep is for simulation only: a real arm runs in real time")
-    if options.mode == "real" and not options.robot_port:
-        raise UsageError("real mode needs --robot-port (the servo bus, or --emulate-robot)")
+    if options.emulate_robot and not options.robot_port:
+        raise UsageError("--emulate-robot needs --robot-port (where the emulated bus appears)")
+    if options.emulate_robot and ArmSettings().driver != "dynamixel":
+        raise UsageError("--emulate-robot emulates a Dynamixel chain: DAMMRL_ARM_DRIVER must be "
+                         "dynamixel")  # fmt: skip
     if options.mode != "real" and (options.robot_port or options.emulate_robot):
         raise UsageError("--robot-port and --emulate-robot are for --mode real")
     if options.record is not None and options.record.suffix != ".mcap":
@@ -159,16 +171,12 @@ def check_options(options: StackOptions) -> None:
     if options.record is not None and options.record.exists():
         raise UsageError(f"--record {options.record} exists: choose another name (nothing "
                          "is overwritten)")  # fmt: skip
-    if options.robot_calibration is not None:
-        from services.robot import calibration
+    if options.pad_calibration is not None:  # a clear error now, not a dead service
+        from dammrl_core.intent.pad.calibration import load_calibration
+        from dammrl_core.intent.pad.decoder import PressDecoder
+        from dammrl_core.intent.pad.source import PadSettings
 
-        calibration.load_calibration(options.robot_calibration)
-    if options.calibration is not None:  # a clear error now, not a dead service
-        from services.intent.calibration import load_calibration
-        from services.intent.config import IntentSettings
-        from services.intent.decoder import PressDecoder
-
-        PressDecoder(load_calibration(options.calibration), IntentSettings().decoder)
+        PressDecoder(load_calibration(options.pad_calibration), PadSettings().decoder)
 
 
 def cut_recordings(record: Path) -> list[Path]:
@@ -181,12 +189,21 @@ def cut_recordings(record: Path) -> list[Path]:
 
 def check_settings(services: tuple[str, ...], env: dict[str, str]) -> None:
     """Build every settings class the services will read, from the environment they will
-    get: a bad value is one line naming its variable now, before anything starts."""
+    get (the intent source's and the arm driver's own included): a bad value is one line
+    naming its variable now, before anything starts."""
+    from dammrl_core.arm.driver import driver_plugin
+    from dammrl_core.intent.source import source_plugin
+    from services.intent.config import IntentSettings
+
     with _environment(env):
         BusSettings()
         for name in services:
             for settings in importlib.import_module(f"services.{name}.config").SETTINGS:
                 settings()
+        if "intent" in services:
+            source_plugin(IntentSettings().source).settings()
+        if "robot" in services:
+            driver_plugin(ArmSettings().driver).settings()
 
 
 @contextlib.contextmanager
@@ -233,48 +250,62 @@ class Stack:
         check_settings(self.services(), self.environment())
         self.progress: Progress | None = None
 
-    def _secured(self) -> dict[str, str]:
-        """The children's credentials (each proves its own role with them)."""
-        if self.credentials is None:
-            return {}
-        return {"DAMMRL_BUS_CREDENTIALS": str(self.credentials.resolve())}
-
     def environment(self) -> dict[str, str]:
-        o = self.options
+        """The children's environment: this one, and the variables of the settings the run
+        gives them (built typed, checked as they are built)."""
         env = dict(os.environ)
-        env.update(
-            DAMMRL_BUS_CONNECT=json.dumps([self.endpoint]),
-            **self._secured(),
-            DAMMRL_BUS_NAMESPACE=o.namespace,
-            DAMMRL_BUS_LAUNCHER_PID=str(os.getpid()),
-            DAMMRL_TASK_SEED=str(o.seed),
-            DAMMRL_CONTROLLER_TRIGGER=o.trigger,
-        )
-        if o.model is not None:
-            i, j = (str(v) for v in o.model)
-            env.update(
-                DAMMRL_POLICY_KIND="fixed",
-                DAMMRL_POLICY_HUMAN_MODEL=i,
-                DAMMRL_POLICY_ROBOT_MODEL=j,
-                DAMMRL_CONTROLLER_HUMAN_MODEL=i,
-                DAMMRL_CONTROLLER_ROBOT_MODEL=j,
-            )
-        if o.episodes is not None:
-            env["DAMMRL_TASK_EPISODES"] = str(o.episodes)
+        for settings in self.service_settings():
+            env.update(environment_of(settings))
         env.setdefault("DAMMRL_LOG_LEVEL", "WARNING")  # progress comes from the launcher
-        if o.serial_port is not None:  # semi-virtual, or real with the person at the sensor
-            env.update(DAMMRL_INTENT_SOURCE="serial", DAMMRL_INTENT_PORT=str(o.serial_port))
-            if o.calibration is not None:
-                env["DAMMRL_INTENT_CALIBRATION_FILE"] = str(o.calibration.resolve())
-        if o.robot_port is not None:
-            env["DAMMRL_ARM_PORT"] = o.robot_port
-        if o.robot_calibration is not None:
-            env["DAMMRL_ARM_CALIBRATION_FILE"] = str(o.robot_calibration.resolve())
-        if o.record is not None:
-            env.update(DAMMRL_RECORDER_OUT=str(o.record), DAMMRL_RECORDER_MODE=o.mode)
-        if o.lockstep:
-            env["DAMMRL_BUS_LOCKSTEP"] = "true"
         return env
+
+    def service_settings(self) -> list[BaseSettings]:
+        """What this run sets for its services, from the command line."""
+        o = self.options
+        credentials = None if self.credentials is None else self.credentials.resolve()
+        # lockstep only when asked: otherwise the environment's
+        lockstep: dict[str, Any] = {"lockstep": True} if o.lockstep else {}
+        bus = BusSettings(connect=[self.endpoint], namespace=o.namespace, launcher_pid=os.getpid(),
+                          credentials=credentials, **lockstep)  # fmt: skip
+        task = TaskSettings(seed=o.seed, episodes=o.episodes)
+        settings: list[BaseSettings] = [bus, task]
+        chosen = {} if o.model is None else {"human_model": o.model[0], "robot_model": o.model[1]}
+        settings.append(ControllerSettings(trigger=o.trigger, **chosen))  # type: ignore[arg-type]
+        if o.model is not None:
+            settings.append(PolicySettings(kind="fixed", **chosen))  # type: ignore[arg-type]
+        settings += self._intent_settings() + self._arm_settings()
+        if o.record is not None:
+            settings.append(RecorderSettings(out=o.record, mode=o.mode))
+        return settings
+
+    def _intent_settings(self) -> list[BaseSettings]:
+        """The pad, when its port is given (semi-virtual, or real with a person at it)."""
+        from dammrl_core.intent.pad.source import PadSettings
+
+        o = self.options
+        if o.pad_port is None:
+            return []
+        pad = {"port": o.pad_port} | (
+            {} if o.pad_calibration is None else {"calibration_file": o.pad_calibration.resolve()}
+        )
+        return [IntentSettings(source="pad"), PadSettings(**pad)]  # type: ignore[arg-type]
+
+    def _arm_settings(self) -> list[BaseSettings]:
+        """The arm driver's port and calibration, when given (real mode)."""
+        from dammrl_core.arm.driver import driver_plugin
+
+        o = self.options
+        if o.mode != "real":
+            return []
+        plugin = driver_plugin(ArmSettings().driver)
+        given = {"port": o.robot_port}
+        if o.robot_calibration is not None:
+            given["calibration_file"] = str(o.robot_calibration.resolve())
+        missing = [k for k, v in given.items() if v and k not in plugin.settings.model_fields]
+        if missing:
+            raise UsageError(f"the arm driver {plugin.name!r} has no {', '.join(missing)} "
+                             "setting: give its settings in its environment")  # fmt: skip
+        return [plugin.settings(**{k: v for k, v in given.items() if v})]
 
     def run(self) -> int:
         """Run until done; the exit code of ``dammrl up``."""
@@ -295,7 +326,7 @@ class Stack:
             session = zenoh.open(zenoh_config(settings, rate_limits=True))  # the services' hub
             try:
                 results = session.declare_subscriber(key(self.options.namespace, EpisodeResult))
-                if self.options.serial_port is not None and not self.options.json:
+                if self.options.pad_port is not None and not self.options.json:
                     self.prompts = PatientPrompts(session, self.options.namespace, self.info)
                 self._start_children(session, stop)
                 self._wait_alive(session, stop)
@@ -564,7 +595,7 @@ class PatientPrompts:
             where = f"{abs(ahead_mm):.0f} mm {'ahead' if ahead_mm >= 0 else 'behind'} on {axis}"
             self.out(f"  request {message.request}: press now - the goal is {where} "
                      "(firm = forward, light = back)")  # fmt: skip
-        elif isinstance(message, Intent) and message.source == "sensor":
+        elif isinstance(message, Intent) and message.person:
             direction = "+1 forward" if message.u_h > 0 else "-1 back"
             radius = "quick -> E_big" if message.human_model == 1 else "held -> E_small"
             self.out(f"  read {direction}, {radius}, after {message.decision_s:.2f} s"

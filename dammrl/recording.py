@@ -28,9 +28,9 @@ from mcap.records import Channel, Chunk, Footer, Header, Message, Metadata, Sche
 from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.writer import CompressionType, Writer
 
-from dammrl.core.errors import DammrlError, JobFailedError
-from dammrl.core.human import direction_to_goal
-from dammrl.core.models import radius_name
+from dammrl_core.errors import DammrlError, JobFailedError
+from dammrl_core.human import direction_to_goal
+from dammrl_core.models import radius_name
 from schemas import (
     DecisionRequest,
     DecodeError,

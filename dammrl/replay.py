@@ -17,9 +17,9 @@ from pathlib import Path
 import numpy as np
 import zenoh
 
-from dammrl.core.errors import DammrlError, JobFailedError
-from dammrl.core.models import ModelSet
 from dammrl.recording import Recording
+from dammrl_core.errors import DammrlError, JobFailedError
+from dammrl_core.models import ModelSet
 from schemas import DecisionRequest, EmergencyStop, ModelChoice
 from schemas.keys import topic_of
 from services.common.bus import zenoh_config
@@ -182,7 +182,7 @@ def into_policy(recording: Recording, checkpoint: Path) -> list[PolicyDecision]:
     live stack, its own previous choice as the model in force; its choices sit next to
     the recorded policy's answers (ModelChoice messages carrying the request number).
     """
-    from services.policy.learned import LearnedPolicy
+    from dammrl_core.policy.learned import LearnedPolicy
 
     policy = LearnedPolicy(ModelSet(), checkpoint)
     answers: dict[tuple[int, int], tuple[int, int]] = {}

@@ -19,16 +19,22 @@ from dataclasses import dataclass, field
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from dammrl.core.dynamics import ArmModel
-from dammrl.core.human import HumanModel
-from dammrl.core.ik import IKSolver, make_ik_solver
-from dammrl.core.metrics import ReachMetrics, episode_summary
-from dammrl.core.models import ModelSet
-from dammrl.core.policy import FixedPolicy, ModelChoice, Policy
-from dammrl.core.robot import RobotSettings
-from dammrl.core.robot.scene import SENSOR_LAYOUT
-from dammrl.core.state import RobotState, StepEvent
-from dammrl.core.task import (
+from dammrl_core.control.controller import Controller
+from dammrl_core.control.reach import HOLD_OBSERVATION_S, Answer, Reach, Trajectory
+from dammrl_core.control.settings import ControllerSettings
+from dammrl_core.dynamics import ArmModel
+from dammrl_core.human import HumanModel
+from dammrl_core.ik import IKSolver, make_ik_solver
+from dammrl_core.intent.simulated import Decision, SimulatedHuman
+from dammrl_core.metrics import ReachMetrics, episode_summary
+from dammrl_core.models import ModelSet
+from dammrl_core.policy import FixedPolicy, ModelChoice, Policy
+from dammrl_core.robot import RobotSettings
+from dammrl_core.robot.scene import SENSOR_LAYOUT
+from dammrl_core.sim.settings import SimSettings
+from dammrl_core.sim.simulation import Simulation
+from dammrl_core.state import RobotState, StepEvent
+from dammrl_core.task import (
     ReachTask,
     TaskSettings,
     scene_layout,
@@ -36,12 +42,6 @@ from dammrl.core.task import (
     start_posture,
     task_for_seed,
 )
-from services.controller.config import ControllerSettings
-from services.controller.core import Controller
-from services.controller.reach import HOLD_OBSERVATION_S, Answer, Reach, Trajectory
-from services.intent.core import Decision, SimulatedHuman
-from services.sim.config import SimSettings
-from services.sim.core import Simulation
 
 
 class ReachSettings(BaseModel):

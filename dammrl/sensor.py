@@ -18,18 +18,18 @@ import tty
 from collections import deque
 from collections.abc import Callable, Iterator
 
-from dammrl.core.errors import DammrlError
-from dammrl.core.models import ModelSet, radius_name
-from services.intent.calibration import (
+from dammrl.emulators.pad import SensorEmulator
+from dammrl_core.errors import DammrlError
+from dammrl_core.intent.pad.calibration import (
     CalibrationError,
     Rest,
     calibration_from,
     held_press,
     rest_of,
 )
-from services.intent.decoder import Calibration, DecoderSettings, PressDecision, PressDecoder
-from services.intent.emulator import SensorEmulator
-from services.intent.serial_sensor import Arrival, SerialSensor
+from dammrl_core.intent.pad.decoder import Calibration, DecoderSettings, PressDecision, PressDecoder
+from dammrl_core.intent.pad.serial import Arrival, SerialSensor
+from dammrl_core.models import ModelSet, radius_name
 
 BAR_WIDTH = 40
 BAR_TOP = 1.25  # normalised level at the right end of the bar

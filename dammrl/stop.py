@@ -6,7 +6,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 
-from schemas import Health
+from schemas import EmergencyStop, Health
 from services.common.config import BusSettings
 
 ARM_SERVICES = ("sim", "robot")
@@ -23,7 +23,6 @@ class StopConsole:
     start-up (``dammrl stop --console``)."""
 
     def __init__(self, settings: BusSettings) -> None:
-        from schemas import EmergencyStop
         from services.common.bus import Bus
 
         self.bus = Bus(settings, "tool").__enter__()
@@ -40,7 +39,8 @@ class StopConsole:
         start = next_send = time.monotonic()
         while (now := time.monotonic()) - start < timeout_s:
             if now >= next_send:  # repeated: a stop must not hang on one lost message
-                self.publisher.publish(engaged=engaged, reason=reason)
+                stop = EmergencyStop(header=self.publisher.stamp(), engaged=engaged, reason=reason)
+                self.publisher.send(stop)
                 next_send = now + 0.02
             message = self.bus.receive(0.005)
             if isinstance(message, Health) and self._confirms(message, engaged):

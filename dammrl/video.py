@@ -17,8 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
-from dammrl.core.errors import ConfigurationError, JobFailedError
 from dammrl.runner import ReachResult, ReachRunner
+from dammrl_core.errors import ConfigurationError, JobFailedError
 from schemas import EpisodeResult, RobotState, StepEvent, TaskGoal
 
 TRAIL_POINTS = 60  # fingertip trail: this many markers over the last TRAIL_S

@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from dammrl.core.robot import RobotDescription
+from dammrl_core.robot import RobotDescription
 from schemas import (
     DecodeError,
     EpisodeResult,

@@ -7,9 +7,9 @@ limits, effort limits) are checked by the receiving node against its robot descr
 
 from __future__ import annotations
 
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 Finite = Annotated[float, Field(allow_inf_nan=False)]
 Vec3 = tuple[Finite, Finite, Finite]  # task-frame vector (x, y, z)
@@ -100,10 +100,19 @@ class Intent(Message):
     u_h: Literal[-1, 1] = Field(description="binary command on the primary axis")
     human_model: HumanModel = Field(description="radius chosen: 1 = E_big, 2 = E_small")
     radius_m: Finite = Field(gt=0, le=0.1, description="admission radius epsilon [m]")
-    confidence: Finite = Field(ge=0, le=1)
-    source: Literal["simulated", "sensor"]
+    confidence: Finite = Field(ge=0, le=1, description="the source's probability of u_h")
+    source: str = Field(min_length=1, max_length=64, description="the intent source's name")
+    person: bool = Field(description="a person decided (a sensor), not a simulated human")
     decision_s: Finite = Field(ge=0, description="time the decision took [s]")
     correct: bool | None = Field(None, description="toward the goal (known in simulation)")
+
+    @model_validator(mode="before")
+    @classmethod
+    def _recorded_before_person(cls, data: Any) -> Any:
+        """Recordings made before ``person`` existed: the pad was the only person."""
+        if isinstance(data, dict) and "person" not in data and "source" in data:
+            return data | {"person": data["source"] == "sensor"}
+        return data
 
 
 class ModelChoice(Message):
@@ -197,11 +206,14 @@ class SensorSample(Message):
     pressed: bool | None = Field(None, description="inside a press (hysteresis on)")
 
 
+HealthState = Literal["ok", "holding", "degraded", "stopped"]
+
+
 class Health(Message):
     """A service's periodic health report."""
 
     service: str = Field(min_length=1, max_length=64)
-    state: Literal["ok", "holding", "degraded", "stopped"] = Field(
+    state: HealthState = Field(
         description="stopped: an arm held by an emergency stop or a fault until released"
     )
     detail: str = Field("", max_length=2000)

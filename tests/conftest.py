@@ -10,12 +10,12 @@ from dammrl.cli.common import headless_gl
 
 headless_gl()  # before MuJoCo is imported: the video tests render offscreen
 
-from dammrl.core.dynamics import ArmModel
-from dammrl.core.robot import RobotDescription
-from dammrl.core.robot.scene import SceneLayout
 from dammrl.runner import ReachRunner
-from services.sim.config import SimSettings
-from services.sim.core import Simulation
+from dammrl_core.dynamics import ArmModel
+from dammrl_core.robot import RobotDescription
+from dammrl_core.robot.scene import SceneLayout
+from dammrl_core.sim.settings import SimSettings
+from dammrl_core.sim.simulation import Simulation
 
 HOME_Q = np.array([0.0, 1.0, 0.0, 1.6, 0.0, 0.3])
 

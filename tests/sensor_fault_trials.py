@@ -20,11 +20,11 @@ from pathlib import Path
 import numpy as np
 from pydantic import ValidationError
 
-from dammrl.core.errors import DammrlError
-from dammrl.core.settings import error_line
+from dammrl.emulators.pad import DEFAULT_CALIBRATION, Press, SensorEmulator
+from dammrl_core.errors import DammrlError
+from dammrl_core.intent.pad.decoder import Calibration, PressDecoder
+from dammrl_core.settings import error_line
 from schemas import DecisionRequest, Header, Intent, SensorSample, encode
-from services.intent.decoder import Calibration, PressDecoder
-from services.intent.emulator import DEFAULT_CALIBRATION, Press, SensorEmulator
 from tests.busutil import Observer, free_port, start_service, wait_for
 
 RATE_HZ = 100.0
@@ -153,8 +153,8 @@ def port_rig(directory: Path, **env: str) -> Iterator[PortRig]:
     """The intent service (source serial) on ``directory/ttySENSOR``; stopped after."""
     link, port = directory / "ttySENSOR", free_port()
     observer = Observer(port)
-    serial_env = {"DAMMRL_INTENT_SOURCE": "serial", "DAMMRL_INTENT_PORT": str(link)}
-    service = start_service("intent", port, DAMMRL_INTENT_RECONNECT_MAX_S="0.5",
+    serial_env = {"DAMMRL_INTENT_SOURCE": "pad", "DAMMRL_PAD_PORT": str(link)}
+    service = start_service("intent", port, DAMMRL_PAD_RECONNECT_MAX_S="0.5",
                             **serial_env, **env)  # fmt: skip
     try:
         yield PortRig(link, observer)

@@ -8,8 +8,11 @@ from __future__ import annotations
 
 import grimp
 
-PACKAGES = ("dammrl", "services", "schemas")
-SERVICES = ("sim", "intent", "policy", "controller", "recorder")
+PACKAGES = ("dammrl_core", "schemas", "services", "dammrl")
+SERVICES = ("sim", "intent", "policy", "controller", "recorder", "robot")
+TOP_DOWN = {"dammrl": 3, "services": 2, "dammrl_core": 1, "schemas": 1}
+"""The layers, by their top-level folders: a folder imports only folders below it (the
+library and the contract are side by side at the bottom and import neither the other)."""
 
 
 def _graph() -> grimp.ImportGraph:
@@ -77,11 +80,49 @@ def test_no_service_imports_another_service() -> None:
 
 def test_the_core_library_and_the_schemas_import_nothing_above_them() -> None:
     graph = _graph()
-    above = [m for m in graph.modules if not m.startswith(("dammrl.core", "schemas"))]
-    for leaf in ("dammrl.core", "schemas"):
+    above = [m for m in graph.modules if not m.startswith(("dammrl_core", "schemas"))]
+    for leaf in ("dammrl_core", "schemas"):
         imported = graph.find_upstream_modules(leaf, as_package=True)
         assert sorted(imported & set(above)) == [], leaf
-    assert not graph.chain_exists("schemas", "dammrl.core", as_packages=True)
+    assert not graph.chain_exists("schemas", "dammrl_core", as_packages=True)
+
+
+def _children_graph(graph: grimp.ImportGraph, parent: str) -> grimp.ImportGraph:
+    """The imports between the children of folder ``parent`` (its modules and its
+    subfolders, each with everything under it)."""
+    children = grimp.ImportGraph()
+    depth = parent.count(".") + 1
+    for module in graph.modules:
+        if not module.startswith(parent + "."):
+            continue
+        here = ".".join(module.split(".")[: depth + 1])
+        for imported in graph.find_modules_directly_imported_by(module):
+            if imported.startswith(parent + "."):
+                there = ".".join(imported.split(".")[: depth + 1])
+                if here != there:
+                    children.add_import(importer=here, imported=there)
+    return children
+
+
+def _folders(graph: grimp.ImportGraph) -> set[str]:
+    return {m.rsplit(".", 1)[0] for m in graph.modules if "." in m} | set(PACKAGES)
+
+
+def test_the_folders_import_one_way() -> None:
+    """How the folders are checked, not only the modules: the top-level folders import
+    only the ones below them; inside every folder, its files and subfolders import each
+    other one way (no two of them import each other, however indirectly)."""
+    graph = _graph()
+    upward = [
+        (a, b)
+        for a in graph.modules
+        for b in graph.find_modules_directly_imported_by(a)
+        if TOP_DOWN[a.split(".")[0]] <= TOP_DOWN[b.split(".")[0]]
+        and a.split(".")[0] != b.split(".")[0]
+    ]
+    assert upward == []
+    cycles = {folder: _cycles(_children_graph(graph, folder)) for folder in _folders(graph)}
+    assert {folder: c for folder, c in cycles.items() if c} == {}
 
 
 def test_the_cycle_finder_finds_a_cycle_hidden_in_a_longer_chain() -> None:

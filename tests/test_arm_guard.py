@@ -13,7 +13,7 @@ import time
 import numpy as np
 import pytest
 
-from dammrl.core.robot import RobotDescription
+from dammrl_core.robot import RobotDescription
 from schemas import Header, Health, JointCommand, RobotState, TaskGoal, encode, key
 from tests.busutil import Observer, free_port, start_service, wait_for
 

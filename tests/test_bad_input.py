@@ -25,17 +25,23 @@ import services.recorder.config
 import services.robot.config
 import services.sim.config
 from dammrl.cli import main
-from dammrl.core import human, models, task
-from dammrl.core.errors import ConfigurationError, Exit
-from dammrl.core.robot import settings as robot
-from dammrl.core.settings import Settings, variable
+from dammrl_core import human, models, task
+from dammrl_core.arm.dynamixel.plugin import DynamixelSettings
+from dammrl_core.arm.settings import ArmSettings
+from dammrl_core.control.settings import ControllerSettings
+from dammrl_core.errors import ConfigurationError, Exit
+from dammrl_core.intent.pad.source import PadSettings
+from dammrl_core.intent.simulated import SimulatedSettings
+from dammrl_core.policy.settings import PolicySettings
+from dammrl_core.robot import settings as robot
+from dammrl_core.settings import Settings, variable
+from dammrl_core.sim.settings import SimSettings
 
 CLASSES: list[type[Settings]] = [
-    services.common.config.BusSettings, services.controller.config.ControllerSettings,
-    services.intent.config.IntentSettings, services.policy.config.PolicySettings,
-    services.recorder.config.RecorderSettings, services.sim.config.SimSettings,
+    services.common.config.BusSettings, ControllerSettings, services.intent.config.IntentSettings,
+    PolicySettings, services.recorder.config.RecorderSettings, SimSettings,
     dammrl.rl.config.TrainSettings, human.HumanModel, models.ModelSet, task.TaskSettings,
-    robot.RobotSettings, services.robot.config.ArmSettings,
+    robot.RobotSettings, ArmSettings, PadSettings, SimulatedSettings, DynamixelSettings,
 ]  # fmt: skip
 BAD = ("abc", "inf", "-inf", "nan", "-1", "1e309", "[1,", "[1, 2]", '{"x": 1}', "", "\x7f")
 
@@ -125,7 +131,7 @@ def test_the_tool_exits_3_with_one_line_for_a_bad_setting(
 @pytest.mark.parametrize(
     ("service", "name", "value"),
     [("controller", "DAMMRL_CONTROLLER_KP", "[1, 2]"), ("sim", "DAMMRL_SIM_RANDOMIZATION", "{"),
-     ("intent", "DAMMRL_INTENT_DECODER", "[1]"), ("policy", "DAMMRL_POLICY_KIND", "x"),
+     ("intent", "DAMMRL_INTENT_SOURCE", "nosuchsource"), ("policy", "DAMMRL_POLICY_KIND", "x"),
      ("recorder", "DAMMRL_BUS_CONNECT", "tcp/1.2.3.4:7447")],
 )  # fmt: skip
 def test_a_service_with_a_bad_setting_exits_3_with_one_line(

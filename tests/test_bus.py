@@ -6,12 +6,17 @@ import time
 
 import msgpack
 
-from schemas import Health, ModelChoice, RobotState, encode
+from schemas import Header, Health, ModelChoice, RobotState, encode
 from services.common.bus import Bus
 from tests.busutil import client_settings, free_port, listener_settings
 from tests.test_schemas import EXAMPLES
 
 STATE = EXAMPLES[0]
+
+
+def _choice(header: Header, i: int, j: int) -> ModelChoice:
+    return ModelChoice(header=header, human_model=i, robot_model=j, radius_m=0.004,
+                       steps_m=(0.03, 0.01, 0.01))  # fmt: skip
 
 
 def _receive(bus: Bus, timeout_s: float = 3.0) -> object:
@@ -24,13 +29,11 @@ def test_sessions_find_each_other_only_through_explicit_endpoints() -> None:
         b.subscribe(ModelChoice)
         time.sleep(0.5)
         publisher = a.publisher(ModelChoice)
-        sent = publisher.publish(
-            human_model=2, robot_model=5, radius_m=0.004, steps_m=(0.03, 0.01, 0.01)
-        )
+        sent = publisher.send(_choice(publisher.stamp(), 2, 5))
         received = _receive(b)
         assert received == sent
         assert sent.header.source == "a" and sent.header.seq == 0
-        assert publisher.publish(**sent.model_dump(exclude={"header"})).header.seq == 1
+        assert publisher.send(_choice(publisher.stamp(), 2, 5)).header.seq == 1
 
 
 def test_namespaces_keep_stacks_apart() -> None:
@@ -41,9 +44,8 @@ def test_namespaces_keep_stacks_apart() -> None:
     ):
         b.subscribe(ModelChoice)
         time.sleep(0.5)
-        a.publisher(ModelChoice).publish(
-            human_model=1, robot_model=1, radius_m=0.01, steps_m=(0.01,) * 3
-        )
+        publisher = a.publisher(ModelChoice)
+        publisher.send(_choice(publisher.stamp(), 1, 1))
         assert b.receive(0.5) is None
 
 
@@ -75,9 +77,8 @@ def test_messages_from_an_unexpected_source_are_rejected() -> None:
         sim.subscribe(ModelChoice)
         sim.expect(ModelChoice, "policy")
         time.sleep(0.5)
-        impostor.publisher(ModelChoice).publish(
-            human_model=1, robot_model=1, radius_m=0.01, steps_m=(0.01,) * 3
-        )
+        publisher = impostor.publisher(ModelChoice)
+        publisher.send(_choice(publisher.stamp(), 1, 1))
         assert sim.receive(0.5) is None
         assert sim.rejected[sim.key(ModelChoice)] == 1
 

@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from dammrl.cli import main
-from dammrl.core.errors import Exit
+from dammrl_core.errors import Exit
 
 KEYS = {
     "success", "t_total_s", "t_step_mean_s", "final_error_m", "n_osc", "jerk_isj",
@@ -70,7 +70,7 @@ def test_sensor_emulate_serves_frames_on_its_link(tmp_path: Path) -> None:
 
     import serial
 
-    from services.intent.protocol import FrameParser
+    from dammrl_core.intent.pad.protocol import FrameParser
 
     link = tmp_path / "ttyEMU"
     emulator = subprocess.Popen(
@@ -111,8 +111,8 @@ def test_lockstep_reaches_every_service() -> None:
 def test_a_port_in_time_wait_is_reused_and_a_held_port_is_a_clear_error() -> None:
     import socket
 
-    from dammrl.core.errors import DammrlError
     from dammrl.launch import check_port
+    from dammrl_core.errors import DammrlError
 
     server = socket.socket()
     server.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as Zenoh's listener (tokio)
@@ -133,7 +133,7 @@ def test_every_command_help_ends_with_the_exit_codes() -> None:
     import argparse
 
     from dammrl.cli import parser
-    from dammrl.core.errors import EXIT_CODES_HELP
+    from dammrl_core.errors import EXIT_CODES_HELP
 
     def commands(top: argparse.ArgumentParser) -> list[argparse.ArgumentParser]:
         found = []

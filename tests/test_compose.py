@@ -15,19 +15,19 @@ from typing import Any
 import pytest
 import yaml
 
+from dammrl.emulators.pad import DEFAULT_CALIBRATION
 from schemas import EpisodeResult, Intent
 from services.common.bus import Bus
 from services.common.config import BusSettings
 from services.common.healthcheck import check
 from services.common.security import create_credentials
-from services.intent.emulator import DEFAULT_CALIBRATION
 from tests.busutil import Observer, endpoint, free_port, start_patient, wait_for
 
 pytestmark = pytest.mark.slow  # real processes on a real bus
 
 COMPOSE = Path(__file__).resolve().parent.parent / "compose.yaml"
 SERVICES = {"sim", "robot", "policy", "intent", "controller", "recorder"}
-CONTAINER_PATHS = ("DAMMRL_INTENT_PORT", "DAMMRL_INTENT_CALIBRATION_FILE", "DAMMRL_RECORDER_OUT")
+CONTAINER_PATHS = ("DAMMRL_PAD_PORT", "DAMMRL_PAD_CALIBRATION_FILE", "DAMMRL_RECORDER_OUT")
 PROFILES = {
     "virtual": {"sim", "policy", "intent", "controller", "recorder"},
     "semi-virtual": {"sim", "policy", "intent-sensor", "controller-sensor", "recorder-sensor"},
@@ -111,11 +111,11 @@ def test_host_folders_are_mounted_only_when_they_exist_never_created_root_owned(
 def test_semi_virtual_profile_passes_the_sensor_and_its_calibration_to_the_intent() -> None:
     intent = _profile("semi-virtual")["intent-sensor"]
     env = intent["environment"]
-    assert env["DAMMRL_INTENT_SOURCE"] == "serial"
+    assert env["DAMMRL_INTENT_SOURCE"] == "pad"
     host, container = intent["devices"][0].rsplit(":", 1)
-    assert container == env["DAMMRL_INTENT_PORT"] and "DAMMRL_SENSOR_DEVICE" in host
+    assert container == env["DAMMRL_PAD_PORT"] and "DAMMRL_SENSOR_DEVICE" in host
     mounts = [volume["target"] for volume in intent["volumes"]]
-    assert any(env["DAMMRL_INTENT_CALIBRATION_FILE"].startswith(m + "/") for m in mounts)
+    assert any(env["DAMMRL_PAD_CALIBRATION_FILE"].startswith(m + "/") for m in mounts)
     recorder = _profile("semi-virtual")["recorder-sensor"]["environment"]
     assert recorder["DAMMRL_RECORDER_MODE"] == "semi-virtual"
 
@@ -124,9 +124,9 @@ def test_real_profile_passes_the_servo_bus_and_the_arm_calibration_to_the_robot(
     robot = _profile("real")["robot"]
     env = robot["environment"]
     host, container = robot["devices"][0].rsplit(":", 1)
-    assert container == env["DAMMRL_ARM_PORT"] and "DAMMRL_ROBOT_DEVICE" in host
+    assert container == env["DAMMRL_DYNAMIXEL_PORT"] and "DAMMRL_ROBOT_DEVICE" in host
     mounts = [volume["target"] for volume in robot["volumes"]]
-    assert any(env["DAMMRL_ARM_CALIBRATION_FILE"].startswith(m + "/") for m in mounts)
+    assert any(env["DAMMRL_DYNAMIXEL_CALIBRATION_FILE"].startswith(m + "/") for m in mounts)
     assert _profile("real")["recorder-real"]["environment"]["DAMMRL_RECORDER_MODE"] == "real"
 
 
@@ -161,11 +161,11 @@ def _local(environment: dict[str, str], port: int, tmp_path: Path) -> dict[str, 
         elif name == "DAMMRL_BUS_CREDENTIALS":
             value = str(tmp_path / "bus")
         elif name in (
-            "DAMMRL_INTENT_PORT",
-            "DAMMRL_INTENT_CALIBRATION_FILE",
+            "DAMMRL_PAD_PORT",
+            "DAMMRL_PAD_CALIBRATION_FILE",
             "DAMMRL_RECORDER_OUT",
-            "DAMMRL_ARM_PORT",
-            "DAMMRL_ARM_CALIBRATION_FILE",
+            "DAMMRL_DYNAMIXEL_PORT",
+            "DAMMRL_DYNAMIXEL_CALIBRATION_FILE",
         ):
             value = str(tmp_path / Path(value).name)
         local[name] = str(value)
@@ -224,9 +224,9 @@ def test_the_semi_virtual_profile_runs_an_episode_from_the_passed_through_sensor
 def test_the_real_profile_runs_an_episode_on_the_passed_through_servo_bus(
     tmp_path: Path,
 ) -> None:
-    """The emulated arm stands in for the device at the robot's DAMMRL_ARM_PORT."""
-    from dammrl.arm import emulated_arm
-    from services.robot.calibration import Calibration, save_calibration
+    """The emulated arm stands in for the device at the robot's DAMMRL_DYNAMIXEL_PORT."""
+    from dammrl.emulators.arm import emulated_arm
+    from dammrl_core.arm.dynamixel.calibration import Calibration, save_calibration
 
     save_calibration(Calibration(), tmp_path / "arm_calibration.json")
     with emulated_arm(tmp_path / "ttyROBOT"):

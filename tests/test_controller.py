@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from dammrl.core.dynamics import ArmModel, joint_limit_avoidance
-from dammrl.core.robot import RobotDescription
-from dammrl.core.state import Intent, RobotState
-from services.controller.config import ControllerSettings
-from services.controller.core import Controller
+from dammrl_core.control.controller import Controller
+from dammrl_core.control.settings import ControllerSettings
+from dammrl_core.dynamics import ArmModel, joint_limit_avoidance
+from dammrl_core.robot import RobotDescription
+from dammrl_core.state import Intent, RobotState
 from tests.conftest import HOME_Q, random_postures
 
 

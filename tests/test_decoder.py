@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
-from services.intent.decoder import Calibration, PressDecoder
+from dammrl_core.intent.pad.decoder import Calibration, PressDecoder
 
 CAL = Calibration(rest_raw=400, light_raw=1200, firm_raw=3000)
 RATE_HZ = 100.0

@@ -7,10 +7,10 @@ from pathlib import Path
 
 import serial
 
-from services.intent.decoder import PressDecoder
-from services.intent.emulator import DEFAULT_CALIBRATION, Press, SensorEmulator
-from services.intent.protocol import BAUD_RATE, SAMPLE_RATE_HZ, FrameParser
-from services.intent.serial_sensor import Arrival, SerialSensor
+from dammrl.emulators.pad import DEFAULT_CALIBRATION, Press, SensorEmulator
+from dammrl_core.intent.pad.decoder import PressDecoder
+from dammrl_core.intent.pad.protocol import BAUD_RATE, SAMPLE_RATE_HZ, FrameParser
+from dammrl_core.intent.pad.serial import Arrival, SerialSensor
 
 SCRIPT = [Press(0.3, 0.25, 1.0), Press(1.0, 0.25, 0.35), Press(1.7, 0.8, 1.0)]
 

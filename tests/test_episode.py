@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from dammrl.core.task import ReachTask
 from dammrl.runner import ReachRunner, ReachSettings
-from services.controller.config import ControllerSettings
+from dammrl_core.control.settings import ControllerSettings
+from dammrl_core.task import ReachTask
 
 
 def test_event_triggered_reach_presses_the_goal(runner: ReachRunner) -> None:
@@ -88,7 +88,7 @@ def test_a_miscalibrated_arm_still_enters_small_admission_spheres() -> None:
     the controller's nominal IK alone lands every step millimetres beside its subgoal,
     outside a 4 mm sphere; aimed at subgoal minus the measured calibration offset it lands
     inside, and the reach is the same one the nominal arm makes."""
-    from services.sim.config import DomainRandomization, SimSettings
+    from dammrl_core.sim.settings import DomainRandomization, SimSettings
 
     randomised = SimSettings(randomization=DomainRandomization(enabled=True))
     outcomes = {}

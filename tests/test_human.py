@@ -9,16 +9,16 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
-from dammrl.core.errors import ConfigurationError
-from dammrl.core.human import HumanModel
-from dammrl.core.models import ModelSet
-from dammrl.core.person import (
+from dammrl_core.errors import ConfigurationError
+from dammrl_core.human import HumanModel
+from dammrl_core.intent.simulated import SimulatedHuman
+from dammrl_core.models import ModelSet
+from dammrl_core.person import (
     SimulatedPerson,
     ddm_correct_probability,
     ddm_mean_passage_s,
     ddm_survival,
 )
-from services.intent.core import SimulatedHuman
 
 GOAL = np.array([0.5, 0.0, -0.2])
 

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from dammrl.core.dynamics import ArmModel
-from dammrl.core.ik import DampedLeastSquaresIK, IKLatency, IkpyIK
-from dammrl.core.robot import RobotDescription
+from dammrl_core.dynamics import ArmModel
+from dammrl_core.ik import DampedLeastSquaresIK, IKLatency, IkpyIK
+from dammrl_core.robot import RobotDescription
 from tests.conftest import HOME_Q, random_postures
 
 

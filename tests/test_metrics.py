@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from dammrl.core.metrics import (
+from dammrl_core.metrics import (
     Dwell,
     _turning_points,
     decisions_until_stable,
@@ -128,8 +128,8 @@ def test_convergence_counts_the_decisions_before_the_final_choice() -> None:
 def test_an_episode_summary_is_strict_json_even_without_a_step() -> None:
     import json
 
-    from dammrl.core.metrics import episode_summary
-    from dammrl.core.task import ReachTask
+    from dammrl_core.metrics import episode_summary
+    from dammrl_core.task import ReachTask
 
     metrics = reach_metrics(
         outcome="hold", reason="IK failed", t_end_s=0.5, t=np.arange(0, 0.5, 0.01),

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from dammrl.core.errors import ConfigurationError
-from dammrl.core.models import ModelSet, parse_model, radius_name
+from dammrl_core.errors import ConfigurationError
+from dammrl_core.models import ModelSet, parse_model, radius_name
 
 
 def test_robot_model_index_is_binary_large_flags_on_xyz() -> None:

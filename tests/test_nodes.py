@@ -7,9 +7,11 @@ from typing import Any
 
 import numpy as np
 
-from dammrl.core.human import HumanModel
-from dammrl.core.models import ModelSet
-from schemas import DecisionRequest, Header, ModelChoice, TaskGoal
+from dammrl_core.human import HumanModel
+from dammrl_core.intent.simulated import SimulatedSource
+from dammrl_core.intent.source import Ask, Decided, Reading, SourceContext
+from dammrl_core.models import ModelSet
+from schemas import DecisionRequest, Header, Message, ModelChoice, TaskGoal
 from services.common.config import BusSettings
 from services.intent.config import IntentSettings
 from services.intent.node import IntentNode
@@ -17,18 +19,27 @@ from services.intent.node import IntentNode
 HEADER = Header(stamp_ns=1, seq=0, source="test")
 
 
+class FakePublisher:
+    def __init__(self, bus: FakeBus) -> None:
+        self.bus = bus
+
+    def stamp(self) -> Header:
+        return HEADER
+
+    def send(self, message: Message) -> Message:
+        self.bus.published.append(message)
+        return message
+
+
 class FakeBus:
     """Records what a node publishes; subscriptions and source checks are no-ops."""
 
     def __init__(self) -> None:
         self.settings = BusSettings()
-        self.published: list[dict[str, Any]] = []
+        self.published: list[Any] = []
 
-    def publisher(self, message_type: type) -> FakeBus:
-        return self
-
-    def publish(self, **fields: Any) -> None:
-        self.published.append(fields)
+    def publisher(self, message_type: type) -> FakePublisher:
+        return FakePublisher(self)
 
     def subscribe(self, *message_types: type) -> None: ...
 
@@ -36,6 +47,47 @@ class FakeBus:
 
     def key(self, message_type: type) -> str:
         return message_type.__name__
+
+
+class ScriptedPerson:
+    """A person at a sensor whose decisions the test makes (``decide``)."""
+
+    person = True
+    waits_for_model_choice = False
+
+    def __init__(self) -> None:
+        self.asked: list[Ask] = []
+        self.coming: list[Decided] = []
+
+    def open(self) -> None: ...
+    def close(self) -> None: ...
+    def new_episode(self, episode: int, seed: int) -> None: ...
+
+    def ask(self, ask: Ask, now_s: float) -> None:
+        self.asked.append(ask)
+
+    def cancel(self) -> None: ...
+
+    def poll(self, now_s: float) -> Decided | None:
+        return self.coming.pop(0) if self.coming else None
+
+    def readings(self) -> list[Reading]:
+        return []
+
+    def problem(self) -> str | None:
+        return None
+
+    def detail(self) -> str:
+        return ""
+
+
+def _step(node: IntentNode, *messages: Message) -> None:
+    """Messages in, then one poll of the source (what the node's loop does)."""
+    for message in messages:
+        node._dispatch(message)
+    node._ask_unanswered_by_the_policy()
+    if (decided := node.source.poll(time.monotonic())) is not None:
+        node._answer(decided)
 
 
 def _goal(episode: int, seed: int) -> TaskGoal:
@@ -56,31 +108,34 @@ def _choice(request: int, i: int, episode: int = 1) -> ModelChoice:
 
 def _intent_node() -> tuple[IntentNode, FakeBus]:
     bus = FakeBus()
-    node = IntentNode(IntentSettings(), HumanModel(), ModelSet(), bus)  # type: ignore[arg-type]
+    source = SimulatedSource(SourceContext(ModelSet(), HumanModel()))
+    node = IntentNode(IntentSettings(), source, "simulated", ModelSet(), bus)  # type: ignore[arg-type]
     return node, bus
+
+
+def _fields(bus: FakeBus) -> list[dict[str, Any]]:
+    return [m.model_dump(exclude={"header"}) for m in bus.published]
 
 
 def test_a_policy_choice_that_overtakes_its_request_is_used_when_the_request_arrives() -> None:
     node, bus = _intent_node()
-    node._dispatch(_goal(1, 5))
-    node._dispatch(_choice(1, 2))
+    _step(node, _goal(1, 5), _choice(1, 2))
     assert bus.published == []
-    node._dispatch(_request(1))
-    assert [(p["request"], p["human_model"]) for p in bus.published] == [(1, 2)]
+    _step(node, _request(1))
+    assert [(p["request"], p["human_model"]) for p in _fields(bus)] == [(1, 2)]
 
 
 def test_a_repeated_task_goal_does_not_reseed_the_human_mid_episode() -> None:
     reference, reference_bus = _intent_node()
     node, bus = _intent_node()
     for target in (reference, node):
-        target._dispatch(_goal(1, 5))
+        _step(target, _goal(1, 5))
         for request in (1, 2, 3):
             if target is node and request == 3:
-                target._dispatch(_goal(1, 5))  # the announcement, repeated
-            target._dispatch(_choice(request, 1))
-            target._dispatch(_request(request))
-    assert [p["decision_s"] for p in bus.published] == [
-        p["decision_s"] for p in reference_bus.published
+                _step(target, _goal(1, 5))  # the announcement, repeated
+            _step(target, _choice(request, 1), _request(request))
+    assert [p["decision_s"] for p in _fields(bus)] == [
+        p["decision_s"] for p in _fields(reference_bus)
     ]
 
 
@@ -89,26 +144,24 @@ def test_an_intent_service_that_missed_the_announcement_seeds_from_the_first_req
     draws the seed's decisions all the same: parity must not depend on start-up order."""
     reference, reference_bus = _intent_node()
     late, late_bus = _intent_node()
-    reference._dispatch(_goal(1, 5))
+    _step(reference, _goal(1, 5))
     for target in (reference, late):
         for request in (1, 2, 3):
-            target._dispatch(_choice(request, 1))
-            target._dispatch(_request(request))
-    assert late_bus.published == reference_bus.published
+            _step(target, _choice(request, 1), _request(request))
+    assert _fields(late_bus) == _fields(reference_bus)
 
 
 def test_a_stray_request_of_an_older_episode_does_not_reseed_the_human() -> None:
     reference, reference_bus = _intent_node()
     node, bus = _intent_node()
     for target in (reference, node):
-        target._dispatch(_goal(2, 6))
+        _step(target, _goal(2, 6))
         if target is node:
-            node._dispatch(_request(9, episode=1, seed=5))  # a late repeat from episode 1
+            _step(node, _request(9, episode=1, seed=5))  # a late repeat from episode 1
         for request in (1, 2):
-            target._dispatch(_choice(request, 1, episode=2))
-            target._dispatch(_request(request, episode=2, seed=6))
+            _step(target, _choice(request, 1, episode=2), _request(request, episode=2, seed=6))
     assert len(reference_bus.published) == 2
-    assert [p for p in bus.published if p["episode"] == 2] == reference_bus.published
+    assert [p for p in _fields(bus) if p["episode"] == 2] == _fields(reference_bus)
 
 
 def test_the_launcher_counts_only_the_controllers_new_results() -> None:
@@ -133,10 +186,10 @@ def test_the_launcher_counts_only_the_controllers_new_results() -> None:
 
 
 def test_the_controller_ignores_states_whose_time_runs_backwards_or_jumps() -> None:
-    from dammrl.core.models import ModelSet
-    from dammrl.core.robot import RobotSettings
-    from dammrl.core.task import TaskSettings
-    from services.controller.config import ControllerSettings
+    from dammrl_core.control.settings import ControllerSettings
+    from dammrl_core.models import ModelSet
+    from dammrl_core.robot import RobotSettings
+    from dammrl_core.task import TaskSettings
     from services.controller.node import ControllerNode
 
     bus = FakeBus()
@@ -152,25 +205,25 @@ def test_the_controller_ignores_states_whose_time_runs_backwards_or_jumps() -> N
 def test_the_controller_takes_steps_and_radius_from_the_model_set_not_from_a_message() -> None:
     import numpy as np
 
-    from dammrl.core.models import ModelSet
-    from dammrl.core.robot import RobotSettings
-    from dammrl.core.task import TaskSettings
+    from dammrl_core.control.settings import ControllerSettings
+    from dammrl_core.models import ModelSet
+    from dammrl_core.robot import RobotSettings
+    from dammrl_core.task import TaskSettings
     from schemas import Intent
-    from services.controller.config import ControllerSettings
     from services.controller.node import ControllerNode
 
     node = ControllerNode(ControllerSettings(), TaskSettings(), RobotSettings(), ModelSet(),
                           FakeBus())  # type: ignore[arg-type]  # fmt: skip
     node._next_episode()
     assert node.reach is not None
-    node.reach.asked, node.request = True, 1
+    node.reach.asked, node.requests.number = True, 1
     huge = ModelChoice(header=HEADER, episode=1, request=1, human_model=2, robot_model=1,
                        radius_m=0.1, steps_m=(0.1, 0.1, 0.1))  # fmt: skip
-    node._on_choice(huge)
+    node._take_answer(huge)
     answer_of_human = Intent(header=HEADER, episode=1, request=1, u_h=1, human_model=2,
-                             radius_m=0.1, confidence=1.0, source="sensor",
+                             radius_m=0.1, confidence=1.0, source="pad", person=True,
                              decision_s=0.3)  # fmt: skip
-    node._on_intent(answer_of_human)
+    node._take_answer(answer_of_human)
     answer = node.reach.pending
     assert answer is not None and answer.steps_m is not None
     np.testing.assert_array_equal(answer.steps_m, ModelSet().steps_m(1))
@@ -179,57 +232,56 @@ def test_the_controller_takes_steps_and_radius_from_the_model_set_not_from_a_mes
 
 def test_a_re_sent_request_gets_the_same_answer_from_the_simulated_human() -> None:
     node, bus = _intent_node()
-    node._dispatch(_goal(1, 5))
-    node._dispatch(_choice(1, 2))
-    node._dispatch(_request(1))
-    node._dispatch(_request(1))  # the controller heard nothing and sent it again
-    assert len(bus.published) == 2 and bus.published[0] == bus.published[1]
+    _step(node, _goal(1, 5), _choice(1, 2), _request(1))
+    _step(node, _request(1))  # the controller heard nothing and sent it again
+    assert len(bus.published) == 2 and _fields(bus)[0] == _fields(bus)[1]
 
 
-def test_a_re_sent_request_gets_the_same_answer_from_the_sensor_not_a_new_press() -> None:
-    """The sensor's intent was lost on the way (the controller heard nothing and asks
-    again): the same answer goes out again; a later press answers nothing."""
-    from services.intent.config import IntentSettings
-    from services.intent.decoder import PressDecision
-    from services.intent.sensor_node import SensorIntentNode
-
-    bus = FakeBus()
-    node = SensorIntentNode(IntentSettings(port="/dev/null"), ModelSet(), bus)  # type: ignore[arg-type]
-    node._dispatch(_request(1))
-    node._answer(PressDecision(t_s=1.0, u_h=1, human_model=2, confidence=0.9, duration_s=0.8,
-                               peak=0.9))  # fmt: skip
-    node._dispatch(_request(1))  # re-sent
-    node._answer(PressDecision(t_s=3.0, u_h=-1, human_model=1, confidence=0.9, duration_s=0.1,
-                               peak=0.9))  # fmt: skip
-    assert len(bus.published) == 2 and bus.published[0] == bus.published[1]
-    assert node.ignored_presses == 1
+def _person_node() -> tuple[IntentNode, ScriptedPerson, FakeBus]:
+    bus, person = FakeBus(), ScriptedPerson()
+    node = IntentNode(IntentSettings(), person, "pad", ModelSet(), bus)  # type: ignore[arg-type]
+    return node, person, bus
 
 
-def test_the_sensor_keeps_a_request_whose_episode_announcement_arrives_after_it() -> None:
+def test_a_re_sent_request_gets_the_same_answer_from_a_person_not_a_new_decision() -> None:
+    """The person's intent was lost on the way (the controller heard nothing and asks
+    again): the same answer goes out again; a later decision answers nothing."""
+    node, person, bus = _person_node()
+    _step(node, _request(1))
+    person.coming.append(Decided(u_h=1, human_model=2, confidence=0.9, decision_s=0.8))
+    _step(node)
+    _step(node, _request(1))  # re-sent
+    person.coming.append(Decided(u_h=-1, human_model=1, confidence=0.9, decision_s=0.1))
+    _step(node)
+    assert len(bus.published) == 2 and _fields(bus)[0] == _fields(bus)[1]
+    assert len(person.asked) == 1 and _fields(bus)[0]["person"]
+
+
+def test_a_request_whose_episode_announcement_arrives_after_it_stays_open() -> None:
     """TaskGoal and DecisionRequest come on two subscriptions: the first request of an
-    episode may overtake the episode's announcement. It stays open (it was dropped, and
-    every re-send ignored as a repeat: no press was ever answered)."""
-    from services.intent.config import IntentSettings
-    from services.intent.decoder import PressDecision
-    from services.intent.sensor_node import SensorIntentNode
+    episode may overtake the episode's announcement. It stays open; a new episode closes
+    an older episode's open request."""
+    node, person, bus = _person_node()
+    _step(node, _request(1), _goal(1, 5))  # the announcement late: the same episode
+    person.coming.append(Decided(u_h=1, human_model=2, confidence=0.9, decision_s=0.8))
+    _step(node)
+    assert [p["request"] for p in _fields(bus)] == [1]
+    _step(node, _request(2), _goal(2, 6))  # a new episode closes episode 1's open request
+    assert node.open is None
 
-    bus = FakeBus()
-    node = SensorIntentNode(IntentSettings(port="/dev/null"), ModelSet(), bus)  # type: ignore[arg-type]
-    node._dispatch(_request(1))
-    node._dispatch(_goal(1, 5))  # late: the same episode
-    node._answer(PressDecision(t_s=1.0, u_h=1, human_model=2, confidence=0.9, duration_s=0.8,
-                               peak=0.9))  # fmt: skip
-    assert [p["request"] for p in bus.published] == [1]
-    node._dispatch(_request(2))
-    node._dispatch(_goal(2, 6))  # a new episode closes episode 1's open request
-    assert node.request is None
+
+def test_a_press_with_no_request_open_is_no_decision() -> None:
+    from dammrl_core.intent.pad.source import PadSettings, PadSource
+
+    pad = PadSource(PadSettings(port="/dev/null"))
+    assert pad.open_since_s is None and pad.ignored_presses == 0
 
 
 def test_the_controller_sends_an_unanswered_request_again() -> None:
-    from dammrl.core.models import ModelSet
-    from dammrl.core.robot import RobotSettings
-    from dammrl.core.task import TaskSettings
-    from services.controller.config import ControllerSettings
+    from dammrl_core.control.settings import ControllerSettings
+    from dammrl_core.models import ModelSet
+    from dammrl_core.robot import RobotSettings
+    from dammrl_core.task import TaskSettings
     from services.controller.node import ControllerNode
 
     bus = FakeBus()
@@ -237,13 +289,14 @@ def test_the_controller_sends_an_unanswered_request_again() -> None:
     node = ControllerNode(settings, TaskSettings(), RobotSettings(), ModelSet(),
                           bus)  # type: ignore[arg-type]  # fmt: skip
     node._next_episode()
-    assert node.reach is not None and node.episode is not None
+    assert node.reach is not None and node.plan is not None
     node.reach.asked = True
-    node._request_decision(np.zeros(3), node.episode)
+    bus.published.append(node.requests.make(node.asks.stamp, 0.0, np.zeros(3),
+                                             node.plan.task.goal, 0, 1))  # fmt: skip
     sent = len(bus.published)
     node._resend_if_unanswered()
     assert len(bus.published) == sent  # not yet
     time.sleep(0.06)
     node._resend_if_unanswered()
-    assert len(bus.published) == sent + 1 and bus.published[-1]["request"] == 1
+    assert len(bus.published) == sent + 1 and bus.published[-1].request == 1
     assert "waiting for the answer to request 1" in node._waiting_for()

@@ -25,8 +25,11 @@ from dataclasses import dataclass, field
 import numpy as np
 import pytest
 
-from dammrl.core.policy import Policy
 from dammrl.runner import ReachResult, ReachRunner, ReachSettings
+from dammrl_core.policy import Policy
+from dammrl_core.policy.learned import LearnedPolicy
+from dammrl_core.policy.settings import SHIPPED_POLICY
+from dammrl_core.sim.settings import DomainRandomization, SimSettings
 from schemas import (
     EpisodeResult,
     Intent,
@@ -36,9 +39,6 @@ from schemas import (
     RobotState,
     TaskGoal,
 )
-from services.policy.config import SHIPPED_POLICY
-from services.policy.learned import LearnedPolicy
-from services.sim.config import DomainRandomization, SimSettings
 from tests.busutil import Observer, Stack, free_port, wait_for
 
 pytestmark = pytest.mark.slow

@@ -8,11 +8,11 @@ import math
 import numpy as np
 import pytest
 
-from dammrl.core.human import HumanModel
-from dammrl.core.models import ModelSet
-from dammrl.core.person import SimulatedPerson
-from dammrl.core.posterior import HumanModelPosterior
-from services.intent.core import SimulatedHuman
+from dammrl_core.human import HumanModel
+from dammrl_core.intent.simulated import SimulatedHuman
+from dammrl_core.models import ModelSet
+from dammrl_core.person import SimulatedPerson
+from dammrl_core.posterior import HumanModelPosterior
 
 GOAL = np.array([0.5, 0.0, -0.2])
 DECISIONS = [

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import random
 
-from services.intent.protocol import MAX_LINE, Frame, FrameParser, checksum, encode_frame
+from dammrl_core.intent.pad.protocol import MAX_LINE, Frame, FrameParser, checksum, encode_frame
 
 
 def test_a_frame_round_trips_and_reads_like_nmea() -> None:

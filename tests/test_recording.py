@@ -17,9 +17,9 @@ import pytest
 import zenoh
 from mcap.reader import make_reader
 
-from dammrl.core.errors import DammrlError
 from dammrl.recording import export_csv, export_json, human_statistics, info, read_recording, repair
 from dammrl.replay import ReplayOptions, replay, selected
+from dammrl_core.errors import DammrlError
 from schemas import StepEvent
 from services.common.config import BusSettings
 from services.recorder.core import header_of
@@ -266,7 +266,7 @@ def test_replay_into_the_recorded_policy_reproduces_its_decisions(
     session_recording: tuple[Path, Seen], tmp_path: Path
 ) -> None:
     from dammrl.replay import into_policy, write_decisions
-    from services.policy.config import SHIPPED_POLICY
+    from dammrl_core.policy.settings import SHIPPED_POLICY
 
     recording = read_recording(session_recording[0])
     summary = write_decisions(into_policy(recording, SHIPPED_POLICY), tmp_path / "d.csv")

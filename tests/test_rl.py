@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 import torch
 
-from dammrl.core.task import held_out_seeds
 from dammrl.rl.config import RewardWeights, TrainSettings
 from dammrl.rl.dqn import DualAgentDQN, ReplayBuffer
 from dammrl.rl.env import ACTIONS, OBSERVATION_SIZE, ReachEnv, RewardTerms, accuracy_term
 from dammrl.rl.train import CheckpointError, evaluate, load_checkpoint, train
 from dammrl.runner import ReachRunner
+from dammrl_core.task import held_out_seeds
 
 SMALL = TrainSettings(episodes=4, learning_starts=8, batch_size=8, buffer_size=500,
                       target_update_every=5, epsilon_decay_decisions=50)  # fmt: skip
@@ -123,10 +123,10 @@ def test_missing_or_corrupt_checkpoints_are_clear_errors(tmp_path: Path) -> None
 
 
 def _posterior_right_after(n: int, true_model: int, seeds: int, use_time: bool) -> float:
-    from dammrl.core.human import HumanModel
-    from dammrl.core.models import ModelSet
-    from dammrl.core.posterior import HumanModelPosterior
-    from services.intent.core import SimulatedHuman
+    from dammrl_core.human import HumanModel
+    from dammrl_core.intent.simulated import SimulatedHuman
+    from dammrl_core.models import ModelSet
+    from dammrl_core.posterior import HumanModelPosterior
 
     model = HumanModel()
     goal, right = np.array([0.5, 0.0, -0.2]), 0
@@ -152,11 +152,11 @@ def test_posterior_from_commands_alone_needs_many_more_decisions() -> None:
 
 
 def test_policy_service_falls_back_to_the_safe_fixed_model(tmp_path: Path) -> None:
-    from dammrl.core.models import ModelSet
-    from dammrl.core.policy import FixedPolicy
-    from services.policy.config import PolicySettings
-    from services.policy.core import load_policy
-    from services.policy.learned import LearnedPolicy
+    from dammrl_core.models import ModelSet
+    from dammrl_core.policy import FixedPolicy
+    from dammrl_core.policy.learned import LearnedPolicy
+    from dammrl_core.policy.loading import load_policy
+    from dammrl_core.policy.settings import PolicySettings
 
     models = ModelSet()
     policy, health, description = load_policy(PolicySettings(checkpoint=tmp_path / "none"), models)
@@ -170,9 +170,9 @@ def test_policy_service_falls_back_to_the_safe_fixed_model(tmp_path: Path) -> No
 
 
 def test_shipped_reward_1_policy_takes_smaller_steps_near_the_goal_than_reward_2() -> None:
-    from dammrl.core.models import ModelSet
     from dammrl.rl.train import greedy_rollouts
-    from services.policy.config import SHIPPED_POLICY
+    from dammrl_core.models import ModelSet
+    from dammrl_core.policy.settings import SHIPPED_POLICY
 
     models, near = ModelSet(), {}
     for reward in (1, 2):
@@ -189,12 +189,12 @@ def test_policy_service_estimates_a_real_humans_model_and_publishes_the_posterio
     import threading
     import time
 
-    from dammrl.core.human import HumanModel
-    from dammrl.core.models import ModelSet
+    from dammrl_core.human import HumanModel
+    from dammrl_core.intent.simulated import SimulatedHuman
+    from dammrl_core.models import ModelSet
+    from dammrl_core.policy.settings import PolicySettings
     from schemas import DecisionRequest, Intent, ModelChoice
     from services.common.bus import Bus
-    from services.intent.core import SimulatedHuman
-    from services.policy.config import PolicySettings
     from services.policy.node import PolicyNode
     from tests.busutil import client_settings, free_port, listener_settings
 
@@ -214,13 +214,15 @@ def test_policy_service_estimates_a_real_humans_model_and_publishes_the_posterio
         goal, choices = (0.5, 0.0, -0.2), []
         for k in range(1, 13):
             ee = (0.4, 0.0, -0.1)
-            requests.publish(episode=1, seed=1, request=k, t_s=k * 0.5, ee_pos_m=ee, goal_m=goal,
-                             primary_axis=0, human_model=1)  # fmt: skip
+            requests.send(DecisionRequest(header=requests.stamp(), episode=1, seed=1, request=k,
+                                          t_s=k * 0.5, ee_pos_m=ee, goal_m=goal, primary_axis=0,
+                                          human_model=1))  # fmt: skip
             time.sleep(0.05)
             decision = human.decide(0.0, np.array(ee), np.array(goal), 0, 2)
-            intents.publish(episode=1, request=k, u_h=decision.intent.u_h, human_model=1,
-                            radius_m=0.01, confidence=1.0, source="sensor",
-                            decision_s=decision.decision_s)  # fmt: skip
+            intents.send(Intent(header=intents.stamp(), episode=1, request=k,
+                                u_h=decision.intent.u_h, human_model=1, radius_m=0.01,
+                                confidence=1.0, source="pad", person=True,
+                                decision_s=decision.decision_s))  # fmt: skip
             time.sleep(0.05)
         time.sleep(0.3)
         while (message := controller.receive(0)) is not None:
@@ -233,8 +235,8 @@ def test_policy_service_estimates_a_real_humans_model_and_publishes_the_posterio
 
 
 def test_training_never_draws_a_held_out_seed_and_evaluation_only_does() -> None:
-    from dammrl.core.errors import ConfigurationError
-    from dammrl.core.task import HELD_OUT_START, training_seed
+    from dammrl_core.errors import ConfigurationError
+    from dammrl_core.task import HELD_OUT_START, training_seed
 
     assert training_seed(69, 99_999) < HELD_OUT_START
     for run_seed, episode in ((70, 0), (0, 100_000)):

@@ -8,10 +8,10 @@ import mujoco
 import numpy as np
 import pytest
 
-from dammrl.core.dynamics import ArmModel
-from dammrl.core.errors import RobotDescriptionError
-from dammrl.core.robot import RobotDescription
-from services.sim.core import Simulation
+from dammrl_core.dynamics import ArmModel
+from dammrl_core.errors import RobotDescriptionError
+from dammrl_core.robot import RobotDescription
+from dammrl_core.sim.simulation import Simulation
 from tests.conftest import random_postures
 
 
@@ -77,8 +77,8 @@ def test_urdf_with_wrong_joint_count_is_refused(tmp_path: Path) -> None:
 
 def test_another_urdf_with_other_names_runs_a_reach(tmp_path: Path) -> None:
     """Nothing depends on the reference arm's names: rename every joint and the tool."""
-    from dammrl.core.robot import DEFAULT_URDF, RobotSettings
     from dammrl.runner import ReachRunner, ReachSettings
+    from dammrl_core.robot import DEFAULT_URDF, RobotSettings
 
     text = DEFAULT_URDF.read_text()
     for name in RobotDescription.from_urdf().joint_names:

@@ -8,21 +8,12 @@ import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import pytest
 
-from dammrl.arm import EmulatedArm, emulated_arm, guided_calibration, inject, jog, scan
-from dammrl.core.errors import ConfigurationError
-from dammrl.core.robot import RobotSettings
-from dammrl.core.task import TaskSettings
-from schemas import EmergencyStop, Header, JointCommand, Message, RobotState, TaskGoal
-from services.robot.calibration import Calibration, load_calibration, save_calibration
-from services.robot.config import ArmSettings
-from services.robot.driver import DynamixelDriver, ServoCommand
-from services.robot.node import RobotNode
-from services.robot.servo_chain import (
+from dammrl.emulators.arm import EmulatedArm, emulated_arm, inject
+from dammrl.emulators.servo_chain import (
     BUTTON_MODEL,
     GOAL_POSITION,
     KD_UNIT_AS_PER_RAD,
@@ -32,6 +23,17 @@ from services.robot.servo_chain import (
     TICKS_PER_RAD,
     XM430_W350,
 )
+from dammrl_core.arm.driver import DriveCommand
+from dammrl_core.arm.dynamixel.calibration import Calibration, load_calibration, save_calibration
+from dammrl_core.arm.dynamixel.driver import DynamixelDriver
+from dammrl_core.arm.dynamixel.tools import guided_calibration, scan
+from dammrl_core.arm.jog import jog
+from dammrl_core.arm.settings import ArmSettings
+from dammrl_core.errors import ConfigurationError
+from dammrl_core.robot import RobotSettings
+from dammrl_core.task import TaskSettings
+from schemas import EmergencyStop, Header, JointCommand, Message, RobotState, TaskGoal
+from services.robot.node import RobotNode
 
 CALIBRATION = Calibration(
     offsets_rad=(0.1, -0.05, 0.0, 0.2, 0.0, -0.1),
@@ -70,7 +72,7 @@ def test_the_servo_law_is_the_joint_law(arm: EmulatedArm) -> None:
     driver = DynamixelDriver(str(arm.bus.link), CALIBRATION)
     with driver:
         q_ref = driver.read_state().q_rad + rng.uniform(-0.05, 0.05, 6)
-        command = ServoCommand(
+        command = DriveCommand(
             q_ref, rng.uniform(-0.3, 0.3, 6), rng.uniform(-5, 5, 6),
             np.array([400.0, 400, 200, 200, 50, 50]), np.array([30.0, 30, 12, 12, 1.5, 1.5]),
             np.full(6, 30.0),
@@ -101,7 +103,7 @@ def test_jog_moves_one_joint_by_what_was_asked_and_holds_the_others(arm: Emulate
     driver = DynamixelDriver(str(arm.bus.link), CALIBRATION)
     settings = ArmSettings(soft_start_s=0.2)
     before = arm.physics.state.q.copy()
-    moved = jog(driver, settings, 3, -0.1, 0.3, lambda _: None)
+    moved = jog(driver, RobotSettings().load(), settings, 3, -0.1, 0.3, lambda _: None)
     assert moved == pytest.approx(-0.1, abs=0.01)
     after = arm.physics.state.q
     assert after[3] - before[3] == pytest.approx(-0.1, abs=0.01)
@@ -128,7 +130,7 @@ def test_the_guided_calibration_finds_directions_offsets_and_limits(arm: Emulate
         arm.move_by_hand(q)
 
     base = Calibration(gear_ratios=CALIBRATION.gear_ratios)
-    found = guided_calibration(str(arm.bus.link), base, True, person, lambda _: None)
+    found = guided_calibration(str(arm.bus.link), base, robot, True, person, lambda _: None)
     assert found.directions == CALIBRATION.directions
     np.testing.assert_allclose(found.offsets_rad, CALIBRATION.offsets_rad, atol=2 / 651.9)
     np.testing.assert_allclose(found.q_min_rad or (), lower, atol=0.01)
@@ -146,9 +148,10 @@ class _Publisher:
     bus: QueueBus
     kind: type[Message]
 
-    def publish(self, **fields: Any) -> Message:
-        stamp = time.time_ns()
-        message = self.kind(header=Header(stamp_ns=stamp, seq=0, source="robot"), **fields)
+    def stamp(self) -> Header:
+        return Header(stamp_ns=time.time_ns(), seq=0, source="robot")
+
+    def send(self, message: Message) -> Message:
         self.bus.published.append(message)
         return message
 
@@ -228,10 +231,10 @@ class Rig:
 def rig(arm: EmulatedArm, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[Rig]:
     path = tmp_path / "arm.json"
     save_calibration(CALIBRATION, path)
-    settings = ArmSettings(port=str(arm.bus.link), calibration_file=path, soft_start_s=0.3,
-                           homing_speed_rad_s=0.6)  # fmt: skip
+    settings = ArmSettings(soft_start_s=0.3, homing_speed_rad_s=0.6)
+    driver = DynamixelDriver(str(arm.bus.link), load_calibration(path))
     bus = QueueBus()
-    node = RobotNode(settings, TaskSettings(), RobotSettings(), bus)  # type: ignore[arg-type]
+    node = RobotNode(settings, TaskSettings(), RobotSettings(), bus, driver)  # type: ignore[arg-type]
     yield Rig(node, bus, arm)
     if node.connected:
         node.driver.disconnect()
@@ -246,7 +249,7 @@ def _goal(episode: int, q_start: tuple[float, ...] = (0.1, 0.9, 0.0, 1.5, 0.1, 0
 def _answer(rig: Rig, offset: np.ndarray) -> None:
     """A controller: each new state answered with a reference ``offset`` from home."""
     state = rig.bus.states()[-1]
-    if state.episode == 0 or rig.node.homing is not None:
+    if state.episode == 0 or rig.node.law.homing is not None:
         return
     q_ref = np.array(_goal(1).q_start_rad) + offset
     gravity = rig.node.arm.inverse_dynamics(q_ref, np.zeros(6), np.zeros(6))
@@ -264,7 +267,7 @@ def _started(rig: Rig) -> None:
     assert rig.node.connected and rig.last_health[0] == "holding"
     rig.bus.send(_goal(1))
     rig.run(4.0, lambda r: _answer(r, np.zeros(6)))
-    assert rig.node.episode == 1, rig.bus.rejected
+    assert rig.node.law.episode == 1, rig.bus.rejected
     assert rig.last_health[0] == "ok"
 
 
@@ -287,7 +290,7 @@ def test_the_emergency_stop_holds_within_one_period_and_refuses_commands(rig: Ri
     rig.bus.send(EmergencyStop(header=Header(stamp_ns=1, seq=0, source="tool"), engaged=True))
     rig.node.cycle()  # one period
     assert rig.last_health[0] == "stopped"
-    assert rig.node.held is not None and rig.node.command is None
+    assert rig.node.law.held is not None and rig.node.law.command is None
     cycles = len(rig.speeds)
     rig.run(1.0, lambda r: _answer(r, np.array([0.3, 0, 0, 0, 0, 0])))
     stopped_at = next(i for i, s in enumerate(rig.speeds[cycles:]) if s.max() < 0.02)
@@ -311,18 +314,18 @@ def test_after_a_stall_longer_than_the_watchdog_the_servos_obey_again(
     rig.run(1.5, lambda r: _answer(r, target))
     state = rig.bus.states()[-1]
     np.testing.assert_allclose(state.q_rad, np.array(_goal(1).q_start_rad) + target, atol=0.01)
-    assert "the watchdog had stopped servos [1, 2, 3, 4, 5, 6]" in caplog.text
+    assert "the drives [1, 2, 3, 4, 5, 6] had stopped themselves" in caplog.text
 
 
 def test_a_start_posture_never_reached_refuses_the_episode_and_holds(rig: Rig) -> None:
     """Blocked (here: a tolerance no arm meets), the move gives up and the arm holds."""
-    rig.node.settings = rig.node.settings.model_copy(
+    rig.node.law.settings = rig.node.law.settings.model_copy(
         update={"homing_tolerance_rad": 1e-6, "homing_timeout_s": 0.3}
     )
     rig.run(0.5)
     rig.bus.send(_goal(1))
     rig.run(4.0, lambda r: r.bus.send(_goal(1)))  # the controller announces it again
-    assert rig.node.episode == 0 and rig.node.homing is None
+    assert rig.node.law.episode == 0 and rig.node.law.homing is None
     assert sum("start posture not reached" in r for r in rig.bus.rejected) > 1
     state, detail = rig.last_health
     assert state == "holding" and "episode 1: the start posture not reached" in detail
@@ -369,16 +372,16 @@ def test_an_overloaded_servo_is_rebooted_and_holds_where_its_joint_is(rig: Rig) 
     """Servo 6 (wrist pitch, loaded by the hand's weight) cuts its torque mid-motion: the
     arm stops, the servo is rebooted at once and, back after its boot, holds the joint
     where it is then (not pulled back up); the other joints hold meanwhile. A second
-    overload beyond max_reboots leaves it off, said in Health."""
+    overload beyond max_restarts leaves it off, said in Health."""
     rig.arm.chain.boot_s = 0.1
-    rig.node.recovery.max_reboots = 1
+    rig.node.law.recovery.max_restarts = 1
     _started(rig)
     rig.run(0.3, lambda r: _answer(r, np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.2])))  # moving
     q0 = _true_q(rig)
     inject(rig.arm, "overload 6")
     rig.run(1.5)
     state, detail = rig.last_health
-    assert state == "stopped" and "servo 6 back after a reboot" in detail, detail
+    assert state == "stopped" and "joint 6's drive back after a restart" in detail, detail
     q1 = _true_q(rig)
     fall = abs(q1[5] - q0[5])
     print(f"wrist pitch fell {fall:.3f} rad during a 0.1 s reboot")
@@ -389,4 +392,4 @@ def test_an_overloaded_servo_is_rebooted_and_holds_where_its_joint_is(rig: Rig) 
     assert rig.fastest(len(rig.speeds) - 50) < 0.05
     inject(rig.arm, "overload 6")
     rig.run(0.5)
-    assert "left off after 1 reboots: support the arm" in rig.last_health[1]
+    assert "left off after 1 restarts: support the arm" in rig.last_health[1]

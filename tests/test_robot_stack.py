@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dammrl.arm import EmulatedArm, emulated_arm
+from dammrl.emulators.arm import EmulatedArm, emulated_arm
 from schemas import EpisodeResult, Header, Health, TaskGoal, encode
 from tests.busutil import Observer, client_settings, endpoint, free_port, start_service, wait_for
 
@@ -30,7 +30,7 @@ def arm(tmp_path: Path) -> Iterator[EmulatedArm]:
 
 
 def _robot(arm: EmulatedArm, port: int, **env: str) -> subprocess.Popen[bytes]:
-    return start_service("robot", port, DAMMRL_ARM_PORT=str(arm.bus.link), **env)
+    return start_service("robot", port, DAMMRL_DYNAMIXEL_PORT=str(arm.bus.link), **env)
 
 
 def _home_to(observer: Observer, q_start: tuple[float, ...]) -> None:
@@ -91,7 +91,7 @@ def test_the_servos_stop_by_themselves_when_the_robot_service_is_killed(
 ) -> None:
     port = free_port()
     observer = Observer(port)
-    robot = _robot(arm, port, DAMMRL_ARM_WATCHDOG_S="0.1")
+    robot = _robot(arm, port, DAMMRL_DYNAMIXEL_WATCHDOG_S="0.1")
     try:
         _moving(arm, observer)
         robot.send_signal(signal.SIGKILL)

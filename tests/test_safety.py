@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dammrl.core.robot import RobotDescription
-from dammrl.core.safety import ArmCaps, guard_command
-from dammrl.core.state import JointCommand
+from dammrl_core.robot import RobotDescription
+from dammrl_core.safety import ArmCaps, guard_command
+from dammrl_core.state import JointCommand
 from tests.conftest import HOME_Q
 
 CAPS = ArmCaps(0.05, 2000.0, 200.0, max_relative_target_rad=0.15, speed_fraction=1.0)

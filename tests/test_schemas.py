@@ -43,7 +43,7 @@ EXAMPLES: list[Message] = [
     DecisionRequest(header=HEADER, episode=1, seed=1, request=3, t_s=1.0, ee_pos_m=V3, goal_m=V3,
                     primary_axis=0, human_model=2),
     Intent(header=HEADER, episode=1, request=3, u_h=-1, human_model=2, radius_m=0.004,
-           confidence=0.9, source="simulated", decision_s=0.4, correct=False),
+           confidence=0.9, source="simulated", person=False, decision_s=0.4, correct=False),
     ModelChoice(header=HEADER, human_model=1, robot_model=3, radius_m=0.01,
                 steps_m=(0.01, 0.03, 0.01), posterior=(0.7, 0.3)),
     StepEvent(header=HEADER, episode=1, index=4, t_s=1.0, start_s=1.05, trigger="event",
@@ -111,7 +111,7 @@ def test_msgpack_that_is_not_a_map_is_refused() -> None:
         (STATE, {"surprise": 1}, "Extra inputs"),
         (COMMAND, {"kp_nm_per_rad": [-1, 0, 0, 0, 0, 0]}, "greater than or equal"),
         (INTENT, {"u_h": 0}, "u_h"),
-        (INTENT, {"source": "telepathy"}, "source"),
+        (INTENT, {"source": ""}, "source"),
         (INTENT, {"human_model": 3}, "human_model"),
     ],
 )
@@ -141,3 +141,21 @@ def test_json_schema_exists_for_every_message() -> None:
 def test_every_topic_has_an_example_here() -> None:
     """The round trips above, and the stack's fuzzer, cover every message type."""
     assert {type(m) for m in EXAMPLES} == set(TOPICS.values())
+
+
+def test_an_episode_result_carries_exactly_the_metrics_of_a_reach() -> None:
+    """One definition of the episode metrics: ReachMetrics (the library); EpisodeResult
+    carries exactly its fields and what identifies the run, so a metric added to one is
+    missing from the other only until this test runs."""
+    from schemas import EpisodeResult
+    from services.common.convert import IDENTIFIES_A_RUN, METRICS
+
+    carried = set(EpisodeResult.model_fields) - {"header", "episode", *IDENTIFIES_A_RUN}
+    assert carried == set(METRICS)
+
+
+def test_an_intent_recorded_before_person_existed_reads_as_the_pad_was_a_person() -> None:
+    from schemas import Intent, decode
+
+    old = msgpack.packb(INTENT.model_dump(exclude={"person"}) | {"source": "sensor"})
+    assert decode(Intent, old).person

@@ -10,9 +10,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from dammrl.emulators.pad import Press, SensorEmulator
 from dammrl.recording import session_traces
 from schemas import DecisionRequest, EpisodeResult, Health, Intent, ModelChoice, SensorSample
-from services.intent.emulator import Press, SensorEmulator
 from tests.busutil import Observer, free_port, start_patient, start_service, wait_for
 
 pytestmark = pytest.mark.slow  # real processes on a real bus
@@ -24,7 +24,7 @@ def test_an_emulated_sensor_drives_a_semi_virtual_episode_to_the_goal(tmp_path: 
     """The hurried patient (quick presses: E_big) on the emulated pad, a fixed policy."""
     link, port = tmp_path / "ttySENSOR", free_port()
     observer = Observer(port)
-    sensor = {"DAMMRL_INTENT_SOURCE": "serial", "DAMMRL_INTENT_PORT": str(link)}
+    sensor = {"DAMMRL_INTENT_SOURCE": "pad", "DAMMRL_PAD_PORT": str(link)}
     fixed = {"DAMMRL_POLICY_KIND": "fixed", "DAMMRL_POLICY_HUMAN_MODEL": "1"}
     processes = [
         start_patient(link, port, human_model=1),
@@ -51,8 +51,8 @@ def test_an_emulated_sensor_drives_a_semi_virtual_episode_to_the_goal(tmp_path: 
 def test_the_intent_service_survives_an_unplugged_sensor_and_reconnects(tmp_path: Path) -> None:
     link, port = tmp_path / "ttySENSOR", free_port()
     observer = Observer(port)
-    serial_env = {"DAMMRL_INTENT_SOURCE": "serial", "DAMMRL_INTENT_PORT": str(link)}
-    intent = start_service("intent", port, DAMMRL_INTENT_RECONNECT_MAX_S="0.5", **serial_env)
+    serial_env = {"DAMMRL_INTENT_SOURCE": "pad", "DAMMRL_PAD_PORT": str(link)}
+    intent = start_service("intent", port, DAMMRL_PAD_RECONNECT_MAX_S="0.5", **serial_env)
     try:
         with SensorEmulator(link, FIRM_QUICK_EVERY_HALF_SECOND, loop_s=0.5):
             wait_for(lambda: len(observer.of(SensorSample)) > 20, 30, "samples")
@@ -89,7 +89,7 @@ def test_a_simulated_patient_at_the_pad_is_recognised_by_the_policys_posterior(
         start_patient(link, port, human_model=2),
         start_service("sim", port),
         start_service("policy", port),
-        start_service("intent", port, DAMMRL_INTENT_SOURCE="serial", DAMMRL_INTENT_PORT=str(link)),
+        start_service("intent", port, DAMMRL_INTENT_SOURCE="pad", DAMMRL_PAD_PORT=str(link)),
         start_service("controller", port, DAMMRL_TASK_EPISODES="1", DAMMRL_TASK_SEED="3"),
     ]
     try:
@@ -128,7 +128,7 @@ def test_a_simulated_patient_at_the_pad_is_recognised_by_the_policys_posterior(
 def test_the_intent_service_survives_every_wire_fault_and_still_answers(tmp_path: Path) -> None:
     link, port = tmp_path / "ttySENSOR", free_port()
     observer = Observer(port)
-    serial_env = {"DAMMRL_INTENT_SOURCE": "serial", "DAMMRL_INTENT_PORT": str(link)}
+    serial_env = {"DAMMRL_INTENT_SOURCE": "pad", "DAMMRL_PAD_PORT": str(link)}
     intent = start_service("intent", port, **serial_env)
     faults = [
         bytes(range(256)) * 4,  # binary garbage

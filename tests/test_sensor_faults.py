@@ -11,12 +11,17 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
-from dammrl.core.errors import ConfigurationError, Exit
+from dammrl.emulators.pad import DEFAULT_CALIBRATION, Press, SensorEmulator
+from dammrl_core.errors import ConfigurationError, Exit
+from dammrl_core.intent.pad.calibration import (
+    CalibrationError,
+    Rest,
+    calibration_from,
+    load_calibration,
+)
+from dammrl_core.intent.pad.decoder import Calibration, DecoderSettings, PressDecoder
+from dammrl_core.intent.pad.protocol import frames_lost
 from schemas import Health
-from services.intent.calibration import CalibrationError, Rest, calibration_from, load_calibration
-from services.intent.decoder import Calibration, DecoderSettings, PressDecoder
-from services.intent.emulator import DEFAULT_CALIBRATION, Press, SensorEmulator
-from services.intent.protocol import frames_lost
 from tests.busutil import Observer, free_port, start_service, wait_for
 from tests.sensor_fault_trials import (
     NARROWEST,
@@ -149,9 +154,7 @@ def test_levels_not_separated_by_a_margin_over_the_rest_noise_are_refused() -> N
 
 def test_thresholds_that_rest_noise_could_cross_are_refused_with_the_variable() -> None:
     noisy = Calibration(rest_raw=400, light_raw=1000, firm_raw=1400, rest_noise_raw=30)
-    with pytest.raises(
-        ConfigurationError, match=r"DAMMRL_INTENT_DECODER__OFF_LEVEL=0\.08 .* 80\.0"
-    ):
+    with pytest.raises(ConfigurationError, match=r"DAMMRL_PAD_DECODER__OFF_LEVEL=0\.08 .* 80\.0"):
         PressDecoder(noisy)
     assert PressDecoder(noisy, DecoderSettings(off_level=0.15, on_level=0.25))
 
@@ -186,9 +189,9 @@ def test_the_intent_service_refuses_a_calibration_noise_could_cross(tmp_path: Pa
     path.write_text('{"rest_raw": 400, "light_raw": 400.0001, "firm_raw": 400.0002}')
     port = free_port()
     observer = Observer(port)
-    service = start_service("intent", port, DAMMRL_INTENT_SOURCE="serial",
-                            DAMMRL_INTENT_PORT=str(tmp_path / "tty"),
-                            DAMMRL_INTENT_CALIBRATION_FILE=str(path))  # fmt: skip
+    service = start_service("intent", port, DAMMRL_INTENT_SOURCE="pad",
+                            DAMMRL_PAD_PORT=str(tmp_path / "tty"),
+                            DAMMRL_PAD_CALIBRATION_FILE=str(path))  # fmt: skip
     try:
         assert service.wait(60) == Exit.BAD_INPUT
     finally:
@@ -219,7 +222,7 @@ def test_unplugged_during_a_press_and_replugged_at_rest_answers_nothing(tmp_path
 def test_a_stuck_sensor_is_reported_in_health_and_recovers_without_a_decision(
     tmp_path: Path,
 ) -> None:
-    stuck_after = {"DAMMRL_INTENT_DECODER__STUCK_AFTER_S": "1.5"}
+    stuck_after = {"DAMMRL_PAD_DECODER__STUCK_AFTER_S": "1.5"}
     with port_rig(tmp_path, **stuck_after) as rig, SensorEmulator(rig.link, []) as pad:
         rig.wait_samples()
         rig.open_request()

@@ -9,9 +9,10 @@ from pathlib import Path
 
 import pytest
 
-from dammrl.core.errors import ConfigurationError, Exit
+from dammrl.emulators.pad import DEFAULT_CALIBRATION, Press, SensorEmulator
 from dammrl.sensor import calibrate
-from services.intent.calibration import (
+from dammrl_core.errors import ConfigurationError, Exit
+from dammrl_core.intent.pad.calibration import (
     CalibrationError,
     Rest,
     calibration_from,
@@ -19,8 +20,7 @@ from services.intent.calibration import (
     load_calibration,
     rest_of,
 )
-from services.intent.emulator import DEFAULT_CALIBRATION, Press, SensorEmulator
-from services.intent.serial_sensor import SerialSensor
+from dammrl_core.intent.pad.serial import SerialSensor
 
 HOLD_LEVELS = {"REST": 0.0, "LIGHT": 0.3, "FIRM": 0.9}
 
@@ -118,7 +118,7 @@ def test_monitor_uses_the_intent_services_decoder_settings(tmp_path: Path) -> No
     with SensorEmulator(link, [Press(0.3, 0.8, 0.35)], loop_s=1.5):
         done = _dammrl(
             "sensor", "monitor", "--port", str(link), "--seconds", "2.5",
-            DAMMRL_INTENT_DECODER__LONG_PRESS_S="1.2",
+            DAMMRL_PAD_DECODER__LONG_PRESS_S="1.2",
         )  # fmt: skip
     assert "-1 back (light)    quick" in done.stdout, done.stdout + done.stderr
 
@@ -166,7 +166,7 @@ def test_calibrate_refuses_a_pad_too_noisy_for_the_thresholds_and_says_what_to_r
                 person.stdin.flush()
         _, stderr = person.communicate(timeout=30)
     assert person.returncode == Exit.BAD_INPUT and not out.exists(), stderr
-    assert "DAMMRL_INTENT_DECODER__OFF_LEVEL" in stderr and "Redo all three steps" in stderr
+    assert "DAMMRL_PAD_DECODER__OFF_LEVEL" in stderr and "Redo all three steps" in stderr
     assert "Traceback" not in stderr and len(stderr.strip().splitlines()) == 1, stderr
 
 

@@ -19,9 +19,9 @@ from dynamixel_sdk import (
     PortHandler,
 )
 
-from services.robot.emulator import ServoBusEmulator
-from services.robot.protocol2 import PacketReader, instruction_packet, status_packet
-from services.robot.servo_chain import (
+from dammrl.emulators.protocol2 import PacketReader, instruction_packet, status_packet
+from dammrl.emulators.servo_bus import ServoBusEmulator
+from dammrl.emulators.servo_chain import (
     BUS_WATCHDOG,
     GOAL_POSITION,
     HARDWARE_ERROR_STATUS,
@@ -142,30 +142,36 @@ def test_the_dynamixel_driver_holds_moves_and_reports_through_the_emulated_chain
     watchdog is armed so a dead host stops the servos."""
     import numpy as np
 
-    from services.robot.calibration import Calibration
-    from services.robot.driver import DriverError, ServoCommand, make_driver
+    from dammrl_core.arm.driver import DriveCommand, DriveFault, DriverError, driver_plugin
+    from dammrl_core.arm.dynamixel.calibration import Calibration, save_calibration
+
+    plugin = driver_plugin("dynamixel")
 
     chain = ServoChain(IDS)  # first-order servos: they follow their goals
     calibration = Calibration(offsets_rad=(0.1, 0, 0, 0, 0, -0.2), directions=(1, -1, 1, 1, 1, 1),
                               button_id=None)  # fmt: skip
-    with ServoBusEmulator(chain, tmp_path / "ttyROBOT") as emulator:
-        driver = make_driver("dynamixel", port=str(tmp_path / "ttyROBOT"), calibration=calibration)
-        with driver:  # type: ignore[attr-defined]
+    save_calibration(calibration, tmp_path / "arm.json")
+    path = tmp_path / "ttyROBOT"
+    settings = plugin.settings(port=str(path), calibration_file=tmp_path / "arm.json")
+    with ServoBusEmulator(chain, path) as emulator:
+        driver = plugin.create(settings)
+        with driver:
             start = driver.read_state().q_rad
             target = start + np.array([0.2, -0.1, 0.05, 0.0, 0.1, -0.05])
             zeros, gains = np.zeros(6), np.full(6, 100.0)
-            command = ServoCommand(target, zeros, zeros, gains, zeros, np.full(6, 10.0))
+            command = DriveCommand(target, zeros, zeros, gains, zeros, np.full(6, 10.0))
             until = time.monotonic() + 0.4
             while time.monotonic() < until:  # a control loop: the watchdog (0.1 s) stays fed
                 driver.write_command(command)
                 time.sleep(0.01)
             state = driver.read_state()
             np.testing.assert_allclose(state.q_rad, target, atol=2 / 651.9)  # 2 ticks
-            assert state.hardware_errors == {}
+            assert state.faults == ()
             with emulator.lock:
                 assert all(s.table[BUS_WATCHDOG] == 5 for s in chain.servos.values())
                 chain.overload(4)
-            assert driver.read_state().hardware_errors == {4: OVERLOAD_BIT}
+            fault = DriveFault(3, "servo 4: overload", restartable=True)
+            assert driver.read_state().faults == (fault,)
             with emulator.lock:
                 chain.faults.missing = {2}
             with pytest.raises(DriverError, match="servo 2 missing from the sync read"):
@@ -173,6 +179,6 @@ def test_the_dynamixel_driver_holds_moves_and_reports_through_the_emulated_chain
             with emulator.lock:
                 chain.faults.missing = set()
     with pytest.raises(DriverError, match="cannot open"):
-        make_driver("dynamixel", port=str(tmp_path / "nothing")).connect()
-    with pytest.raises(Exception, match="unknown robot driver"):
-        make_driver("kuka")
+        plugin.create(plugin.settings(port=str(tmp_path / "nothing"))).connect()
+    with pytest.raises(Exception, match=r"unknown arm driver \(DAMMRL_ARM_DRIVER\) 'kuka'"):
+        driver_plugin("kuka")

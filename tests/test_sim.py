@@ -5,12 +5,12 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 
-from dammrl.core.dynamics import ArmModel
-from dammrl.core.robot import RobotDescription
-from dammrl.core.robot.scene import SceneLayout
-from dammrl.core.state import JointCommand
-from services.sim.config import DomainRandomization, SimSettings
-from services.sim.core import Simulation
+from dammrl_core.dynamics import ArmModel
+from dammrl_core.robot import RobotDescription
+from dammrl_core.robot.scene import SceneLayout
+from dammrl_core.sim.settings import DomainRandomization, SimSettings
+from dammrl_core.sim.simulation import Simulation
+from dammrl_core.state import JointCommand
 from tests.conftest import HOME_Q, random_postures
 
 

@@ -17,7 +17,7 @@ import msgpack
 import numpy as np
 import pytest
 
-from dammrl.core.robot import RobotDescription
+from dammrl_core.robot import RobotDescription
 from schemas import TOPICS, EpisodeResult, Health, RobotState, StepEvent, encode
 from tests.busutil import SERVICES, Observer, Stack, free_port, wait_for
 from tests.test_schemas import EXAMPLES

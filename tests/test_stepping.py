@@ -5,14 +5,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from services.controller.stepping import (
+from dammrl_core.control.stepping import (
     event_trigger,
     fixed_timer_due,
     lyapunov,
     lyapunov_rate,
     micro_step,
 )
-from services.controller.trajectory import QuinticSegment, segment_duration
+from dammrl_core.control.trajectory import QuinticSegment, segment_duration
 
 W = np.ones(3)
 STEPS = np.array([0.01, 0.02, 0.03])

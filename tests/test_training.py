@@ -13,7 +13,6 @@ import numpy as np
 import pytest
 from scipy.stats import trim_mean
 
-from dammrl.core.task import held_out_seeds
 from dammrl.study.configs import checkpoint_files
 from dammrl.study.frontier import Comparison, analyse, beta_dir, frontier_jobs, verdict
 from dammrl.study.stats import (
@@ -34,6 +33,7 @@ from dammrl.study.training import (
     summarize,
     write_group_report,
 )
+from dammrl_core.task import held_out_seeds
 
 
 def tiny(jobs: list[TrainJob]) -> list[TrainJob]:

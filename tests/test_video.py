@@ -9,9 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dammrl.core.errors import ConfigurationError
 from dammrl.runner import ReachRunner
 from dammrl.video import VideoSettings, frame_times, frames, track_of_reach, write_video
+from dammrl_core.errors import ConfigurationError
 
 SMALL = VideoSettings(fps=5, width=160, height=120)
 

@@ -13,8 +13,8 @@ import jsonschema
 import numpy as np
 import pytest
 
-from dammrl.core.dynamics import ArmModel
-from dammrl.core.robot import RobotDescription
+from dammrl_core.dynamics import ArmModel
+from dammrl_core.robot import RobotDescription
 from schemas import Header, RobotState, StepEvent, TaskGoal
 from tests.busutil import free_port
 

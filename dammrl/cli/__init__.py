@@ -16,8 +16,8 @@ from pydantic import ValidationError
 
 from dammrl import __version__
 from dammrl.cli import bus, reach, recording, rl, robot, sensor, stack, study, view
-from dammrl.core.errors import EXIT_CODES_HELP, DammrlError, Exit
-from dammrl.core.settings import error_line
+from dammrl_core.errors import EXIT_CODES_HELP, DammrlError, Exit
+from dammrl_core.settings import error_line
 
 GROUPS = (
     reach.register,

@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 
 from dammrl.cli.common import Commands, print_err, print_out
-from dammrl.core.errors import Exit
+from dammrl_core.errors import Exit
 
 
 def register(commands: Commands) -> None:

@@ -9,7 +9,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, TypeAlias
 
-from dammrl.core.models import parse_model
+from dammrl_core.models import parse_model
 from schemas import DEFAULT_NAMESPACE
 
 if TYPE_CHECKING:
@@ -44,7 +44,7 @@ SEEDS_HELP = (
 
 def seeds_arg(text: str) -> range:
     """Argument type: held-out task seeds ``N`` or ``A:B``."""
-    from dammrl.core.task import held_out_seeds
+    from dammrl_core.task import held_out_seeds
 
     try:
         return held_out_seeds(text)
@@ -192,7 +192,7 @@ def check_video_path(path: Path) -> None:
     """A video's name says its format; MP4 needs PyAV (the ``video`` extra)."""
     import importlib.util
 
-    from dammrl.core.errors import UsageError
+    from dammrl_core.errors import UsageError
 
     suffix = path.suffix.lower()
     if suffix not in (".mp4", ".gif"):

@@ -101,8 +101,8 @@ def write_video_of(result: ReachResult, path: Path) -> None:
 def _settings(args: argparse.Namespace) -> ReachSettings:
     """The runner's settings from ``--ik``, ``--feedforward`` and ``--randomize``."""
     from dammrl.runner import ReachSettings
-    from services.controller.config import ControllerSettings
-    from services.sim.config import DomainRandomization, SimSettings
+    from dammrl_core.control.settings import ControllerSettings
+    from dammrl_core.sim.settings import DomainRandomization, SimSettings
 
     controller: dict[str, object] = {}
     if args.ik:

@@ -16,7 +16,7 @@ from dammrl.cli.common import (
     print_err,
     progress_bar,
 )
-from dammrl.core.errors import Exit
+from dammrl_core.errors import Exit
 
 
 def register(commands: Commands) -> None:
@@ -159,9 +159,9 @@ def _export(args: argparse.Namespace) -> int:
 
 def _plot(args: argparse.Namespace) -> int:
     """The pressure trace above the end-effector error; prints the figure's path."""
-    from dammrl.core.task import TaskSettings
     from dammrl.plots import plot_session
     from dammrl.recording import session_traces
+    from dammrl_core.task import TaskSettings
 
     traces = session_traces(args.file, args.episode)
     title = f"{args.file.name}: {len(traces.decisions)} decisions, {len(traces.pressure)} samples"

@@ -78,9 +78,9 @@ def _betas(text: str) -> list[float]:
 
 def _train(args: argparse.Namespace) -> int:
     """Train (or resume) a run; progress on stderr, the last 50 episodes' success at the end."""
-    from dammrl.core.errors import UsageError
     from dammrl.rl.config import RewardWeights, TrainSettings
     from dammrl.rl.train import EpisodeLog, progress_summary, train
+    from dammrl_core.errors import UsageError
 
     if args.seeds is not None:
         return _train_seeds(args)
@@ -110,8 +110,8 @@ def _train(args: argparse.Namespace) -> int:
 
 
 def _train_seeds(args: argparse.Namespace) -> int:
-    from dammrl.core.errors import UsageError
     from dammrl.study.training import check_seeds, group_jobs, ship, write_group_report
+    from dammrl_core.errors import UsageError
 
     if not 1 <= args.seeds <= 70 or args.seed is not None:
         raise UsageError("--seeds N takes 1 to 70 seeds (0..N-1), and no --seed")
@@ -139,8 +139,8 @@ def _frontier(args: argparse.Namespace) -> int:
 
 def _run_grid(jobs: list[Any], args: argparse.Namespace) -> float:
     """Train and evaluate every job (processes or Ray) with a progress bar; wall time [s]."""
-    from dammrl.core.errors import UsageError
     from dammrl.study.training import run_training
+    from dammrl_core.errors import UsageError
 
     if args.jobs < 1:
         raise UsageError(f"--jobs must be at least 1, got {args.jobs}")

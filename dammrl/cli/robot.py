@@ -1,8 +1,10 @@
-"""``dammrl robot scan|jog|calibrate|emulate`` (the real arm) and ``dammrl stop``."""
+"""``dammrl robot drivers|scan|jog|calibrate|emulate`` (the real arm, through its driver plug-in)
+and ``dammrl stop``."""
 
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import threading
 from pathlib import Path
@@ -19,30 +21,44 @@ from dammrl.cli.common import (
     print_err,
     print_out,
 )
-from dammrl.core.errors import DammrlError, Exit
+from dammrl_core.errors import DammrlError, Exit, UsageError
 
 if TYPE_CHECKING:
-    from dammrl.arm import EmulatedArm
+    from dammrl.emulators.arm import EmulatedArm
     from dammrl.stop import StopReport
-    from services.robot.calibration import Calibration
-    from services.robot.config import ArmSettings
+    from dammrl_core.arm.driver import DriverPlugin
+    from dammrl_core.settings import Settings
 
-PORT_HELP = "the servo bus's serial device, e.g. /dev/ttyUSB0 (default DAMMRL_ARM_PORT)"
-CALIBRATION_HELP = "the arm's calibration file (default DAMMRL_ARM_CALIBRATION_FILE)"
+DRIVER_HELP = "the arm's driver (default DAMMRL_ARM_DRIVER; `dammrl robot drivers` lists them)"
+SETTING_HELP = (
+    "a setting of the driver, e.g. port=/dev/ttyUSB1 or ids=[1,2,3,4,5,6] (repeatable; the "
+    "same as its environment variable, e.g. DAMMRL_DYNAMIXEL_PORT)"
+)
 
 
 def register(commands: Commands) -> None:
     """Add ``robot`` and its actions."""
-    robot = commands.add_parser("robot", help="the real arm: scan, jog, calibrate, emulate")
+    robot = commands.add_parser(
+        "robot", help="the real arm: drivers, scan, jog, calibrate, emulate"
+    )
     actions = robot.add_subparsers(required=True, metavar="ACTION")
-    helptext = "serial ports, and the servos on a bus: ids, models, firmware"
+    helptext = "the arm drivers installed (built-in and from packages)"
+    drivers = actions.add_parser("drivers", help=helptext, description=helptext)
+    drivers.set_defaults(handler=_drivers)
+    helptext = "the devices on the arm's bus (ids, models, firmware)"
     scan = actions.add_parser("scan", help=helptext, description=helptext)
-    scan.add_argument("--port", help=PORT_HELP)
-    scan.add_argument("--baud", type=int, default=1_000_000, help="bus speed (default 1 Mbaud)")
+    _add_driver_arguments(scan)
     scan.set_defaults(handler=_scan)
     _add_jog(actions)
     _add_calibrate(actions)
     _add_emulate(actions)
+
+
+def _add_driver_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--driver", help=DRIVER_HELP)
+    parser.add_argument("-s", "--driver-setting", action="append", default=[],
+                        metavar="NAME=VALUE", help=SETTING_HELP)  # fmt: skip
+    parser.add_argument("--port", help="shorthand for -s port=PORT")
 
 
 def register_stop(commands: Commands) -> None:
@@ -79,8 +95,7 @@ def _add_jog(actions: Commands) -> None:
     jog.add_argument("joint", type=int, choices=range(6), help="joint index, base = 0")
     jog.add_argument("--by", type=float, default=0.1, help="radians, signed (default 0.1)")
     jog.add_argument("--speed", type=positive, default=0.1, help="rad/s (default 0.1, max 0.3)")
-    jog.add_argument("--port", help=PORT_HELP)
-    jog.add_argument("--calibration", type=Path, help=CALIBRATION_HELP)
+    _add_driver_arguments(jog)
     jog.set_defaults(handler=_jog)
 
 
@@ -93,23 +108,16 @@ def _add_calibrate(actions: Commands) -> None:
         "posture (finds the zero offsets), then optionally each joint to the ends of the "
         "person's comfortable range (limits tighter than the URDF's).",
     )
-    calibrate.add_argument("--port", help=PORT_HELP)
+    _add_driver_arguments(calibrate)
     calibrate.add_argument("--out", type=Path, default=Path("arm_calibration.json"),
                            help="where to save it (default arm_calibration.json)")  # fmt: skip
-    calibrate.add_argument("--ids", default="1,2,3,4,5,6", help="servo ids, base first")
-    calibrate.add_argument("--gear-ratios", default="1,1,1,1,1,1",
-                           help="servo turns per joint turn, base first")  # fmt: skip
-    calibrate.add_argument("--torque-per-amp", help="servo N m/A, base first (default: "
-                           "the emulated arm's)")  # fmt: skip
-    calibrate.add_argument("--button-id", type=int, default=100,
-                           help="the button board's id, -1: none")  # fmt: skip
     calibrate.add_argument("--limits", action="store_true",
                            help="also record each joint's comfortable range")  # fmt: skip
     calibrate.set_defaults(handler=_calibrate)
 
 
 def _add_emulate(actions: Commands) -> None:
-    from services.robot.servo_chain import FAULT_HELP
+    from dammrl.emulators.servo_chain import FAULT_HELP
 
     emulate = actions.add_parser(
         "emulate",
@@ -133,47 +141,60 @@ def _add_emulate(actions: Commands) -> None:
     emulate.set_defaults(handler=_emulate)
 
 
-def _settings() -> ArmSettings:
-    from services.robot.config import ArmSettings
+def _driver(args: argparse.Namespace) -> tuple[DriverPlugin, Settings]:
+    """The driver plug-in and its settings: the environment's, with the command line's
+    ``-s NAME=VALUE`` (JSON values where they parse, else strings) and ``--port``."""
+    from dammrl_core.arm.driver import driver_plugin
+    from dammrl_core.arm.settings import ArmSettings
 
-    return ArmSettings()
+    plugin = driver_plugin(args.driver or ArmSettings().driver)
+    values: dict[str, object] = {}
+    for item in args.driver_setting + ([f"port={args.port}"] if args.port else []):
+        name, sep, value = item.partition("=")
+        if not sep:
+            raise UsageError(f"-s {item!r}: expected NAME=VALUE")
+        try:
+            values[name.strip()] = json.loads(value)
+        except ValueError:
+            values[name.strip()] = value
+    return plugin, plugin.settings(**values)
 
 
-def _calibration(path: Path | None) -> Calibration:
-    from services.robot.calibration import Calibration, load_calibration
+def _drivers(args: argparse.Namespace) -> int:
+    from dammrl_core.arm.driver import driver_plugins
 
-    path = path or _settings().calibration_file
-    return Calibration() if path is None else load_calibration(path)
-
-
-def _scan(args: argparse.Namespace) -> int:
-    from dammrl.arm import MODEL_NAMES, scan, serial_ports
-
-    ports = serial_ports()
-    print_out("serial ports: " + (", ".join(ports) if ports else "none found"))
-    port = args.port or _settings().port
-    devices = scan(port, args.baud)
-    if not devices:
-        print_err(f"dammrl: no device answers on {port} at {args.baud} baud")
-        return Exit.FAILED
-    print_out(f"{len(devices)} devices on {port} at {args.baud} baud:")
-    print_out(f"{'id':>4}  {'model':<12} {'number':>6}  firmware")
-    for d in devices:
-        name = MODEL_NAMES.get(d.model, "unknown")
-        print_out(f"{d.servo_id:>4}  {name:<12} {d.model:>6}  {d.firmware}")
+    for name in driver_plugins():
+        print_out(name)
     return Exit.OK
 
 
-def _jog(args: argparse.Namespace) -> int:
-    from dammrl.arm import jog
-    from services.robot.driver import DynamixelDriver
+def _scan(args: argparse.Namespace) -> int:
+    plugin, settings = _driver(args)
+    devices = plugin.scan(settings)
+    if not devices:
+        print_err(f"dammrl: no device answers ({plugin.name}: {_brief(settings)})")
+        return Exit.FAILED
+    print_out(f"{len(devices)} devices ({plugin.name}: {_brief(settings)}):")
+    for line in devices:
+        print_out(f"  {line}")
+    return Exit.OK
 
-    settings = _settings()
+
+def _brief(settings: Settings) -> str:
+    return ", ".join(f"{k}={v}" for k, v in settings.model_dump().items() if v is not None)
+
+
+def _jog(args: argparse.Namespace) -> int:
+    from dammrl_core.arm.jog import jog
+    from dammrl_core.arm.settings import ArmSettings
+    from dammrl_core.robot import RobotSettings
+
     if args.speed > 0.3:
         raise DammrlError("--speed above 0.3 rad/s: jog is for checking, slowly")
-    driver = DynamixelDriver(args.port or settings.port, _calibration(args.calibration),
-                             settings.baud, settings.watchdog_s)  # fmt: skip
-    moved = jog(driver, settings, args.joint, args.by, args.speed, print_err)
+    plugin, settings = _driver(args)
+    robot = RobotSettings().load()
+    driver = plugin.create(settings)
+    moved = jog(driver, robot, ArmSettings(), args.joint, args.by, args.speed, print_err)
     same = np.sign(moved) == np.sign(args.by) and abs(moved) > 0.5 * abs(args.by)
     verdict = "direction as commanded" if same else "CHECK the direction and the offset"
     print_out(f"joint {args.joint}: commanded {args.by:+.3f} rad, measured {moved:+.3f} rad: "
@@ -181,39 +202,20 @@ def _jog(args: argparse.Namespace) -> int:
     return Exit.OK if same else Exit.FAILED
 
 
-def _floats(text: str, what: str) -> tuple[float, ...]:
-    try:
-        values = tuple(float(v) for v in text.split(","))
-    except ValueError:
-        values = ()
-    if len(values) != 6:
-        raise DammrlError(f"{what}: six comma-separated numbers, base first (got {text!r})")
-    return values
-
-
 def _calibrate(args: argparse.Namespace) -> int:
-    from dammrl.arm import guided_calibration
-    from services.robot.calibration import Calibration, save_calibration
+    from dammrl_core.robot import RobotSettings
 
-    constants = {}
-    if args.torque_per_amp is not None:
-        constants["torque_per_amp_nm"] = _floats(args.torque_per_amp, "--torque-per-amp")
-    base = Calibration(
-        ids=tuple(int(v) for v in _floats(args.ids, "--ids")),
-        gear_ratios=_floats(args.gear_ratios, "--gear-ratios"),
-        button_id=None if args.button_id < 0 else args.button_id,
-        **constants,
-    )
-    port = args.port or _settings().port
+    plugin, settings = _driver(args)
+    robot = RobotSettings().load()
     try:
-        calibration = guided_calibration(port, base, args.limits, _ask, print_out)
+        calibration = plugin.calibrate(settings, robot, args.limits, _ask, print_out)
     except (KeyboardInterrupt, EOFError):
         print_err("\ncalibration cancelled; nothing saved")
         return Exit.INTERRUPTED
-    save_calibration(calibration, args.out)
-    print_out(f"saved {args.out}\ncheck it:  dammrl robot jog 0 --by 0.1 --calibration "
-              f"{args.out} --port {port}\nuse it:    DAMMRL_ARM_CALIBRATION_FILE="
-              f"{args.out.resolve()} dammrl up --mode real --robot-port {port}")  # fmt: skip
+    args.out.write_text(calibration.model_dump_json(indent=2) + "\n")
+    print_out(f"saved {args.out}\ncheck it:  dammrl robot jog 0 --by 0.1 -s calibration_file="
+              f"{args.out}\nuse it:    the driver's calibration setting, e.g. "
+              f"DAMMRL_DYNAMIXEL_CALIBRATION_FILE={args.out.resolve()}")  # fmt: skip
     return Exit.OK
 
 
@@ -223,11 +225,13 @@ def _ask(prompt: str) -> None:
 
 def _emulate(args: argparse.Namespace) -> int:
     """Serve the emulated arm; fault commands from stdin."""
-    from dammrl.arm import emulated_arm
+    from dammrl.emulators.arm import emulated_arm
+    from dammrl_core.arm.dynamixel.calibration import Calibration, load_calibration
     from services.common.runtime import stop_on_signals
 
     stop = stop_on_signals()
-    with emulated_arm(args.port, _calibration(args.calibration)) as arm:
+    calibration = Calibration() if args.calibration is None else load_calibration(args.calibration)
+    with emulated_arm(args.port, calibration) as arm:
         ids = ", ".join(str(i) for i in arm.chain.servos)
         print_err(f"emulated arm on {args.port} (devices {ids}); Ctrl-C stops")
         if not sys.stdin.isatty():
@@ -242,7 +246,7 @@ def _emulate(args: argparse.Namespace) -> int:
 
 def _faults(arm: EmulatedArm, stop: threading.Event) -> None:
     """Fault commands, one per line on stdin, until it closes."""
-    from dammrl.arm import inject
+    from dammrl.emulators.arm import inject
 
     for line in sys.stdin:
         try:

@@ -9,11 +9,11 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from dammrl.cli.common import DEFAULT_CONNECT, Commands, add_bus_arguments, bus_settings, positive
-from dammrl.core.errors import DammrlError
+from dammrl_core.errors import DammrlError
 
 if TYPE_CHECKING:
-    from services.intent.decoder import Calibration
-    from services.intent.emulator import SensorEmulator
+    from dammrl.emulators.pad import SensorEmulator
+    from dammrl_core.intent.pad.decoder import Calibration
 
 PORT_HELP = "serial device, e.g. /dev/ttyUSB0"
 
@@ -34,7 +34,7 @@ def _add_calibrate(actions: Commands) -> None:
         "calibrate",
         help="guided: rest, light press, firm press; saves a calibration file",
         description="Record the pad at rest, under a light and under a firm press, and save "
-        "the calibration the intent service reads (DAMMRL_INTENT_CALIBRATION_FILE).",
+        "the calibration the intent service reads (DAMMRL_PAD_CALIBRATION_FILE).",
     )
     calibrate.add_argument("--port", required=True, help=PORT_HELP)
     calibrate.add_argument("--out", type=Path, default=Path("sensor_calibration.json"),
@@ -51,7 +51,7 @@ def _add_monitor(actions: Commands) -> None:
     )
     monitor.add_argument("--port", required=True, help=PORT_HELP)
     monitor.add_argument(
-        "--calibration", type=Path, help="calibration file (default DAMMRL_INTENT_CALIBRATION_FILE)"
+        "--calibration", type=Path, help="calibration file (default DAMMRL_PAD_CALIBRATION_FILE)"
     )
     monitor.add_argument("--seconds", type=positive, help="stop after this long")
     monitor.set_defaults(handler=_monitor)
@@ -101,11 +101,11 @@ def _list(args: argparse.Namespace) -> int:
 def _calibrate(args: argparse.Namespace) -> int:
     """Three guided recordings, then save the calibration; 130 if the person cancels."""
     from dammrl.sensor import calibrate, quiet_reader
-    from services.intent.config import IntentSettings
-    from services.intent.serial_sensor import SerialSensor
+    from dammrl_core.intent.pad.serial import SerialSensor
+    from dammrl_core.intent.pad.source import PadSettings
 
     quiet_reader()
-    decoder = IntentSettings().decoder  # the service's thresholds: the levels must suit them
+    decoder = PadSettings().decoder  # the service's thresholds: the levels must suit them
     if not args.out.parent.is_dir():  # say so before the person does three recordings
         raise DammrlError(f"cannot save the calibration: {args.out.parent} is not a directory")
 
@@ -132,7 +132,7 @@ def _say_saved(args: argparse.Namespace, calibration: Calibration) -> None:
         f"\nSaved {args.out}: rest {calibration.rest_raw:.0f} (noise +/-"
         f"{calibration.rest_noise_raw or 0:.0f}), light {calibration.light_raw:.0f},"
         f" firm {calibration.firm_raw:.0f} raw.\nCheck it:   dammrl sensor monitor --port "
-        f"{args.port} --calibration {args.out}\nUse it:     DAMMRL_INTENT_CALIBRATION_FILE="
+        f"{args.port} --calibration {args.out}\nUse it:     DAMMRL_PAD_CALIBRATION_FILE="
         f"{args.out.resolve()} dammrl up --mode semi-virtual --port {args.port}"
     )
 
@@ -145,16 +145,16 @@ def _show(line: str) -> None:
 
 def _monitor(args: argparse.Namespace) -> int:
     """Live pressure, decoded command and radius choice, with the intent service's thresholds."""
-    from dammrl.core.models import ModelSet
     from dammrl.sensor import Monitor, quiet_reader, wait_for_frames
+    from dammrl_core.intent.pad.calibration import load_calibration
+    from dammrl_core.intent.pad.decoder import PressDecoder
+    from dammrl_core.intent.pad.serial import SerialSensor
+    from dammrl_core.intent.pad.source import PadSettings
+    from dammrl_core.models import ModelSet
     from services.common.runtime import stop_on_signals
-    from services.intent.calibration import load_calibration
-    from services.intent.config import IntentSettings
-    from services.intent.decoder import PressDecoder
-    from services.intent.serial_sensor import SerialSensor
 
     quiet_reader()
-    settings = IntentSettings()  # the intent service's settings: the same thresholds
+    settings = PadSettings()  # the intent service's pad settings: the same thresholds
     calibration = load_calibration(args.calibration or settings.calibration_file)
     stop = stop_on_signals()
     with SerialSensor(args.port, reconnect_max_s=1.0) as sensor:
@@ -166,9 +166,9 @@ def _monitor(args: argparse.Namespace) -> int:
 
 def _emulate(args: argparse.Namespace) -> int:
     """Serve frames on a pseudo-terminal: taps, keys pressed, or a simulated patient."""
+    from dammrl.emulators.pad import Press, SensorEmulator
     from dammrl.sensor import KEYS, keyboard
     from services.common.runtime import stop_on_signals
-    from services.intent.emulator import Press, SensorEmulator
 
     if args.pattern == "keyboard" and not sys.stdin.isatty():
         raise DammrlError("the keyboard pattern needs a terminal (run it in its own tmux pane)")
@@ -200,8 +200,8 @@ def _stop_after(stop: threading.Event, seconds: float | None) -> None:
 
 def _patient(args: argparse.Namespace, pad: SensorEmulator, stop: threading.Event) -> None:
     """A simulated patient pressing the emulated pad to answer the stack's requests."""
+    from dammrl.emulators.patient import SimulatedPatient
     from services.common.bus import Bus
-    from services.intent.patient import SimulatedPatient
 
     patient = SimulatedPatient(pad, args.patient_model, seed=args.seed)
     kind = "hurried: quick presses, E_big" if args.patient_model == 1 else "careful: held, E_small"

@@ -16,7 +16,7 @@ from dammrl.cli.common import (
     print_err,
     print_out,
 )
-from dammrl.core.errors import Exit
+from dammrl_core.errors import Exit
 from schemas import DEFAULT_NAMESPACE, TOPICS
 
 CONNECT_HELP = f"where the stack listens (default {DEFAULT_CONNECT})"
@@ -102,7 +102,7 @@ def _up(args: argparse.Namespace) -> int:
     options = StackOptions(
         mode=args.mode, episodes=args.episodes, seed=args.seed, model=args.model,
         trigger=args.trigger, port=args.bus_port, namespace=args.namespace, json=args.json,
-        serial_port=args.port, calibration=args.calibration, record=args.record,
+        pad_port=args.port, pad_calibration=args.calibration, record=args.record,
         lockstep=args.lockstep, credentials=args.credentials, insecure=args.insecure,
         robot_port=args.robot_port, robot_calibration=args.robot_calibration,
         emulate_robot=args.emulate_robot,

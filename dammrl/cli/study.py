@@ -66,9 +66,9 @@ def register(commands: Commands) -> None:
 
 
 def _study(args: argparse.Namespace) -> int:
-    from dammrl.core.errors import UsageError
     from dammrl.study.report import results_section, update_readme, write_report
     from dammrl.study.study import TUNING_START, StudyOptions, run_study
+    from dammrl_core.errors import UsageError
 
     if args.jobs < 1:
         raise UsageError(f"--jobs must be at least 1, got {args.jobs}")

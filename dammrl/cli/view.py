@@ -34,8 +34,8 @@ def register(commands: Commands) -> None:
 
 def _view(args: argparse.Namespace) -> int:
     """Translate until Ctrl-C (or the recording's end); print where to connect."""
-    from dammrl.core.errors import UsageError
-    from dammrl.core.robot import RobotDescription
+    from dammrl_core.errors import UsageError
+    from dammrl_core.robot import RobotDescription
     from services.common.runtime import stopping_on_signals
 
     if not 0 < args.max_hz <= 60:

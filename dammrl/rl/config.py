@@ -7,7 +7,7 @@ from typing import Literal
 from pydantic import BaseModel, Field
 from pydantic_settings import SettingsConfigDict
 
-from dammrl.core.settings import FINITE, Settings
+from dammrl_core.settings import FINITE, Settings
 
 
 class RewardWeights(BaseModel):

@@ -15,7 +15,7 @@ import torch
 from torch import nn
 
 from dammrl.rl.config import TrainSettings
-from services.policy.learned import DualQNetwork
+from dammrl_core.policy.learned import DualQNetwork
 
 
 class ReplayBuffer:

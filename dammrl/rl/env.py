@@ -1,6 +1,6 @@
 """The reach as a Gymnasium-style environment: one step per human decision (event trigger).
 
-Observation: the policy's (``services.policy.learned.observe``). Action (i, j) as
+Observation: the policy's (``dammrl_core.policy.learned.observe``). Action (i, j) as
 0-based indices: Agent_0 picks the admission radius i, Agent_1 the step vector j. The
 reward of a step is the composite reward over the stretch until the next decision.
 """
@@ -13,12 +13,12 @@ from typing import Any
 
 import numpy as np
 
-from dammrl.core.metrics import n_oscillations
-from dammrl.core.policy import ModelChoice, model_choice
-from dammrl.core.state import RobotState
 from dammrl.rl.config import RewardWeights
 from dammrl.runner import Episode, ReachRunner
-from services.policy.learned import ACTIONS, OBSERVATION_SIZE, observe
+from dammrl_core.metrics import n_oscillations
+from dammrl_core.policy import ModelChoice, model_choice
+from dammrl_core.policy.learned import ACTIONS, OBSERVATION_SIZE, observe
+from dammrl_core.state import RobotState
 
 __all__ = ["ACTIONS", "OBSERVATION_SIZE", "ReachEnv", "RewardTerms", "accuracy_term"]
 

@@ -19,19 +19,19 @@ import numpy as np
 import torch
 from torch.utils.tensorboard import SummaryWriter
 
-from dammrl.core.errors import DammrlError
-from dammrl.core.task import training_seed
 from dammrl.rl.config import RewardWeights, TrainSettings
 from dammrl.rl.dqn import DualAgentDQN, ReplayBuffer, UpdateStats
 from dammrl.rl.env import ACTIONS, OBSERVATION_SIZE, ReachEnv
 from dammrl.runner import ReachRunner, ReachSettings
-from services.policy.learned import (
+from dammrl_core.errors import DammrlError
+from dammrl_core.policy.learned import (
     CHECKPOINT,
     FORMAT,
     CheckpointError,
     LearnedPolicy,
     load_checkpoint,
 )
+from dammrl_core.task import training_seed
 
 __all__ = ["CheckpointError", "evaluate", "load_checkpoint", "train"]
 

@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
-from services.policy.config import SHIPPED_POLICY
+from dammrl_core.policy.settings import SHIPPED_POLICY
 
 PAPER_MODEL = (2, 1)  # the fixed model of configurations 1 and 2: E_small, all-small steps
 SHIPPED = {1: SHIPPED_POLICY.parent.parent / "reward1", 2: SHIPPED_POLICY.parent}

@@ -16,12 +16,12 @@ from typing import Any, TypeVar
 
 import numpy as np
 
-from dammrl.core.errors import JobFailedError
-from dammrl.core.metrics import decisions_until_stable, n_oscillations
-from dammrl.core.policy import FixedPolicy, Policy, RandomPolicy
-from dammrl.core.task import seed_streams
 from dammrl.runner import ReachResult, ReachRunner, ReachSettings
 from dammrl.study.configs import Configuration
+from dammrl_core.errors import JobFailedError
+from dammrl_core.metrics import decisions_until_stable, n_oscillations
+from dammrl_core.policy import FixedPolicy, Policy, RandomPolicy
+from dammrl_core.task import seed_streams
 
 Progress = Callable[[int], None]  # called with the number of jobs just finished
 J = TypeVar("J")
@@ -82,7 +82,7 @@ def _policy(runner: ReachRunner, job: Job) -> Policy:
         return RandomPolicy(models, seed_streams(job.seed).policy)
     checkpoint = spec.checkpoints[job.index % len(spec.checkpoints)]
     if str(checkpoint) not in _POLICIES:
-        from services.policy.learned import LearnedPolicy  # torch: only when needed
+        from dammrl_core.policy.learned import LearnedPolicy  # torch: only when needed
 
         _POLICIES[str(checkpoint)] = LearnedPolicy(models, checkpoint)
     return _POLICIES[str(checkpoint)]

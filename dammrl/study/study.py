@@ -11,7 +11,6 @@ from typing import Any
 
 import numpy as np
 
-from dammrl.core.errors import ConfigurationError
 from dammrl.study.claims import Claim, judge
 from dammrl.study.configs import (
     Configuration,
@@ -21,6 +20,7 @@ from dammrl.study.configs import (
     variant_configurations,
 )
 from dammrl.study.run import Job, Progress, Record, ordered, run_local, run_ray
+from dammrl_core.errors import ConfigurationError
 
 TUNING_START = 7_900_000  # the best-fixed search's seeds start here: never evaluated on
 TUNING_SEEDS = range(TUNING_START, TUNING_START + 20)

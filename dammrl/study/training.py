@@ -22,10 +22,10 @@ from typing import Any, Literal
 
 import numpy as np
 
-from dammrl.core.errors import ConfigurationError
-from dammrl.core.task import HELD_OUT_START
 from dammrl.study.run import Progress, map_jobs
 from dammrl.study.stats import Estimate, finite_mean, iqm, stratified_bootstrap
+from dammrl_core.errors import ConfigurationError
+from dammrl_core.task import HELD_OUT_START
 
 VALIDATION_START = 7_950_000
 """Seeds for choosing the run to ship: held out from training, apart from the evaluation

@@ -34,6 +34,7 @@ from schemas import (
     type_of,
 )
 from schemas.keys import MAX_MESSAGE_BYTES, downsampling
+from schemas.messages import HealthState
 from services.common.admission import Admission
 from services.common.config import BusSettings
 from services.common.security import ROLES, secure_config_entries
@@ -105,12 +106,16 @@ class Publisher(Generic[M]):
         self.count = 0
         self.reported = (0, time.monotonic())  # count and time at the last Health report
 
-    def publish(self, **fields: Any) -> M:
-        """Validate, stamp and send a message built from ``fields``; return it."""
+    def stamp(self) -> Header:
+        """The header of the next message: this clock, the next sequence number, the
+        service's name. Build the message with it, then ``send`` it."""
         header = Header(stamp_ns=time.time_ns(), seq=self.seq, source=self._bus.source)
-        message = self.message_type(header=header, **fields)
-        self._zenoh.put(encode(message))
         self.seq += 1
+        return header
+
+    def send(self, message: M) -> M:
+        """Send a message built with ``stamp()``; return it."""
+        self._zenoh.put(encode(message))
         self.count += 1
         return message
 
@@ -195,10 +200,6 @@ class Bus:
         """The services whose liveliness token this session sees now."""
         with self._roster_lock:
             return set(self.peers)
-
-    def _roster_fields(self) -> dict[str, Any]:
-        with self._roster_lock:
-            return {"peers": sorted(self.peers), "missing": dict(self.missing)}
 
     def key(self, message_type: type[Message]) -> str:
         return key(self.namespace, message_type, self.service)
@@ -312,7 +313,9 @@ class Bus:
         if n <= 5 or n % 100 == 0:
             log.warning("rejected message #%d on %s: %s", n, key_expr, reason)
 
-    def report_health(self, state: str = "ok", detail: str = "", force: bool = False) -> None:
+    def report_health(
+        self, state: HealthState = "ok", detail: str = "", force: bool = False
+    ) -> None:
         """Publish Health at most every ``health_period_s`` (call it from the loop)."""
         now = time.monotonic()
         if self._health is None or (now < self._next_health and not force):
@@ -327,14 +330,20 @@ class Bus:
         rejected = {why[:200]: n for why, n in counts}
         if self.dropped:
             rejected["inbox overflow (a ring full: older messages overwritten)"] = self.dropped
-        self._health.publish(
-            service=self.service,
-            state=state,
-            detail=detail[:MAX_DETAIL],
-            rejected=rejected,
-            rates_hz=rates,
-            uptime_s=uptime,
-            **self._roster_fields(),
+        with self._roster_lock:
+            peers, missing = sorted(self.peers), dict(self.missing)
+        self._health.send(
+            Health(
+                header=self._health.stamp(),
+                service=self.service,
+                state=state,
+                detail=detail[:MAX_DETAIL],
+                rejected=rejected,
+                rates_hz=rates,
+                uptime_s=uptime,
+                peers=peers,
+                missing=missing,
+            )
         )
         self._next_health = now + self.settings.health_period_s
 

@@ -12,7 +12,7 @@ from typing import Literal, Self
 from pydantic import Field, model_validator
 from pydantic_settings import SettingsConfigDict
 
-from dammrl.core.settings import Settings
+from dammrl_core.settings import Settings
 from schemas import DEFAULT_NAMESPACE
 
 

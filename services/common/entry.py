@@ -11,8 +11,8 @@ from typing import Protocol
 
 from pydantic import ValidationError
 
-from dammrl.core.errors import EXIT_CODES_HELP, DammrlError, Exit
-from dammrl.core.settings import error_line
+from dammrl_core.errors import EXIT_CODES_HELP, DammrlError, Exit
+from dammrl_core.settings import error_line
 from services.common.bus import Bus
 from services.common.config import BusSettings
 from services.common.logs import setup_logging

@@ -24,8 +24,8 @@ from collections.abc import Sequence
 import zenoh
 from pydantic import ValidationError
 
-from dammrl.core.errors import ConfigurationError, DammrlError
-from dammrl.core.settings import error_line
+from dammrl_core.errors import ConfigurationError, DammrlError
+from dammrl_core.settings import error_line
 from schemas import DecodeError, Health, decode, key
 from services.common.bus import tool_session
 from services.common.config import BusSettings

@@ -26,7 +26,7 @@ from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
-from dammrl.core.errors import DammrlError
+from dammrl_core.errors import DammrlError
 
 # the keys (under the namespace) each role may publish, besides its health and liveliness
 PUBLISHES: dict[str, tuple[str, ...]] = {

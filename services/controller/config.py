@@ -1,114 +1,13 @@
-"""Controller settings: one class, environment prefix ``DAMMRL_CONTROLLER_``."""
+"""The controller service's settings: the library's ``ControllerSettings`` (DAMMRL_CONTROLLER_)
+and what it shares with the other services."""
 
 from __future__ import annotations
 
-from typing import Literal
-
-from pydantic import Field
-from pydantic_settings import SettingsConfigDict
-
-from dammrl.core.ik import IKSolverName, LatencyMode
-from dammrl.core.models import ModelSet
-from dammrl.core.robot import RobotSettings
-from dammrl.core.settings import PerJointDamping, PerJointGain, Settings
-from dammrl.core.task import TaskSettings
-
-Trigger = Literal["event", "fixed"]
-Feedforward = Literal["inverse_dynamics", "resolved_acceleration"]
-
-
-class ControllerSettings(Settings):
-    """How micro-steps are planned, triggered, solved and turned into joint commands."""
-
-    model_config = SettingsConfigDict(env_prefix="DAMMRL_CONTROLLER_")
-
-    trigger: Trigger = "event"
-    """'event': next step when ||x - x_m|| <= eps and dV/dt <= 0; 'fixed': on a timer."""
-    fixed_period_s: float = Field(0.1, ge=0.01, le=5.0)
-    """Timer period of the fixed-frequency baseline [s]."""
-    fixed_step_from: Literal["measured", "subgoal"] = "measured"
-    """Where a fixed-rate step starts: the measured end-effector position, or the last
-    planned subgoal, x^(m+1) = x^(m) + dx, the paper's chain that can run ahead of the arm."""
-    fixed_replan_while_pending: bool = False
-    """Whether a timer tick plans a step while the last IK solve is still running (the
-    paper's "premature IK update": solves overlap and each starts when ready), or skips."""
-    fixed_decisions: Literal["latest", "fresh"] = "latest"
-    """Fixed rate: each tick re-uses the human's latest decision (the paper), or takes a
-    fresh one and waits for it (one decision per step, as the event trigger does)."""
-    control_rate_hz: float = Field(100.0, ge=20, le=1000)
-    """Rate at which the reference is sampled into joint commands and the trigger checked."""
-    primary_axis: Literal[0, 1, 2] = 0
-    """Task axis driven by the human's binary command (0 = x, 1 = y, 2 = z)."""
-    orthogonal_deadband: bool = True
-    """Skip an orthogonal step when |e| <= delta/2 (the step would increase |e|)."""
-    lyapunov_weights: tuple[float, float, float] = (1.0, 1.0, 1.0)
-    """Diagonal of W in V = 1/2 e^T W e, e = x_m - x."""
-
-    ik_solver: IKSolverName = "pinocchio"
-    """'pinocchio' (damped least squares, fast) or 'ikpy' (bounded optimisation, the paper's)."""
-    ik_latency: LatencyMode = "model"
-    """How IK compute time enters simulated time: drawn from a fitted lognormal ('model'),
-    the wall time of each solve ('measured', not reproducible), or 0 ('zero')."""
-    ik_latency_profile: IKSolverName = "ikpy"
-    """Whose fitted compute-time distribution 'model' draws from. Default: the paper's solver,
-    so results carry the paper's timing whichever solver computes the joint solution."""
-    ik_latency_median_s: float | None = Field(None, gt=0)
-    """Override of the latency model's median [s]."""
-    ik_latency_sigma: float | None = Field(None, ge=0)
-    """Override of the latency model's log-standard deviation."""
-    calibration_correction: bool = True
-    """Aim each step's IK at the subgoal minus the measured end-effector's offset from the
-    nominal forward kinematics: without it, a calibration error of a few millimetres puts
-    every step beside its subgoal and a small admission sphere is never entered. (Zero when
-    the end-effector position is itself computed from the joint angles.)"""
-    ik_accept_error_m: float = Field(1e-3, gt=0)
-    """An IK solution farther than this from its target is a failure [m]."""
-    max_joint_step_rad: float = Field(0.5, gt=0, le=1.0)
-    """IK searches within the seed +- this per joint, so a micro-step never jumps [rad]."""
-
-    peak_speed_m_per_s: float = Field(0.2, gt=0, le=1.0)
-    """Peak Cartesian speed of a micro-step's minimum-jerk profile [m/s]."""
-    joint_speed_fraction: float = Field(0.5, gt=0, le=1)
-    """Peak joint speed as a fraction of the URDF velocity limit."""
-    min_segment_s: float = Field(0.08, ge=0.01, le=5.0)
-    """Shortest duration of one micro-step segment [s]."""
-    kp: PerJointGain = (400.0, 400.0, 200.0, 200.0, 50.0, 50.0)
-    """Joint stiffness [N m/rad] (0-2000 each: the sim's default maximum; the real arm's
-    is 1000)."""
-    kd: PerJointDamping = (30.0, 30.0, 12.0, 12.0, 1.5, 1.5)
-    """Joint damping gains [N m s/rad] (0-200 each)."""
-    feedforward: Feedforward = "inverse_dynamics"
-    """'inverse_dynamics': RNEA along the joint reference; 'resolved_acceleration': the
-    paper's J# (xdd - Jd qd) + (I - J# J) z with a joint-limit-avoiding null-space term."""
-    null_space_gain: float = Field(2.0, ge=0, le=50)
-    """Joint-limit avoidance acceleration at a limit, applied in the null space [rad/s^2]."""
-
-    joint_limit_margin_rad: float = Field(0.02, ge=0, le=0.3)
-    """IK targets stay this far inside the joint limits [rad]."""
-    workspace_min_m: tuple[float, float, float] = (0.1, -0.45, -0.235)
-    """Lower corner of the allowed end-effector box in the task frame [m]."""
-    workspace_max_m: tuple[float, float, float] = (0.72, 0.45, 0.20)
-    """Upper corner of the allowed end-effector box [m]."""
-    trigger_timeout_s: float = Field(3.0, ge=0.1, le=60)
-    """A step whose trigger has not fired after this long ends in a hold [s]."""
-
-    # --- the node (bus) ---
-    state_stale_s: float = Field(0.1, ge=0.02, le=1.0)
-    """No RobotState for this long: stop stepping and hold the last reference [s] (0.02-1
-    s: the watchdog cannot be switched off by a large number)."""
-    policy_wait_s: float = Field(20.0, ge=0, le=600)
-    """How long the first episode waits for the policy's first ModelChoice and for the
-    human (intent) service to be alive [s]."""
-    request_resend_s: float = Field(2.0, gt=0, le=60)
-    """An unanswered decision request is sent again this often, so a human (intent)
-    service that joined late or restarted answers it [s]."""
-    choice_wait_s: float = Field(0.2, gt=0, le=10)
-    """How long the human's answer waits for the policy's choice of the same request [s]."""
-    human_model: int = Field(1, ge=1, le=2)
-    """Model used until the policy's first ModelChoice arrives (i: 1 = E_big)."""
-    robot_model: int = Field(1, ge=1, le=8)
-    """Model used until the policy's first ModelChoice arrives (j: step vector)."""
-
+from dammrl_core.control.settings import ControllerSettings
+from dammrl_core.models import ModelSet
+from dammrl_core.robot import RobotSettings
+from dammrl_core.settings import Settings
+from dammrl_core.task import TaskSettings
 
 SETTINGS: tuple[type[Settings], ...] = (ControllerSettings, TaskSettings, RobotSettings, ModelSet)
 """Every settings class this service reads (the launcher checks them before a start)."""

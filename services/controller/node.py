@@ -18,18 +18,15 @@ import logging
 import threading
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
-from typing import Any
 
-import numpy as np
-
-from dammrl.core.dynamics import ArmModel
-from dammrl.core.ik import make_ik_solver
-from dammrl.core.metrics import episode_summary
-from dammrl.core.models import ModelSet
-from dammrl.core.robot import RobotSettings
-from dammrl.core.state import Intent as CoreIntent
-from dammrl.core.task import ReachTask, TaskSettings, seed_streams, start_posture, task_for_seed
+from dammrl_core.control.reach import Plan, Reach, plan_reach
+from dammrl_core.control.settings import ControllerSettings
+from dammrl_core.dynamics import ArmModel
+from dammrl_core.ik import make_ik_solver
+from dammrl_core.metrics import episode_summary
+from dammrl_core.models import ModelSet
+from dammrl_core.robot import RobotSettings
+from dammrl_core.task import TaskSettings
 from schemas import (
     DecisionRequest,
     EpisodeResult,
@@ -44,21 +41,11 @@ from schemas import (
 from services.common import convert
 from services.common.bus import Bus
 from services.common.entry import run_service
-from services.controller.config import ControllerSettings
-from services.controller.core import Controller
-from services.controller.reach import Answer, Reach
+from services.controller.requests import Requests, Timing
 
 log = logging.getLogger("dammrl.controller")
 MAX_STATE_STEP_S = 0.5  # robot time between two states (10 ms at 100 Hz) can be no more
 ANNOUNCE_PERIOD_S = 0.5  # TaskGoal is repeated until the sim answers with the new episode
-
-
-@dataclass(frozen=True)
-class Episode:
-    number: int
-    seed: int
-    task: ReachTask
-    q_start: np.ndarray
 
 
 class ControllerNode:
@@ -84,36 +71,35 @@ class ControllerNode:
         # in lockstep the robot clock waits for us: only a dead sim leaves the state stale
         lockstep = bus.settings.lockstep
         self.stale_s = bus.settings.lockstep_timeout_s if lockstep else settings.state_stale_s
-        self.choice_wait_s = (
-            bus.settings.lockstep_timeout_s / 4 if lockstep else settings.choice_wait_s
-        )
         # in lockstep the answer must come within the wait for it: ask again sooner
         resend = settings.request_resend_s
-        self.resend_s = min(resend, bus.settings.lockstep_timeout_s / 8) if lockstep else resend
+        self.timing = Timing(
+            min(resend, bus.settings.lockstep_timeout_s / 8) if lockstep else resend,
+            bus.settings.lockstep_timeout_s / 4 if lockstep else settings.choice_wait_s,
+        )
         self.choice = (settings.human_model, settings.robot_model)  # until the policy speaks
-        self.episode: Episode | None = None
-        self.reach: Reach | None = None
-        self.started = False  # the sim has answered the episode's TaskGoal
+        self.plan: Plan | None = None
+        self.number = 0  # the running episode's number (0: none yet)
+        self.requests = Requests(0, 0, models, self.timing)
+        self.started = False  # the arm has answered the episode's TaskGoal
         self.announced_s = 0.0
         self.last_state_s = time.monotonic()
         self.loop_s = time.monotonic()  # when the loop last ran
         self.superseded = 0  # states observed, not answered: a newer one was waiting
         self.last_t = 0.0
-        self.request = 0
-        self.request_t_s = 0.0
-        self.choices: dict[int, ModelChoice] = {}  # the policy's answer per request
-        self.intent: Intent | None = None  # the human's answer, until matched with a choice
-        self.request_fields: dict[str, Any] = {}  # the open request, to send it again
-        self.request_sent_s = 0.0
-        self.intent_wall_s = 0.0
-        self.publish = {
-            t: bus.publisher(t)
-            for t in (JointCommand, StepEvent, DecisionRequest, TaskGoal, EpisodeResult)
-        }
+        self.commands = bus.publisher(JointCommand)
+        self.steps = bus.publisher(StepEvent)
+        self.asks = bus.publisher(DecisionRequest)
+        self.goals = bus.publisher(TaskGoal)
+        self.results = bus.publisher(EpisodeResult)
         bus.subscribe(RobotState, Intent, ModelChoice)
         bus.expect(RobotState, "sim", "robot")  # the simulated or the real arm
         bus.expect(Intent, "intent")
         bus.expect(ModelChoice, "policy")
+
+    @property
+    def reach(self) -> Reach | None:
+        return None if self.plan is None else self.plan.reach
 
     def run(self, stop: threading.Event) -> None:
         self._wait_for_peers(stop)
@@ -142,8 +128,9 @@ class ControllerNode:
         detail)."""
         late = f"{self.superseded} states superseded before answered"
         if self.reach is not None and self.reach.asked:
-            since = time.monotonic() - self.request_sent_s
-            return f"waiting for the answer to request {self.request} ({since:.1f} s); {late}"
+            since = time.monotonic() - self.requests.sent_s
+            number = self.requests.number
+            return f"waiting for the answer to request {number} ({since:.1f} s); {late}"
         return late
 
     def _wait_for_peers(self, stop: threading.Event) -> None:
@@ -178,32 +165,24 @@ class ControllerNode:
         observed (logged, judged), not answered."""
         states = [m for m in messages if isinstance(m, RobotState)]
         for message in messages:
-            if not isinstance(message, RobotState):
-                self._dispatch(message)
+            if isinstance(message, Intent | ModelChoice):
+                self._take_answer(message)
         for state in states[:-1]:
             self._on_state(state, answer=False)
         if states:
             self._on_state(states[-1])
 
-    def _dispatch(self, message: Message) -> None:
-        if isinstance(message, RobotState):
-            self._on_state(message)
-        elif isinstance(message, Intent):
-            self._on_intent(message)
-        elif isinstance(message, ModelChoice):
-            self._on_choice(message)
-
-    def _on_choice(self, message: ModelChoice) -> None:
-        """Keep the policy's answer to a request of this episode (periodic repeats only
-        say the policy is alive); it may arrive before or after the human's."""
-        episode = self.episode
-        if episode is not None and message.episode == episode.number and message.request > 0:
-            self.choices[message.request] = message
-            self._answer_if_complete()
+    def _take_answer(self, message: Intent | ModelChoice) -> None:
+        asked = self.reach is not None and self.reach.asked
+        if isinstance(message, Intent):
+            self.requests.take_intent(message, asked)
+        else:
+            self.requests.take_choice(message)
+        self._answer_if_complete()
 
     def _on_state(self, message: RobotState, answer: bool = True) -> None:
-        episode, reach = self.episode, self.reach
-        if episode is None or reach is None or message.episode != episode.number:
+        plan = self.plan
+        if plan is None or message.episode != self.number:
             return
         if (reason := self._implausible_time(message.t_s)) is not None:
             self.bus.reject(self.bus.key(RobotState), reason)
@@ -212,23 +191,25 @@ class ControllerNode:
         self.last_t = state.t_s
         if not self.started:
             self.started = True
-            log.info("episode %d started (seed %d)", episode.number, episode.seed)
+            log.info("episode %d started (seed %d)", self.number, plan.seed)
         if not answer:
             self.superseded += 1
-            if reach.observe(state) is not None:
+            if plan.reach.observe(state) is not None:
                 self._finish()
             return
-        tick = reach.tick(state)
+        tick = plan.reach.tick(state)
         if tick.ask:
-            self._request_decision(state.ee_pos, episode)
+            self.asks.send(self.requests.make(self.asks.stamp, state.t_s, state.ee_pos,
+                                              plan.task.goal, self.settings.primary_axis,
+                                              self.choice[0]))  # fmt: skip
             if self.bus.settings.lockstep:
                 self._await_answer()
         if tick.command is not None:
-            self.publish[JointCommand].publish(
-                **convert.command_fields(tick.command, episode.number, message.header.stamp_ns)
-            )
+            self.commands.send(convert.command_message(
+                self.commands.stamp(), tick.command, self.number, message.header.stamp_ns
+            ))  # fmt: skip
         for step in tick.steps:
-            self.publish[StepEvent].publish(**convert.step_fields(step, episode.number))
+            self.steps.send(convert.step_message(self.steps.stamp(), step, self.number))
         self.last_state_s = time.monotonic()
         if tick.ended is not None:
             self._finish()
@@ -240,34 +221,11 @@ class ControllerNode:
             return f"robot time {t_s:.3f} s after {self.last_t:.3f} s (backwards or a jump)"
         return None
 
-    def _request_decision(self, ee_pos: np.ndarray, episode: Episode) -> None:
-        self.request += 1
-        self.request_t_s = self.last_t
-        self.request_fields = {
-            "episode": episode.number,
-            "seed": episode.seed,
-            "request": self.request,
-            "t_s": self.last_t,
-            "ee_pos_m": tuple(float(v) for v in ee_pos),
-            "goal_m": tuple(float(v) for v in episode.task.goal),
-            "primary_axis": self.settings.primary_axis,
-            "human_model": self.choice[0],
-        }
-        self._send_request()
-
-    def _send_request(self) -> None:
-        self.request_sent_s = time.monotonic()
-        self.publish[DecisionRequest].publish(**self.request_fields)
-
     def _resend_if_unanswered(self) -> None:
-        """Never a silent wait: the same request again while nobody answered it (a service
-        that joined late or restarted; intent and policy answer a repeat with their first
-        answer)."""
-        waiting = self.reach is not None and self.reach.asked and self.intent is None
-        if waiting and time.monotonic() - self.request_sent_s > self.resend_s:
-            log.warning("request %d unanswered for %.1f s: sending it again",
-                        self.request, time.monotonic() - self.request_sent_s)  # fmt: skip
-            self._send_request()
+        """Never a silent wait: the same request again while nobody answered it."""
+        asked = self.reach is not None and self.reach.asked
+        if (again := self.requests.again(self.asks.stamp, asked)) is not None:
+            self.asks.send(again)
 
     def _await_answer(self) -> None:
         """Lockstep: take messages until the human answered the open request (bounded)."""
@@ -275,43 +233,24 @@ class ControllerNode:
         while self.reach is not None and self.reach.asked:
             remaining = deadline - time.monotonic()
             if remaining <= 0:
-                log.warning("lockstep: no answer to request %d in time", self.request)
+                log.warning("lockstep: no answer to request %d in time", self.requests.number)
                 return
             message = self.bus.receive(min(remaining, 0.01))
             if isinstance(message, Intent | ModelChoice):
-                self._dispatch(message)
+                self._take_answer(message)
             self._answer_if_complete()
             self._resend_if_unanswered()
 
-    def _on_intent(self, message: Intent) -> None:
-        episode, reach = self.episode, self.reach
-        stale = message.request != self.request or reach is None or not reach.asked
-        if episode is None or message.episode != episode.number or stale:
-            return  # an answer to an older request
-        self.intent, self.intent_wall_s = message, time.monotonic()
-        self._answer_if_complete()
-
     def _answer_if_complete(self) -> None:
         """Hand the human's answer to the reach with the step vector the policy chose for
-        the same request; without the policy's choice after ``choice_wait_s``, the steps
-        in force stay (the human then decided under the request's own i)."""
-        message, reach = self.intent, self.reach
-        if message is None or reach is None:
+        the same request (see ``Requests.answer``)."""
+        reach = self.reach
+        if reach is None or (done := self.requests.answer()) is None:
             return
-        choice = self.choices.get(message.request)
-        waited = time.monotonic() - self.intent_wall_s > self.choice_wait_s
-        if choice is None and not waited:
-            return
-        if choice is not None:
-            self.choice = (choice.human_model, choice.robot_model)
-        due_s = self.request_t_s + message.decision_s  # a late answer is due on arrival
-        # radius and steps come from the stack's model set by index, never as free numbers
-        # from a message (the schema alone would allow 0.1 m steps)
-        radius_m = self.models.radius_m(message.human_model)
-        intent = CoreIntent(due_s, message.u_h, radius_m, message.human_model, message.confidence)
-        steps = None if choice is None else self.models.steps_m(choice.robot_model)
-        reach.answer(Answer(intent, steps, message.correct))
-        self.intent = None
+        answer, chosen = done
+        if chosen is not None:
+            self.choice = chosen
+        reach.answer(answer)
 
     # ---- episodes -----------------------------------------------------------------
     def _watch(self) -> None:
@@ -322,11 +261,11 @@ class ControllerNode:
         self._answer_if_complete()
         self._resend_if_unanswered()
         if (
-            self.episode is not None
+            self.plan is not None
             and not self.started
             and now - self.announced_s > ANNOUNCE_PERIOD_S
         ):
-            self._announce(self.episode)
+            self._announce(self.plan)
         stale = now - self.last_state_s > self.stale_s
         if self.reach is not None and self.started and stale:
             self.reach.end("hold", self._why_no_state(), self.last_t)
@@ -342,45 +281,40 @@ class ControllerNode:
         return f"robot state stale: {arm} alive but silent {silent}"
 
     def _next_episode(self) -> None:
-        number = 1 if self.episode is None else self.episode.number + 1
+        number = self.number + 1
         total = self.task_settings.episodes
         if total is not None and number > total:
-            self.episode = self.reach = None
+            self.plan = None
             log.info("all %d episodes done", total)
             return
         seed = self.task_settings.seed + number - 1
-        task = task_for_seed(self.task_settings, seed)
-        q_start = start_posture(self.arm, self.task_settings, task.start)
-        self.episode = Episode(number, seed, task, q_start)
-        streams = seed_streams(seed)
-        controller = Controller(self.robot, self.settings, streams.ik_latency, self.arm, self.ik)
-        self.reach = Reach(controller, task, self.task_settings, self.control_dt_s)
+        self.number = number
+        self.plan = plan_reach(seed, self.settings, self.task_settings, self.robot, self.arm,
+                               self.ik, self.control_dt_s)  # fmt: skip
+        self.requests = Requests(number, seed, self.models, self.timing)
         self.started = False
-        self.request, self.choices, self.intent = 0, {}, None
-        self._announce(self.episode)
+        self._announce(self.plan)
 
-    def _announce(self, episode: Episode) -> None:
+    def _announce(self, plan: Plan) -> None:
         self.announced_s = time.monotonic()
-        self.publish[TaskGoal].publish(
-            episode=episode.number,
-            seed=episode.seed,
-            start_m=tuple(float(v) for v in episode.task.start),
-            goal_m=tuple(float(v) for v in episode.task.goal),
-            q_start_rad=tuple(float(v) for v in episode.q_start),
-        )
+        self.goals.send(TaskGoal(
+            header=self.goals.stamp(),
+            episode=self.number,
+            seed=plan.seed,
+            start_m=tuple(float(v) for v in plan.task.start),
+            goal_m=tuple(float(v) for v in plan.task.goal),
+            q_start_rad=tuple(float(v) for v in plan.q_start),
+        ))  # fmt: skip
 
     def _finish(self) -> None:
-        episode, reach = self.episode, self.reach
-        assert episode is not None and reach is not None
-        metrics = reach.metrics()
-        summary = episode_summary(
-            metrics, self.settings.trigger, self.choice, episode.seed, episode.task
-        )
-        summary["reason"] = str(summary["reason"])[:500]  # the message's bound
-        self.publish[EpisodeResult].publish(episode=episode.number, **summary)
+        plan = self.plan
+        assert plan is not None
+        metrics = plan.reach.metrics()
+        summary = episode_summary(metrics, self.settings.trigger, self.choice, plan.seed, plan.task)
+        self.results.send(convert.episode_result(self.results.stamp(), self.number, summary))
         log.info(
             "episode %d: %s (%s) in %.1f s",
-            episode.number, metrics.outcome, metrics.reason, metrics.t_total_s,
+            self.number, metrics.outcome, metrics.reason, metrics.t_total_s,
         )  # fmt: skip
         self._next_episode()
 

@@ -1,146 +1,201 @@
-"""The intent node (virtual mode): the simulated human answers decision requests.
+"""The intent node: any intent source answering the controller's decision requests.
 
-Each DecisionRequest is decided from what it shows (end-effector and goal) as soon as the
-policy's ModelChoice for that request arrives (its i is the admission radius the human
-works with; after ``policy_wait_s`` without an answer the request's own i is used). The
-Intent is published at once with the decision time the human took: the controller
-applies it when its robot clock reaches the request time plus that decision time, as the
-in-process runner does, so the human is timed by the robot clock, not by bus latency.
-The first message of a new episode, its TaskGoal or (for an intent service that joined
-after the announcement) its first request, reseeds the human with the episode's seed, so a
-seed draws the same decisions as in-process.
+The source is a plug-in (``DAMMRL_INTENT_SOURCE``: ``simulated``, ``pad``, or an installed
+package's), made from its own settings. The bookkeeping is here, once, whatever decides:
+a request is asked of the source once (a re-sent request gets the answer already given,
+never a new decision); a source that decides with the policy's radius (the simulated
+human) waits for the policy's ModelChoice of the same request, at most ``policy_wait_s``
+(then the request's own radius); a new episode (its TaskGoal, or a request of a later
+episode whose announcement was missed) closes an older episode's open request and tells
+the source. Raw samples go out as SensorSample; what keeps the source from deciding goes
+into Health ("degraded").
 """
 
 from __future__ import annotations
 
-import logging
 import threading
 import time
+from collections import OrderedDict
 from collections.abc import Sequence
-from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from dammrl.core.human import HumanModel
-from dammrl.core.models import ModelSet
-from dammrl.core.task import seed_streams
-from schemas import DecisionRequest, Intent, Message, ModelChoice, TaskGoal
+from dammrl_core.human import HumanModel
+from dammrl_core.intent.source import (
+    Ask,
+    Decided,
+    IntentSource,
+    SourceContext,
+    source_plugin,
+)
+from dammrl_core.models import ModelSet
+from schemas import DecisionRequest, Intent, Message, ModelChoice, SensorSample, TaskGoal
+from schemas.messages import HealthState
 from services.common.bus import Bus
 from services.common.entry import run_service
 from services.intent.config import IntentSettings
-from services.intent.core import SimulatedHuman
 
-if TYPE_CHECKING:
-    from services.intent.sensor_node import SensorIntentNode
-
-log = logging.getLogger("dammrl.intent")
+MAX_REMEMBERED = 256  # answers kept for re-sent requests
+Key = tuple[int, int]  # (episode, request)
 
 
 class IntentNode:
-    def __init__(
-        self, settings: IntentSettings, human: HumanModel, models: ModelSet, bus: Bus
-    ) -> None:
+    def __init__(self, settings: IntentSettings, source: IntentSource, name: str,
+                 models: ModelSet, bus: Bus) -> None:  # fmt: skip
+        self.source = source
+        self.name = name
+        self.models = models
         self.bus = bus
-        self.human = SimulatedHuman(human, models)
         lockstep = bus.settings.lockstep  # then the robot clock waits: only a dead policy is late
         self.policy_wait_s = (
             bus.settings.lockstep_timeout_s / 4 if lockstep else settings.policy_wait_s
         )
-        self.waiting: dict[tuple[int, int], tuple[float, DecisionRequest]] = {}
-        self.choices: dict[tuple[int, int], int] = {}  # (episode, request) -> the policy's i
-        self.answered: dict[tuple[int, int], dict[str, Any]] = {}  # the intents published
         self.episode = 0
-        self.publisher = bus.publisher(Intent)
+        self.open: DecisionRequest | None = None  # the request the source is asked
+        self.waiting: dict[Key, tuple[float, DecisionRequest]] = {}  # for the policy's i
+        self.choices: dict[Key, int] = {}  # the policy's i per request, which may come first
+        self.seen: set[Key] = set()
+        self.answered: OrderedDict[Key, Intent] = OrderedDict()
+        self.health_state: HealthState = "ok"
+        self.intents = bus.publisher(Intent)
+        self.samples = bus.publisher(SensorSample)
         bus.subscribe(DecisionRequest, TaskGoal, ModelChoice)
         bus.expect(DecisionRequest, "controller")
         bus.expect(TaskGoal, "controller")
         bus.expect(ModelChoice, "policy")
 
     def run(self, stop: threading.Event) -> None:
-        while not stop.is_set():
-            message = self.bus.receive(0.01)
-            if message is not None:
-                self._dispatch(message)
-            self._decide_unanswered()
-            self.bus.report_health()
+        self.source.open()
+        try:
+            while not stop.is_set():
+                for message in self.bus.receive_all(0.005):
+                    self._dispatch(message)
+                self._ask_unanswered_by_the_policy()
+                if (decided := self.source.poll(time.monotonic())) is not None:
+                    self._answer(decided)
+                self._publish_readings()
+                self._report()
+        finally:
+            self.source.close()
 
+    # ---- requests ------------------------------------------------------------------------
     def _dispatch(self, message: Message) -> None:
         if isinstance(message, TaskGoal):
             self._new_episode(message.episode, message.seed)
         elif isinstance(message, DecisionRequest):
-            if message.episode > self.episode:  # its announcement was missed (never an older one)
-                self._new_episode(message.episode, message.seed)
-            answered = self.answered.get((message.episode, message.request))
-            if answered is not None:  # a re-sent request: the same answer again
-                self.publisher.publish(**answered)
-                return
-            self.waiting[(message.episode, message.request)] = (time.monotonic(), message)
-            self._decide_if_chosen((message.episode, message.request))
+            self._take_request(message)
         elif isinstance(message, ModelChoice) and message.request > 0:
-            # the policy's answer may overtake the request it answers: keep it
             self.choices[(message.episode, message.request)] = message.human_model
-            self._decide_if_chosen((message.episode, message.request))
+            self._ask_if_chosen((message.episode, message.request))
+
+    def _take_request(self, request: DecisionRequest) -> None:
+        if request.episode > self.episode:  # its announcement was missed (never an older one)
+            self._new_episode(request.episode, request.seed)
+        key = (request.episode, request.request)
+        if (answer := self.answered.get(key)) is not None:
+            self._publish(answer)  # the answer was lost: the same again, never a new one
+            return
+        if key in self.seen:
+            return
+        self.seen.add(key)
+        if self.source.waits_for_model_choice:
+            self.waiting[key] = (time.monotonic(), request)
+            self._ask_if_chosen(key)
+        else:
+            self._ask(request, request.human_model)
 
     def _new_episode(self, episode: int, seed: int) -> None:
-        """Reseed the human once per episode (repeats of the announcement change nothing)."""
+        """Once per episode (repeats of the announcement change nothing; a restarted
+        controller counts from 1 again): another episode's open request closes, never the
+        new one's (the goal and its first request come on two subscriptions, in either
+        order)."""
         if episode == self.episode:
             return
         self.episode = episode
-        self.human.rng = seed_streams(seed).human
+        self.source.new_episode(episode, seed)
+        if self.open is not None and self.open.episode != episode:
+            self.open = None
+            self.source.cancel()
         for pending in (self.waiting, self.choices, self.answered):
             for key in [k for k in pending if k[0] != episode]:  # a choice may come first
                 del pending[key]
+        self.seen = {k for k in self.seen if k[0] == episode}
 
-    def _decide_if_chosen(self, key: tuple[int, int]) -> None:
+    def _ask_if_chosen(self, key: Key) -> None:
         if key in self.waiting and key in self.choices:
-            self._decide(self.waiting.pop(key)[1], self.choices.pop(key))
+            self._ask(self.waiting.pop(key)[1], self.choices.pop(key))
 
-    def _decide_unanswered(self) -> None:
-        """Requests the policy did not answer in time are decided with their own i."""
+    def _ask_unanswered_by_the_policy(self) -> None:
+        """Requests the policy did not answer in time are asked with their own i."""
         now = time.monotonic()
         for key, (since, request) in list(self.waiting.items()):
             if now - since > self.policy_wait_s:
                 del self.waiting[key]
-                self._decide(request, request.human_model)
+                self._ask(request, request.human_model)
 
-    def _decide(self, request: DecisionRequest, human_model: int) -> None:
-        decision = self.human.decide(
-            request.t_s,
-            np.array(request.ee_pos_m),
-            np.array(request.goal_m),
-            request.primary_axis,
-            human_model,
+    def _ask(self, request: DecisionRequest, human_model: int) -> None:
+        self.open = request
+        ask = Ask(request.episode, request.request, request.seed, request.t_s,
+                  np.array(request.ee_pos_m), np.array(request.goal_m), request.primary_axis,
+                  human_model)  # fmt: skip
+        self.source.ask(ask, time.monotonic())
+
+    # ---- answers -------------------------------------------------------------------------
+    def _answer(self, decided: Decided) -> None:
+        request, self.open = self.open, None
+        if request is None:
+            return
+        answer = Intent(
+            header=self.intents.stamp(),
+            episode=request.episode,
+            request=request.request,
+            u_h=1 if decided.u_h > 0 else -1,
+            human_model=decided.human_model,
+            radius_m=self.models.radius_m(decided.human_model),
+            confidence=decided.confidence,
+            source=self.name,
+            person=self.source.person,
+            decision_s=decided.decision_s,
+            correct=decided.correct,
         )
-        fields: dict[str, Any] = {
-            "episode": request.episode,
-            "request": request.request,
-            "u_h": decision.intent.u_h,
-            "human_model": human_model,
-            "radius_m": decision.intent.radius_m,
-            "confidence": 1.0,
-            "source": "simulated",
-            "decision_s": decision.decision_s,
-            "correct": decision.correct,
-        }
-        self.answered[(request.episode, request.request)] = fields
-        self.publisher.publish(**fields)
+        self.answered[(request.episode, request.request)] = answer
+        while len(self.answered) > MAX_REMEMBERED:  # bounded: the oldest answer goes first
+            self.answered.popitem(last=False)
+        self.intents.send(answer)
+
+    def _publish(self, answer: Intent) -> None:
+        self.intents.send(answer.model_copy(update={"header": self.intents.stamp()}))
+
+    def _publish_readings(self) -> None:
+        for reading in self.source.readings():
+            sample = SensorSample(header=self.samples.stamp(), device_seq=reading.device_seq,
+                                  raw=reading.raw, level=reading.level,
+                                  pressed=reading.active)  # fmt: skip
+            self.samples.send(sample)
+
+    def _report(self) -> None:
+        problem = self.source.problem()
+        state: HealthState = "ok" if problem is None else "degraded"
+        detail = "; ".join(filter(None, (self.source.detail(), problem)))
+        self.bus.report_health(state, detail, force=state != self.health_state)
+        self.health_state = state
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Intent service: the simulated human answers decision requests."""
+    """Intent service: the human agent's decisions, from the configured source."""
     return run_service(
         "intent",
-        "Intent service: the simulated human answers decision requests.",
-        "DAMMRL_INTENT_*, DAMMRL_HUMAN_*, DAMMRL_MODELS_*",
-        lambda bus, _: _node(IntentSettings(), bus),
+        "Intent service: the human agent's decisions (a simulated human, the pad, a plug-in).",
+        "DAMMRL_INTENT_*, the source's own (e.g. DAMMRL_PAD_*), DAMMRL_HUMAN_*, DAMMRL_MODELS_*",
+        lambda bus, _: make_node(IntentSettings(), bus),
         argv,
     )
 
 
-def _node(settings: IntentSettings, bus: Bus) -> IntentNode | SensorIntentNode:
-    """The simulated human (virtual mode) or the pressure sensor (semi-virtual mode)."""
-    if settings.source == "serial":
-        from services.intent.sensor_node import SensorIntentNode
-
-        return SensorIntentNode(settings, ModelSet(), bus)
-    return IntentNode(settings, HumanModel(), ModelSet(), bus)
+def make_node(settings: IntentSettings, bus: Bus) -> IntentNode:
+    """The node of the source ``settings.source``, made from its own settings."""
+    plugin = source_plugin(settings.source)
+    models = ModelSet()
+    context = SourceContext(models, HumanModel(), bus.settings.lockstep)
+    source = plugin.create(plugin.settings(), context)
+    return IntentNode(settings, source, plugin.name, models, bus)

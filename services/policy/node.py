@@ -16,15 +16,15 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from dammrl.core.human import HumanModel, direction_to_goal
-from dammrl.core.models import ModelSet
-from dammrl.core.policy import ModelChoice as CoreChoice
-from dammrl.core.posterior import HumanModelPosterior
+from dammrl_core.human import HumanModel, direction_to_goal
+from dammrl_core.models import ModelSet
+from dammrl_core.policy import ModelChoice as CoreChoice
+from dammrl_core.policy.loading import load_policy
+from dammrl_core.policy.settings import PolicySettings
+from dammrl_core.posterior import HumanModelPosterior
 from schemas import DecisionRequest, Intent, ModelChoice, TaskGoal
 from services.common.bus import Bus
 from services.common.entry import run_service
-from services.policy.config import PolicySettings
-from services.policy.core import load_policy
 
 log = logging.getLogger("dammrl.policy")
 
@@ -83,7 +83,7 @@ class PolicyNode:
 
     def _observe_human(self, intent: Intent) -> None:
         """Score a command against the request it answered; update the posterior."""
-        self.real_human = self.real_human or intent.source == "sensor"
+        self.real_human = self.real_human or intent.person
         request = self.requests.pop((intent.episode, intent.request), None)
         if request is None or not self.estimating:
             return
@@ -99,16 +99,19 @@ class PolicyNode:
 
     def _publish(self, request: int) -> None:
         choice = self.latest
-        self.publisher.publish(
-            episode=self.episode,
-            request=request,
-            human_model=choice.human_model,
-            robot_model=choice.robot_model,
-            radius_m=choice.radius_m,
-            steps_m=tuple(float(v) for v in choice.steps_m),
-            posterior=tuple(float(p) for p in self.posterior.probabilities)
-            if self.estimating
-            else None,
+        self.publisher.send(
+            ModelChoice(
+                header=self.publisher.stamp(),
+                episode=self.episode,
+                request=request,
+                human_model=choice.human_model,
+                robot_model=choice.robot_model,
+                radius_m=choice.radius_m,
+                steps_m=tuple(float(v) for v in choice.steps_m),
+                posterior=tuple(float(p) for p in self.posterior.probabilities)
+                if self.estimating
+                else None,
+            )
         )
 
 

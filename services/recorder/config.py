@@ -7,7 +7,7 @@ from pathlib import Path
 from pydantic import Field
 from pydantic_settings import SettingsConfigDict
 
-from dammrl.core.settings import Settings
+from dammrl_core.settings import Settings
 
 
 class RecorderSettings(Settings):

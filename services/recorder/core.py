@@ -26,8 +26,8 @@ from typing import IO, Any
 import msgpack
 from mcap.writer import CompressionType, Writer
 
-from dammrl import __version__
-from dammrl.core.errors import DammrlError
+from dammrl_core import __version__
+from dammrl_core.errors import DammrlError
 from schemas import Message, type_of
 from services.recorder.gaps import SequenceAccount
 

@@ -25,7 +25,7 @@ from pathlib import Path
 
 import zenoh
 
-from dammrl.core.errors import DammrlError
+from dammrl_core.errors import DammrlError
 from services.common.bus import Bus
 from services.common.entry import run_service
 from services.recorder.config import RecorderSettings

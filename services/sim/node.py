@@ -21,19 +21,25 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from dammrl.core.dynamics import ArmModel
-from dammrl.core.robot import RobotSettings
-from dammrl.core.safety import ArmCaps, LimitMonitor, goal_violation, guard_command
-from dammrl.core.state import JointCommand as CoreCommand
-from dammrl.core.task import TaskSettings, scene_layout, seed_streams
+from dammrl_core.dynamics import ArmModel
+from dammrl_core.robot import RobotSettings
+from dammrl_core.safety import (
+    ArmCaps,
+    CommandFreshness,
+    LimitMonitor,
+    StopLatch,
+    goal_violation,
+    guard_command,
+)
+from dammrl_core.sim.settings import SimSettings
+from dammrl_core.sim.simulation import Simulation
+from dammrl_core.state import JointCommand as CoreCommand
+from dammrl_core.task import TaskSettings, scene_layout, seed_streams
 from schemas import EmergencyStop, JointCommand, RobotState, TaskGoal
 from services.common import convert
-from services.common.arm import CommandFreshness, StopLatch
 from services.common.bus import Bus
 from services.common.entry import run_service
 from services.common.runtime import Pacer
-from services.sim.config import SimSettings
-from services.sim.core import Simulation
 
 log = logging.getLogger("dammrl.sim")
 
@@ -105,8 +111,9 @@ class SimNode:
 
     def _publish_state(self) -> None:
         self.reset_pending = False
-        message = self.state_publisher.publish(
-            **convert.state_fields(
+        message = self.state_publisher.send(
+            convert.state_message(
+                self.state_publisher.stamp(),
                 self.state,
                 self.episode,
                 self.holding,
@@ -151,7 +158,7 @@ class SimNode:
     def _take_stop(self, message: EmergencyStop) -> None:
         """Stop: hold where the arm is with the hold gains (low: a person can move it) and
         take no command until released; a release leaves the arm holding."""
-        if not self.stop_latch.take(message):
+        if not self.stop_latch.take(message.engaged, message.header.source, message.reason):
             return
         if self.stop_latch.engaged:
             log.warning("%s: holding", self.stop_latch.reason)

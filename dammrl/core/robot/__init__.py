@@ -1,6 +1,0 @@
-"""The robot description: one URDF, loaded by MuJoCo, pinocchio and ikpy."""
-
-from dammrl.core.robot.description import DEFAULT_URDF, RobotDescription
-from dammrl.core.robot.settings import RobotSettings
-
-__all__ = ["DEFAULT_URDF", "RobotDescription", "RobotSettings"]

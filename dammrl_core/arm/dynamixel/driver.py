@@ -1,0 +1,400 @@
+"""The robot service's hardware interface: a driver connects, reads the arm's state,
+writes joint commands and disconnects (a context manager), in the style of LeRobot's
+``Robot``. Backends register by name; settings choose one.
+
+The Dynamixel backend (Protocol 2.0, the official dynamixel-sdk) realises the joint law
+tau = tau_ff + kp (q_ref - q) + kd (dq_ref - dq) through each servo's own position loop
+(current-based position mode): the servo's P and D gains are kp and kd through the
+calibration, its goal is q_ref shifted by (tau_ff + kd dq_ref) / kp, so that
+P (goal - q) - D dq is the law, and its goal current is the torque limit. The servo
+closes that loop at its own rate, so the law does not depend on the host's timing and
+the arm holds if the host stalls (see README, "Running on your arm", for the measured
+alternative). One sync read per cycle returns position, velocity and current with each
+servo's alert bit; one sync write sends the goals (gains and limits only when changed).
+The servo's bus watchdog is armed on connect, so the servos stop by themselves if this
+process dies.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import struct
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, field, replace
+from types import TracebackType
+from typing import Any
+
+import numpy as np
+
+from dammrl_core.arm.driver import (
+    DriveCommand,
+    DriveFault,
+    DriverError,
+    JointState,
+    PortLostError,
+)
+from dammrl_core.arm.dynamixel.calibration import Calibration
+from dammrl_core.robot import RobotDescription
+
+RPM_UNIT, CURRENT_UNIT_A = 0.229, 0.00269  # present velocity [rev/min], current [A] per unit
+KP_UNIT_A_PER_RAD, KD_UNIT_AS_PER_RAD = 0.01, 0.001  # the position P and D gain units
+ADDRESS = {"operating_mode": 11, "torque_enable": 64, "hardware_error": 70, "gains": 80,
+           "watchdog": 98, "goal_current": 102, "goal_position": 116, "present": 126,
+           "model": 0}  # fmt: skip
+PRESENT_BYTES = 10  # current (2), velocity (4), position (4): one sync read
+CURRENT_BASED_POSITION = 5
+MAX_GAIN_UNITS, MAX_CURRENT_UNITS = 16383, 1193
+ALERT = 0x80
+COMM_SUCCESS = 0  # dynamixel_sdk.COMM_SUCCESS
+FIRST_PING_S = 0.05  # a rebooted servo is first looked for this long after the REBOOT [s]
+PING_EVERY_S = 0.05  # then this often (an unanswered ping costs the SDK's timeout, ~34 ms)
+OVERLOAD = 0x20
+ERROR_BITS = {0x01: "input voltage", 0x04: "overheating", 0x08: "motor encoder",
+              0x10: "electrical shock", 0x20: "overload"}  # fmt: skip
+
+
+@contextlib.contextmanager
+def _bus_io(port: str) -> Iterator[None]:
+    """The serial device failing (a USB adapter pulled out) is a DriverError, as a silent
+    servo is."""
+    try:
+        yield
+    except OSError as exc:
+        raise PortLostError(f"the servo bus at {port} failed: {exc}") from None
+
+
+def describe_errors(bits: int) -> str:
+    names = [name for bit, name in ERROR_BITS.items() if bits & bit]
+    return ", ".join(names) or f"error bits 0x{bits:02x}"
+
+
+@dataclass
+class DynamixelDriver:
+    """Dynamixel X-series servos (and the button board) on one Protocol 2.0 bus."""
+
+    port: str
+    calibration: Calibration = field(default_factory=Calibration)
+    baud: int = 1_000_000
+    watchdog_s: float = 0.1  # the servos stop by themselves this long after the last packet
+    max_goal_offset_rad: float = 0.5  # the feed-forward's shift of the goal, at most [rad]
+    _port: Any = None
+    _packet: Any = None
+    _written: dict[str, tuple[int, ...]] = field(default_factory=dict)
+    _booting: dict[int, float] = field(default_factory=dict)  # servo id -> next ping [s]
+    _last: JointState | None = None
+
+    def __enter__(self) -> DynamixelDriver:
+        try:
+            self.connect()
+        except DriverError:
+            self._close()
+            raise
+        return self
+
+    def __exit__(self, kind: type[BaseException] | None, value: BaseException | None,
+                 trace: TracebackType | None) -> None:  # fmt: skip
+        self.disconnect()
+
+    @property
+    def ids(self) -> tuple[int, ...]:
+        return self.calibration.ids
+
+    @property
+    def stall_s(self) -> float | None:
+        """The servos' bus watchdog: they stop by themselves after this much silence."""
+        return self.watchdog_s
+
+    def joint_limits(self, robot: RobotDescription) -> tuple[np.ndarray, np.ndarray]:
+        return self.calibration.limits(robot)
+
+    def connect(self, torque: bool = True) -> bool:
+        """Open the port (unless open), find every servo, refuse latched errors, clear a
+        watchdog stop, arm the watchdog. Servos with the torque off start holding where
+        they are with zero gains (the caller ramps them up). True when every servo was
+        already holding with the torque on (a reconnection: no soft start needed).
+        ``torque=False``: the torque goes off (the arm is moved by hand: calibration)."""
+        import dynamixel_sdk as sdk
+
+        if self._port is None:
+            port = sdk.PortHandler(self.port)
+            try:
+                opened = port.openPort() and port.setBaudRate(self.baud)
+            except OSError as exc:  # pyserial's SerialException: no device, no permission
+                raise DriverError(f"cannot open the servo bus at {self.port}: {exc}") from None
+            if not opened:
+                raise DriverError(f"cannot open the servo bus at {self.port}")
+            self._port, self._packet, self._written = port, sdk.PacketHandler(2.0), {}
+        try:
+            with _bus_io(self.port):
+                return self._power_up(torque)
+        except PortLostError:
+            self._close()  # reopened at the next try
+            raise
+
+    def _power_up(self, torque: bool) -> bool:
+        import dynamixel_sdk as sdk
+
+        devices = self.ids + (() if self.calibration.button_id is None
+                              else (self.calibration.button_id,))  # fmt: skip
+        for servo_id in devices:
+            _, result, _ = self._packet.ping(self._port, servo_id)
+            if result != sdk.COMM_SUCCESS:
+                raise DriverError(f"servo {servo_id} does not answer on {self.port}")
+        holding = True
+        for servo_id in self.ids:
+            bits = self._read1(servo_id, ADDRESS["hardware_error"])
+            if bits:
+                raise DriverError(
+                    f"servo {servo_id} reports {describe_errors(bits)}: inspect the arm, "
+                    "then power-cycle the servos"
+                )
+            holding &= (self._read1(servo_id, ADDRESS["torque_enable"]) == 1
+                        and self._read1(servo_id, ADDRESS["operating_mode"])
+                        == CURRENT_BASED_POSITION)  # fmt: skip
+            self._write1(servo_id, ADDRESS["watchdog"], 0)  # clears a watchdog stop
+        if holding and torque:
+            self._written = {}  # gains and limits are written again with the next command
+        else:
+            self._start(torque)
+        for servo_id in self.ids if torque else ():
+            self._write1(servo_id, ADDRESS["watchdog"], self._watchdog_ticks)
+        return holding and torque
+
+    @property
+    def _watchdog_ticks(self) -> int:
+        return max(1, min(127, round(self.watchdog_s / 0.02)))
+
+    def rearm(self) -> list[int]:
+        """After the host was silent too long: the servos whose watchdog stopped them
+        (they hold where they were and refuse goals, silently in a sync write), re-armed."""
+        self._require_open()
+        stopped = []
+        with _bus_io(self.port):
+            for servo_id in self.ids:
+                if self._read1(servo_id, ADDRESS["watchdog"]) == 0xFF:  # -1: expired
+                    self._write1(servo_id, ADDRESS["watchdog"], 0)
+                    self._write1(servo_id, ADDRESS["watchdog"], self._watchdog_ticks)
+                    stopped.append(servo_id)
+        return stopped
+
+    # ---- a servo's reboot ---------------------------------------------------------------
+    def restart(self, joint: int) -> None:
+        """Clear the latched error of ``joint``'s servo (REBOOT: the only way, and its
+        torque is off until it is up again). Returns at once: the servo is left out of
+        every read and write while it boots, and put back holding where its shaft is,
+        with the gains last written, as soon as it answers a ping."""
+        self._require_open()
+        servo_id = self.ids[joint]
+        with _bus_io(self.port):
+            self._packet.reboot(self._port, servo_id)  # no answer expected once it boots
+        self._booting[servo_id] = time.monotonic() + FIRST_PING_S
+
+    def _poll_booting(self) -> None:
+        """Ping one booting servo whose turn it is; one that answers is put back."""
+        now = time.monotonic()
+        due = [i for i, at in self._booting.items() if at <= now]
+        if not due:
+            return
+        servo_id = due[0]
+        _, result, _ = self._packet.ping(self._port, servo_id)
+        if result != COMM_SUCCESS:
+            self._booting[servo_id] = time.monotonic() + PING_EVERY_S
+            return
+        self._restore(servo_id)
+        del self._booting[servo_id]
+
+    def _restore(self, servo_id: int) -> None:
+        """A rebooted servo holding where its shaft is: its mode, the gains and current
+        limit last written, the goal at its present position, the torque on, the bus
+        watchdog armed."""
+        self._write1(servo_id, ADDRESS["operating_mode"], CURRENT_BASED_POSITION)
+        index = self.ids.index(servo_id)
+        for name, size in (("gains", 6), ("goal_current", 2)):
+            row = self._written.get(name, ())[index * size : (index + 1) * size]
+            if row:
+                self._write_bytes(servo_id, ADDRESS[name], bytes(row))
+        present = self._read4(servo_id, ADDRESS["present"] + 6)
+        self._write_bytes(servo_id, ADDRESS["goal_position"], struct.pack("<i", present))
+        self._write1(servo_id, ADDRESS["torque_enable"], 1)
+        self._write1(servo_id, ADDRESS["watchdog"], self._watchdog_ticks)
+
+    def _start(self, torque: bool) -> None:
+        """Torque off, current-based position mode, then (``torque``) on, holding where
+        the arm is with zero gains."""
+        for servo_id in self.ids:
+            self._write1(servo_id, ADDRESS["torque_enable"], 0)
+            self._write1(servo_id, ADDRESS["operating_mode"], CURRENT_BASED_POSITION)
+        if not torque:
+            return
+        state = self.read_state()
+        zeros = np.zeros(6)
+        limit = self.calibration.joint_torque(np.full(6, MAX_CURRENT_UNITS * CURRENT_UNIT_A))
+        self.write_command(DriveCommand(state.q_rad, zeros, zeros, zeros, zeros, np.abs(limit)))
+        for servo_id in self.ids:
+            self._write1(servo_id, ADDRESS["torque_enable"], 1)
+
+    # ---- reading -----------------------------------------------------------------------
+    def read_state(self) -> JointState:
+        """Position, velocity and current of every servo (and the button's travel) in one
+        sync read; the error register of any servo whose status raised its alert bit."""
+        self._require_open()
+        with _bus_io(self.port):
+            return self._read_state()
+
+    def _read_state(self) -> JointState:
+        import dynamixel_sdk as sdk
+
+        self._poll_booting()
+        devices = [i for i in self.ids if i not in self._booting]
+        if self.calibration.button_id is not None:
+            devices.append(self.calibration.button_id)
+        # the SDK's GroupSyncRead drops each status's error byte: its two steps, by hand
+        result = self._packet.syncReadTx(self._port, ADDRESS["present"], PRESENT_BYTES,
+                                         devices, len(devices), False)  # fmt: skip
+        if result != sdk.COMM_SUCCESS:
+            raise DriverError(f"sync read failed: {self._packet.getTxRxResult(result)}")
+        rows, alerts = {}, []
+        for servo_id in devices:
+            data, result, error = self._packet.readRx(self._port, servo_id, PRESENT_BYTES)
+            if result != sdk.COMM_SUCCESS:
+                why = self._packet.getTxRxResult(result)
+                raise DriverError(f"servo {servo_id} missing from the sync read: {why}")
+            rows[servo_id] = struct.unpack("<hii", bytes(data))
+            if error & ALERT and servo_id in self.ids:
+                alerts.append(servo_id)
+        button_m = 0.0
+        if self.calibration.button_id is not None:
+            button_m = rows[self.calibration.button_id][2] * 1e-6  # travel [um]
+        state = self._joint_state(rows, button_m)
+        faults = tuple(self._fault(i, self._read1(i, ADDRESS["hardware_error"])) for i in alerts)
+        self._last = replace(state, faults=faults)
+        return self._last
+
+    def _fault(self, servo_id: int, bits: int) -> DriveFault:
+        """A servo's error bits; an overload alone is cleared by a restart (a REBOOT)."""
+        what = f"servo {servo_id}: {describe_errors(bits)}"
+        return DriveFault(self.ids.index(servo_id), what, restartable=bits == OVERLOAD)
+
+    def _joint_state(self, rows: dict[int, tuple[int, int, int]], button_m: float) -> JointState:
+        """The read rows in joint units; a rebooting servo's joint keeps its last values
+        (and no speed, no torque)."""
+        missing = [j for j, i in enumerate(self.ids) if i not in rows]
+        ticks = [rows[i][2] if i in rows else 0 for i in self.ids]
+        q = self.calibration.to_rad(ticks)
+        velocity = np.array([rows[i][1] if i in rows else 0 for i in self.ids])
+        current = np.array([rows[i][0] if i in rows else 0 for i in self.ids])
+        if missing and self._last is not None:
+            q[missing] = self._last.q_rad[missing]
+        return JointState(
+            q,
+            self.calibration.joint_velocity(velocity * RPM_UNIT * 2 * math.pi / 60),
+            self.calibration.joint_torque(current * CURRENT_UNIT_A),
+            button_travel_m=button_m,
+            restarting=frozenset(missing),
+        )
+
+    # ---- writing -----------------------------------------------------------------------
+    def write_command(self, command: DriveCommand) -> None:
+        """The law as servo goals (every call), gains and current limits (when changed)."""
+        self._require_open()
+        with _bus_io(self.port):
+            self._write_command(command)
+
+    def _require_open(self) -> None:
+        if self._port is None:
+            raise DriverError(f"the servo bus at {self.port} is not open")
+
+    def _write_command(self, command: DriveCommand) -> None:
+        cal = self.calibration
+        kp_servo = cal.servo_gain(command.kp)
+        kd_servo = cal.servo_gain(command.kd)
+        p_units = np.clip(np.round(kp_servo / KP_UNIT_A_PER_RAD), 0, MAX_GAIN_UNITS).astype(int)
+        d_units = np.clip(np.round(kd_servo / KD_UNIT_AS_PER_RAD), 0, MAX_GAIN_UNITS).astype(int)
+        current = cal.servo_current(command.torque_limit_nm)
+        c_units = np.clip(np.round(current / CURRENT_UNIT_A), 0, MAX_CURRENT_UNITS).astype(int)
+        gains = [list(struct.pack("<HHH", d, 0, p)) for d, p in zip(d_units, p_units, strict=True)]
+        self._sync_write_if_changed("gains", gains)
+        self._sync_write_if_changed("goal_current", [list(struct.pack("<h", c)) for c in c_units])
+        # tau_ff + kd dq_ref through the position law: P (goal - q) = tau_ff + kd dq_ref + ...
+        kp = np.maximum(command.kp, 1e-9)
+        shift = (command.tau_ff + command.kd * command.dq_ref) / kp
+        reach = np.minimum(command.torque_limit_nm / kp, self.max_goal_offset_rad)
+        goal = command.q_ref + np.where(command.kp > 0, np.clip(shift, -reach, reach), 0.0)
+        ticks = [list(struct.pack("<i", t)) for t in cal.to_ticks(goal)]
+        self._sync_write("goal_position", ticks)
+
+    def _sync_write_if_changed(self, field_name: str, rows: list[list[int]]) -> None:
+        flat = tuple(b for row in rows for b in row)
+        if self._written.get(field_name) != flat:
+            self._sync_write(field_name, rows)
+            self._written[field_name] = flat
+
+    def _sync_write(self, field_name: str, rows: list[list[int]]) -> None:
+        import dynamixel_sdk as sdk
+
+        writer = sdk.GroupSyncWrite(self._port, self._packet, ADDRESS[field_name], len(rows[0]))
+        for servo_id, row in zip(self.ids, rows, strict=True):
+            if servo_id not in self._booting:  # it would not hear it: it is put back later
+                writer.addParam(servo_id, row)
+        result = writer.txPacket()
+        if result != sdk.COMM_SUCCESS:
+            raise DriverError(f"sync write failed: {self._packet.getTxRxResult(result)}")
+
+    def torque_off(self) -> None:
+        """Torque off on every servo that answers (the arm goes limp)."""
+        for servo_id in self.ids:
+            with contextlib.suppress(DriverError), _bus_io(self.port):
+                self._write1(servo_id, ADDRESS["torque_enable"], 0)
+
+    def disconnect(self) -> None:
+        """Leave the servos holding where they are, then close the port; their watchdog
+        stops them anyway once the host is silent (a rehabilitation arm is not dropped
+        on the person because its software stopped)."""
+        if self._port is None:
+            return
+        with contextlib.suppress(DriverError):  # unplugged: the watchdog holds them anyway
+            held = self.calibration.to_ticks(self.read_state().q_rad)
+            with _bus_io(self.port):
+                self._sync_write("goal_position", [list(struct.pack("<i", t)) for t in held])
+        self._close()
+
+    def _close(self) -> None:
+        if self._port is not None:
+            with contextlib.suppress(OSError):
+                self._port.closePort()
+        self._port = None
+
+    def _read1(self, servo_id: int, address: int) -> int:
+        import dynamixel_sdk as sdk
+
+        value, result, _ = self._packet.read1ByteTxRx(self._port, servo_id, address)
+        if result != sdk.COMM_SUCCESS:
+            raise DriverError(f"servo {servo_id}: reading address {address} failed")
+        return int(value)
+
+    def _read4(self, servo_id: int, address: int) -> int:
+        import dynamixel_sdk as sdk
+
+        value, result, _ = self._packet.read4ByteTxRx(self._port, servo_id, address)
+        if result != sdk.COMM_SUCCESS:
+            raise DriverError(f"servo {servo_id}: reading address {address} failed")
+        return int(struct.unpack("<i", struct.pack("<I", value))[0])
+
+    def _write_bytes(self, servo_id: int, address: int, data: bytes) -> None:
+        import dynamixel_sdk as sdk
+
+        result, error = self._packet.writeTxRx(self._port, servo_id, address, len(data),
+                                               list(data))  # fmt: skip
+        if result != sdk.COMM_SUCCESS or error & 0x7F:
+            raise DriverError(f"servo {servo_id}: writing {len(data)} bytes at {address} failed "
+                              f"({self._packet.getTxRxResult(result)}, error {error})")  # fmt: skip
+
+    def _write1(self, servo_id: int, address: int, value: int) -> None:
+        import dynamixel_sdk as sdk
+
+        result, error = self._packet.write1ByteTxRx(self._port, servo_id, address, value)
+        if result != sdk.COMM_SUCCESS or error & 0x7F:
+            raise DriverError(f"servo {servo_id}: writing {value} at {address} failed "
+                              f"({self._packet.getTxRxResult(result)}, error {error})")  # fmt: skip

@@ -1,0 +1,339 @@
+"""The controller core: intent + model choice + state -> micro-steps -> joint commands.
+
+Pure logic: no bus, no clock. It is handed the robot state (whose ``t_s`` is the time)
+and the human's intents, and returns joint commands plus what happened (steps, decision
+requests, holds). The in-process runner and the bus node both drive this one object.
+
+Timeline of one event-triggered step: the trigger fires (||x - x_m|| <= eps, dV/dt <= 0)
+-> a decision is requested -> the intent arrives -> dx (eq. 2), IK -> after the IK
+latency the new joint reference starts -> ... -> the trigger fires again. The
+fixed-frequency baseline instead plans a step every ``fixed_period_s`` with the latest
+intent, wherever the arm is.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from dammrl_core import safety
+from dammrl_core.control.settings import ControllerSettings
+from dammrl_core.control.stepping import event_trigger, fixed_timer_due, micro_step
+from dammrl_core.control.trajectory import QuinticSegment, segment_duration
+from dammrl_core.dynamics import ArmModel, joint_limit_avoidance
+from dammrl_core.ik import IKLatency, IKSolver, make_ik_solver
+from dammrl_core.robot import RobotDescription
+from dammrl_core.state import Intent, JointCommand, RobotState, StepEvent
+
+
+@dataclass
+class ControllerOutput:
+    command: JointCommand
+    steps: list[StepEvent] = field(default_factory=list)  # steps that started their reference
+    hold_reason: str | None = None  # set on the tick the controller entered a hold
+
+
+@dataclass(frozen=True)
+class _PlannedStep:
+    ready_s: float  # when the IK result becomes available
+    q_target: np.ndarray
+    event: StepEvent
+
+
+class Controller:
+    """Event-triggered (or fixed-rate) micro-step controller of one reach."""
+
+    def __init__(
+        self,
+        robot: RobotDescription,
+        settings: ControllerSettings,
+        rng: np.random.Generator,
+        arm: ArmModel | None = None,
+        ik: IKSolver | None = None,
+    ) -> None:
+        self.robot = robot
+        self.settings = settings
+        self.arm = arm or ArmModel(robot)
+        self.ik = ik or make_ik_solver(
+            settings.ik_solver,
+            self.arm,
+            settings.joint_limit_margin_rad,
+            settings.max_joint_step_rad,
+        )
+        self.latency = IKLatency(
+            settings.ik_latency,
+            settings.ik_latency_profile,
+            rng,
+            settings.ik_latency_median_s,
+            settings.ik_latency_sigma,
+        )
+        self.kp = np.array(settings.kp, dtype=float)
+        self.kd = np.array(settings.kd, dtype=float)
+        self.weights = np.array(settings.lyapunov_weights, dtype=float)
+        self.workspace = (
+            np.array(settings.workspace_min_m, dtype=float),
+            np.array(settings.workspace_max_m, dtype=float),
+        )
+        self.steps_m = np.full(3, 0.01)
+        self.goal = np.zeros(3)
+        self.segment = QuinticSegment.hold(0.0, np.zeros(6))
+        self._rest_command: JointCommand | None = None
+        self._rest_segment: QuinticSegment | None = None
+        self.limits = safety.LimitMonitor(robot)
+        self.intent: Intent | None = None  # latest undelivered (event) / sampled (fixed) decision
+        self.planned: list[_PlannedStep] = []  # solved steps waiting out their IK latency
+        self.subgoal: np.ndarray | None = None  # x_m, the active Cartesian subgoal (3,) [m]
+        self.radius_m = 0.0  # admission radius of the active step [m]
+        self.awaiting_trigger = False
+        self.last_step_s: float | None = None  # fixed-rate: time of the last timer tick
+        self.hold_reason: str | None = None
+        self.index = 0
+
+    # ---- inputs -------------------------------------------------------------------
+    def reset(self, state: RobotState, goal: np.ndarray) -> JointCommand:
+        """Start a reach to ``goal`` [m] from the arm at rest in ``state``."""
+        self.goal = np.asarray(goal, dtype=float)
+        self.segment = QuinticSegment.hold(state.t_s, state.q.copy())
+        self._reset_episode_state()
+        return self._command(state)
+
+    def set_steps(self, steps_m: np.ndarray) -> None:
+        """Robot model choice: the step magnitudes delta (3,) [m] for the next steps."""
+        steps = np.asarray(steps_m, dtype=float)
+        if steps.shape != (3,) or not np.all(np.isfinite(steps)) or np.any(steps <= 0):
+            raise ValueError(f"step magnitudes must be 3 positive numbers [m], got {steps_m}")
+        self.steps_m = steps
+
+    def on_intent(self, intent: Intent) -> None:
+        """A decision of the human; the latest one is used for the next step."""
+        self.intent = intent
+
+    def hold(self, reason: str, t_s: float) -> None:
+        """Stop stepping; the reference stays where it is at ``t_s``."""
+        if self.hold_reason is None:
+            self.hold_reason = reason
+            q, _, _ = self.segment.sample(t_s)
+            self.segment = QuinticSegment.hold(t_s, q)
+            self.planned.clear()
+
+    @property
+    def wants_intent(self) -> bool:
+        """True while the controller is waiting for (or, fixed-rate, sampling) decisions."""
+        if self.hold_reason is not None:
+            return False
+        if self.settings.trigger == "fixed":  # latest: always deciding; fresh: one per step
+            return self.settings.fixed_decisions == "latest" or self.intent is None
+        return self.intent is None and not self.planned and not self.awaiting_trigger
+
+    @property
+    def idle(self) -> bool:
+        """Nothing changes until a new intent arrives: the controller holds, or (event mode)
+        its trigger has fired, no solve is pending and its reference rests with a fixed
+        command. Each tick would only re-check the limits and return the same command."""
+        if self.hold_reason is not None:
+            return True
+        return (
+            self.settings.trigger == "event"
+            and self.settings.feedforward == "inverse_dynamics"
+            and self.intent is None
+            and not self.planned
+            and not self.awaiting_trigger
+            and self._rest_command is not None
+            and self._rest_segment is self.segment
+        )
+
+    # ---- the control tick ---------------------------------------------------------
+    def tick(self, state: RobotState) -> ControllerOutput:
+        """One control period: progression logic, then the joint command for ``state``."""
+        started: list[StepEvent] = []
+        entered_hold = self.hold_reason
+        if self.hold_reason is None:
+            self._progress(state, started)
+        reason = self.hold_reason if entered_hold is None else None
+        return ControllerOutput(self._command(state), started, reason)
+
+    def _progress(self, state: RobotState, started: list[StepEvent]) -> None:
+        t = state.t_s
+        violation = self.limits.check(state.q, state.dq)
+        if violation is not None:
+            self.hold(violation, t)
+            return
+        self._start_if_ready(t, started)  # a solve that finished since the last tick
+        if self.settings.trigger == "event":
+            self._event_progress(state)
+        else:
+            self._fixed_progress(state)
+        self._start_if_ready(t, started)  # a step planned now with no IK latency
+
+    def _start_if_ready(self, t: float, started: list[StepEvent]) -> None:
+        while self.planned and t >= self.planned[0].ready_s:
+            started.append(self._start_segment(self.planned.pop(0), t))
+
+    def _event_progress(self, state: RobotState) -> None:
+        t = state.t_s
+        if self.awaiting_trigger and self.subgoal is not None:
+            if event_trigger(state.ee_pos, state.ee_vel, self.subgoal, self.radius_m, self.weights):
+                self.awaiting_trigger = False
+            elif t - self.segment.t0_s > self.settings.trigger_timeout_s:
+                self.hold(
+                    f"no trigger within {self.settings.trigger_timeout_s:.1f} s: end-effector "
+                    f"{np.linalg.norm(self.subgoal - state.ee_pos) * 1000:.1f} mm from its subgoal",
+                    t,
+                )
+            return
+        if not self.planned and self.intent is not None:
+            intent, self.intent = self.intent, None  # each decision drives one step
+            self._plan(state, intent)
+
+    def _fixed_progress(self, state: RobotState) -> None:
+        """Plan a step on every timer tick with the latest (or a fresh) intent, wherever
+        the arm is."""
+        t = state.t_s
+        if self.intent is None:
+            return  # no decision yet (or, fresh decisions, none since the last step)
+        if self.planned and not self.settings.fixed_replan_while_pending:
+            return  # the previous solve still running: this tick is late
+        if fixed_timer_due(t, self.last_step_s, self.settings.fixed_period_s):
+            self.last_step_s = t if self.last_step_s is None else self._next_tick(t)
+            self._plan(state, self.intent)
+            if self.settings.fixed_decisions == "fresh":
+                self.intent = None
+
+    def _next_tick(self, t: float) -> float:
+        assert self.last_step_s is not None
+        period = self.settings.fixed_period_s
+        return self.last_step_s + period * math.floor((t - self.last_step_s) / period + 1e-9)
+
+    # ---- planning -----------------------------------------------------------------
+    def _plan(self, state: RobotState, intent: Intent) -> None:
+        """Micro-step from where the step starts, IK, and schedule it after the latency."""
+        t, x = state.t_s, self._step_start(state)
+        dx = micro_step(
+            self.goal - x,
+            intent.u_h,
+            self.steps_m,
+            self.settings.primary_axis,
+            self.settings.orthogonal_deadband,
+        )
+        subgoal = x + dx
+        reason = safety.outside_workspace(subgoal, *self.workspace)
+        if reason is not None:
+            self.hold(reason, t)
+            return
+        q_seed, _, _ = self.segment.sample(t)
+        target = subgoal - self._calibration_offset(state)
+        result = self.ik.solve(target, q_seed)
+        reason = self._ik_refusal(target, q_seed, result.q, result.error_m)
+        if reason is not None:
+            self.hold(reason, t)
+            return
+        latency = self.latency(result.compute_s)
+        self.index += 1
+        event = StepEvent(
+            index=self.index,
+            t_s=t,
+            start_s=t + latency,
+            trigger=self.settings.trigger,
+            u_h=intent.u_h,
+            radius_m=intent.radius_m,
+            steps_m=self.steps_m.copy(),
+            dx=dx,
+            x_start=x.copy(),
+            subgoal=subgoal,
+            goal_error_m=float(np.linalg.norm(self.goal - x)),
+            ik_compute_s=result.compute_s,
+            ik_latency_s=latency,
+        )
+        self.planned.append(_PlannedStep(t + latency, result.q, event))
+        self.radius_m = intent.radius_m
+
+    def _calibration_offset(self, state: RobotState) -> np.ndarray:
+        """Where the measured end-effector is relative to the nominal model's forward
+        kinematics at the measured joint angles. A real arm's calibration error (link
+        lengths, encoder zeros) shifts every IK solution by about this much; it changes
+        slowly with the posture, so aiming at subgoal - offset lands on the subgoal."""
+        if not self.settings.calibration_correction:
+            return np.zeros(3)
+        return np.asarray(state.ee_pos - self.arm.ee_position(state.q))
+
+    def _step_start(self, state: RobotState) -> np.ndarray:
+        """The measured position, or (fixed rate, the paper's chain) the last subgoal."""
+        if self.settings.trigger == "fixed" and self.settings.fixed_step_from == "subgoal":
+            if self.planned:
+                return self.planned[-1].event.subgoal
+            if self.subgoal is not None:
+                return self.subgoal
+        return state.ee_pos
+
+    def _ik_refusal(
+        self, target: np.ndarray, q_seed: np.ndarray, q: np.ndarray, error_m: float
+    ) -> str | None:
+        if error_m > self.settings.ik_accept_error_m or not np.all(np.isfinite(q)):
+            return (
+                f"IK did not converge ({self.ik.name}): best solution {error_m * 1000:.1f} mm "
+                f"from target {np.round(target, 3).tolist()} m (unreachable?)"
+            )
+        jump = float(np.max(np.abs(q - q_seed)))
+        if jump > self.settings.max_joint_step_rad + 1e-6:
+            return f"IK solution jumps {jump:.2f} rad (> {self.settings.max_joint_step_rad} rad)"
+        return None
+
+    def _start_segment(self, planned: _PlannedStep, t: float) -> StepEvent:
+        q0, v0, a0 = self.segment.sample(t)
+        duration = segment_duration(
+            planned.q_target - q0,
+            float(np.linalg.norm(planned.event.dx)),
+            self.robot.dq_max,
+            self.settings.joint_speed_fraction,
+            self.settings.peak_speed_m_per_s,
+            self.settings.min_segment_s,
+        )
+        self.segment = QuinticSegment.plan(t, duration, q0, v0, a0, planned.q_target)
+        self.subgoal = planned.event.subgoal
+        self.awaiting_trigger = self.settings.trigger == "event"
+        return planned.event
+
+    # ---- command ------------------------------------------------------------------
+    def _command(self, state: RobotState) -> JointCommand:
+        resting = self.segment.finished(state.t_s)
+        static = resting and self.settings.feedforward == "inverse_dynamics"
+        if static and self._rest_command is not None and self._rest_segment is self.segment:
+            return self._rest_command  # same object: the sim keeps its latched command
+        q_ref, dq_ref, ddq_ref = self.segment.sample(state.t_s)
+        if self.settings.feedforward == "resolved_acceleration":
+            tau = self._resolved_acceleration_torque(state, q_ref, dq_ref, ddq_ref)
+        else:
+            tau = self.arm.inverse_dynamics(q_ref, dq_ref, ddq_ref)
+        tau = safety.saturate_torque(tau, self.robot.tau_max)
+        command = JointCommand(q_ref, dq_ref, tau, self.kp, self.kd)
+        if static:
+            self._rest_command, self._rest_segment = command, self.segment
+        return command
+
+    def _resolved_acceleration_torque(
+        self, state: RobotState, q_ref: np.ndarray, dq_ref: np.ndarray, ddq_ref: np.ndarray
+    ) -> np.ndarray:
+        """Computed torque with the paper's resolved acceleration at the measured state.
+
+        The desired end-effector acceleration is the one the joint reference implies
+        (J ddq_ref + Jdot dq_ref at the reference); the null-space vector z follows the
+        reference's joint acceleration plus a joint-limit-avoiding term.
+        """
+        ddx_d = self.arm.ee_jacobian(q_ref) @ ddq_ref + self.arm.ee_drift_acceleration(
+            q_ref, dq_ref
+        )
+        z = ddq_ref + joint_limit_avoidance(self.robot, state.q, self.settings.null_space_gain)
+        ddq_d = self.arm.resolved_acceleration(state.q, state.dq, ddx_d, z)
+        return self.arm.inverse_dynamics(state.q, state.dq, ddq_d)
+
+    def _reset_episode_state(self) -> None:
+        self.intent = None
+        self.planned = []
+        self.subgoal = None
+        self.radius_m = 0.0
+        self.awaiting_trigger = False
+        self.last_step_s = None
+        self.hold_reason = None
+        self.index = 0

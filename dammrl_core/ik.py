@@ -1,0 +1,193 @@
+"""Inverse kinematics of the end-effector point: ikpy and pinocchio damped least squares.
+
+Both solvers take a Cartesian target [m] (3,) and a seed [rad] (6,) and return joint
+positions inside the joint limits. The controller accepts a solution only if it lands
+within ``ik_accept_error_m`` of its target and does not jump away from the seed.
+
+The latency model turns the solvers' compute time into simulated time: a lognormal whose
+defaults were fitted to solves timed by ``benchmarks/bench_core.py`` on the 2-core
+development machine (re-fit there and pass ``ik_latency_median_s`` / ``ik_latency_sigma``).
+"""
+
+from __future__ import annotations
+
+import time
+import warnings
+from dataclasses import dataclass
+from typing import Literal, Protocol
+
+import numpy as np
+
+from dammrl_core.dynamics import ArmModel
+
+IKSolverName = Literal["ikpy", "pinocchio"]
+LatencyMode = Literal["model", "measured", "zero"]
+
+# (median [s], log-sigma) of solve times fitted by benchmarks/bench_core.py
+FITTED_LATENCY: dict[IKSolverName, tuple[float, float]] = {
+    "ikpy": (0.055, 0.57),
+    "pinocchio": (0.00015, 0.7),
+}
+
+
+@dataclass(frozen=True)
+class IKResult:
+    q: np.ndarray  # joint positions [rad] (6,)
+    error_m: float  # ||FK(q) - target|| [m]
+    compute_s: float  # wall time spent solving [s]
+
+
+class IKSolver(Protocol):
+    name: IKSolverName
+
+    def solve(self, target: np.ndarray, q_seed: np.ndarray) -> IKResult: ...
+
+
+def _search_box(
+    q_seed: np.ndarray, q_lo: np.ndarray, q_hi: np.ndarray, max_step_rad: float | None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Joint limits, narrowed to ``q_seed +- max_step_rad`` when a step bound is given.
+
+    A redundant arm has many solutions; bounding the search around the seed keeps the
+    solver on the branch the arm is on, so a micro-step never becomes a joint jump.
+    """
+    if max_step_rad is None:
+        return q_lo, q_hi
+    lo = np.maximum(q_lo, q_seed - max_step_rad)
+    hi = np.minimum(q_hi, q_seed + max_step_rad)
+    return np.minimum(lo, hi), np.maximum(lo, hi)
+
+
+def _inverse3(A: np.ndarray) -> np.ndarray:
+    """Inverse of a symmetric 3x3 ``A`` by its adjugate. At this size numpy.linalg's call
+    overhead is larger than the whole computation."""
+    (a, d, e), (_, b, f), (_, _, c) = A.tolist()
+    adj = np.array(
+        [
+            [b * c - f * f, e * f - d * c, d * f - e * b],
+            [e * f - d * c, a * c - e * e, d * e - a * f],
+            [d * f - e * b, d * e - a * f, a * b - d * d],
+        ]
+    )
+    return np.asarray(adj / (a * adj[0, 0] + d * adj[0, 1] + e * adj[0, 2]))
+
+
+class DampedLeastSquaresIK:
+    """Position IK by damped least squares on pinocchio's Jacobian.
+
+    dq = J# e + (I - J# J) z with J# = J^T (J J^T + lambda^2 I)^-1: the task step plus a
+    null-space step z = posture_gain (q_mid - q) that uses the arm's three redundant DoF to
+    drift toward mid-range, away from the joint limits, without moving the end-effector.
+    Joints pinned at a bound are taken out of J so the others do the work.
+    """
+
+    name: IKSolverName = "pinocchio"
+
+    def __init__(
+        self,
+        arm: ArmModel,
+        damping: float = 1e-3,
+        tolerance_m: float = 1e-6,
+        max_iterations: int = 100,
+        limit_margin_rad: float = 0.0,
+        max_step_rad: float | None = None,
+        posture_gain: float = 0.1,
+    ) -> None:
+        self.arm = arm
+        self.max_step_rad = max_step_rad
+        self.damping = damping
+        self.tolerance_m = tolerance_m
+        self.max_iterations = max_iterations
+        self.posture_gain = posture_gain
+        self.q_lo = arm.robot.q_min + limit_margin_rad
+        self.q_hi = arm.robot.q_max - limit_margin_rad
+        self.q_mid = (arm.robot.q_min + arm.robot.q_max) / 2
+
+    def solve(self, target: np.ndarray, q_seed: np.ndarray) -> IKResult:
+        start = time.perf_counter()
+        lo, hi = _search_box(q_seed, self.q_lo, self.q_hi, self.max_step_rad)
+        q = np.minimum(np.maximum(q_seed, lo), hi)
+        for _ in range(self.max_iterations):
+            x, J = self.arm.ee_position_and_jacobian(q)
+            error = target - x
+            if error @ error < self.tolerance_m**2:
+                break
+            dq = self._step(J, error, q)
+            blocked = (q <= lo) & (dq < 0) | (q >= hi) & (dq > 0)
+            if blocked.any():  # joints pinned at a bound: let the others do the work
+                J[:, blocked] = 0.0
+                dq = self._step(J, error, q)
+                dq[blocked] = 0.0
+            q = np.minimum(np.maximum(q + dq, lo), hi)
+        error_m = float(np.linalg.norm(target - self.arm.ee_position(q)))
+        return IKResult(q, error_m, time.perf_counter() - start)
+
+    def _step(self, J: np.ndarray, error: np.ndarray, q: np.ndarray) -> np.ndarray:
+        J_pinv = J.T @ _inverse3(J @ J.T + self.damping**2 * np.eye(3))  # (6, 3)
+        posture = self.posture_gain * (self.q_mid - q)
+        return np.asarray(J_pinv @ error + posture - J_pinv @ (J @ posture))
+
+
+class IkpyIK:
+    """Position IK by ikpy's bounded least-squares optimisation (the paper's solver)."""
+
+    name: IKSolverName = "ikpy"
+
+    def __init__(
+        self, arm: ArmModel, limit_margin_rad: float = 0.0, max_step_rad: float | None = None
+    ) -> None:
+        self.arm = arm
+        self.chain = arm.robot.ikpy_chain()
+        self.active = np.asarray(self.chain.active_links_mask, dtype=bool)
+        links = zip(self.chain.links, self.active, strict=True)
+        self.active_links = [link for link, on in links if on]
+        self.q_lo = arm.robot.q_min + limit_margin_rad
+        self.q_hi = arm.robot.q_max - limit_margin_rad
+        self.max_step_rad = max_step_rad
+
+    def solve(self, target: np.ndarray, q_seed: np.ndarray) -> IKResult:
+        start = time.perf_counter()
+        lo, hi = _search_box(q_seed, self.q_lo, self.q_hi, self.max_step_rad)
+        for link, low, high in zip(self.active_links, lo, hi, strict=True):
+            link.bounds = (float(low), float(high))
+        full = np.zeros(len(self.chain.links))
+        full[self.active] = np.clip(q_seed, lo, hi)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # ikpy warns about its own URDF conventions
+            solution = self.chain.inverse_kinematics(target_position=target, initial_position=full)
+        q = np.asarray(solution)[self.active]
+        error_m = float(np.linalg.norm(target - self.arm.ee_position(q)))
+        return IKResult(q, error_m, time.perf_counter() - start)
+
+
+def make_ik_solver(
+    name: IKSolverName, arm: ArmModel, limit_margin_rad: float, max_step_rad: float | None
+) -> IKSolver:
+    if name == "ikpy":
+        return IkpyIK(arm, limit_margin_rad, max_step_rad)
+    return DampedLeastSquaresIK(arm, limit_margin_rad=limit_margin_rad, max_step_rad=max_step_rad)
+
+
+class IKLatency:
+    """Simulated-time cost of one IK solve [s]."""
+
+    def __init__(
+        self,
+        mode: LatencyMode,
+        solver: IKSolverName,
+        rng: np.random.Generator,
+        median_s: float | None = None,
+        sigma: float | None = None,
+    ) -> None:
+        fitted_median, fitted_sigma = FITTED_LATENCY[solver]
+        self.mode = mode
+        self.median_s = fitted_median if median_s is None else median_s
+        self.sigma = fitted_sigma if sigma is None else sigma
+        self.rng = rng
+
+    def __call__(self, measured_s: float) -> float:
+        if self.mode == "zero":
+            return 0.0
+        if self.mode == "measured":
+            return measured_s
+        return float(self.median_s * np.exp(self.sigma * self.rng.standard_normal()))

@@ -1,0 +1,37 @@
+"""Policy core: the policy the settings ask for, with a safe fallback.
+
+A missing, corrupt or mismatched checkpoint never stops the service: it is reported and
+the safe fixed model of the settings takes over.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Literal
+
+from dammrl_core.errors import DammrlError
+from dammrl_core.models import ModelSet
+from dammrl_core.policy import FixedPolicy, Policy
+from dammrl_core.policy.settings import PolicySettings
+
+log = logging.getLogger("dammrl.policy")
+
+
+def load_policy(
+    settings: PolicySettings, models: ModelSet
+) -> tuple[Policy, Literal["ok", "degraded"], str]:
+    """(policy, health state, description); never raises for a bad checkpoint."""
+    if settings.kind == "fixed":
+        policy = FixedPolicy(models, settings.human_model, settings.robot_model)
+        return policy, "ok", f"fixed M_{settings.human_model},{settings.robot_model}"
+    try:
+        from dammrl_core.policy.learned import LearnedPolicy  # torch only for a learned policy
+
+        learned = LearnedPolicy(models, settings.checkpoint)
+    except DammrlError as exc:
+        i, j = settings.fallback_human_model, settings.fallback_robot_model
+        log.error(
+            "cannot use the learned policy (%s); falling back to the fixed M_%d,%d", exc, i, j
+        )
+        return FixedPolicy(models, i, j), "degraded", f"fallback M_{i},{j}: {exc}"
+    return learned, "ok", f"learned (Reward {learned.reward}) from {settings.checkpoint}"

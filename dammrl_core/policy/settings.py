@@ -1,0 +1,41 @@
+"""Which policy chooses M_ij: one class, environment prefix ``DAMMRL_POLICY_``."""
+
+from __future__ import annotations
+
+from importlib import resources
+from pathlib import Path
+from typing import Literal
+
+from pydantic import Field
+from pydantic_settings import SettingsConfigDict
+
+from dammrl_core.settings import Settings
+
+SHIPPED_POLICY = Path(
+    str(resources.files("dammrl_core").joinpath("policies/reward2/checkpoint.pt"))
+)
+
+
+class PolicySettings(Settings):
+    """Which policy chooses the multi-model M_ij at each decision."""
+
+    model_config = SettingsConfigDict(env_prefix="DAMMRL_POLICY_")
+
+    kind: Literal["learned", "fixed"] = "learned"
+    """'learned': the DQN of ``checkpoint``; 'fixed': always M_{human_model,robot_model}."""
+    checkpoint: Path = SHIPPED_POLICY
+    """Training run directory or checkpoint file (default: the shipped Reward 2 policy).
+    The model set M_ij is the stack's one ``DAMMRL_MODELS_*`` setting."""
+    human_model: int = Field(1, ge=1, le=2)
+    """i of the fixed policy: 1 = E_big, 2 = E_small."""
+    robot_model: int = Field(1, ge=1, le=8)
+    """j of the fixed policy (see dammrl_core.models)."""
+    fallback_human_model: int = Field(2, ge=1, le=2)
+    fallback_robot_model: int = Field(1, ge=1, le=8)
+    """The safe fixed model used when the checkpoint cannot be loaded: M_2,1, the careful
+    human's small sphere with all-small steps (the most accurate, never large moves)."""
+    estimate_human: Literal["auto", "always", "never"] = "auto"
+    """Estimate the human sub-model from their decisions (posterior) and use its MAP
+    radius: 'auto' when the intents come from a real sensor, or always, or never."""
+    publish_period_s: float = Field(0.5, ge=0.05, le=10)
+    """The latest ModelChoice is repeated this often, so late joiners learn it [s]."""

@@ -1,0 +1,247 @@
+"""The simulation core: MuJoCo steps the arm under the joint impedance law.
+
+LeRobot-style robot interface (connect/read/send/disconnect is the node's business;
+here: ``reset``, ``read``, ``apply``, ``step``). The per-physics-step work runs inside
+MuJoCo: affine actuators evaluate tau = tau_ff + kp (q_ref - q) + kd (dq_ref - dq),
+saturated at the effort limits, and ``mj_step(..., nstep)`` advances many steps per call.
+The latest command is held between commands.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import mujoco
+import numpy as np
+from mujoco import rollout
+
+from dammrl_core.robot import RobotDescription
+from dammrl_core.robot.scene import SENSOR_LAYOUT, SceneLayout, build_scene
+from dammrl_core.sim.settings import SimSettings
+from dammrl_core.state import JointCommand, RobotState
+
+GOVERNOR_ENGAGES = 0.8
+"""The speed governor looks at a joint from this share of its governed speed on."""
+GOVERNOR_SPAN = 0.05
+"""The governor's full torque acts this far (a share of the governed speed) past it."""
+
+
+class Simulation:
+    """A MuJoCo scene of the arm, a table and the goal button."""
+
+    def __init__(
+        self,
+        settings: SimSettings,
+        robot: RobotDescription,
+        layout: SceneLayout,
+        seed: int | np.random.Generator | None = None,
+    ) -> None:
+        """``layout.timestep_s`` is replaced by ``settings.timestep_s``; ``seed`` seeds the
+        randomisation and the sensor noise (each episode reseeds ``rng``, see ``reset``)."""
+        self.settings = settings
+        self.robot = robot
+        self.layout = replace(layout, timestep_s=settings.timestep_s)
+        self.model = build_scene(self.robot, self.layout)
+        self.data = mujoco.MjData(self.model)
+        self.rng = np.random.default_rng(seed)
+        self._nominal = {
+            name: getattr(self.model, name).copy()
+            for name in ("body_mass", "body_inertia", "dof_damping", "dof_frictionloss", "body_pos")
+        }
+        self._n = len(self.robot.joint_names)
+        self.joint_offset = np.zeros(self._n)  # encoder zero offsets [rad] (randomisation)
+        self._button_body = self.model.body("button").id
+        self._arm_bodies = np.arange(1, self.model.body("button").id)
+        self._noise_std = self._sensor_noise_std()
+        self._sensor_slices = tuple(
+            SENSOR_LAYOUT[k] for k in ("q", "dq", "tau", "ee_pos", "ee_vel", "button")
+        )
+        self._last_command: JointCommand | None = None
+        self._govern_speed = settings.speed_governor_fraction * robot.dq_max
+        self._govern_from = GOVERNOR_ENGAGES * self._govern_speed
+        self._governor_gain = robot.tau_max / (GOVERNOR_SPAN * self._govern_speed)
+        self._state = np.zeros(mujoco.mj_stateSize(self.model, mujoco.mjtState.mjSTATE_FULLPHYSICS))
+
+    @property
+    def timestep_s(self) -> float:
+        return float(self.model.opt.timestep)
+
+    @property
+    def applied(self) -> JointCommand | None:
+        """The command MuJoCo is applying (after the arm's caps), None before any."""
+        return self._last_command
+
+    @property
+    def t_s(self) -> float:
+        return float(self.data.time)
+
+    def reset(
+        self,
+        q: np.ndarray,
+        button_xy: tuple[float, float],
+        rng: np.random.Generator | None = None,
+    ) -> RobotState:
+        """Arm at rest at ``q`` [rad], button centred under ``button_xy`` [m], time 0.
+
+        ``rng`` (an episode's ``seed_streams(seed).sim``) draws this episode's arm and
+        sensor noise: every composition reseeds here, so a seed gives the same arm.
+        """
+        if rng is not None:
+            self.rng = rng
+        mujoco.mj_resetData(self.model, self.data)
+        self._last_command = None
+        self._randomize()
+        self.place_button(button_xy)
+        self.data.qpos[: self._n] = q - self.joint_offset  # the encoders read q
+        mujoco.mj_forward(self.model, self.data)
+        return self.read()
+
+    def place_button(self, button_xy: tuple[float, float]) -> None:
+        """Put the button centred under ``button_xy`` [m] on the table."""
+        self.model.body_pos[self._button_body, :2] = button_xy
+
+    def apply(self, command: JointCommand) -> None:
+        """Latch a joint command; MuJoCo applies it at every step until the next one."""
+        last, self._last_command = self._last_command, command
+        if command is last:
+            return
+        if last is None or command.kp is not last.kp or command.kd is not last.kd:
+            self.model.actuator_biasprm[: self._n, 1] = -command.kp
+            self.model.actuator_biasprm[: self._n, 2] = -command.kd
+        # the servo holds the angle its encoder reports: q_ref is met at true q_ref - offset
+        self.data.ctrl[: self._n] = (
+            command.tau_ff
+            + command.kp * (command.q_ref - self.joint_offset)
+            + command.kd * command.dq_ref
+        )
+
+    def step(self, n_steps: int) -> None:
+        """Advance ``n_steps`` physics steps in one MuJoCo call."""
+        mujoco.mj_step(self.model, self.data, nstep=n_steps)
+
+    def step_governed(self, n_steps: int) -> None:
+        """Advance ``n_steps`` physics steps with the drives' speed governor (the bus's arm,
+        which takes commands from whoever holds the controller's role): at every step a
+        joint near ``speed_governor_fraction`` of its velocity limit gets no torque that
+        would speed it up further, as a drive's velocity limit does (the soft limits of
+        ros_control, k_v (v_max - |dq|)); below it the law is untouched (bitwise the
+        same as ``step``)."""
+        n = self._n
+        for _ in range(n_steps):
+            dq = self.data.qvel[:n]
+            if np.logical_or.reduce(np.abs(dq) > self._govern_from):
+                self._governed_step(dq)
+            else:
+                mujoco.mj_step(self.model, self.data)
+
+    def _governed_step(self, dq: np.ndarray) -> None:
+        n, ctrl = self._n, self.data.ctrl[: self._n].copy()
+        q = self.data.qpos[:n]
+        bias = self.model.actuator_biasprm[:n]
+        force = ctrl + bias[:, 1] * q + bias[:, 2] * dq
+        low = -self._governor_gain * (dq + self._govern_speed)
+        high = -self._governor_gain * (dq - self._govern_speed)
+        governed = np.clip(force, low, high)
+        if np.array_equal(governed, force):  # far from the bound: the law untouched
+            mujoco.mj_step(self.model, self.data)
+            return
+        self.data.ctrl[:n] = governed - bias[:, 1] * q - bias[:, 2] * dq
+        mujoco.mj_step(self.model, self.data)
+        self.data.ctrl[:n] = ctrl  # the command stays latched
+
+    def read(self) -> RobotState:
+        """The arm's state from MuJoCo's sensors, with sensor noise when randomisation is on.
+
+        MuJoCo evaluates sensors before integrating, so values are one physics step old
+        at most (as on hardware, where state is sampled before the command is applied).
+        """
+        raw = self.data.sensordata.copy()
+        true_ee = raw[self._sensor_slices[3]].copy()
+        raw[self._sensor_slices[0]] += self.joint_offset
+        if self.settings.randomization.enabled:
+            raw += self._noise_std * self.rng.standard_normal(raw.size)
+        return self.state_from_sensors(float(self.data.time), raw, true_ee)
+
+    def state_from_sensors(
+        self, t_s: float, raw: np.ndarray, true_ee: np.ndarray | None = None
+    ) -> RobotState:
+        """A RobotState over one sensordata vector (see SENSOR_LAYOUT); no copy.
+        ``true_ee``: the noise-free end-effector position, when known."""
+        q, dq, tau, ee_pos, ee_vel, button = self._sensor_slices
+        travel = -float(raw[button][0])
+        return RobotState(
+            t_s=t_s,
+            q=raw[q],
+            dq=raw[dq],
+            tau=raw[tau],
+            ee_pos=raw[ee_pos],
+            ee_vel=raw[ee_vel],
+            button_pressed=travel >= self.settings.button_press_travel_m,
+            button_travel_m=travel,
+            ee_pos_true=true_ee,
+        )
+
+    def advance(self, n_periods: int, substeps: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Advance ``n_periods * substeps`` steps under the latched command in one rollout.
+
+        Returns the times (n,) and sensor vectors (n, nsensordata) at the end of each
+        period: what ``read`` would have returned there; and the noise-free end-effector
+        positions (n, 3). The final state is bitwise the one ``step`` would reach (same
+        integrator, solver warm start carried over).
+        """
+        spec = mujoco.mjtState.mjSTATE_FULLPHYSICS
+        mujoco.mj_getState(self.model, self.data, self._state, spec)
+        states, sensordata = rollout.rollout(
+            self.model,
+            self.data,
+            self._state,
+            self.data.ctrl[None, None, :].copy(),
+            control_spec=mujoco.mjtState.mjSTATE_CTRL,
+            nstep=n_periods * substeps,
+            initial_warmstart=self.data.qacc_warmstart[None, :].copy(),
+        )
+        ends = slice(substeps - 1, None, substeps)
+        times, rows = states[0, ends, 0].copy(), sensordata[0, ends].copy()  # time is first
+        true_ee = rows[:, self._sensor_slices[3]].copy()
+        rows[:, self._sensor_slices[0]] += self.joint_offset
+        if self.settings.randomization.enabled:
+            rows += self._noise_std * self.rng.standard_normal(rows.shape)
+        return times, rows, true_ee
+
+    def _sensor_noise_std(self) -> np.ndarray:
+        """Per-entry standard deviation of the sensordata noise (see SENSOR_LAYOUT)."""
+        r = self.settings.randomization
+        std = np.zeros(self.model.nsensordata)
+        std[SENSOR_LAYOUT["q"]] = r.q_noise_rad
+        std[SENSOR_LAYOUT["dq"]] = r.dq_noise_rad_per_s
+        std[SENSOR_LAYOUT["ee_pos"]] = r.ee_noise_m
+        return std
+
+    def _randomize(self) -> None:
+        """Restore the nominal model, then perturb it when randomisation is enabled."""
+        for name, value in self._nominal.items():
+            getattr(self.model, name)[:] = value
+        self.joint_offset = np.zeros(self._n)
+        randomization = self.settings.randomization
+        if not randomization.enabled:
+            return
+        bodies = self._arm_bodies
+        scale = self.rng.uniform(
+            1 - randomization.mass_scale, 1 + randomization.mass_scale, len(bodies)
+        )
+        self.model.body_mass[bodies] *= scale
+        self.model.body_inertia[bodies] *= scale[:, None]
+        dofs = np.arange(self._n)
+        self.model.dof_damping[dofs] *= self.rng.uniform(
+            1 - randomization.damping_scale, 1 + randomization.damping_scale, self._n
+        )
+        self.model.dof_frictionloss[dofs] = self.rng.uniform(
+            0, randomization.friction_max_nm, self._n
+        )
+        links = self._arm_bodies[1:]  # the base stays where it is mounted
+        self.model.body_pos[links] *= self.rng.uniform(
+            1 - randomization.link_length_scale, 1 + randomization.link_length_scale, len(links)
+        )[:, None]
+        self.joint_offset = self.rng.uniform(
+            -randomization.joint_offset_rad, randomization.joint_offset_rad, self._n
+        )

@@ -1,0 +1,109 @@
+"""The robot service's link to the arm's drives: connecting, a lost bus, holding blind,
+the soft start after a torque-on, and the drives' own stop after a silent host."""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import time
+
+from dammrl_core.arm.driver import DriveCommand, Driver, DriverError, JointState
+from dammrl_core.arm.settings import ArmSettings
+
+log = logging.getLogger("dammrl.robot")
+
+
+class DriveLink:
+    """A driver and what is known of its connection."""
+
+    def __init__(self, driver: Driver, settings: ArmSettings) -> None:
+        self.driver = driver
+        self.settings = settings
+        self.connected = False
+        self.limp = False  # a stop turned the torque off: the state is read, nothing written
+        self.fault: str | None = None  # the bus is gone: reconnecting
+        self.torque_on_s = 0.0
+        self.next_connect_s = 0.0
+        self.errors = 0  # failed cycles in a row
+        self.last_written: DriveCommand | None = None  # the law last sent to the drives
+        self.last_write_s = float("inf")  # when (monotonic); inf: not since connecting
+
+    def try_connect(self, now: float) -> bool:
+        """Connect when it is time to try; whether it just connected."""
+        if now < self.next_connect_s:
+            return False
+        self.next_connect_s = now + self.settings.reconnect_s
+        try:
+            holding = self.driver.connect()
+        except DriverError as exc:
+            if self.fault != str(exc):
+                log.error("%s: retrying every %.1f s", exc, self.settings.reconnect_s)
+            self.fault = str(exc)
+            return False
+        # drives that held with the torque on need no soft start (it would drop the arm)
+        self.connected = True
+        self.torque_on_s = time.monotonic() - (self.settings.soft_start_s if holding else 0.0)
+        self.last_write_s = float("inf")  # connect armed the drives' watchdog: no stall yet
+        if self.fault is not None:
+            log.warning("the drives' bus answers again: holding where the arm is")
+        self.fault, self.errors = None, 0
+        return True
+
+    def read(self) -> JointState:
+        return self.driver.read_state()
+
+    def write(self, law: DriveCommand, now: float) -> None:
+        self.driver.write_command(law)
+        self.last_written, self.last_write_s = law, now
+
+    def cycle_done(self) -> None:
+        self.errors = 0
+
+    def failed(self, exc: DriverError) -> bool:
+        """A failed cycle (the drives keep their last goal); whether the bus is lost (too
+        many in a row). Then the last law keeps being sent blind: the drives that still
+        hear it hold with gravity compensation; the others' watchdog stops them."""
+        self.errors += 1
+        if self.errors < self.settings.max_bus_errors:
+            log.warning("bus cycle failed (%d in a row): %s", self.errors, exc)
+            return False
+        self.fault = f"drives' bus lost: {exc}"
+        log.error("%s: holding blind, reconnecting", self.fault)
+        self.connected = False
+        self.next_connect_s = time.monotonic() + self.settings.reconnect_s
+        return True
+
+    def hold_blind(self) -> None:
+        if self.last_written is not None:
+            with contextlib.suppress(DriverError):
+                self.driver.write_command(self.last_written)
+
+    def torque_off(self) -> None:
+        if self.connected:
+            self.driver.torque_off()
+        self.limp = True  # nothing is written until a release reconnects
+
+    def reconnect_now(self) -> None:
+        """Torque back on (after a torque-off stop was released), with the soft start."""
+        if self.connected:
+            self.driver.disconnect()
+        self.connected = self.limp = False
+        self.next_connect_s = 0.0
+
+    def stalled(self, now: float) -> bool:
+        """This process was silent longer than the drives' own stop allows."""
+        stall_s = self.driver.stall_s
+        return stall_s is not None and now - self.last_write_s > stall_s
+
+    def soft_start(self, now: float) -> float:
+        """The gains' share after torque-on: from ``soft_start_fraction`` to 1, linearly."""
+        duration = self.settings.soft_start_s
+        if duration <= 0:
+            return 1.0
+        share = min((now - self.torque_on_s) / duration, 1.0)
+        low = self.settings.soft_start_fraction
+        return low + (1.0 - low) * max(share, 0.0)
+
+    def close(self) -> None:
+        if self.connected:
+            self.driver.disconnect()  # the drives hold where they are
