@@ -155,8 +155,9 @@ def check_options(options: StackOptions) -> None:
             "--lockstep is for simulation only: in semi-virtual mode a person at the sensor "
             "needs real time"
         )
-    if options.mode == "semi-virtual" and not options.pad_port:
-        raise UsageError("semi-virtual mode needs --port (the pressure pad's serial device)")
+    if options.mode == "semi-virtual" and not options.pad_port and _simulated_intent():
+        raise UsageError("semi-virtual mode needs a person: --port (the pressure pad's serial "
+                         "device) or DAMMRL_INTENT_SOURCE naming a sensor's source")  # fmt: skip
     if options.mode == "real" and options.lockstep:
         raise UsageError("--lockstep is for simulation only: a real arm runs in real time")
     if options.emulate_robot and not options.robot_port:
@@ -177,6 +178,11 @@ def check_options(options: StackOptions) -> None:
         from dammrl_core.intent.pad.source import PadSettings
 
         PressDecoder(load_calibration(options.pad_calibration), PadSettings().decoder)
+
+
+def _simulated_intent() -> bool:
+    """The environment leaves the decisions to the simulated human."""
+    return IntentSettings().source == "simulated"
 
 
 def cut_recordings(record: Path) -> list[Path]:

@@ -22,7 +22,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from foxglove.websocket import ChannelView, Client, ServerListener
 
+from dammrl.wsgate import SubprotocolGate
 from dammrl_core.robot import RobotDescription
 from schemas import (
     DecodeError,
@@ -264,6 +266,27 @@ def _entity(name: str, t_ns: int, **primitives: list[dict[str, Any]]) -> dict[st
     return entity
 
 
+class Subscribers(ServerListener):
+    """Which channels a viewer has subscribed (the SDK's ServerListener): a recording waits
+    for its first viewer instead of playing to no one."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._open: set[tuple[int, str]] = set()
+        self.any = threading.Event()
+
+    def on_subscribe(self, client: Client, channel: ChannelView) -> None:
+        with self._lock:
+            self._open.add((client.id, channel.topic))
+            self.any.set()
+
+    def on_unsubscribe(self, client: Client, channel: ChannelView) -> None:
+        with self._lock:
+            self._open.discard((client.id, channel.topic))
+            if not self._open:
+                self.any.clear()
+
+
 class FoxgloveServer:
     """The WebSocket server and one JSON channel per topic; ``log`` is a translator's."""
 
@@ -271,6 +294,7 @@ class FoxgloveServer:
         import foxglove
 
         self._urdf = robot.urdf_path.read_bytes()
+        self.clients = Subscribers()
         self.channels = {
             "/tf": foxglove.Channel("/tf", schema=self._schema("FrameTransforms"),
                                     message_encoding="json"),
@@ -279,8 +303,12 @@ class FoxgloveServer:
             **{topic: foxglove.Channel(topic, schema=schema)
                for topic, schema in PLOT_SCHEMAS.items()},
         }  # fmt: skip
-        self.server = foxglove.start_server(name="dammrl", host=host, port=port,
-                                            asset_handler=self._asset)  # fmt: skip
+        # the SDK's server on a private loopback port; the public one is the gate's, which
+        # also admits clients that name the protocol as ws-protocol does (Lichtblick)
+        self.server = foxglove.start_server(name="dammrl", host="127.0.0.1", port=0,
+                                            asset_handler=self._asset,
+                                            server_listener=self.clients)  # fmt: skip
+        self.gate = SubprotocolGate(host, port, int(self.server.port))
 
     @staticmethod
     def _schema(name: str) -> Any:
@@ -294,12 +322,13 @@ class FoxgloveServer:
 
     @property
     def port(self) -> int:
-        return int(self.server.port)
+        return self.gate.port
 
     def log(self, topic: str, message: dict[str, Any], t_ns: int) -> None:
         self.channels[topic].log(message, log_time=t_ns)
 
     def stop(self) -> None:
+        self.gate.stop()
         self.server.stop()
 
 

@@ -22,6 +22,14 @@ def discover(group: str, built_in: dict[str, str]) -> dict[str, str]:
     return found
 
 
+def origins(group: str, built_in: dict[str, str]) -> dict[str, str]:
+    """Every plug-in's name and who provides it ("built-in" or the package's name)."""
+    found = dict.fromkeys(built_in, "built-in")
+    for entry in entry_points(group=group):
+        found.setdefault(entry.name, f"package {entry.dist.name}" if entry.dist else "package")
+    return dict(sorted(found.items()))
+
+
 def load(group: str, built_in: dict[str, str], name: str, what: str) -> object:
     """The plug-in ``name`` of ``group``; a one-line error naming the installed ones."""
     plugins = discover(group, built_in)

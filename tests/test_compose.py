@@ -218,7 +218,9 @@ def test_the_semi_virtual_profile_runs_an_episode_from_the_passed_through_sensor
     observer = _run_profile("semi-virtual", tmp_path, patient=True)
     result = observer.of(EpisodeResult)[0]
     assert isinstance(result, EpisodeResult) and result.success, result.reason
-    assert all(isinstance(i, Intent) and i.source == "sensor" for i in observer.of(Intent))
+    assert all(
+        isinstance(i, Intent) and i.source == "pad" and i.person for i in observer.of(Intent)
+    )
 
 
 def test_the_real_profile_runs_an_episode_on_the_passed_through_servo_bus(

@@ -44,7 +44,7 @@ def test_an_emulated_sensor_drives_a_semi_virtual_episode_to_the_goal(tmp_path: 
     result = observer.of(EpisodeResult)[0]
     assert isinstance(result, EpisodeResult) and result.success, result.reason
     intents = [i for i in observer.of(Intent) if isinstance(i, Intent)]
-    assert intents and all(i.source == "sensor" and i.human_model == 1 for i in intents)
+    assert intents and all(i.source == "pad" and i.person and i.human_model == 1 for i in intents)
     assert {i.u_h for i in intents} <= {-1, 1} and len(observer.of(SensorSample)) > 100
 
 
@@ -101,7 +101,7 @@ def test_a_simulated_patient_at_the_pad_is_recognised_by_the_policys_posterior(
             process.wait(15)
         observer.close()
     intents = [i for i in observer.of(Intent) if isinstance(i, Intent)]
-    assert len(intents) >= 6 and all(i.source == "sensor" for i in intents)
+    assert len(intents) >= 6 and all(i.source == "pad" and i.person for i in intents)
     assert all(i.human_model == 2 for i in intents), "held presses decode as E_small"
     answers = [c for c in observer.of(ModelChoice) if isinstance(c, ModelChoice) and c.request > 6]
     assert answers and all(c.posterior is not None for c in answers)

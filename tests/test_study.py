@@ -24,7 +24,18 @@ def test_wilson_interval_matches_the_textbook_values() -> None:
     assert rate.low == pytest.approx(0.4902, abs=1e-3) and rate.high == pytest.approx(
         0.9433, abs=1e-3
     )
-    assert wilson(0, 0).n == 0 and wilson(10, 10).high == pytest.approx(1.0)
+    assert wilson(0, 0).n == 0
+
+
+@pytest.mark.parametrize(("successes", "n"), [(0, 1), (0, 100), (10, 10), (100, 100), (1, 3)])
+def test_every_interval_holds_its_value_within_the_rates_range(successes: int, n: int) -> None:
+    """At 0/n and n/n the bounds are the range's ends exactly (a chart's error bars are
+    never negative: the study once crashed on 10/10)."""
+    rate = wilson(successes, n)
+    assert 0.0 <= rate.low <= rate.value <= rate.high <= 1.0
+    assert (rate.low == 0.0) == (successes == 0) and (rate.high == 1.0) == (successes == n)
+    constant = bootstrap_mean(np.full(7, 0.1 + 0.2), np.random.default_rng(0))
+    assert constant.low <= constant.value <= constant.high
 
 
 def test_bootstrap_and_paired_intervals_cover_the_mean_and_see_a_shift() -> None:

@@ -70,12 +70,16 @@ def _compose(transforms: list[dict[str, Any]], frame: str) -> np.ndarray:
     return point
 
 
-def test_a_foxglove_client_sees_the_arm_the_goal_and_the_plots(robot: RobotDescription,
-                                                               arm: ArmModel) -> None:  # fmt: skip
+@pytest.mark.parametrize("subprotocol", ["foxglove.sdk.v1", "foxglove.websocket.v1"])
+def test_a_foxglove_client_sees_the_arm_the_goal_and_the_plots(
+    robot: RobotDescription, arm: ArmModel, subprotocol: str
+) -> None:
+    """The SDK's protocol name and ws-protocol's (Lichtblick's) reach the same server."""
     server = FoxgloveServer(robot, "127.0.0.1", free_port())
     translator = SceneTranslator(robot, server.log, max_hz=30)
     with websockets_client.connect(f"ws://127.0.0.1:{server.port}",
-                                   subprotocols=["foxglove.sdk.v1"]) as ws:  # fmt: skip
+                                   subprotocols=[subprotocol]) as ws:  # fmt: skip
+        assert ws.subprotocol == subprotocol
         texts, _ = _receive(ws, time.monotonic() + 1.0)
         advertised = {c["topic"]: c for t in texts if t["op"] == "advertise" for c in t["channels"]}
         assert {"/tf", "/dammrl/scene", "/dammrl/error", "/dammrl/decision"} <= set(advertised)

@@ -15,7 +15,7 @@ import shtab
 from pydantic import ValidationError
 
 from dammrl import __version__
-from dammrl.cli import bus, reach, recording, rl, robot, sensor, stack, study, view
+from dammrl.cli import bus, intent, reach, recording, rl, robot, sensor, stack, study, view
 from dammrl_core.errors import EXIT_CODES_HELP, DammrlError, Exit
 from dammrl_core.settings import error_line
 
@@ -23,6 +23,7 @@ GROUPS = (
     reach.register,
     stack.register,
     recording.register,
+    intent.register,
     sensor.register,
     robot.register,
     rl.register,

@@ -36,6 +36,47 @@ def positive(text: str) -> float:
     return value
 
 
+FIGURE_SUFFIXES = (".png", ".pdf", ".svg", ".jpg", ".jpeg")
+"""What a figure can be written as (matplotlib's formats chosen by the name)."""
+
+
+def output_file(*suffixes: str) -> Callable[[str], Path]:
+    """Argument type: a file to write, its name ending in one of ``suffixes`` (any when
+    none), in a directory that exists and may be written: refused before any work."""
+
+    def convert(text: str) -> Path:
+        path = Path(text)
+        if suffixes and path.suffix.lower() not in suffixes:
+            raise argparse.ArgumentTypeError(f"{text}: the name must end in {', '.join(suffixes)}")
+        if path.is_dir():
+            raise argparse.ArgumentTypeError(f"{text} is a directory, not a file")
+        _check_writable(path.parent)
+        return path
+
+    convert.__name__ = "output file"  # argparse names the type in its errors
+    return convert
+
+
+def output_dir(text: str) -> Path:
+    """Argument type: a directory to write into (made if missing, with its parents)."""
+    path = Path(text)
+    if path.exists() and not path.is_dir():
+        raise argparse.ArgumentTypeError(f"{text} exists and is not a directory")
+    existing = next(p for p in (path, *path.parents) if p.exists() or p == Path("."))
+    _check_writable(existing)
+    return path
+
+
+def _check_writable(directory: Path) -> None:
+    import os
+
+    directory = directory if str(directory) else Path(".")
+    if not directory.is_dir():
+        raise argparse.ArgumentTypeError(f"no such directory: {directory}")
+    if not os.access(directory, os.W_OK | os.X_OK):
+        raise argparse.ArgumentTypeError(f"cannot write in {directory} (permission denied)")
+
+
 SEEDS_HELP = (
     "held-out task seeds: N (the first N, default 100) or A:B (seeds A to B-1, all >= "
     "7,000,000: training never uses them)"
@@ -156,12 +197,14 @@ def fmt(value: object) -> str:
 def progress_bar(
     total: int | None, description: str, unit: str = "reach"
 ) -> tuple[Callable[..., None], Callable[[], None]]:
-    """A progress bar with ETA on stderr (tqdm; off when stderr is not a terminal):
-    ``update(n, postfix=None)`` and ``close()``."""
+    """Progress on stderr: a bar with ETA on a terminal (tqdm), else a plain line every
+    10 % or 30 s (a log file or a CI job sees it move): ``update(n, postfix=None)`` and
+    ``close()``."""
+    if not sys.stderr.isatty():
+        return _progress_lines(total, description, unit)
     from tqdm import tqdm
 
-    bar = tqdm(total=total, desc=description, unit=unit, file=sys.stderr,
-               disable=None, dynamic_ncols=True)  # fmt: skip
+    bar = tqdm(total=total, desc=description, unit=unit, file=sys.stderr, dynamic_ncols=True)
 
     def update(n: int, postfix: str | None = None) -> None:
         if postfix is not None:
@@ -169,6 +212,39 @@ def progress_bar(
         bar.update(n)
 
     return update, bar.close
+
+
+def _progress_lines(
+    total: int | None, description: str, unit: str, every_s: float = 30.0, quiet_s: float = 5.0
+) -> tuple[Callable[..., None], Callable[[], None]]:
+    """Plain progress lines, none for a job done within ``quiet_s``."""
+    import time
+
+    started = time.monotonic()
+    plural = unit + ("es" if unit.endswith(("ch", "sh", "s", "x")) else "s")
+    done, said_at, said_tenth, said = 0, started, 0, False
+
+    def line(postfix: str | None) -> str:
+        elapsed = time.monotonic() - started
+        of = f"/{total}" if total else ""
+        eta = f", ~{elapsed / done * (total - done):.0f} s left" if total and done else ""
+        tail = f" ({postfix})" if postfix else ""
+        return f"{description}: {done}{of} {plural} in {elapsed:.0f} s{eta}{tail}"
+
+    def update(n: int, postfix: str | None = None) -> None:
+        nonlocal done, said_at, said_tenth, said
+        done += n
+        now = time.monotonic()
+        tenth = 10 * done // total if total else 0
+        if now - started >= quiet_s and (tenth > said_tenth or now - said_at >= every_s):
+            said_at, said_tenth, said = now, tenth, True
+            print(line(postfix), file=sys.stderr, flush=True)
+
+    def close() -> None:
+        if said and said_tenth < 10:
+            print(line(None), file=sys.stderr, flush=True)
+
+    return update, close
 
 
 def headless_gl() -> None:

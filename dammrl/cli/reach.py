@@ -8,10 +8,12 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from dammrl.cli.common import (
+    FIGURE_SUFFIXES,
     Commands,
     check_video_path,
     headless_gl,
     model_arg,
+    output_file,
     print_err,
     progress_bar,
     table,
@@ -44,12 +46,13 @@ def register(commands: Commands) -> None:
     )
     reach.add_argument("--seed", type=int, default=0, help="seed of start/goal, human, latency")
     reach.add_argument("--json", action="store_true", help="one JSON object per reach")
-    reach.add_argument("--plot", type=Path, metavar="PNG", help="save a trajectory figure")
+    reach.add_argument("--plot", type=output_file(*FIGURE_SUFFIXES), metavar="PNG",
+                       help="save a trajectory figure (.png, .pdf, .svg, .jpg)")  # fmt: skip
     reach.add_argument("--ik", choices=["pinocchio", "ikpy"], help="IK solver (default pinocchio)")
     reach.add_argument("--feedforward", choices=["inverse_dynamics", "resolved_acceleration"],
                        help="computed-torque feed-forward (default: the setting)")  # fmt: skip
     reach.add_argument("--randomize", action="store_true", help="seeded domain randomisation")
-    reach.add_argument("--video", type=Path, metavar="MP4|GIF",
+    reach.add_argument("--video", type=output_file(), metavar="MP4|GIF",
                        help="render the reach (offscreen; .mp4 needs dammrl[video]); with "
                        "--trigger both, one file per trigger")  # fmt: skip
     reach.set_defaults(handler=_reach)

@@ -8,11 +8,13 @@ from pathlib import Path
 
 from dammrl.cli.common import (
     DEFAULT_CONNECT,
+    FIGURE_SUFFIXES,
     Commands,
     add_connect,
     bus_settings,
     check_video_path,
     headless_gl,
+    output_file,
     print_err,
     progress_bar,
 )
@@ -29,7 +31,8 @@ def register(commands: Commands) -> None:
     info.set_defaults(handler=_info)
     repair = actions.add_parser("repair", help="rewrite a cut recording as a complete MCAP")
     repair.add_argument("file", type=Path, help="a damaged MCAP recording")
-    repair.add_argument("-o", "--out", type=Path, help="default: <file>.repaired.mcap")
+    repair.add_argument("-o", "--out", type=output_file(".mcap"),
+                        help="default: <file>.repaired.mcap")  # fmt: skip
     repair.set_defaults(handler=_repair)
     _add_export(actions)
     human = actions.add_parser("human", help="the human's error rate per radius, decision rate")
@@ -56,12 +59,14 @@ def _add_plot(actions: Commands) -> None:
         "plot", help="pressure trace above the end-effector error (the paper's S2 figure)"
     )
     plot.add_argument("file", type=Path, help="an MCAP recording")
-    plot.add_argument("-o", "--out", type=Path, required=True, metavar="PNG", help="the figure")
+    plot.add_argument("-o", "--out", type=output_file(*FIGURE_SUFFIXES), required=True,
+                      metavar="PNG", help="the figure (.png, .pdf, .svg, .jpg)")  # fmt: skip
     plot.add_argument("--episode", type=int, help="only this episode")
     plot.set_defaults(handler=_plot)
     video = actions.add_parser("video", help="render an episode of a recording (MP4 or GIF)")
     video.add_argument("file", type=Path, help="an MCAP recording")
-    video.add_argument("-o", "--out", type=Path, required=True, metavar="MP4|GIF",
+    video.add_argument("-o", "--out", type=output_file(), required=True,
+                       metavar="MP4|GIF",
                        help="the video (.mp4 needs dammrl[video])")  # fmt: skip
     video.add_argument("--episode", type=int, help="this episode (default: the first)")
     video.add_argument("--fps", type=int, default=25, help="frames per second (default 25)")
@@ -85,8 +90,9 @@ def _add_replay(commands: Commands) -> None:
     replay.add_argument("--force", action="store_true", help="replay commands even to a live arm")
     replay.add_argument("--into-policy", type=Path, metavar="RUN",
                         help="offline, no bus: a trained policy's choice at every recorded "
-                             "decision, next to the recorded one")  # fmt: skip
-    replay.add_argument("-o", "--out", type=Path, default=Path("decisions.csv"),
+                             "decision, next to the recorded one (a run directory, .pt, or a "
+                             "shipped policy: reward1, reward2)")  # fmt: skip
+    replay.add_argument("-o", "--out", type=output_file(".csv"), default=Path("decisions.csv"),
                         help="with --into-policy: the CSV of decisions")  # fmt: skip
     replay.set_defaults(handler=_replay)
 

@@ -11,7 +11,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from dammrl.cli.common import SEEDS_HELP, Commands, progress_bar, seeds_arg
+from dammrl.cli.common import SEEDS_HELP, Commands, output_dir, progress_bar, seeds_arg
 
 
 def register(commands: Commands) -> None:
@@ -19,13 +19,14 @@ def register(commands: Commands) -> None:
     train = commands.add_parser("train", help="train the dual-agent DQN (DAMMRL)")
     train.add_argument("--reward", type=int, choices=[1, 2], required=True,
                        help="1: accuracy focus (beta = 0); 2: speed and accuracy")  # fmt: skip
-    train.add_argument("--out", type=Path, required=True, help="run directory (resumes if present)")
+    train.add_argument("--out", type=output_dir, required=True,
+                       help="run directory (resumes if present)")  # fmt: skip
     train.add_argument("--episodes", type=int, help="default 1500 (DAMMRL_RL_EPISODES)")
     train.add_argument("--seed", type=int, help="the run's seed (one run; default 0)")
     train.add_argument("--seeds", type=int, metavar="N",
                        help="train N seeds (0..N-1) into OUT/seed-K in parallel, evaluate each "
                        "on held-out seeds and aggregate (summary.md, curves.png)")  # fmt: skip
-    train.add_argument("--ship", type=Path, metavar="DIR",
+    train.add_argument("--ship", type=output_dir, metavar="DIR",
                        help="with --seeds: copy the best run on the validation seeds to DIR "
                        "(checkpoint, curves, TensorBoard log, every seed's results)")  # fmt: skip
     train.add_argument("--beta", type=float, help="the time weight (default: the reward's)")
@@ -38,7 +39,7 @@ def register(commands: Commands) -> None:
     frontier = commands.add_parser(
         "frontier", help="the reward-weight frontier: a grid of time weights, several seeds each"
     )
-    frontier.add_argument("--out", type=Path, required=True, help="grid directory")
+    frontier.add_argument("--out", type=output_dir, required=True, help="grid directory")
     frontier.add_argument("--betas", type=_betas, default=[0.0, 0.25, 0.5, 1.0, 2.0, 4.0],
                           help="time weights, comma-separated (default 0,0.25,0.5,1,2,4; 0 is "
                           "Reward 1, 1 is Reward 2)")  # fmt: skip
@@ -47,7 +48,12 @@ def register(commands: Commands) -> None:
     _grid_options(frontier)
     frontier.set_defaults(handler=_frontier)
     evaluate = commands.add_parser("evaluate", help="greedy evaluation of a trained run")
-    evaluate.add_argument("--checkpoint", type=Path, required=True, help="run directory or .pt")
+    evaluate.add_argument(
+        "--checkpoint",
+        type=Path,
+        required=True,
+        help="run directory, .pt or shipped policy (reward1, reward2)",
+    )
     evaluate.add_argument("--seeds", default="100", metavar="N|A:B", type=seeds_arg,
                           help=SEEDS_HELP)  # fmt: skip
     evaluate.add_argument("--randomize", action="store_true", help="on randomised arms")

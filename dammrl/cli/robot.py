@@ -17,6 +17,7 @@ from dammrl.cli.common import (
     Commands,
     add_bus_arguments,
     bus_settings,
+    output_file,
     positive,
     print_err,
     print_out,
@@ -109,7 +110,7 @@ def _add_calibrate(actions: Commands) -> None:
         "person's comfortable range (limits tighter than the URDF's).",
     )
     _add_driver_arguments(calibrate)
-    calibrate.add_argument("--out", type=Path, default=Path("arm_calibration.json"),
+    calibrate.add_argument("--out", type=output_file(".json"), default=Path("arm_calibration.json"),
                            help="where to save it (default arm_calibration.json)")  # fmt: skip
     calibrate.add_argument("--limits", action="store_true",
                            help="also record each joint's comfortable range")  # fmt: skip
@@ -163,8 +164,8 @@ def _driver(args: argparse.Namespace) -> tuple[DriverPlugin, Settings]:
 def _drivers(args: argparse.Namespace) -> int:
     from dammrl_core.arm.driver import driver_plugins
 
-    for name in driver_plugins():
-        print_out(name)
+    for name, origin in driver_plugins().items():
+        print_out(f"{name:16s} {origin}")
     return Exit.OK
 
 

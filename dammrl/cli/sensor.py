@@ -8,7 +8,14 @@ import threading
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from dammrl.cli.common import DEFAULT_CONNECT, Commands, add_bus_arguments, bus_settings, positive
+from dammrl.cli.common import (
+    DEFAULT_CONNECT,
+    Commands,
+    add_bus_arguments,
+    bus_settings,
+    output_file,
+    positive,
+)
 from dammrl_core.errors import DammrlError
 
 if TYPE_CHECKING:
@@ -37,7 +44,8 @@ def _add_calibrate(actions: Commands) -> None:
         "the calibration the intent service reads (DAMMRL_PAD_CALIBRATION_FILE).",
     )
     calibrate.add_argument("--port", required=True, help=PORT_HELP)
-    calibrate.add_argument("--out", type=Path, default=Path("sensor_calibration.json"),
+    calibrate.add_argument("--out", type=output_file(".json"),
+                           default=Path("sensor_calibration.json"),
                            help="where to save it (default sensor_calibration.json)")  # fmt: skip
     calibrate.add_argument("--seconds", type=positive, default=3.0, help="recording per step [s]")
     calibrate.add_argument("--yes", action="store_true",

@@ -13,6 +13,7 @@ from dammrl.cli.common import (
     add_credentials,
     bus_settings,
     model_arg,
+    output_dir,
     print_err,
     print_out,
 )
@@ -47,7 +48,7 @@ def register(commands: Commands) -> None:
 def register_schemas(commands: Commands) -> None:
     """Add ``schemas`` (last in ``dammrl --help``, hence apart from ``register``)."""
     schemas = commands.add_parser("schemas", help="write the JSON Schema of every message")
-    schemas.add_argument("--out", type=Path, required=True, metavar="DIR",
+    schemas.add_argument("--out", type=output_dir, required=True, metavar="DIR",
                          help="where the JSON Schemas are written")  # fmt: skip
     schemas.set_defaults(handler=_schemas)
 

@@ -8,7 +8,7 @@ import shlex
 import sys
 from pathlib import Path
 
-from dammrl.cli.common import SEEDS_HELP, Commands, print_err, progress_bar, seeds_arg
+from dammrl.cli.common import SEEDS_HELP, Commands, output_dir, print_err, progress_bar, seeds_arg
 
 RANDOMIZE = {"both": (False, True), "off": (False,), "on": (True,)}
 
@@ -21,7 +21,7 @@ def register(commands: Commands) -> None:
         description="Run the paper's four configurations and the reviewer's rows on held-out "
         "seeds; write report.md, reaches.csv and the figures into --out.",
     )
-    study.add_argument("--out", type=Path, default=Path("study"), help="report directory")
+    study.add_argument("--out", type=output_dir, default=Path("study"), help="report directory")
     study.add_argument("--seeds", default="100", metavar="N|A:B", type=seeds_arg,
                        help=SEEDS_HELP)  # fmt: skip
     study.add_argument("--tuning-seeds", type=int, default=20, metavar="N",
@@ -31,7 +31,7 @@ def register(commands: Commands) -> None:
                        help="domain randomisation (arm and sensor noise): both (default), "
                        "off or on")  # fmt: skip
     study.add_argument("--reward1", type=Path, nargs="+", default=[], metavar="RUN",
-                       help="Reward 1 runs or checkpoints (default: the shipped policy); "
+                       help="Reward 1 runs or checkpoints (default: the shipped policy reward1); "
                        "several runs aggregate")  # fmt: skip
     study.add_argument(
         "--reward2",
@@ -39,7 +39,7 @@ def register(commands: Commands) -> None:
         nargs="+",
         default=[],
         metavar="RUN",
-        help="Reward 2 runs or checkpoints (default: the shipped policy)",
+        help="Reward 2 runs or checkpoints (default: the shipped policy reward2)",
     )
     study.add_argument("--jobs", type=int, default=os.cpu_count() or 1,
                        help="processes on this machine (default: every core)")  # fmt: skip
@@ -74,6 +74,10 @@ def _study(args: argparse.Namespace) -> int:
         raise UsageError(f"--jobs must be at least 1, got {args.jobs}")
     if not 1 <= args.tuning_seeds <= 10_000:
         raise UsageError(f"--tuning-seeds must be 1 to 10000, got {args.tuning_seeds}")
+    from dammrl_core.policy.learned import resolve_run
+
+    args.reward1 = [resolve_run(run) for run in args.reward1]
+    args.reward2 = [resolve_run(run) for run in args.reward2]
     for run in [*args.reward1, *args.reward2]:
         if not run.exists():
             raise UsageError(f"no such run or checkpoint: {run}")
@@ -106,7 +110,7 @@ def _study(args: argparse.Namespace) -> int:
         for close in closers:
             close()
     command = "dammrl " + shlex.join(sys.argv[1:])
-    report = write_report(result, args.out, command)
+    report = write_report(result, args.out, command, say=print_err)
     if args.readme is not None:
         update_readme(args.readme, results_section(result))
         print_err(f"results section of {args.readme} regenerated")

@@ -105,6 +105,8 @@ class EmulatedServo:
     watchdog_deadline_s: float | None = None
     angle_rad: float = 0.0  # the shaft's true angle; the encoder reports it in ticks
     booting_until_s: float | None = None  # rebooting: silent and powerless until then
+    heard_s: float | None = None  # when an instruction last reached it (emulator time)
+    stopped_s: float | None = None  # when its watchdog stopped it: its deadline, as firmware
 
     def __post_init__(self) -> None:
         self.factory_ram()
@@ -164,6 +166,7 @@ class EmulatedServo:
 
     def heard(self, now_s: float) -> None:
         """Any instruction for this servo refreshes its watchdog."""
+        self.heard_s = now_s
         value = self.table[BUS_WATCHDOG]
         if 0 < value < 128:
             self.watchdog_deadline_s = now_s + value * WATCHDOG_UNIT_S
@@ -285,6 +288,7 @@ class ServoChain:
             if servo.torque_on and deadline is not None and now_s >= deadline:
                 servo.table[BUS_WATCHDOG] = 0xFF  # stops by itself: goal := present
                 servo.watchdog_deadline_s = None
+                servo.stopped_s = deadline
                 servo.table[GOAL_POSITION : GOAL_POSITION + 4] = servo.read(PRESENT_POSITION, 4)
         if dt <= 0:
             return

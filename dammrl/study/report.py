@@ -6,6 +6,7 @@ from __future__ import annotations
 import csv
 import platform
 import sys
+from collections.abc import Callable
 from importlib import metadata
 from pathlib import Path
 from typing import Any
@@ -34,12 +35,30 @@ COLUMNS = (
 )
 
 
-def write_report(result: StudyResult, out: Path, command: str) -> Path:
-    """Everything into ``out``; returns the report's path."""
+def write_report(result: StudyResult, out: Path, command: str,
+                 say: Callable[[str], None] = print) -> Path:  # fmt: skip
+    """Everything into ``out``; returns the report's path. The report and the rows are
+    written first: a figure that fails is named in the report and loses nothing else."""
     out.mkdir(parents=True, exist_ok=True)
     write_csv(result.rows, out / "reaches.csv")
-    pictures = _figures(result, out)
-    text = "\n".join([
+    path = out / "report.md"
+    path.write_text(_report_text(result, command, ["(being drawn)"]))
+    figure_lines = []
+    for name, draw in _figures(result, out).items():
+        try:
+            picture = draw()
+        except Exception as exc:  # a figure must not lose the study
+            say(f"figure {name!r} failed: {type(exc).__name__}: {exc}")
+            figure_lines.append(f"- {name}: not drawn ({type(exc).__name__}: {exc})")
+            continue
+        if picture is not None:
+            figure_lines.append(f"![{name}]({picture.name})")
+    path.write_text(_report_text(result, command, figure_lines))
+    return path
+
+
+def _report_text(result: StudyResult, command: str, figure_lines: list[str]) -> str:
+    return "\n".join([
         "# dammrl study",
         "",
         f"Command: `{command}`",
@@ -50,15 +69,12 @@ def write_report(result: StudyResult, out: Path, command: str) -> Path:
         "",
         "## Figures",
         "",
-        *(f"![{name}]({path.name})" for name, path in pictures.items()),
+        *figure_lines,
         "",
         "## Definitions",
         "",
         DEFINITIONS,
     ])  # fmt: skip
-    path = out / "report.md"
-    path.write_text(text)
-    return path
 
 
 def write_csv(rows: list[dict[str, Any]], path: Path) -> None:
@@ -159,25 +175,25 @@ def _agreement(result: StudyResult) -> str:
             f"{agree.text(100, 0)} %.")  # fmt: skip
 
 
-def _figures(result: StudyResult, out: Path) -> dict[str, Path]:
-    pictures = {
-        "summary": figures.summary_chart(result.records, result.configurations,
-                                         out / "summary.png"),
-        "trajectory": figures.trajectory_figure(result.configurations, result.options.seeds[0],
-                                                out / "trajectory.png"),
-        "step modulation": figures.step_modulation_figure(result.records,
-                                                          out / "step_modulation.png"),
-    }  # fmt: skip
+def _figures(result: StudyResult, out: Path) -> dict[str, Callable[[], Path | None]]:
+    """Each figure's name and how to draw it (into ``out``)."""
     runs = {
         "Reward 1": result.options.reward1 or (SHIPPED[1],),
         "Reward 2": result.options.reward2 or (SHIPPED[2],),
     }
-    training = figures.training_figure(runs, out / "training.png")
-    if training is not None:
-        pictures["training"] = training
-    if result.options.recording is not None:
-        pictures["semi-virtual session"] = figures.session_figure(
-            result.options.recording, out / "semi_virtual.png"
+    pictures: dict[str, Callable[[], Path | None]] = {
+        "summary": lambda: figures.summary_chart(result.records, result.configurations,
+                                                 out / "summary.png"),
+        "trajectory": lambda: figures.trajectory_figure(
+            result.configurations, result.options.seeds[0], out / "trajectory.png"),
+        "step modulation": lambda: figures.step_modulation_figure(
+            result.records, out / "step_modulation.png"),
+        "training": lambda: figures.training_figure(runs, out / "training.png"),
+    }  # fmt: skip
+    recording = result.options.recording
+    if recording is not None:
+        pictures["semi-virtual session"] = lambda: figures.session_figure(
+            recording, out / "semi_virtual.png"
         )
     return pictures
 

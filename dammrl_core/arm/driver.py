@@ -133,9 +133,9 @@ class DriverPlugin(Protocol):
 BUILT_IN: dict[str, str] = {"dynamixel": "dammrl_core.arm.dynamixel.plugin:PLUGIN"}
 
 
-def driver_plugins() -> list[str]:
-    """The names of every installed arm driver."""
-    return sorted(plugins.discover(ENTRY_POINTS, BUILT_IN))
+def driver_plugins() -> dict[str, str]:
+    """Every installed arm driver's name and who provides it."""
+    return plugins.origins(ENTRY_POINTS, BUILT_IN)
 
 
 def driver_plugin(name: str) -> DriverPlugin:

@@ -129,9 +129,9 @@ BUILT_IN: dict[str, str] = {
 }
 
 
-def source_plugins() -> list[str]:
-    """The names of every installed intent source."""
-    return sorted(plugins.discover(ENTRY_POINTS, BUILT_IN))
+def source_plugins() -> dict[str, str]:
+    """Every installed intent source's name and who provides it."""
+    return plugins.origins(ENTRY_POINTS, BUILT_IN)
 
 
 def source_plugin(name: str) -> IntentSourcePlugin:

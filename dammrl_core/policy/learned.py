@@ -9,6 +9,7 @@ plus Agent_0's choice (one-hot) and scores the eight step vectors. Training
 
 from __future__ import annotations
 
+from importlib import resources
 from pathlib import Path
 from typing import Any
 
@@ -25,6 +26,8 @@ ACTIONS = (len(HUMAN_MODELS), len(ROBOT_MODELS))
 WORKSPACE_CENTRE = np.array([0.45, 0.0, -0.10])
 WORKSPACE_HALF = np.array([0.25, 0.25, 0.20])
 CHECKPOINT = "checkpoint.pt"
+SHIPPED_RUNS = ("reward1", "reward2")
+"""The policies shipped in the package (dammrl_core/policies/<name>)."""
 FORMAT = 1
 
 
@@ -72,15 +75,29 @@ class DualQNetwork:
         return i, int(q.argmax(1).item())
 
 
+def resolve_run(run: Path) -> Path:
+    """A run directory or checkpoint file as given; a shipped policy by its name
+    (``reward1``, ``reward2``, or the repository path ``dammrl_core/policies/reward2``
+    the docs write), found in the installed package from any directory."""
+    if run.exists() or run.name not in SHIPPED_RUNS:
+        return run
+    if len(run.parts) == 1 or run.parts[-2] == "policies":
+        return Path(str(resources.files("dammrl_core").joinpath("policies", run.name)))
+    return run
+
+
 def load_checkpoint(run: Path) -> dict[str, Any]:
-    """The checkpoint of a run directory (or file), checked for format and shapes.
+    """The checkpoint of a run directory (or file, or shipped name), checked for format and
+    shapes.
 
     Loaded with ``weights_only=True``: tensors and plain containers only, so a crafted
     file cannot run code.
     """
+    run = resolve_run(run)
     path = run / CHECKPOINT if run.is_dir() else run
     if not path.is_file():
-        raise CheckpointError(f"no checkpoint at {path}")
+        raise CheckpointError(f"no checkpoint at {path} (give a run directory, a .pt file or "
+                              f"a shipped policy: {', '.join(SHIPPED_RUNS)})")  # fmt: skip
     try:
         checkpoint = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # torch raises many types for a damaged or unsafe file

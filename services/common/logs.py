@@ -61,9 +61,13 @@ def setup_logging(service: str) -> logging.Logger:
     listener = logging.handlers.QueueListener(records, writer)
     listener.start()  # a daemon thread
     atexit.register(_drain, records)
+    handler = DroppingQueueHandler(records)
+    # the queue carries the message alone (the writer adds time, service and level):
+    # basicConfig would otherwise give it its own "LEVEL:name:" format, printed twice
+    handler.setFormatter(logging.Formatter("%(message)s"))
     logging.basicConfig(
         level=level if level in logging.getLevelNamesMapping() else "INFO",
-        handlers=[DroppingQueueHandler(records)],
+        handlers=[handler],
         force=True,
     )
     return logging.getLogger(f"dammrl.{service}")
