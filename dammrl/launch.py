@@ -377,6 +377,16 @@ class Stack:
             time.sleep(0.05)
         self.info(f"emulated arm at {port}")
 
+    def inspect_commands(self) -> str:
+        """What to type in another terminal to look at this run (clients find its
+        credentials from the port)."""
+        at = f"--connect {self.endpoint}"
+        namespace = "" if self.options.namespace == "dammrl" else (
+            f" --namespace {self.options.namespace}")  # fmt: skip
+        return (f"inspect it: dammrl status {at}{namespace} | dammrl echo robot/state {at}"
+                f"{namespace} | dammrl view {at}{namespace} | stop the arm: dammrl stop "
+                f"{at}{namespace}")  # fmt: skip
+
     def _wait_alive(self, session: zenoh.Session, stop: SignalStop, quiet: bool = False) -> None:
         deadline = time.monotonic() + START_TIMEOUT_S
         wanted, alive = set(self.children), set[str]()
@@ -387,6 +397,7 @@ class Stack:
             if wanted <= alive:
                 if not quiet:
                     self.info(f"all services alive: {', '.join(sorted(wanted))}")
+                    self.info(self.inspect_commands())
                 return
             time.sleep(0.2)
         if not stop.is_set():

@@ -10,10 +10,11 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 from matplotlib.axes import Axes
-from matplotlib.patches import Circle
+from matplotlib.patches import Circle, Rectangle
 
 from dammrl.recording import SessionTraces
 from dammrl.runner import ReachResult
+from dammrl_core.robot.scene import SceneLayout
 
 COLORS = {"fixed": "black", "event": "tab:red"}  # the paper's colours
 LABELS = {"fixed": "fixed-frequency", "event": "event-triggered"}
@@ -22,9 +23,13 @@ MM = 1000.0
 ZOOM_RADIUS_M = 0.05  # the close-up shows the path within this distance of the goal
 
 
-def plot_reaches(results: list[ReachResult], goal_tolerance_m: float, path: Path) -> Path:
+def plot_reaches(results: list[ReachResult], goal_tolerance_m: float, path: Path,
+                 layout: SceneLayout | None = None) -> Path:  # fmt: skip
     """One reach per progression strategy, same start and goal: overview, close-ups of the
-    final approach with subgoals and admission spheres, and convergence over time."""
+    final approach with subgoals and admission spheres, and convergence over time. The
+    goal's button cap is drawn (``layout``): success is pressing it, so a path may end
+    tens of millimetres from the goal's star, on the cap's rim."""
+    layout = layout or SceneLayout()
     fig, axes = plt.subplots(2, 3, figsize=(16, 9.5), constrained_layout=True)
     (top, side, distance), (zoom_top, zoom_side, primary) = axes
     task = results[0].task
@@ -36,6 +41,7 @@ def plot_reaches(results: list[ReachResult], goal_tolerance_m: float, path: Path
     ):
         for result in results:
             _plot_path(ax, result, plane, with_subgoals=zoom)
+        _mark_button(ax, task.goal, layout, plane)
         _mark_task(ax, task.start, task.goal, goal_tolerance_m, plane, with_start=not zoom)
         if zoom:
             _zoom(ax, results, plane, goal_tolerance_m)
@@ -149,6 +155,23 @@ def _plot_primary(ax: Axes, result: ReachResult) -> None:
     ax.plot(starts, subgoals, "o", color=color, ms=3, alpha=0.7)
 
 
+def _mark_button(ax: Axes, goal: np.ndarray, layout: SceneLayout, plane: tuple[int, int]) -> None:
+    """The cap the fingertip must press: a disc seen from above, a slab from the side (its
+    top, and the fingertip's centre when it touches it, dotted)."""
+    i, j = plane
+    if j == 1:  # top view
+        ax.add_patch(Circle((goal[i] * MM, goal[j] * MM), layout.cap_radius_m * MM,
+                            color="tab:red", alpha=0.18, lw=0, label="button cap"))  # fmt: skip
+        return
+    top = layout.cap_top_z_m
+    corner = ((goal[i] - layout.cap_radius_m) * MM, (top - layout.cap_height_m) * MM)
+    width, height = 2 * layout.cap_radius_m * MM, layout.cap_height_m * MM
+    ax.add_patch(Rectangle(corner, width, height, color="tab:red", alpha=0.18, lw=0,
+                           label="button cap"))  # fmt: skip
+    touch = (top + layout.fingertip_radius_m) * MM
+    ax.axhline(touch, color="tab:red", lw=0.8, ls=":", label="fingertip on the cap")
+
+
 def _mark_task(
     ax: Axes,
     start: np.ndarray,
@@ -191,12 +214,10 @@ def plot_session(traces: SessionTraces, goal_tolerance_m: float, title: str, pat
     _plot_pressure(top, traces)
     _plot_error(bottom, traces, goal_tolerance_m)
     for ax in (top, bottom):
-        for t, number in traces.episodes:
+        for t, _ in traces.episodes:
             ax.axvline(t, color="0.6", lw=0.8, ls=":")
-            if ax is top:
-                ax.annotate(f"episode {number}", (t, 1), xycoords=("data", "axes fraction"),
-                            fontsize=7, color="0.4", va="top", ha="left")  # fmt: skip
         ax.grid(alpha=0.3)
+    _label_episodes(top, traces.episodes)
     bottom.set_xlabel("time [s]")
     outcomes = ", ".join(f"{r.episode}: {r.outcome} {r.t_total_s:.1f} s" for _, r in traces.results)
     fig.suptitle(f"{title}\n{outcomes}" if outcomes else title, fontsize=10)
@@ -204,6 +225,22 @@ def plot_session(traces: SessionTraces, goal_tolerance_m: float, title: str, pat
     fig.savefig(path, dpi=130)
     plt.close(fig)
     return path
+
+
+def _label_episodes(ax: Axes, episodes: list[tuple[float, int]], gap: float = 0.05) -> None:
+    """Each episode's number above its start line, leaving out a label that would touch the
+    previous one (closer than ``gap`` of the axis)."""
+    if not episodes:
+        return
+    low, high = ax.get_xlim()
+    span, last = max(high - low, 1e-9), -np.inf
+    for t, number in episodes:
+        if (t - last) / span < gap:
+            continue
+        ax.annotate(f"ep. {number}", (t, 1.0), xycoords=("data", "axes fraction"),
+                    xytext=(2, 2), textcoords="offset points", fontsize=7, color="0.35",
+                    va="bottom", ha="left")  # fmt: skip
+        last = t
 
 
 DECISION_STYLES = {  # (u_h, human model) -> marker, colour, fill, label
@@ -215,23 +252,27 @@ DECISION_STYLES = {  # (u_h, human model) -> marker, colour, fill, label
 
 
 def _plot_pressure(ax: Axes, traces: SessionTraces) -> None:
-    if len(traces.pressure):
+    """The pressure with each decision marked above it; without a pressure sensor (a
+    simulated human, a wearable source) the decisions themselves: u_h = +1 or -1."""
+    pressure = len(traces.pressure) > 0
+    if pressure:
         ax.plot(traces.pressure_t, traces.pressure, color="tab:blue", lw=0.9, label="pressure")
         unit = "normalised (0 rest, 1 firm)" if traces.pressure_normalised else "raw ADC counts"
         ax.set_ylabel(f"pressure\n{unit}")
+        marker_y = float(np.max(traces.pressure)) * 1.12
+        ax.set_ylim(top=marker_y * 1.1)
+        ax.set_title("primary-axis input: one press = one decision (marked as the press ends)")
     else:
-        ax.set_ylabel("decisions")
-        note = "no pressure sensor in this recording: the decisions only"
-        ax.text(0.5, 0.5, note, transform=ax.transAxes, ha="center", color="0.5")
-    marker_y = float(np.max(traces.pressure)) * 1.12 if len(traces.pressure) else 1.0
+        ax.set_ylabel("command $u_h$")
+        ax.set_yticks([-1, 1], ["-1", "+1"])
+        ax.set_ylim(-1.6, 1.6)
+        ax.set_title("primary-axis commands (no pressure sensor in this recording)")
     for (u_h, model), (marker, color, fill, label) in DECISION_STYLES.items():
         times = [t for t, i in traces.decisions if (i.u_h, i.human_model) == (u_h, model)]
         if times:
-            y = [marker_y] * len(times)
+            y = [marker_y if pressure else u_h] * len(times)
             ax.plot(times, y, marker, color=color, fillstyle=fill, ms=7, mew=1.3, ls="none",
                     label=label)  # fmt: skip
-    ax.set_ylim(top=marker_y * 1.1)
-    ax.set_title("primary-axis input: one press = one decision (marked as the press ends)")
     ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1), fontsize=8)
 
 

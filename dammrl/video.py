@@ -42,21 +42,23 @@ class Track:
     radius: np.ndarray  # (N,) its admission radius [m]
     button_travel: np.ndarray  # (N,) how far the cap is pressed [m]
     goal: np.ndarray  # (3,)
-    label: str  # e.g. "seed 7000001, event, M_2,1: success in 7.42 s"
+    label: str  # e.g. "seed 7000001, event, M_2,1"
+    outcome: str = ""  # e.g. "success in 7.42 s", shown once it happened
+    end_s: float = float("inf")  # when the outcome happened [s, on t]
 
 
 def track_of_reach(result: ReachResult) -> Track:
     """The track of an in-process reach, up to its end."""
     traj, m = result.trajectory, result.metrics
     keep = traj.t <= m.t_total_s + 0.5  # the reach and half a second of its hold
-    outcome = "success" if m.success else m.outcome
-    label = (f"seed {result.seed}, {result.trigger}, M_{result.model[0]},{result.model[1]}: "
-             f"{outcome} in {m.t_total_s:.2f} s")  # fmt: skip
+    outcome = f"{'success' if m.success else m.outcome} in {m.t_total_s:.2f} s"
+    label = f"seed {result.seed}, {result.trigger}, M_{result.model[0]},{result.model[1]}"
     travel = np.zeros(int(keep.sum()))
     if m.button_pressed:  # the log keeps no travel: show the cap down from the press on
         travel[traj.t[keep] >= m.t_total_s - 0.1] = 0.008
     return Track(traj.t[keep], traj.q[keep], traj.x[keep], traj.subgoal[keep],
-                 traj.radius[keep], travel, result.task.goal, label)  # fmt: skip
+                 traj.radius[keep], travel, result.task.goal, label, outcome,
+                 m.t_total_s)  # fmt: skip
 
 
 def track_of_recording(path: Path, episode: int | None = None) -> Track:
@@ -93,9 +95,10 @@ def _track(states: list[RobotState], steps: list[StepEvent], goal: TaskGoal,
     for step in sorted(steps, key=lambda s: s.start_s):
         after = t >= step.start_s
         subgoal[after], radius[after] = step.subgoal_m, step.radius_m
-    label = f"episode {goal.episode}"
+    outcome, end_s = "", float("inf")
     if result is not None:
-        label += f": {'success' if result.success else result.outcome} in {result.t_total_s:.2f} s"
+        outcome = f"{'success' if result.success else result.outcome} in {result.t_total_s:.2f} s"
+        end_s = result.t_total_s  # the episode's clock starts with its first state
     return Track(
         t - t[0],
         np.array([s.q_rad for s in states]),
@@ -104,7 +107,9 @@ def _track(states: list[RobotState], steps: list[StepEvent], goal: TaskGoal,
         radius,
         np.clip([s.button_travel_m for s in states], 0, None),
         np.array(goal.goal_m),
-        label,
+        f"episode {goal.episode}",
+        outcome,
+        end_s,
     )
 
 
@@ -231,7 +236,8 @@ def _overlay(image: np.ndarray, track: Track, k: int, t: float) -> np.ndarray:
     error_mm = float(np.linalg.norm(track.ee[k] - track.goal)) * 1000
     picture = Image.fromarray(image)
     draw = ImageDraw.Draw(picture)
-    text = f"t = {t:5.2f} s   |x - x_g| = {error_mm:6.1f} mm\n{track.label}"
+    outcome = f": {track.outcome}" if track.outcome and t >= track.end_s else ""
+    text = f"t = {t:5.2f} s   |x - x_g| = {error_mm:6.1f} mm\n{track.label}{outcome}"
     draw.rectangle((4, 4, 8 + 7 * max(len(line) for line in text.splitlines()), 36),
                    fill=(0, 0, 0))  # fmt: skip
     draw.multiline_text((8, 6), text, fill=(255, 255, 255))

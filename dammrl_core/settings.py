@@ -53,6 +53,17 @@ class Settings(BaseSettings):
             raise ConfigurationError(invalid_line(type(self), exc)) from None
 
 
+MOVED: dict[str, tuple[str, frozenset[str], str]] = {
+    "DAMMRL_ARM_": ("DAMMRL_DYNAMIXEL_", frozenset({"PORT", "BAUD", "CALIBRATION_FILE",
+                    "WATCHDOG_S"}), "the Dynamixel driver's own settings"),
+    "DAMMRL_INTENT_": ("DAMMRL_PAD_", frozenset({"PORT", "BAUD_RATE", "DECODER",
+                       "CALIBRATION_FILE", "SENSOR_STALE_S", "RECONNECT_MAX_S"}),
+                       "the pad's own settings"),
+}  # fmt: skip
+"""Fields that moved when the pad and the Dynamixel arm became plug-ins: old prefix ->
+(new prefix, the fields, why)."""
+
+
 def _refuse_unknown(settings: type[BaseSettings]) -> None:
     """A misspelt variable would silently leave its default in force (gains, limits):
     refuse it, with the nearest real name."""
@@ -64,6 +75,10 @@ def _refuse_unknown(settings: type[BaseSettings]) -> None:
             continue
         field = upper[len(prefix) :].split("__", 1)[0]
         if field not in fields:
+            new_prefix, moved, why = MOVED.get(prefix, ("", frozenset(), ""))
+            if field in moved:
+                raise ConfigurationError(f"{name} is now {new_prefix}{upper[len(prefix) :]} "
+                                         f"({why})")  # fmt: skip
             starts = sorted((f for f in fields if field.startswith(f + "_")), key=len)
             near = starts[-1:] or difflib.get_close_matches(field, fields, n=1)
             hint = f"; did you mean {prefix}{near[0]}?" if near else ""

@@ -112,6 +112,21 @@ def test_a_misspelt_variable_is_refused_with_the_nearest_name(
         services.controller.config.ControllerSettings()
 
 
+def test_a_variable_that_moved_to_a_plug_in_names_its_new_name(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    from dammrl_core.arm.settings import ArmSettings
+    from services.intent.config import IntentSettings
+
+    monkeypatch.setenv("DAMMRL_ARM_PORT", "/dev/ttyUSB1")
+    with pytest.raises(ConfigurationError, match="DAMMRL_ARM_PORT is now DAMMRL_DYNAMIXEL_PORT"):
+        ArmSettings()
+    monkeypatch.delenv("DAMMRL_ARM_PORT")
+    monkeypatch.setenv("DAMMRL_INTENT_DECODER__ON_LEVEL", "0.3")
+    with pytest.raises(ConfigurationError, match="is now DAMMRL_PAD_DECODER__ON_LEVEL"):
+        IntentSettings()
+
+
 def test_the_tool_exits_3_with_one_line_for_a_bad_setting(
     monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:

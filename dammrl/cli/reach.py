@@ -76,8 +76,10 @@ def _reach(args: argparse.Namespace) -> int:
         print(table([r.summary() for r in results]))
     if args.plot:
         from dammrl.plots import plot_reaches
+        from dammrl_core.task import scene_layout
 
-        path = plot_reaches(results, runner.settings.task.goal_tolerance_m, args.plot)
+        path = plot_reaches(results, runner.settings.task.goal_tolerance_m, args.plot,
+                            scene_layout(runner.settings.task))  # fmt: skip
         print_err(f"figure written to {path}")
     if args.video:
         for result in results:

@@ -57,16 +57,21 @@ def register(commands: Commands) -> None:
         help="a semi-virtual session: its pressure/error figure in the report",
     )
     study.add_argument(
-        "--readme",
+        "--results",
         type=Path,
-        metavar="README",
-        help="also regenerate this README's results section",
+        metavar="PAGE",
+        help="also regenerate this page's results section (docs/results.md)",
     )
     study.set_defaults(handler=_study)
 
 
 def _study(args: argparse.Namespace) -> int:
-    from dammrl.study.report import results_section, update_readme, write_report
+    from dammrl.study.report import (
+        check_results_page,
+        results_section,
+        update_results,
+        write_report,
+    )
     from dammrl.study.study import TUNING_START, StudyOptions, run_study
     from dammrl_core.errors import UsageError
 
@@ -87,6 +92,8 @@ def _study(args: argparse.Namespace) -> int:
         if not args.recording.is_file():
             raise UsageError(f"no such recording: {args.recording}")
         session_traces(args.recording)
+    if args.results is not None:
+        check_results_page(args.results)  # before hours of reaches, not after
     options = StudyOptions(
         seeds=args.seeds,
         randomize=RANDOMIZE[args.randomize],
@@ -111,9 +118,9 @@ def _study(args: argparse.Namespace) -> int:
             close()
     command = "dammrl " + shlex.join(sys.argv[1:])
     report = write_report(result, args.out, command, say=print_err)
-    if args.readme is not None:
-        update_readme(args.readme, results_section(result))
-        print_err(f"results section of {args.readme} regenerated")
+    if args.results is not None:
+        update_results(args.results, results_section(result, heading="##"))
+        print_err(f"results section of {args.results} regenerated")
     for randomize, claims in result.claims.items():
         condition = "randomised" if randomize else "nominal"
         print(f"{condition}: " + ", ".join(f"{c.key} {c.verdict}" for c in claims))

@@ -9,7 +9,7 @@ drive at once; as soon as it answers again, its joint holds where it is then (ne
 back to where it was: that would move the person's arm). A drive that faults again after
 ``max_restarts`` restarts, or latches a fault a restart does not clear (overheating,
 voltage, encoder, shock), is left off; the arm then needs a brake or a mechanical support
-at that joint (README, "Faults mid-motion").
+at that joint (docs/tutorials/your-arm.md, "Faults mid-motion").
 """
 
 from __future__ import annotations

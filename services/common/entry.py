@@ -22,7 +22,7 @@ from services.common.security import remove_run_credentials
 EPILOG = """\
 Every setting can also come from the environment: DAMMRL_BUS_* for the bus (MODE,
 LISTEN and CONNECT as JSON lists, MULTICAST_SCOUTING, NAMESPACE) and the service's own
-prefix ({prefixes}); see the README and the settings classes for names and units.
+prefix ({prefixes}); see docs/reference/settings.md and the settings classes for names and units.
 
 {exit_codes}
 """

@@ -8,7 +8,7 @@ tau = tau_ff + kp (q_ref - q) + kd (dq_ref - dq) through each servo's own positi
 calibration, its goal is q_ref shifted by (tau_ff + kd dq_ref) / kp, so that
 P (goal - q) - D dq is the law, and its goal current is the torque limit. The servo
 closes that loop at its own rate, so the law does not depend on the host's timing and
-the arm holds if the host stalls (see README, "Running on your arm", for the measured
+the arm holds if the host stalls (see docs/tutorials/your-arm.md for the measured
 alternative). One sync read per cycle returns position, velocity and current with each
 servo's alert bit; one sync write sends the goals (gains and limits only when changed).
 The servo's bus watchdog is armed on connect, so the servos stop by themselves if this
