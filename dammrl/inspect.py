@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 
 from dammrl_core.errors import DammrlError
 from schemas import DecodeError, Health, decode, type_of
-from services.common.bus import tool_session
+from services.common.bus import linked, not_joined_line, tool_session
 from services.common.config import BusSettings
 from services.common.runtime import stopping_on_signals
 
@@ -55,7 +55,10 @@ def status(settings: BusSettings, listen_s: float = 2.5) -> tuple[str, bool]:
                 continue
             with contextlib.suppress(DecodeError):
                 roll.hear(decode(Health, sample.payload.to_bytes()))
+        joined = linked(session)
     names = roll.names()
+    if not names and not joined:
+        return not_joined_line(settings), False
     for name in roll.alive:
         roll.missing.pop(name, None)  # back since (a restarted service)
     healthy = bool(names) and all(n in roll.alive and n in roll.reports for n in names)
@@ -97,15 +100,17 @@ def echo(
     count: int | None = None,
     duration_s: float | None = None,
     out: Callable[[str], None] = print,
+    say: Callable[[str], None] | None = None,
 ) -> int:
     """Print the decoded messages on ``<namespace>/<topic>`` (or their rate with ``hz``)
-    until ``count``, ``duration_s``, Ctrl-C or a closed pipe; how many arrived."""
+    until ``count``, ``duration_s``, Ctrl-C or a closed pipe; how many arrived. ``say``
+    hears within seconds if no stack let the session in."""
     key_expr = f"{settings.namespace}/{topic.strip('/')}"
     if type_of(settings.namespace, key_expr.replace("*", "x")) is None and "*" not in topic:
         raise DammrlError(f"unknown topic {topic!r}: see `dammrl schemas` for the topics")
     seen, window, window_start = 0, 0, time.monotonic()
     end = None if duration_s is None else time.monotonic() + duration_s
-    with stopping_on_signals() as stop, tool_session(settings) as session:
+    with stopping_on_signals() as stop, tool_session(settings, say) as session:
         subscriber = session.declare_subscriber(key_expr)
         while not stop.is_set() and (count is None or seen < count):
             if end is not None and time.monotonic() >= end:

@@ -332,14 +332,14 @@ class FoxgloveServer:
         self.server.stop()
 
 
-def bus_messages(settings: Any, stop: threading.Event) -> Iterator[tuple[Message, int]]:
-    """Every message of the stack on the bus, decoded, with its arrival time [ns]."""
-    import zenoh
+def bus_messages(
+    settings: Any, stop: threading.Event, say: Callable[[str], None] | None = None
+) -> Iterator[tuple[Message, int]]:
+    """Every message of the stack on the bus, decoded, with its arrival time [ns]; ``say``
+    hears within seconds if no stack let the session in."""
+    from services.common.bus import tool_session
 
-    from services.common.bus import zenoh_config
-
-    session = zenoh.open(zenoh_config(settings))
-    try:
+    with tool_session(settings, say) as session:
         subscriber = session.declare_subscriber(f"{settings.namespace}/**")
         while not stop.is_set():
             sample = subscriber.try_recv()
@@ -353,8 +353,6 @@ def bus_messages(settings: Any, stop: threading.Event) -> Iterator[tuple[Message
                 yield decode(message_type, sample.payload.to_bytes()), time.time_ns()
             except DecodeError:
                 continue  # a bad message is the recorder's and the services' business
-    finally:
-        threading.Thread(target=session.close, daemon=True).start()
 
 
 def recording_messages(path: Path, rate: float, stop: threading.Event

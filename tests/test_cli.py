@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -197,3 +199,19 @@ def test_a_missing_extra_is_a_one_line_error_before_any_work(
     assert "pip install 'dammrl[video]'" in err.err and err.out == ""  # no reach ran
     assert main(["reach", "--video", str(tmp_path / "r.avi")]) == Exit.USAGE
     assert ".mp4 or .gif" in capsys.readouterr().err
+
+
+def test_a_client_that_reaches_no_stack_says_so_within_seconds() -> None:
+    """echo and status on a port nobody serves: one line naming the endpoint and what to
+    check, not silence."""
+    from tests.busutil import free_port
+
+    where = f"tcp/127.0.0.1:{free_port()}"
+    echo = subprocess.run([sys.executable, "-m", "dammrl", "echo", "robot/state", "--connect",
+                           where, "--duration", "6.5"], capture_output=True, text=True,
+                          timeout=60)  # fmt: skip
+    assert f"dammrl: nothing answers at {where} (is `dammrl up` running" in echo.stderr
+    assert echo.returncode == 1 and "Traceback" not in echo.stderr
+    status = subprocess.run([sys.executable, "-m", "dammrl", "status", "--connect", where],
+                            capture_output=True, text=True, timeout=60)  # fmt: skip
+    assert status.returncode == 1 and f"nothing answers at {where}" in status.stdout

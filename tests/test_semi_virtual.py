@@ -175,3 +175,31 @@ def _request() -> bytes:
             primary_axis=0, human_model=1,
         )
     )  # fmt: skip
+
+
+def test_a_patient_started_before_the_stack_says_so_and_joins_it(tmp_path: Path) -> None:
+    """The README's order (the emulated pad first, then `dammrl up` on its port, TLS by
+    default): the patient says within seconds that nothing answers, then finds the run's
+    credentials from the port and answers its requests."""
+    link, port = tmp_path / "ttyPAD", free_port()
+    patient = subprocess.Popen(
+        [sys.executable, "-m", "dammrl", "sensor", "emulate", "--pattern", "patient", "--link",
+         str(link), "--connect", f"tcp/127.0.0.1:{port}"],
+        stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        assert patient.stderr is not None
+        started = time.monotonic()
+        assert "nothing answers at" in patient.stderr.readline()
+        assert time.monotonic() - started < 10
+        up = subprocess.run(
+            [sys.executable, "-m", "dammrl", "up", "--mode", "semi-virtual", "--port", str(link),
+             "--episodes", "1", "--json", "--bus-port", str(port), "--model", "1,1"],
+            capture_output=True, text=True, timeout=240,
+        )  # fmt: skip
+        assert up.returncode == 0, up.stderr[-2000:]
+        assert "joined the stack at tls/127.0.0.1:" in patient.stderr.readline()
+    finally:
+        patient.terminate()
+        patient.wait(10)
+    assert '"success": true' in up.stdout, up.stdout

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 import threading
+import time
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -15,12 +16,15 @@ from dammrl.cli.common import (
     bus_settings,
     output_file,
     positive,
+    print_err,
 )
 from dammrl_core.errors import DammrlError
 
 if TYPE_CHECKING:
     from dammrl.emulators.pad import SensorEmulator
+    from dammrl.emulators.patient import SimulatedPatient
     from dammrl_core.intent.pad.decoder import Calibration
+    from services.common.bus import Bus
 
 PORT_HELP = "serial device, e.g. /dev/ttyUSB0"
 
@@ -207,13 +211,57 @@ def _stop_after(stop: threading.Event, seconds: float | None) -> None:
 
 
 def _patient(args: argparse.Namespace, pad: SensorEmulator, stop: threading.Event) -> None:
-    """A simulated patient pressing the emulated pad to answer the stack's requests."""
+    """A simulated patient pressing the emulated pad to answer the stack's requests. It
+    may start before the stack: until a stack lets it in it says so once and tries again
+    (a local `dammrl up` on the port is found with its run's credentials once it runs), and
+    it rejoins a stack that went away and came back."""
     from dammrl.emulators.patient import SimulatedPatient
-    from services.common.bus import Bus
 
     patient = SimulatedPatient(pad, args.patient_model, seed=args.seed)
     kind = "hurried: quick presses, E_big" if args.patient_model == 1 else "careful: held, E_small"
     print(f"simulated patient (M_{args.patient_model}, {kind}) answering decision requests")
-    with Bus(bus_settings(args), "patient") as bus:
-        patient.run(bus, stop)
+    said = False
+    while not stop.is_set():
+        said = _answer_while_joined(args, patient, stop, said)
     print(f"answered {patient.answered} requests")
+
+
+def _answer_while_joined(
+    args: argparse.Namespace, patient: SimulatedPatient, stop: threading.Event, said: bool
+) -> bool:
+    """One session: answer requests while it reaches a stack; whether the patient has said
+    it is alone."""
+    from services.common.bus import JOIN_S, Bus, linked, not_joined_line
+
+    settings = bus_settings(args)  # a run's credentials may have appeared meanwhile
+    with Bus(settings, "patient") as bus:
+        deadline = time.monotonic() + JOIN_S
+        while not linked(bus.session) and time.monotonic() < deadline and not stop.is_set():
+            stop.wait(0.1)
+        if not linked(bus.session):
+            if not said and not stop.is_set():
+                print_err(not_joined_line(settings) + "; still trying")
+            return True
+        print_err(f"joined the stack at {', '.join(settings.connect)}")
+        session = threading.Event()  # ends when the patient stops or the stack is gone
+        watcher = threading.Thread(target=_watch_link, args=(bus, stop, session), daemon=True)
+        watcher.start()
+        patient.run(bus, session)
+        if not stop.is_set():
+            print_err("the stack went away: waiting for it to come back")
+    return False
+
+
+def _watch_link(bus: Bus, stop: threading.Event, session: threading.Event) -> None:
+    """Set ``session`` when ``stop`` is set or the bus reached no stack for JOIN_S."""
+    from services.common.bus import JOIN_S, linked
+
+    alone_since: float | None = None
+    while not stop.wait(0.2):
+        if linked(bus.session):
+            alone_since = None
+        elif alone_since is None:
+            alone_since = time.monotonic()
+        elif time.monotonic() - alone_since > JOIN_S:
+            break
+    session.set()

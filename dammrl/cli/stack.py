@@ -125,7 +125,8 @@ def _echo(args: argparse.Namespace) -> int:
     if nothing arrived."""
     from dammrl.inspect import echo
 
-    seen = echo(bus_settings(args), args.topic, args.hz, args.count, args.duration, print_out)
+    seen = echo(bus_settings(args), args.topic, args.hz, args.count, args.duration, print_out,
+                say=print_err)  # fmt: skip
     if seen == 0:
         print_err(f"dammrl: nothing received on {args.topic}")
     return Exit.OK if seen else Exit.FAILED

@@ -73,7 +73,7 @@ def _view(args: argparse.Namespace) -> int:
     try:
         with stopping_on_signals() as stop:
             if args.recording is None:
-                for message, t_ns in bus_messages(bus_settings(args), stop):
+                for message, t_ns in bus_messages(bus_settings(args), stop, print_err):
                     translator.feed(message, t_ns)
             else:
                 _play(args.recording, args.rate, args.once, server, translator, stop)

@@ -11,6 +11,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
+from matplotlib.ticker import MaxNLocator
 
 from dammrl.study.claims import FIXED, R1, R2
 from dammrl.study.configs import Configuration, checkpoint_file
@@ -57,7 +58,8 @@ def summary_chart(records: list[Record], configurations: list[Configuration], pa
                        label="randomised" if randomize else "nominal arm")  # fmt: skip
         ax.set_title(title)
         ax.set_xticks(range(len(keys)), keys, rotation=60, ha="right", fontsize=8)
-    axes.flat[0].legend(fontsize=8)
+    handles, labels = axes.flat[0].get_legend_handles_labels()  # above the panels, on no bar
+    fig.legend(handles, labels, loc="upper right", ncols=2, fontsize=9)
     fig.suptitle("Every configuration on the held-out seeds (95 % intervals)")
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -115,6 +117,7 @@ def step_modulation_figure(records: list[Record], path: Path) -> Path:
              ylabel="mean step magnitude [mm]", title="learned step-size modulation")  # fmt: skip
     right.set(xlabel="micro-steps planned in a reach", ylabel="reaches",
               title="planned step counts")  # fmt: skip
+    right.yaxis.set_major_locator(MaxNLocator(integer=True))  # counts of reaches
     left.legend()
     right.legend()
     fig.savefig(path, dpi=110)

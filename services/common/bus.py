@@ -14,7 +14,7 @@ import logging
 import threading
 import time
 from collections import Counter, deque
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from types import TracebackType
 from typing import Any, Generic, TypeVar
 
@@ -353,14 +353,45 @@ TOOL_CLOSE_WAIT_S = 1.0
 
 
 @contextlib.contextmanager
-def tool_session(settings: BusSettings) -> Iterator[zenoh.Session]:
+def tool_session(
+    settings: BusSettings, say: Callable[[str], None] | None = None
+) -> Iterator[zenoh.Session]:
     """A tool's session (status, echo, health check, viewer), closed in bounded time: the
-    process is about to end anyway."""
+    process is about to end anyway. With ``say``: one line within JOIN_S if it reached no
+    stack (a tool never waits in silence)."""
     session = zenoh.open(zenoh_config(settings))
+    timer = None
+    if say is not None:
+        timer = threading.Timer(JOIN_S, lambda: None if linked(session) else say(
+            not_joined_line(settings)))  # fmt: skip
+        timer.daemon = True
+        timer.start()
     try:
         yield session
     finally:
+        if timer is not None:
+            timer.cancel()
         close_within(session, TOOL_CLOSE_WAIT_S)
+
+
+JOIN_S = 5.0
+"""A client not linked to the stack this long after it started says so."""
+
+
+def linked(session: zenoh.Session) -> bool:
+    """The session reaches a router or a peer (a stack is there and let it in)."""
+    return bool(list(session.info.routers_zid()) or list(session.info.peers_zid()))
+
+
+def not_joined_line(settings: BusSettings) -> str:
+    """Why a client may be alone, in one line."""
+    where = ", ".join(settings.connect)
+    if settings.credentials is None:
+        hint = ("is `dammrl up` running on that port? a stack on another machine needs its "
+                "--credentials")  # fmt: skip
+    else:
+        hint = f"with the credentials {settings.credentials}: is the stack up, and are they its?"
+    return f"dammrl: nothing answers at {where} ({hint})"
 
 
 SESSION_CLOSE_WAIT_S = 2.0
