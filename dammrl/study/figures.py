@@ -11,12 +11,15 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
+from matplotlib.axes import Axes
+from matplotlib.patches import Rectangle
 from matplotlib.ticker import MaxNLocator
 
 from dammrl.study.claims import FIXED, R1, R2
 from dammrl.study.configs import Configuration, checkpoint_file
 from dammrl.study.run import Job, Record, reach
 from dammrl.study.stats import bootstrap_mean, wilson
+from dammrl_core.robot.scene import SceneLayout
 
 MM = 1000.0
 SUMMARY_METRICS = (
@@ -70,7 +73,8 @@ def trajectory_figure(configurations: list[Configuration], seed: int, path: Path
     """The paper's trajectory figure: the end-effector near the subgoals, fixed-frequency
     (black) against event-triggered DAMMRL (red), on one seed."""
     by_key = {c.key: c for c in configurations}
-    fig, axes = plt.subplots(1, 2, figsize=(12, 4.5), constrained_layout=True)
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.5), constrained_layout=True,
+                             width_ratios=(1.7, 1))  # the close-up is square  # fmt: skip
     for key, color in ((FIXED, "black"), (R2, "tab:red")):
         if key not in by_key:
             continue
@@ -87,12 +91,26 @@ def trajectory_figure(configurations: list[Configuration], seed: int, path: Path
         axes[1].plot(subgoals[:, 0], subgoals[:, 2], "o", color=color, ms=3, alpha=0.6)
     axes[0].set(xlabel="time [s]", ylabel="distance to the goal [mm]", yscale="log",
                 title=f"seed {seed}: distance (dots: subgoals when started)")  # fmt: skip
+    _button_side_view(axes[1])
     axes[1].set(xlabel="x - x_g [mm]", ylabel="z - z_g [mm]", xlim=(-60, 20), ylim=(-20, 60),
                 title="near the goal (x-z plane)", aspect="equal")  # fmt: skip
     axes[0].legend(fontsize=8)
+    axes[1].legend(fontsize=8, loc="upper right")
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
+
+
+def _button_side_view(ax: Axes) -> None:
+    """The goal's button cap seen from the side, relative to x_g: success is a press, so a
+    reach may end on the cap's rim, tens of millimetres from x_g."""
+    layout = SceneLayout()
+    top = (layout.goal_press_depth_m - layout.fingertip_radius_m) * MM  # cap top - z_g
+    ax.add_patch(Rectangle((-layout.cap_radius_m * MM, top - layout.cap_height_m * MM),
+                           2 * layout.cap_radius_m * MM, layout.cap_height_m * MM,
+                           color="tab:red", alpha=0.18, lw=0, label="button cap"))  # fmt: skip
+    ax.axhline(layout.goal_press_depth_m * MM, color="tab:red", lw=0.8, ls=":",
+               label="fingertip on the cap")  # fmt: skip
 
 
 def step_modulation_figure(records: list[Record], path: Path) -> Path:
