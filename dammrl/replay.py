@@ -22,7 +22,7 @@ from dammrl_core.errors import DammrlError, JobFailedError
 from dammrl_core.models import ModelSet
 from schemas import DecisionRequest, EmergencyStop, ModelChoice
 from schemas.keys import topic_of
-from services.common.bus import zenoh_config
+from services.common.bus import JOIN_S, linked, not_joined_line, zenoh_config
 from services.common.config import BusSettings
 from services.common.security import roles_publishing
 
@@ -92,6 +92,11 @@ def replay(
         }
         session = next(iter(opened.values()))
         stop.wait(1.0)  # let the session connect (and learn who is alive) before publishing
+        deadline = time.monotonic() + JOIN_S - 1.0
+        while not linked(session) and time.monotonic() < deadline and not stop.is_set():
+            stop.wait(0.1)
+        if not linked(session):  # a replay into the void would look like a success
+            raise JobFailedError(not_joined_line(settings).removeprefix("dammrl: "))
         if commands and not options.force:
             _refuse_if_an_arm_listens(session, settings.namespace, commands)
         publishers = {

@@ -201,9 +201,11 @@ def test_a_missing_extra_is_a_one_line_error_before_any_work(
     assert ".mp4 or .gif" in capsys.readouterr().err
 
 
-def test_a_client_that_reaches_no_stack_says_so_within_seconds() -> None:
-    """echo and status on a port nobody serves: one line naming the endpoint and what to
-    check, not silence."""
+def test_a_client_that_reaches_no_stack_says_so_within_seconds(tmp_path: Path) -> None:
+    """echo, status and replay on a port nobody serves: one line naming the endpoint and
+    what to check, not silence (a replay into the void would look like a success)."""
+    from schemas import Header, TaskGoal, encode, key
+    from services.recorder.core import McapRecorder
     from tests.busutil import free_port
 
     where = f"tcp/127.0.0.1:{free_port()}"
@@ -215,3 +217,20 @@ def test_a_client_that_reaches_no_stack_says_so_within_seconds() -> None:
     status = subprocess.run([sys.executable, "-m", "dammrl", "status", "--connect", where],
                             capture_output=True, text=True, timeout=60)  # fmt: skip
     assert status.returncode == 1 and f"nothing answers at {where}" in status.stdout
+    recording = tmp_path / "one.mcap"
+    recorder = McapRecorder(recording, "dammrl", {}, chunk_bytes=1 << 16)
+    goal = TaskGoal(
+        header=Header(stamp_ns=1, seq=0, source="sim"),
+        episode=1,
+        seed=0,
+        start_m=(0.3, 0.0, -0.1),
+        goal_m=(0.45, 0.0, -0.2),
+        q_start_rad=(0.0,) * 6,
+    )
+    recorder.record(key("dammrl", TaskGoal, "sim"), encode(goal), 1)
+    recorder.finish()
+    replay = subprocess.run([sys.executable, "-m", "dammrl", "replay", str(recording),
+                             "--connect", where], capture_output=True, text=True,
+                            timeout=60)  # fmt: skip
+    assert replay.returncode != 0 and f"nothing answers at {where}" in replay.stderr
+    assert len(replay.stderr.strip().splitlines()) == 1, replay.stderr
