@@ -128,9 +128,17 @@ class VideoSettings:
             )
 
 
+OUTCOME_SHOWN_S = 1.0
+"""How long a video goes on (the arm still) once its episode ended, its outcome shown [s]."""
+
+
 def frame_times(track: Track, video: VideoSettings) -> np.ndarray:
-    """The track times shown by each frame."""
-    duration = float(track.t[-1] - track.t[0])
+    """The track times shown by each frame: to its last sample, and on to show the
+    outcome for ``OUTCOME_SHOWN_S`` when the episode ended (a track ends at its end)."""
+    last = float(track.t[-1])
+    if math.isfinite(track.end_s):
+        last = max(last, track.end_s + OUTCOME_SHOWN_S)
+    duration = last - float(track.t[0])
     count = max(1, math.floor(duration / video.speed * video.fps) + 1)
     return np.asarray(track.t[0] + np.arange(count) * video.speed / video.fps)
 

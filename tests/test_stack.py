@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import random
@@ -285,3 +286,51 @@ def test_a_service_stuck_in_native_code_still_exits_on_sigterm(tmp_path: Path) -
     started = time.monotonic()
     assert stuck.wait(10) == 128 + signal.SIGTERM
     assert time.monotonic() - started < 3.0
+
+
+def _full_pipe() -> tuple[int, int]:
+    """A pipe whose buffer is full: a blocking write to its write end never returns."""
+    read_end, write_end = os.pipe()
+    os.set_blocking(write_end, False)
+    with contextlib.suppress(BlockingIOError):
+        while True:
+            os.write(write_end, b"x" * 4096)
+    os.set_blocking(write_end, True)
+    return read_end, write_end
+
+
+@pytest.mark.parametrize("stopped_by", ["sigterm", "stop event"])
+def test_a_service_whose_stderr_nobody_reads_still_exits_within_its_grace(
+    tmp_path: Path, stopped_by: str
+) -> None:
+    """A launcher killed with -9 leaves its services' stderr a pipe nobody drains; once
+    full, its writer thread holds the logging locks for ever (logging.shutdown at exit
+    included). Whatever stops the service, it is gone within its grace."""
+    script = tmp_path / "muted.py"
+    script.write_text(
+        "import sys\n"
+        "from services.common.logs import setup_logging\n"
+        "from services.common.runtime import exit_within, stop_on_signals\n"
+        "stop = stop_on_signals()\n"
+        "exit_within(stop, grace_s=1.0)\n"
+        "setup_logging('muted').error('a line the full pipe never takes')\n"
+        "print('ready', flush=True)\n"
+        "if sys.argv[1] == 'stop event':\n"
+        "    stop.set()\n"  # as the launcher's watch does: then a clean end, blocked at exit
+        "stop.wait()\n"
+    )
+    read_end, write_end = _full_pipe()
+    try:
+        muted = subprocess.Popen([sys.executable, str(script), stopped_by], stdout=subprocess.PIPE,
+                                 stderr=write_end, text=True,
+                                 env=os.environ | {"PYTHONPATH": os.getcwd()})  # fmt: skip
+        assert muted.stdout is not None and muted.stdout.readline().strip() == "ready"
+        if stopped_by == "sigterm":
+            muted.send_signal(signal.SIGTERM)
+        started = time.monotonic()
+        code = muted.wait(10)
+        assert code == (128 + signal.SIGTERM if stopped_by == "sigterm" else 1)
+        assert time.monotonic() - started < 4.0
+    finally:
+        os.close(read_end)
+        os.close(write_end)

@@ -10,7 +10,14 @@ import numpy as np
 import pytest
 
 from dammrl.runner import ReachRunner
-from dammrl.video import VideoSettings, frame_times, frames, track_of_reach, write_video
+from dammrl.video import (
+    OUTCOME_SHOWN_S,
+    VideoSettings,
+    frame_times,
+    frames,
+    track_of_reach,
+    write_video,
+)
 from dammrl_core.errors import ConfigurationError
 
 SMALL = VideoSettings(fps=5, width=160, height=120)
@@ -24,7 +31,9 @@ def reach(runner: ReachRunner):  # type: ignore[no-untyped-def]
 def test_frames_cover_the_reach_and_show_the_arm_moving(reach, runner: ReachRunner) -> None:  # type: ignore[no-untyped-def]
     track = track_of_reach(reach)
     images = list(frames(track, SMALL, runner))
-    assert len(images) == len(frame_times(track, SMALL)) == int(track.t[-1] * 5) + 1
+    times = frame_times(track, SMALL)
+    assert len(images) == len(times) == int((track.end_s + OUTCOME_SHOWN_S) * 5) + 1
+    assert times[-1] >= track.end_s  # the last frames show the outcome, the arm still
     assert all(image.shape == (120, 160, 3) for image in images)
     moved = np.abs(images[0].astype(int) - images[len(images) // 2].astype(int)).mean()
     assert moved > 1.0, moved  # the arm is somewhere else half-way

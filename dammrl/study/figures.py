@@ -163,9 +163,11 @@ def training_figure(runs: dict[str, tuple[Path, ...]], path: Path) -> Path | Non
     if not drawn:
         plt.close(fig)
         return None
-    for ax, title in zip(axes, ("episode return (moving mean)", "human agent: mean max Q",
-                                "robot agent: mean max Q"), strict=True):  # fmt: skip
-        ax.set(xlabel="episode", title=title)
+    panels = (("episode return (moving mean)", "return (reward units)"),
+              ("human agent (radius i)", "mean max Q (reward units)"),
+              ("robot agent (step vector j)", "mean max Q (reward units)"))  # fmt: skip
+    for ax, (title, ylabel) in zip(axes, panels, strict=True):
+        ax.set(xlabel="episode", ylabel=ylabel, title=title)
     axes[0].legend()
     fig.savefig(path, dpi=110)
     plt.close(fig)

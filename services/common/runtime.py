@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
-import logging
+import contextlib
 import os
+import select
 import signal
 import sys
 import threading
@@ -62,33 +63,48 @@ EXIT_GRACE_S = 5.0
 
 
 def exit_within(stop: SignalStop, grace_s: float = EXIT_GRACE_S) -> None:
-    """Make a SIGINT or SIGTERM end this process within ``grace_s``, whatever its main
-    thread is doing. Python runs signal handlers in the main thread only, between
-    bytecodes: a main thread blocked in native code (a Zenoh call waiting on a futex
-    for a peer that is gone) would never see them. The kernel's signal still writes
-    to a wakeup file descriptor, which a watcher thread reads: it sets ``stop`` for a
-    clean end, and exits the process (code 128 + signal) if the clean end takes longer
-    than ``grace_s``. Call it from the main thread, after ``stop_on_signals``."""
+    """Make this process end within ``grace_s`` of ``stop`` being set, for whatever
+    reason (SIGINT, SIGTERM, its launcher gone), whatever its threads are doing.
+
+    Python runs signal handlers in the main thread only, between bytecodes: a main
+    thread blocked in native code (a Zenoh call waiting on a futex for a peer that is
+    gone) would never see them. The kernel's signal still writes to a wakeup file
+    descriptor, which a watcher thread reads to set ``stop``. A second thread gives the
+    clean end ``grace_s``, then exits (code 128 + signal, or 1) taking no lock: a stderr
+    pipe nobody reads holds the logging locks forever, ``logging.shutdown`` included.
+    Call it from the main thread, after ``stop_on_signals``."""
     read_fd, write_fd = os.pipe()
     os.set_blocking(write_fd, False)
     signal.set_wakeup_fd(write_fd, warn_on_full_buffer=False)
     threading.Thread(
-        target=_watch_signals, args=(read_fd, stop, grace_s), name="exit-within", daemon=True
+        target=_stop_on_wakeup, args=(read_fd, stop), name="signal-wakeup", daemon=True
+    ).start()
+    threading.Thread(
+        target=_exit_after_grace, args=(stop, grace_s), name="exit-within", daemon=True
     ).start()
 
 
-def _watch_signals(read_fd: int, stop: SignalStop, grace_s: float) -> None:
+def _stop_on_wakeup(read_fd: int, stop: SignalStop) -> None:
     signum = 0
     while signum not in SIGNALS:  # every handled signal writes its number
         signum = os.read(read_fd, 1)[0]
     stop.signum = stop.signum or signum
     stop.set()
+
+
+def _exit_after_grace(stop: SignalStop, grace_s: float) -> None:
+    stop.wait()
     time.sleep(grace_s)
-    logging.getLogger("dammrl").error(
-        "still running %.0f s after signal %d: exiting without a clean stop", grace_s, signum
-    )
-    logging.shutdown()
-    os._exit(128 + signum)
+    _say_if_stderr_takes_it(f"still running {grace_s:.0f} s after being asked to stop: "
+                            "exiting without a clean stop\n")  # fmt: skip
+    os._exit(128 + stop.signum if stop.signum else 1)
+
+
+def _say_if_stderr_takes_it(line: str) -> None:
+    """Write ``line`` to stderr only if that cannot block (a full pipe takes nothing)."""
+    with contextlib.suppress(OSError, ValueError):
+        if select.select([], [2], [], 0)[1]:  # room for a page: a short line fits
+            os.write(2, line.encode()[: select.PIPE_BUF])
 
 
 @contextmanager
