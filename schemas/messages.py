@@ -206,6 +206,57 @@ class SensorSample(Message):
     pressed: bool | None = Field(None, description="inside a press (hysteresis on)")
 
 
+MAX_CHUNK_SAMPLES = 256
+MAX_CHANNELS = 64
+
+
+class SignalChunk(Message):
+    """Raw samples of a wearable sensor's stream (LSL), as they came: kept so a session can
+    be decoded again offline with another classifier."""
+
+    stream: str = Field(min_length=1, max_length=200, description="the stream's name")
+    rate_hz: Finite = Field(gt=0, le=20_000, description="the stream's nominal rate [Hz]")
+    stamps_ns: list[Annotated[int, Field(ge=0)]] = Field(
+        max_length=MAX_CHUNK_SAMPLES,
+        description="each sample's time on the bus clock (the stream's own timestamps "
+        "through LSL's clock correction) [ns since the Unix epoch]",
+    )
+    samples: list[
+        Annotated[list[Annotated[float | None, Field(allow_inf_nan=False)]],
+                  Field(min_length=1, max_length=MAX_CHANNELS)]
+    ] = Field(
+        max_length=MAX_CHUNK_SAMPLES,
+        description="(samples, channels) in the stream's units; None where the stream sent "
+        "a non-finite value",
+    )  # fmt: skip
+
+    @model_validator(mode="after")
+    def _rectangular(self) -> SignalChunk:
+        if len(self.samples) != len(self.stamps_ns):
+            raise ValueError(f"{len(self.samples)} samples and {len(self.stamps_ns)} stamps")
+        if len({len(row) for row in self.samples}) > 1:
+            raise ValueError("every sample must have the same number of channels")
+        return self
+
+
+class IntentEvidence(Message):
+    """One decision of a classifying intent source, acted on or not, with what it was
+    decided from (the confidence and the features, for offline analysis)."""
+
+    episode: int = Field(ge=0)
+    request: int = Field(ge=-1, description="the open request it answered, -1 when none")
+    source: str = Field(min_length=1, max_length=64)
+    u_h: Literal[-1, 1]
+    human_model: HumanModel = Field(description="radius from the contraction's length")
+    confidence: Finite = Field(ge=0, le=1)
+    onset_ns: int = Field(ge=0, description="when the contraction began, bus clock [ns]")
+    duration_s: Finite = Field(ge=0)
+    windows: int = Field(ge=0, description="classifier windows it spans")
+    features: tuple[Finite, ...] = Field(max_length=1024, description="mean window features")
+    acted: bool = Field(description="it answered the open request (sent as Intent)")
+    reason: str = Field("", max_length=200, description="why it was not acted on")
+
+
 HealthState = Literal["ok", "holding", "degraded", "stopped"]
 
 

@@ -14,7 +14,7 @@ environment prefix of its own) and how to make the source. Choosing one is a set
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Protocol, cast
+from typing import Protocol, cast, runtime_checkable
 
 import numpy as np
 
@@ -59,6 +59,46 @@ class Reading:
     raw: int
     level: float  # normalised (the source's calibration)
     active: bool  # the person is acting (a press held, a contraction)
+
+
+@dataclass(frozen=True)
+class Chunk:
+    """Raw samples of a streaming sensor as they came (``sensor/chunk``)."""
+
+    stream: str  # the stream's name
+    rate_hz: float  # its nominal rate
+    samples: np.ndarray  # (n, channels), the stream's units
+    times_s: np.ndarray  # (n,) on this machine's monotonic clock [s]
+
+
+@dataclass(frozen=True)
+class Evidence:
+    """A decision of a classifying source, acted on or not (``intent/evidence``)."""
+
+    request: int  # the open request it answered, -1 when none was open
+    u_h: int
+    human_model: int
+    confidence: float
+    onset_s: float  # this machine's monotonic clock [s]
+    duration_s: float
+    windows: int
+    features: tuple[float, ...]
+    acted: bool
+    reason: str  # why it was not acted on
+
+
+@runtime_checkable
+class StreamingSource(Protocol):
+    """What a source that classifies a raw stream adds: the stream itself (kept so a
+    session can be decoded again offline) and the evidence of every decision."""
+
+    def chunks(self) -> list[Chunk]:
+        """The raw samples since the last call."""
+        ...
+
+    def evidence(self) -> list[Evidence]:
+        """The decisions made since the last call, acted on or not."""
+        ...
 
 
 @dataclass(frozen=True)
@@ -126,6 +166,7 @@ class IntentSourcePlugin(Protocol):
 BUILT_IN: dict[str, str] = {
     "simulated": "dammrl_core.intent.simulated:PLUGIN",
     "pad": "dammrl_core.intent.pad.source:PLUGIN",
+    "lsl": "dammrl_core.intent.lsl:PLUGIN",
 }
 
 

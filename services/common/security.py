@@ -35,7 +35,7 @@ PUBLISHES: dict[str, tuple[str, ...]] = {
     "controller": (
         "robot/command", "intent/request", "controller/step", "task/goal", "task/result",
     ),
-    "intent": ("intent", "sensor/sample"),
+    "intent": ("intent", "intent/evidence", "sensor/sample", "sensor/chunk"),
     "policy": ("policy/model",),
     "recorder": (),
     "tool": ("safety/stop",),  # status, echo, the launcher, `dammrl stop`: read, and stop

@@ -23,14 +23,26 @@ import numpy as np
 from dammrl_core.human import HumanModel
 from dammrl_core.intent.source import (
     Ask,
+    Chunk,
     Decided,
+    Evidence,
     IntentSource,
     SourceContext,
+    StreamingSource,
     source_plugin,
 )
 from dammrl_core.models import ModelSet
-from schemas import DecisionRequest, Intent, Message, ModelChoice, SensorSample, TaskGoal
-from schemas.messages import HealthState
+from schemas import (
+    DecisionRequest,
+    Intent,
+    IntentEvidence,
+    Message,
+    ModelChoice,
+    SensorSample,
+    SignalChunk,
+    TaskGoal,
+)
+from schemas.messages import MAX_CHUNK_SAMPLES, HealthState
 from services.common.bus import Bus
 from services.common.entry import run_service
 from services.intent.config import IntentSettings
@@ -59,6 +71,9 @@ class IntentNode:
         self.health_state: HealthState = "ok"
         self.intents = bus.publisher(Intent)
         self.samples = bus.publisher(SensorSample)
+        self.streaming = source if isinstance(source, StreamingSource) else None
+        self.chunks = bus.publisher(SignalChunk)
+        self.evidence = bus.publisher(IntentEvidence)
         bus.subscribe(DecisionRequest, TaskGoal, ModelChoice)
         bus.expect(DecisionRequest, "controller")
         bus.expect(TaskGoal, "controller")
@@ -74,6 +89,7 @@ class IntentNode:
                 if (decided := self.source.poll(time.monotonic())) is not None:
                     self._answer(decided)
                 self._publish_readings()
+                self._publish_stream()
                 self._report()
         finally:
             self.source.close()
@@ -173,12 +189,43 @@ class IntentNode:
                                   pressed=reading.active)  # fmt: skip
             self.samples.send(sample)
 
+    def _publish_stream(self) -> None:
+        """A streaming source's raw samples and the evidence of its decisions."""
+        if self.streaming is None:
+            return
+        for chunk in self.streaming.chunks():
+            for start in range(0, len(chunk.times_s), MAX_CHUNK_SAMPLES):
+                self.chunks.send(self._chunk(chunk, slice(start, start + MAX_CHUNK_SAMPLES)))
+        for evidence in self.streaming.evidence():
+            self.evidence.send(self._evidence(evidence))
+
+    def _chunk(self, chunk: Chunk, part: slice) -> SignalChunk:
+        samples = chunk.samples[part]
+        rows = [[float(v) if np.isfinite(v) else None for v in row] for row in samples]
+        return SignalChunk(header=self.chunks.stamp(), stream=chunk.stream, rate_hz=chunk.rate_hz,
+                           stamps_ns=[bus_ns(t) for t in chunk.times_s[part]],
+                           samples=rows)  # fmt: skip
+
+    def _evidence(self, e: Evidence) -> IntentEvidence:
+        return IntentEvidence(
+            header=self.evidence.stamp(), episode=self.episode, request=e.request,
+            source=self.name, u_h=1 if e.u_h > 0 else -1, human_model=e.human_model,
+            confidence=min(1.0, max(0.0, e.confidence)), onset_ns=bus_ns(e.onset_s),
+            duration_s=max(0.0, e.duration_s), windows=e.windows,
+            features=tuple(e.features[:1024]), acted=e.acted, reason=e.reason[:200],
+        )  # fmt: skip
+
     def _report(self) -> None:
         problem = self.source.problem()
         state: HealthState = "ok" if problem is None else "degraded"
         detail = "; ".join(filter(None, (self.source.detail(), problem)))
         self.bus.report_health(state, detail, force=state != self.health_state)
         self.health_state = state
+
+
+def bus_ns(monotonic_s: float) -> int:
+    """A time on this machine's monotonic clock (LSL's local clock) on the bus clock."""
+    return max(0, time.time_ns() - round((time.monotonic() - monotonic_s) * 1e9))
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -1,0 +1,245 @@
+"""Decisions from a wearable sensor's stream: windows, the classifier, contractions.
+
+Samples come in chunks with their timestamps (LSL's, already corrected to this machine's
+clock). Every hop, the last window is classified (rest, -1 or +1, or rejected below the
+window threshold) and a majority vote smooths the labels. A *contraction* is a run of
+voted commands between rests; it becomes one decision when it ends:
+
+* u_h: the command with the larger summed probability over the contraction's windows;
+* confidence: sum P(u_h) / sum (P(-1) + P(+1)) over those windows, the classifier's
+  probability of the command given that one was made (windows weighted by how surely
+  they are a command: the ramps at either end count little);
+* the admission radius, the paper's second decision, from the contraction's length as
+  the pad's quick and held presses: shorter than ``long_contraction_s`` is E_big (quick,
+  coarse), longer is E_small (held, careful). A person controls duration far more
+  reliably than strength (strength drifts with fatigue and electrode contact, and a
+  linear classifier's classes are strength-invariant by design), and the same rule for
+  the pad and the wearable means one instruction for the participant.
+
+A decision below ``min_confidence``, or shorter than ``min_contraction_s`` (a twitch),
+is not acted on; one held longer than ``max_contraction_s`` is a stuck signal, not a
+decision. Bad signal (non-finite samples, a flat or clipping channel, a gap or a jump in
+the timestamps) drops the contraction in progress: no decision ever spans it, and
+``problem`` says what is wrong until the signal is clean again.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+from pydantic import BaseModel, Field
+
+from dammrl_core.intent.emg.calibration import EmgCalibration
+from dammrl_core.intent.emg.classifier import REJECTED, majority
+from dammrl_core.intent.emg.features import window_features, window_samples
+from dammrl_core.settings import FINITE
+
+FLAT_OF_REST = 0.05
+"""A channel whose RMS over a window is below this fraction of its rest RMS is flat."""
+CLIPPED_SHARE = 0.05
+"""A channel with this share of a window's samples at its extreme value is clipping."""
+
+
+class EmgDecoderSettings(BaseModel):
+    """How windows become decisions (``DAMMRL_LSL_DECODER__*``)."""
+
+    model_config = FINITE
+
+    reject_below: float = Field(0.6, ge=0.34, le=1.0)
+    """A window whose most probable class is less probable than this is rejected."""
+    vote_windows: int = Field(3, ge=1, le=15)
+    """Majority vote over this many accepted windows."""
+    min_confidence: float = Field(0.75, ge=0.5, le=1.0)
+    """A decision less confident than this is not acted on (the request stays open)."""
+    long_contraction_s: float = Field(0.5, ge=0.1, le=3.0)
+    """A contraction this long or longer chooses E_small (held); shorter, E_big (quick) [s]."""
+    min_contraction_s: float = Field(0.08, ge=0.0, le=1.0)
+    """Shorter contractions are twitches, not decisions [s]."""
+    max_contraction_s: float = Field(4.0, ge=0.5, le=30.0)
+    """A contraction longer than this is a stuck signal: no decision until rest [s]."""
+    max_gap_s: float = Field(0.25, ge=0.01, le=5.0)
+    """A gap between timestamps longer than this (or a step back) resets the decoder [s]."""
+
+
+@dataclass(frozen=True)
+class Contraction:
+    """One decision of the decoder (acted on or not)."""
+
+    u_h: int  # -1 or +1
+    human_model: int  # 1 = E_big (quick), 2 = E_small (held)
+    confidence: float  # [0, 1]
+    onset_s: float  # when it began [s, the samples' clock]
+    end_s: float  # when it ended [s]
+    windows: int
+    features: tuple[float, ...]  # mean features over its windows
+    accepted: bool
+    reason: str  # why it was not acted on ("" when accepted)
+
+    @property
+    def duration_s(self) -> float:
+        return self.end_s - self.onset_s
+
+
+@dataclass
+class _Run:
+    """A contraction in progress."""
+
+    first_end_s: float
+    last_end_s: float
+    p_minus: list[float] = field(default_factory=list)
+    p_plus: list[float] = field(default_factory=list)
+    features: list[np.ndarray] = field(default_factory=list)
+
+
+class WindowDecoder:
+    def __init__(self, calibration: EmgCalibration, settings: EmgDecoderSettings) -> None:
+        self.calibration = calibration
+        self.settings = settings
+        self.rate_hz = calibration.stream.nominal_srate_hz
+        self.channels = calibration.stream.channel_count
+        self.size = window_samples(self.rate_hz, calibration.window_s)
+        self.hop = window_samples(self.rate_hz, calibration.hop_s)
+        self.classes = np.array(calibration.classifier.classes)
+        self.rest_rms = np.array(calibration.rest_rms)
+        self.buffer = np.zeros((0, self.channels))
+        self.times = np.zeros(0)
+        self.since_window = 0
+        self.labels: deque[int] = deque(maxlen=settings.vote_windows)
+        self.run: _Run | None = None
+        self.stuck = False
+        self.signal_problem: str | None = None
+        self.last_t: float | None = None
+        self.windows = 0
+        self.voted = 0  # the last voted label (0: rest)
+
+    # ---- input ---------------------------------------------------------------------------
+    def push(self, samples: np.ndarray, times: np.ndarray) -> list[Contraction]:
+        """Take a chunk (n, channels) with its timestamps (n,) [s]; the contractions that
+        ended in it."""
+        samples = np.asarray(samples, dtype=float).reshape(len(times), -1)
+        if samples.shape[1] != self.channels:
+            self._bad(f"{samples.shape[1]} channels, the calibration has {self.channels}")
+            return []
+        if not np.all(np.isfinite(samples)):
+            channel = int(np.argmax(~np.all(np.isfinite(samples), axis=0)))
+            self._bad(f"non-finite samples (NaN or inf) on channel {channel}")
+            return []
+        if (jump := self._time_problem(np.asarray(times, dtype=float))) is not None:
+            self._bad(jump)  # the chunk starts a new stretch of signal
+        self.last_t = float(times[-1])
+        return self._windows(samples, np.asarray(times, dtype=float))
+
+    def _time_problem(self, times: np.ndarray) -> str | None:
+        steps = np.diff(times, prepend=self.last_t if self.last_t is not None else times[0])
+        worst = float(steps[np.argmax(np.abs(steps))]) if len(steps) else 0.0
+        if worst < -1.0 / self.rate_hz or worst > self.settings.max_gap_s:
+            return f"the samples' clock jumped by {worst:+.3f} s"
+        return None
+
+    def _windows(self, samples: np.ndarray, times: np.ndarray) -> list[Contraction]:
+        decided: list[Contraction] = []
+        for k in range(len(samples)):  # a window every hop, wherever the chunks end
+            self.since_window += 1
+            if self.since_window >= self.hop and len(self.buffer) + k + 1 >= self.size:
+                self.since_window = 0
+                window = np.concatenate([self.buffer, samples[: k + 1]])[-self.size :]
+                if (ended := self._window(window, float(times[k]))) is not None:
+                    decided.append(ended)
+        self.buffer = np.concatenate([self.buffer, samples])[-self.size :]
+        return decided
+
+    # ---- one window ----------------------------------------------------------------------
+    def _window(self, window: np.ndarray, end_s: float) -> Contraction | None:
+        self.windows += 1
+        if (problem := self._channel_problem(window)) is not None:
+            self._bad(problem, keep_buffer=True)
+            return None
+        self.signal_problem = None
+        features = window_features(window, self.rate_hz)
+        p = self.calibration.classifier.probabilities(features)[0]
+        best = int(np.argmax(p))
+        self.labels.append(int(self.classes[best]) if p[best] >= self.settings.reject_below
+                           else REJECTED)  # fmt: skip
+        accepted = [c for c in self.labels if c != REJECTED]
+        if accepted:
+            self.voted = majority(accepted)
+        return self._follow(self.voted, p, features, end_s)
+
+    def _channel_problem(self, window: np.ndarray) -> str | None:
+        rms = window.std(axis=0)
+        if np.any(flat := rms < FLAT_OF_REST * self.rest_rms):
+            return f"channel {int(np.argmax(flat))} flat (an electrode off?)"
+        extreme = np.abs(window).max(axis=0)
+        clipped = np.mean(np.abs(window) >= extreme * (1 - 1e-9), axis=0) >= CLIPPED_SHARE
+        if np.any(clipped & (extreme > 0)):
+            return f"channel {int(np.argmax(clipped))} clipping (saturated amplifier?)"
+        return None
+
+    def _follow(self, label: int, p: np.ndarray, features: np.ndarray,
+                end_s: float) -> Contraction | None:  # fmt: skip
+        """Grow the contraction in progress, start one, or end it into a decision."""
+        if label in (-1, 1):
+            if self.run is None:
+                self.run = _Run(end_s, end_s)
+            self.run.last_end_s = end_s
+            self.run.p_minus.append(float(p[self._index(-1)]))
+            self.run.p_plus.append(float(p[self._index(1)]))
+            self.run.features.append(features)
+            if end_s - self.run.first_end_s > self.settings.max_contraction_s:
+                self.stuck = True
+            return None
+        if label != 0 or self.run is None:
+            return None
+        run, self.run = self.run, None
+        if self.stuck:
+            self.stuck = False
+            return None
+        return self._decision(run)
+
+    def _index(self, label: int) -> int:
+        return int(np.flatnonzero(self.classes == label)[0])
+
+    def _decision(self, run: _Run) -> Contraction:
+        minus, plus = np.array(run.p_minus), np.array(run.p_plus)
+        u_h = 1 if plus.sum() >= minus.sum() else -1
+        chosen = plus if u_h > 0 else minus
+        confidence = float(chosen.sum() / max(float((minus + plus).sum()), 1e-12))
+        duration = run.last_end_s - run.first_end_s
+        onset = run.first_end_s - self.calibration.window_s / 2  # half a window in
+        human_model = 2 if duration >= self.settings.long_contraction_s else 1
+        reason = ""
+        if duration < self.settings.min_contraction_s:
+            reason = f"a twitch ({duration:.2f} s)"
+        elif confidence < self.settings.min_confidence:
+            reason = f"confidence {confidence:.2f} < {self.settings.min_confidence}"
+        return Contraction(u_h, human_model, confidence, onset, onset + duration,
+                           len(minus), tuple(np.mean(run.features, axis=0).tolist()),
+                           not reason, reason)  # fmt: skip
+
+    # ---- faults --------------------------------------------------------------------------
+    def _bad(self, problem: str, keep_buffer: bool = False) -> None:
+        """Drop the contraction in progress (no decision spans bad signal)."""
+        self.signal_problem = problem
+        self.run = None
+        self.stuck = False
+        self.labels.clear()
+        self.voted = 0
+        if not keep_buffer:
+            self.buffer = np.zeros((0, self.channels))
+            self.since_window = 0
+            self.last_t = None
+
+    def reset(self) -> None:
+        """Forget everything (the stream was lost)."""
+        self._bad("", keep_buffer=False)
+        self.signal_problem = None
+
+    def problem(self) -> str | None:
+        if self.signal_problem:
+            return self.signal_problem
+        if self.stuck and self.run is not None:
+            return (f"a contraction held for {self.run.last_end_s - self.run.first_end_s:.1f} s: "
+                    "no decision until rest")  # fmt: skip
+        return None

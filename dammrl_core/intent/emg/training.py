@@ -1,0 +1,116 @@
+"""From a cued recording to a person's calibration: labelled windows, the classifier, and
+leave-one-block-out cross-validation, refused when the classes do not separate.
+
+A calibration session is blocks of cued trials (rest, -1, +1 in a shuffled order). A
+window is labelled with its trial's class when it lies wholly inside the trial after the
+person's reaction (``settle_s``); windows across a cue change are left out.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from datetime import UTC, datetime
+
+import numpy as np
+
+from dammrl_core.errors import ConfigurationError
+from dammrl_core.intent.emg.calibration import EmgCalibration, StreamDescription
+from dammrl_core.intent.emg.classifier import CrossValidation, cross_validate, fit
+from dammrl_core.intent.emg.decoder import EmgDecoderSettings
+from dammrl_core.intent.emg.features import sliding_windows
+
+SETTLE_S = 0.5
+"""A trial's first half second is the person's reaction: its windows are not labelled."""
+MIN_ACCURACY = 0.85
+"""Cross-validated accuracy below this: the classes do not separate well enough to use."""
+MAX_ACTIVE_ERROR = 0.10
+"""Cross-validated active error rate above this: -1 and +1 are confused too often."""
+
+
+@dataclass(frozen=True)
+class Cue:
+    """One cued trial: the class asked for, from ``start_s`` to ``end_s`` (stream clock)."""
+
+    label: int  # -1, 0 (rest) or +1
+    start_s: float
+    end_s: float
+    block: int
+
+
+def labelled_windows(samples: np.ndarray, times: np.ndarray, cues: list[Cue], rate_hz: float,
+                     window_s: float, hop_s: float
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+    """(features, labels, blocks) of every window wholly inside a trial after its settle."""
+    features, ends = sliding_windows(samples, rate_hz, window_s, hop_s)
+    end_t = times[ends] if len(ends) else np.zeros(0)
+    labels = np.full(len(ends), 99)
+    blocks = np.full(len(ends), -1)
+    for cue in cues:
+        inside = (end_t - window_s >= cue.start_s + SETTLE_S) & (end_t <= cue.end_s)
+        labels[inside], blocks[inside] = cue.label, cue.block
+    kept = labels != 99
+    return features[kept], labels[kept], blocks[kept]
+
+
+def rest_rms(samples: np.ndarray, times: np.ndarray, cues: list[Cue]) -> np.ndarray:
+    """Each channel's RMS (about its mean) over the rest trials."""
+    rest = np.zeros(len(times), dtype=bool)
+    for cue in cues:
+        if cue.label == 0:
+            rest |= (times >= cue.start_s + SETTLE_S) & (times <= cue.end_s)
+    if not rest.any():
+        raise ConfigurationError("the calibration has no rest trial")
+    return np.asarray(samples[rest].std(axis=0))
+
+
+def train(samples: np.ndarray, times: np.ndarray, cues: list[Cue], stream: StreamDescription,
+          window_s: float = 0.2, hop_s: float = 0.05,
+          decoder: EmgDecoderSettings | None = None, participant: str | None = None,
+          ) -> EmgCalibration:  # fmt: skip
+    """The calibration of a cued recording (samples (n, channels) at ``times`` (n,))."""
+    decoder = decoder or EmgDecoderSettings()
+    features, labels, blocks = labelled_windows(samples, times, cues, stream.nominal_srate_hz,
+                                                window_s, hop_s)  # fmt: skip
+    _enough(labels, blocks)
+    cv = cross_validate(features, labels, blocks, decoder.reject_below, decoder.vote_windows)
+    return EmgCalibration(
+        created=datetime.now(UTC).isoformat(timespec="seconds"),
+        participant=participant,
+        stream=stream,
+        window_s=window_s,
+        hop_s=hop_s,
+        classifier=fit(features, labels),
+        rest_rms=rest_rms(samples, times, cues).tolist(),
+        cross_validation=cv,
+    )
+
+
+def _enough(labels: np.ndarray, blocks: np.ndarray) -> None:
+    if len(np.unique(blocks)) < 2:
+        raise ConfigurationError("a calibration needs 2 blocks at least (leave-one-block-out)")
+    for label in (-1, 0, 1):
+        if np.sum(labels == label) < 10:
+            raise ConfigurationError(
+                f"the calibration has {np.sum(labels == label)} windows of class {label:+d}, "
+                "10 at least are needed: longer trials or more blocks"
+            )
+
+
+def refusal(cv: CrossValidation, min_accuracy: float = MIN_ACCURACY,
+            max_active_error: float = MAX_ACTIVE_ERROR) -> str | None:  # fmt: skip
+    """Why this calibration should not be used, or None when it may."""
+    (minus_as_plus, plus_as_minus) = (cv.confusion[0][2], cv.confusion[2][0])
+    if cv.accuracy < min_accuracy or cv.active_error_rate > max_active_error:
+        confused = (
+            "-1 and +1 are confused with each other (place the electrodes over the two "
+            "muscle groups, make the two movements more distinct)"
+            if minus_as_plus + plus_as_minus > 0.1 * (cv.confusion[0][0] + cv.confusion[2][2])
+            else "commands are confused with rest (contract more firmly, or check the "
+            "electrodes' contact)"
+        )
+        return (
+            f"cross-validated accuracy {cv.accuracy:.2f} (at least {min_accuracy} needed), "
+            f"active error rate {cv.active_error_rate:.2f} (at most {max_active_error}): "
+            f"{confused}"
+        )
+    return None
