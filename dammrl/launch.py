@@ -92,7 +92,9 @@ class StackOptions:
     json: bool = False
     record: Path | None = None  # also run the recorder into this MCAP file
     pad_port: str | None = None  # the pressure pad's serial device (semi-virtual, or real)
-    pad_calibration: Path | None = None  # from `dammrl sensor calibrate`
+    lsl_stream: str | None = None  # a wearable sensor's LSL stream (semi-virtual, or real)
+    intent: str | None = None  # the intent source (default: pad with pad_port, lsl with a stream)
+    calibration: Path | None = None  # the person's: `dammrl sensor|intent calibrate`
     lockstep: bool = False  # every service on the robot clock (DAMMRL_BUS_LOCKSTEP); sim only
     credentials: Path | None = None  # from `dammrl bus init`: mutual TLS and the ACL
     insecure: bool = False  # plain tcp on loopback instead of this run's own credentials
@@ -155,9 +157,21 @@ def check_options(options: StackOptions) -> None:
             "--lockstep is for simulation only: in semi-virtual mode a person at the sensor "
             "needs real time"
         )
-    if options.mode == "semi-virtual" and not options.pad_port and _simulated_intent():
+    if options.mode == "semi-virtual" and not _a_person(options):
         raise UsageError("semi-virtual mode needs a person: --port (the pressure pad's serial "
-                         "device) or DAMMRL_INTENT_SOURCE naming a sensor's source")  # fmt: skip
+                         "device), --stream (a wearable's LSL stream) or DAMMRL_INTENT_SOURCE "
+                         "naming a sensor's source")  # fmt: skip
+    needs = {"pad": ("--port", options.pad_port), "lsl": ("--stream", options.lsl_stream)}
+    if options.intent in needs and not needs[options.intent][1]:
+        raise UsageError(f"--intent {options.intent} needs {needs[options.intent][0]}")
+    given = [name for name, (_, value) in needs.items() if value]
+    if options.intent is not None and given and given != [options.intent]:
+        raise UsageError(f"--intent {options.intent} with {needs[given[0]][0]}: one source")
+    if options.pad_port and options.lsl_stream:
+        raise UsageError("--port (the pad) and --stream (a wearable) are two people: one of them")
+    if options.lsl_stream and options.calibration is None:
+        raise UsageError("--stream needs --calibration: the person's file from "
+                         "`dammrl intent calibrate --stream NAME --out FILE`")  # fmt: skip
     if options.mode == "real" and options.lockstep:
         raise UsageError("--lockstep is for simulation only: a real arm runs in real time")
     if options.emulate_robot and not options.robot_port:
@@ -172,17 +186,30 @@ def check_options(options: StackOptions) -> None:
     if options.record is not None and options.record.exists():
         raise UsageError(f"--record {options.record} exists: choose another name (nothing "
                          "is overwritten)")  # fmt: skip
-    if options.pad_calibration is not None:  # a clear error now, not a dead service
-        from dammrl_core.intent.pad.calibration import load_calibration
-        from dammrl_core.intent.pad.decoder import PressDecoder
-        from dammrl_core.intent.pad.source import PadSettings
-
-        PressDecoder(load_calibration(options.pad_calibration), PadSettings().decoder)
+    _check_calibration(options)
 
 
-def _simulated_intent() -> bool:
-    """The environment leaves the decisions to the simulated human."""
-    return IntentSettings().source == "simulated"
+def _check_calibration(options: StackOptions) -> None:
+    """A person's calibration file that cannot be used: a clear error now, not a dead
+    service."""
+    if options.calibration is None:
+        return
+    if options.lsl_stream:
+        from dammrl_core.intent.emg.calibration import load_calibration as load_wearable
+
+        load_wearable(options.calibration)
+        return
+    from dammrl_core.intent.pad.calibration import load_calibration
+    from dammrl_core.intent.pad.decoder import PressDecoder
+    from dammrl_core.intent.pad.source import PadSettings
+
+    PressDecoder(load_calibration(options.calibration), PadSettings().decoder)
+
+
+def _a_person(options: StackOptions) -> bool:
+    """Someone decides: the pad, a wearable, or the environment's non-simulated source."""
+    named = options.intent or IntentSettings().source
+    return bool(options.pad_port or options.lsl_stream) or named != "simulated"
 
 
 def cut_recordings(record: Path) -> list[Path]:
@@ -285,16 +312,20 @@ class Stack:
         return settings
 
     def _intent_settings(self) -> list[BaseSettings]:
-        """The pad, when its port is given (semi-virtual, or real with a person at it)."""
+        """The pad when its port is given, a wearable when its stream is (semi-virtual, or
+        real with a person at it)."""
+        from dammrl_core.intent.lsl import LslSettings
         from dammrl_core.intent.pad.source import PadSettings
 
         o = self.options
+        calibration = {} if o.calibration is None else {"calibration_file": o.calibration.resolve()}
+        if o.lsl_stream is not None:
+            wearable = LslSettings(stream=o.lsl_stream, **calibration)  # type: ignore[arg-type]
+            return [IntentSettings(source="lsl"), wearable]
         if o.pad_port is None:
-            return []
-        pad = {"port": o.pad_port} | (
-            {} if o.pad_calibration is None else {"calibration_file": o.pad_calibration.resolve()}
-        )
-        return [IntentSettings(source="pad"), PadSettings(**pad)]  # type: ignore[arg-type]
+            return [] if o.intent is None else [IntentSettings(source=o.intent)]
+        pad = PadSettings(port=o.pad_port, **calibration)  # type: ignore[arg-type]
+        return [IntentSettings(source="pad"), pad]
 
     def _arm_settings(self) -> list[BaseSettings]:
         """The arm driver's port and calibration, when given (real mode)."""

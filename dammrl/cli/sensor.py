@@ -171,7 +171,7 @@ def _monitor(args: argparse.Namespace) -> int:
     stop = stop_on_signals()
     with SerialSensor(args.port, reconnect_max_s=1.0) as sensor:
         wait_for_frames(sensor)
-        _stop_after(stop, args.seconds)
+        stop_after(stop, args.seconds)
         Monitor(sensor, PressDecoder(calibration, settings.decoder), ModelSet()).run(stop)
     return 0
 
@@ -185,7 +185,7 @@ def _emulate(args: argparse.Namespace) -> int:
     if args.pattern == "keyboard" and not sys.stdin.isatty():
         raise DammrlError("the keyboard pattern needs a terminal (run it in its own tmux pane)")
     stop = stop_on_signals()
-    _stop_after(stop, args.seconds)
+    stop_after(stop, args.seconds)
     script = [Press(0.2, 0.2, 1.0)] if args.pattern == "taps" else []
     loop_s = args.period if args.pattern == "taps" else None
     with SensorEmulator(args.link, script, loop_s=loop_s, seed=args.seed, rate_hz=args.rate) as pad:
@@ -202,7 +202,7 @@ def _emulate(args: argparse.Namespace) -> int:
     return 0
 
 
-def _stop_after(stop: threading.Event, seconds: float | None) -> None:
+def stop_after(stop: threading.Event, seconds: float | None) -> None:
     """Set ``stop`` after ``seconds`` [s] (never if None), from a daemon timer."""
     if seconds is not None:
         timer = threading.Timer(seconds, stop.set)
@@ -222,11 +222,11 @@ def _patient(args: argparse.Namespace, pad: SensorEmulator, stop: threading.Even
     print(f"simulated patient (M_{args.patient_model}, {kind}) answering decision requests")
     said = False
     while not stop.is_set():
-        said = _answer_while_joined(args, patient, stop, said)
+        said = answer_while_joined(args, patient, stop, said)
     print(f"answered {patient.answered} requests")
 
 
-def _answer_while_joined(
+def answer_while_joined(
     args: argparse.Namespace, patient: SimulatedPatient, stop: threading.Event, said: bool
 ) -> bool:
     """One session: answer requests while it reaches a stack; whether the patient has said

@@ -60,8 +60,9 @@ def _add_up(commands: Commands) -> None:
         description="Start the services as processes on the bus; Ctrl-C stops them all.",
     )
     up.add_argument("--mode", choices=["virtual", "semi-virtual", "real"], default="virtual",
-                    help="virtual: simulated human and arm; semi-virtual: the pressure sensor, "
-                         "simulated arm; real: the arm on a servo bus (--robot-port), the human "
+                    help="virtual: simulated human and arm; semi-virtual: a person at a "
+                         "sensor (--port, --stream), simulated arm; real: the arm on a servo "
+                         "bus (--robot-port), the human "
                          "simulated or at the sensor (--port)")  # fmt: skip
     up.add_argument(
         "--episodes", type=int, help="run this many episodes, then stop (default: until Ctrl-C)"
@@ -78,8 +79,14 @@ def _add_up(commands: Commands) -> None:
                     help="real: the arm's file from `dammrl robot calibrate`")  # fmt: skip
     up.add_argument("--emulate-robot", action="store_true",
                     help="real: serve the emulated arm at --robot-port (no hardware)")  # fmt: skip
+    up.add_argument("--intent", metavar="SOURCE",
+                    help="who decides: simulated, pad (--port), lsl (--stream) or an installed "
+                    "source (`dammrl intent sources`); default from --port/--stream")  # fmt: skip
+    up.add_argument("--stream", help="semi-virtual (or real): a wearable sensor's LSL stream "
+                    "(its classifier from --calibration)")  # fmt: skip
     up.add_argument("--calibration", type=Path,
-                    help="semi-virtual: file from `dammrl sensor calibrate`")  # fmt: skip
+                    help="the person's file: `dammrl sensor calibrate` (the pad) or `dammrl "
+                    "intent calibrate` (a wearable)")  # fmt: skip
     up.add_argument(
         "--bus-port", type=int, default=7447, help="loopback port of the stack's endpoint"
     )
@@ -103,7 +110,9 @@ def _up(args: argparse.Namespace) -> int:
     options = StackOptions(
         mode=args.mode, episodes=args.episodes, seed=args.seed, model=args.model,
         trigger=args.trigger, port=args.bus_port, namespace=args.namespace, json=args.json,
-        pad_port=args.port, pad_calibration=args.calibration, record=args.record,
+        pad_port=args.port, lsl_stream=args.stream, intent=args.intent,
+        calibration=args.calibration,
+        record=args.record,
         lockstep=args.lockstep, credentials=args.credentials, insecure=args.insecure,
         robot_port=args.robot_port, robot_calibration=args.robot_calibration,
         emulate_robot=args.emulate_robot,

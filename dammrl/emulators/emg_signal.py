@@ -93,6 +93,11 @@ class EmgSynth:
         level = float(self.rng.uniform(0.4, 1.0)) if strength is None else strength
         self.contractions.append(_Contraction(u_h, self.t_s + delay_s, duration_s, level))
 
+    def release(self) -> None:
+        """Every contraction in progress or planned ends now (the person relaxes)."""
+        for c in self.contractions:
+            c.duration_s = max(0.0, min(c.duration_s, self.t_s - c.start_s))
+
     def lift(self, channel: int, how: str = "flat") -> None:
         """An electrode comes off: its channel flat, or clipping at the amplifier's rail."""
         self.lifted[channel] = how

@@ -31,8 +31,8 @@ from dammrl_core.intent.emg.decoder import Contraction, EmgDecoderSettings, Wind
 from dammrl_core.intent.source import Ask, Chunk, Decided, Evidence, Reading, SourceContext
 from dammrl_core.settings import Settings
 
-QUIET_LSL = "[log]\nlevel = -2\n"
-"""liblsl's own log: errors only (its INFO lines would fill the service's stderr)."""
+QUIET_LSL = "[log]\nlevel = -3\n"
+"""liblsl's own log: fatal errors only (its INFO lines would fill the service's stderr)."""
 
 
 class LslSettings(Settings):

@@ -153,16 +153,22 @@ class CrossValidation(BaseModel):
 
 
 def cross_validate(features: np.ndarray, labels: np.ndarray, blocks: np.ndarray,
-                   reject_below: float, vote: int) -> CrossValidation:  # fmt: skip
-    """Leave-one-block-out: every block decided (rejection and vote as online) by an LDA
-    fitted on the other blocks; the metrics of all held-out decisions together."""
+                   trials: np.ndarray, reject_below: float, vote: int
+                   ) -> CrossValidation:  # fmt: skip
+    """Leave-one-block-out: every block decided (rejection and vote as online, the vote
+    starting afresh in each trial) by an LDA fitted on the other blocks; the metrics of all
+    held-out decisions together."""
     truth, decided, per_block = [], [], []
     for block in np.unique(blocks):
         held = blocks == block
         model = fit(features[~held], labels[~held])
-        out = decide_windows(model.probabilities(features[held]), model.classes,
-                             reject_below, vote)  # fmt: skip
-        truth.append(labels[held])
+        p = model.probabilities(features[held])
+        out = np.concatenate([
+            decide_windows(p[trials[held] == trial], model.classes, reject_below, vote)
+            for trial in np.unique(trials[held])
+        ])  # fmt: skip
+        order = np.argsort(trials[held], kind="stable")
+        truth.append(labels[held][order])
         decided.append(out)
         per_block.append(offline_metrics(labels[held], out).accuracy)
     m = offline_metrics(np.concatenate(truth), np.concatenate(decided))

@@ -39,17 +39,17 @@ class Cue:
 
 def labelled_windows(samples: np.ndarray, times: np.ndarray, cues: list[Cue], rate_hz: float,
                      window_s: float, hop_s: float
-                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
-    """(features, labels, blocks) of every window wholly inside a trial after its settle."""
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+    """(features, labels, blocks, trials) of every window wholly inside a trial after its
+    settle (``trials``: the index of its cue)."""
     features, ends = sliding_windows(samples, rate_hz, window_s, hop_s)
     end_t = times[ends] if len(ends) else np.zeros(0)
-    labels = np.full(len(ends), 99)
-    blocks = np.full(len(ends), -1)
-    for cue in cues:
+    labels, blocks, trials = (np.full(len(ends), -99) for _ in range(3))
+    for k, cue in enumerate(cues):
         inside = (end_t - window_s >= cue.start_s + SETTLE_S) & (end_t <= cue.end_s)
-        labels[inside], blocks[inside] = cue.label, cue.block
-    kept = labels != 99
-    return features[kept], labels[kept], blocks[kept]
+        labels[inside], blocks[inside], trials[inside] = cue.label, cue.block, k
+    kept = labels != -99
+    return features[kept], labels[kept], blocks[kept], trials[kept]
 
 
 def rest_rms(samples: np.ndarray, times: np.ndarray, cues: list[Cue]) -> np.ndarray:
@@ -69,10 +69,12 @@ def train(samples: np.ndarray, times: np.ndarray, cues: list[Cue], stream: Strea
           ) -> EmgCalibration:  # fmt: skip
     """The calibration of a cued recording (samples (n, channels) at ``times`` (n,))."""
     decoder = decoder or EmgDecoderSettings()
-    features, labels, blocks = labelled_windows(samples, times, cues, stream.nominal_srate_hz,
-                                                window_s, hop_s)  # fmt: skip
+    features, labels, blocks, trials = labelled_windows(
+        samples, times, cues, stream.nominal_srate_hz, window_s, hop_s
+    )
     _enough(labels, blocks)
-    cv = cross_validate(features, labels, blocks, decoder.reject_below, decoder.vote_windows)
+    cv = cross_validate(features, labels, blocks, trials, decoder.reject_below,
+                        decoder.vote_windows)  # fmt: skip
     return EmgCalibration(
         created=datetime.now(UTC).isoformat(timespec="seconds"),
         participant=participant,

@@ -1,0 +1,187 @@
+"""An emulated EMG armband on Lab Streaming Layer: the wearable path without hardware.
+
+The synthetic forearm (:mod:`dammrl.emulators.emg_signal`) is streamed in real time on an
+LSL outlet, in chunks as an amplifier's software sends them. Who moves the forearm:
+
+* ``patient``: a simulated patient answers the stack's decision requests with
+  contractions (quick for E_big, held for E_small; see ``dammrl.emulators.patient``);
+* ``cued``: it follows the cues of ``dammrl intent calibrate`` (an LSL marker stream,
+  as lab software cues), as a cooperative participant would;
+* ``rest``: nobody moves (phantom decisions are then all errors).
+
+Faults on demand (methods, or lines on stdin from ``dammrl intent emulate``): an
+electrode off (flat) or clipping, the stream lost for a while, non-finite samples, a
+jump of the timestamps, and a second stream of the same name (another device).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from typing import Any
+
+import numpy as np
+
+from dammrl.emulators.emg_signal import EmgSynth
+
+log = logging.getLogger("dammrl.emg")
+
+CHUNK_S = 0.02
+"""An amplifier's software sends chunks about this often [s]."""
+CUE_STREAM = "dammrl-cues"
+"""The marker stream of ``dammrl intent calibrate``: "rest", "-1", "+1", "end"."""
+QUICK_S = 0.25
+HELD_S = 0.9
+
+
+class EmgStream:
+    """Streams a synthetic forearm on an LSL outlet until stopped (a context manager)."""
+
+    def __init__(self, name: str, synth: EmgSynth, source_id: str = "dammrl-emulated-emg",
+                 stream_type: str = "EMG") -> None:  # fmt: skip
+        self.name = name
+        self.synth = synth
+        self.source_id = source_id
+        self.stream_type = stream_type
+        self.outlet: Any = None
+        self.twin: Any = None
+        self.lock = threading.Lock()
+        self.stop = threading.Event()
+        self.thread = threading.Thread(target=self._run, name="emg-stream", daemon=True)
+        self.clock_offset_s = 0.0
+        self.nan_until = 0.0
+        self.silent_until = 0.0
+        self.sent = 0
+
+    def __enter__(self) -> EmgStream:
+        import pylsl
+
+        from dammrl_core.intent.lsl import QUIET_LSL
+
+        pylsl.set_config_content(QUIET_LSL)
+        self.outlet = self._outlet(self.source_id)
+        self.thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop.set()
+        self.thread.join(2.0)
+        self.outlet = self.twin = None
+
+    def _outlet(self, source_id: str) -> Any:
+        import pylsl
+
+        m = self.synth.model
+        info = pylsl.StreamInfo(self.name, self.stream_type, m.channels, m.rate_hz,
+                                pylsl.cf_float32, source_id)  # fmt: skip
+        channels = info.desc().append_child("channels")
+        for k in range(m.channels):
+            channel = channels.append_child("channel")
+            channel.append_child_value("label", f"EMG{k + 1}")
+            channel.append_child_value("unit", "normalised")
+        return pylsl.StreamOutlet(info, chunk_size=round(CHUNK_S * m.rate_hz))
+
+    # ---- the stream ------------------------------------------------------------------------
+    def _run(self) -> None:
+        import pylsl
+
+        rate = self.synth.model.rate_hz
+        start = pylsl.local_clock()
+        while not self.stop.wait(CHUNK_S / 2):
+            due = int((pylsl.local_clock() - start) * rate) - self.sent
+            if due <= 0:
+                continue
+            with self.lock:
+                samples = self.synth.generate(due).astype(np.float32)
+                self.sent += due
+                now = pylsl.local_clock()
+                if now < self.silent_until:
+                    self.outlet = None
+                    continue
+                if self.outlet is None:  # back after a loss: the same source id
+                    self.outlet = self._outlet(self.source_id)
+                if now < self.nan_until:
+                    samples[::7, 0] = np.nan
+                self.outlet.push_chunk(samples, now + self.clock_offset_s)
+                if self.twin is not None:
+                    self.twin.push_chunk(samples[::-1], now)
+
+    # ---- faults ----------------------------------------------------------------------------
+    def lose(self, seconds: float) -> None:
+        """The stream disappears (the amplifier's software closed it), then returns."""
+        import pylsl
+
+        with self.lock:
+            self.silent_until = pylsl.local_clock() + seconds
+
+    def non_finite(self, seconds: float) -> None:
+        import pylsl
+
+        with self.lock:
+            self.nan_until = pylsl.local_clock() + seconds
+
+    def jump_clock(self, seconds: float) -> None:
+        """The sender's timestamps jump (a clock reset on the amplifier's PC)."""
+        with self.lock:
+            self.clock_offset_s += seconds
+
+    def add_twin(self) -> None:
+        """A second stream of the same name (another device or machine)."""
+        with self.lock:
+            self.twin = self._outlet(self.source_id + "-twin")
+
+    def remove_twin(self) -> None:
+        with self.lock:
+            self.twin = None
+
+    def fault(self, line: str) -> str:
+        """A fault from a line of text (``dammrl intent emulate`` reads stdin)."""
+        words = line.split()
+        if not words:
+            return ""
+        what, arg = words[0], float(words[1]) if len(words) > 1 else 1.0
+        actions = {
+            "flat": lambda: self.synth.lift(int(arg), "flat"),
+            "clip": lambda: self.synth.lift(int(arg), "clip"),
+            "back": lambda: self.synth.put_back(int(arg)),
+            "lose": lambda: self.lose(arg),
+            "nan": lambda: self.non_finite(arg),
+            "jump": lambda: self.jump_clock(arg),
+            "twin": self.add_twin,
+            "untwin": self.remove_twin,
+        }
+        if what not in actions:
+            return f"unknown fault {what!r}: {', '.join(actions)} (with a channel or seconds)"
+        actions[what]()
+        return f"{line.strip()}: done"
+
+    # ---- who moves ---------------------------------------------------------------------------
+    def act(self, u_h: int, held: bool, delay_s: float) -> str:
+        """The simulated patient's contraction (``dammrl.emulators.patient.Body``)."""
+        with self.lock:
+            self.synth.contract(u_h, HELD_S if held else QUICK_S, delay_s)
+        return f"{'held' if held else 'quick'} contraction {u_h:+d}"
+
+    def follow_cues(self, stop: threading.Event, reaction_s: float = 0.3) -> int:
+        """Contract as ``dammrl intent calibrate`` cues until it ends (or ``stop``); the
+        number of cues followed."""
+        import pylsl
+
+        inlet = None
+        followed = 0
+        while not stop.is_set() and inlet is None:
+            found = pylsl.resolve_byprop("name", CUE_STREAM, 1, 0.5)
+            inlet = pylsl.StreamInlet(found[0]) if found else None
+        while inlet is not None and not stop.is_set():
+            marker, _ = inlet.pull_sample(timeout=0.2)
+            if not marker:
+                continue
+            cue = marker[0]
+            if cue == "end":
+                break
+            with self.lock:
+                self.synth.release()
+                if cue in ("-1", "+1"):
+                    self.synth.contract(int(cue), 60.0, reaction_s)
+            followed += 1
+        return followed

@@ -1,0 +1,195 @@
+"""Calibrating a person on a wearable sensor's LSL stream, and its report.
+
+``dammrl intent calibrate`` cues blocks of trials (rest, -1, +1, shuffled in each block)
+on the terminal and on an LSL marker stream (``dammrl-cues``: lab software and the
+emulated armband follow it, and LabRecorder records it beside the signal), records the
+stream, trains the person's classifier, cross-validates it leave-one-block-out and
+refuses it, saying why, when the classes do not separate.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from dammrl.emulators.emg import CUE_STREAM
+from dammrl_core.errors import ConfigurationError, JobFailedError
+from dammrl_core.intent.emg.calibration import EmgCalibration, StreamDescription
+from dammrl_core.intent.emg.classifier import CLASS_NAMES, CLASSES, REJECTED
+from dammrl_core.intent.emg.training import Cue, refusal, train
+from dammrl_core.intent.lsl import QUIET_LSL
+
+CUE_WORDS = {0: "rest: relax your forearm", -1: "-1: open your hand (extend) and hold",
+             1: "+1: close your hand (flex) and hold"}  # fmt: skip
+
+
+@dataclass(frozen=True)
+class Protocol:
+    blocks: int = 4
+    trial_s: float = 3.0
+    relax_s: float = 1.5
+    seed: int = 0
+
+
+def find_stream(name: str, source_id: str | None = None, timeout_s: float = 5.0) -> Any:
+    """The one LSL stream called ``name`` (and ``source_id``); a one-line error otherwise."""
+    import pylsl
+
+    pylsl.set_config_content(QUIET_LSL)
+    found = pylsl.resolve_byprop("name", name, 1, timeout_s)
+    if source_id:
+        found = [s for s in found if s.source_id() == source_id]
+    if not found:
+        raise JobFailedError(f"no LSL stream named {name!r} found in {timeout_s:g} s")
+    if len(found) > 1:
+        where = ", ".join(f"{s.hostname()}/{s.source_id()}" for s in found)
+        raise ConfigurationError(f"{len(found)} LSL streams named {name!r} ({where}): "
+                                 "give --source-id")  # fmt: skip
+    return found[0]
+
+
+def describe(info: Any) -> StreamDescription:
+    return StreamDescription(name=info.name(), type=info.type(),
+                             channel_count=info.channel_count(),
+                             nominal_srate_hz=info.nominal_srate(),
+                             source_id=info.source_id(), hostname=info.hostname())  # fmt: skip
+
+
+class Recorder:
+    """Pulls a stream's chunks on a thread until stopped: (samples, times) on our clock."""
+
+    def __init__(self, info: Any) -> None:
+        import pylsl
+
+        if info.nominal_srate() <= 0:
+            raise ConfigurationError(f"stream {info.name()!r} has no regular rate")
+        self.inlet = pylsl.StreamInlet(info, max_buflen=30, processing_flags=pylsl.proc_clocksync)
+        self.inlet.open_stream(5.0)
+        self.samples: list[np.ndarray] = []
+        self.times: list[np.ndarray] = []
+        self.stop = threading.Event()
+        self.thread = threading.Thread(target=self._pull, daemon=True)
+        self.thread.start()
+
+    def _pull(self) -> None:
+        while not self.stop.is_set():
+            samples, stamps = self.inlet.pull_chunk(timeout=0.05, max_samples=4096)
+            if stamps:
+                self.samples.append(np.asarray(samples, dtype=float))
+                self.times.append(np.asarray(stamps))
+
+    def finish(self) -> tuple[np.ndarray, np.ndarray]:
+        self.stop.set()
+        self.thread.join(2.0)
+        self.inlet.close_stream()
+        if not self.times:
+            raise JobFailedError("the stream sent nothing during the calibration")
+        return np.concatenate(self.samples), np.concatenate(self.times)
+
+
+def calibrate(info: Any, protocol: Protocol, show: Callable[[str], None],
+              participant: str | None = None) -> tuple[EmgCalibration, str | None]:  # fmt: skip
+    """Cue the protocol, record, train: the calibration and why not to use it (or None)."""
+    import pylsl
+
+    marker = pylsl.StreamInfo(CUE_STREAM, "Markers", 1, 0, pylsl.cf_string, "dammrl-calibrate")
+    cues_out = pylsl.StreamOutlet(marker)
+    recorder = Recorder(info)
+    time.sleep(1.0)  # followers of the cues find the marker stream
+    cues = _cue_blocks(protocol, cues_out, show)
+    cues_out.push_sample(["end"])
+    samples, times = recorder.finish()
+    calibration = train(samples, times, cues, describe(info), participant=participant)
+    return calibration, refusal(calibration.cross_validation)
+
+
+def _cue_blocks(protocol: Protocol, out: Any, show: Callable[[str], None]) -> list[Cue]:
+    import pylsl
+
+    rng = np.random.default_rng(protocol.seed)
+    cues = []
+    for block in range(protocol.blocks):
+        for k, label in enumerate(rng.permutation(CLASSES)):
+            label = int(label)
+            show(f"block {block + 1}/{protocol.blocks}, trial {k + 1}/3 - {CUE_WORDS[label]}")
+            out.push_sample([{0: "rest", -1: "-1", 1: "+1"}[label]])
+            start = pylsl.local_clock()
+            time.sleep(protocol.trial_s)
+            cues.append(Cue(label, start, pylsl.local_clock(), block))
+            out.push_sample(["rest"])
+            show("   relax")
+            time.sleep(protocol.relax_s)
+    return cues
+
+
+def write_report(calibration: EmgCalibration, reason: str | None, path: Path) -> Path:
+    """A markdown report and its confusion-matrix figure (``<path stem>_confusion.png``)."""
+    cv = calibration.cross_validation
+    figure = confusion_figure(cv.confusion, path.with_name(path.stem + "_confusion.png"))
+    stream = calibration.stream
+    lines = [
+        f"# Calibration of {calibration.participant or 'a participant'} on {stream.name!r}",
+        "",
+        f"{calibration.created}; {stream.channel_count} channels at {stream.nominal_srate_hz:g} "
+        f"Hz from {stream.hostname or '?'} ({stream.source_id or 'no source id'}); windows "
+        f"{calibration.window_s * 1000:.0f} ms, hop {calibration.hop_s * 1000:.0f} ms; LDA "
+        "on Hudgins' time-domain features (MAV, WL, ZC, SSC per channel).",
+        "",
+        f"**Verdict: {'refused: ' + reason if reason else 'usable'}**",
+        "",
+        "Leave-one-block-out cross-validation (each block decided by a classifier trained on "
+        "the others, with the online rejection and majority vote):",
+        "",
+        "| metric | value |",
+        "|---|---|",
+        f"| classification accuracy (accepted windows) | {cv.accuracy:.3f} |",
+        f"| active error rate (-1/+1 windows decided wrongly) | {cv.active_error_rate:.3f} |",
+        f"| instability (decision changes per window) | {cv.instability:.3f} |",
+        f"| rejection rate | {cv.rejection_rate:.3f} |",
+        "| accuracy per held-out block | "
+        + ", ".join(f"{a:.3f}" for a in cv.per_block_accuracy) + " |",
+        "",
+        f"![confusion matrix]({figure.name})",
+        "",
+        _confusion_table(cv.confusion),
+    ]  # fmt: skip
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def _confusion_table(confusion: list[list[int]]) -> str:
+    names = [CLASS_NAMES[c] for c in (*CLASSES, REJECTED)]
+    rows = ["| cued \\ decided | " + " | ".join(names) + " |", "|---" * (len(names) + 1) + "|"]
+    for label, counts in zip(CLASSES, confusion, strict=True):
+        rows.append(f"| {CLASS_NAMES[label]} | " + " | ".join(str(c) for c in counts) + " |")
+    return "\n".join(rows)
+
+
+def confusion_figure(confusion: list[list[int]], path: Path) -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    counts = np.array(confusion, dtype=float)
+    shares = counts / np.maximum(counts.sum(axis=1, keepdims=True), 1)
+    fig, ax = plt.subplots(figsize=(4.8, 3.6))
+    ax.imshow(shares, cmap="Blues", vmin=0, vmax=1)
+    columns = [CLASS_NAMES[c] for c in (*CLASSES, REJECTED)]
+    ax.set_xticks(range(len(columns)), columns)
+    ax.set_yticks(range(3), [CLASS_NAMES[c] for c in CLASSES])
+    for (i, j), share in np.ndenumerate(shares):
+        ax.text(j, i, f"{share:.0%}\n({int(counts[i, j])})", ha="center", va="center",
+                color="white" if share > 0.6 else "black", fontsize=9)  # fmt: skip
+    ax.set(xlabel="decided (after rejection and vote)", ylabel="cued",
+           title="windows, leave-one-block-out")  # fmt: skip
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
