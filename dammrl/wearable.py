@@ -1,4 +1,5 @@
-"""Calibrating a person on a wearable sensor's LSL stream, and its report.
+"""A person on a wearable sensor's LSL stream: calibration, its report, and decoding a
+recorded stream (a session's MCAP, or an XDF file other lab software wrote) again offline.
 
 ``dammrl intent calibrate`` cues blocks of trials (rest, -1, +1, shuffled in each block)
 on the terminal and on an LSL marker stream (``dammrl-cues``: lab software and the
@@ -22,6 +23,7 @@ from dammrl.emulators.emg import CUE_STREAM
 from dammrl_core.errors import ConfigurationError, JobFailedError
 from dammrl_core.intent.emg.calibration import EmgCalibration, StreamDescription
 from dammrl_core.intent.emg.classifier import CLASS_NAMES, CLASSES, REJECTED
+from dammrl_core.intent.emg.decoder import Contraction, EmgDecoderSettings, WindowDecoder
 from dammrl_core.intent.emg.training import Cue, refusal, train
 from dammrl_core.intent.lsl import QUIET_LSL
 
@@ -192,4 +194,97 @@ def confusion_figure(confusion: list[list[int]], path: Path) -> Path:
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
+    return path
+
+
+@dataclass(frozen=True)
+class Signal:
+    """A wearable's raw stream: samples (n, channels) at times (n,) [s], its name and rate."""
+
+    name: str
+    rate_hz: float
+    samples: np.ndarray
+    times_s: np.ndarray
+
+
+def signal_of_recording(path: Path, stream: str | None = None) -> Signal:
+    """The raw stream a session recorded (its ``sensor/chunk`` messages), in order."""
+    from dammrl.recording import read_recording
+    from schemas import SignalChunk
+
+    rows: list[list[float | None]] = []
+    stamps: list[int] = []
+    names: set[str] = set()
+    rate = 0.0
+    for _, chunk in read_recording(path).decoded(SignalChunk):
+        assert isinstance(chunk, SignalChunk)
+        if stream is not None and chunk.stream != stream:
+            continue
+        names.add(chunk.stream)
+        rate = chunk.rate_hz
+        rows += chunk.samples
+        stamps += chunk.stamps_ns
+    if not stamps:
+        raise JobFailedError(f"{path}: no raw stream recorded (sensor/chunk)"
+                             + (f" named {stream!r}" if stream else ""))  # fmt: skip
+    if len(names) > 1:
+        raise ConfigurationError(f"{path}: streams {sorted(names)}: choose one with --stream")
+    order = np.argsort(stamps, kind="stable")
+    samples = np.array([[np.nan if v is None else v for v in row] for row in rows])[order]
+    return Signal(names.pop(), rate, samples, np.array(stamps, dtype=float)[order] / 1e9)
+
+
+def signal_of_xdf(path: Path, stream: str | None = None) -> Signal:
+    """A numeric stream of an XDF file (as LabRecorder writes them)."""
+    import pyxdf
+
+    try:
+        streams, _ = pyxdf.load_xdf(str(path), dejitter_timestamps=False)
+    except Exception as exc:  # pyxdf raises whatever its parser meets
+        raise ConfigurationError(f"{path}: not a readable XDF file ({exc})") from None
+    numeric = [s for s in streams if np.issubdtype(np.asarray(s["time_series"]).dtype, np.number)
+               and len(s["time_stamps"]) > 0]  # fmt: skip
+    named = [s for s in numeric if stream is None or s["info"]["name"][0] == stream]
+    if len(named) != 1:
+        found = [s["info"]["name"][0] for s in numeric]
+        raise ConfigurationError(f"{path}: numeric streams {found}; choose one with --stream")
+    s = named[0]
+    rate = float(s["info"]["nominal_srate"][0])
+    return Signal(s["info"]["name"][0], rate, np.asarray(s["time_series"], dtype=float),
+                  np.asarray(s["time_stamps"], dtype=float))  # fmt: skip
+
+
+def decode_signal(signal: Signal, calibration: EmgCalibration,
+                  settings: EmgDecoderSettings | None = None) -> list[Contraction]:  # fmt: skip
+    """Every contraction the calibration's classifier finds in ``signal``, fed in chunks
+    of 20 ms as a live stream would be."""
+    want = calibration.stream
+    if signal.samples.shape[1] != want.channel_count:
+        raise ConfigurationError(f"the stream has {signal.samples.shape[1]} channels, the "
+                                 f"calibration {want.channel_count}")  # fmt: skip
+    decoder = WindowDecoder(calibration, settings or EmgDecoderSettings())
+    step = max(1, round(0.02 * signal.rate_hz))
+    found: list[Contraction] = []
+    for start in range(0, len(signal.times_s), step):
+        part = slice(start, start + step)
+        found += decoder.push(signal.samples[part], signal.times_s[part])
+    return found
+
+
+def live_onsets(path: Path) -> list[float]:
+    """The onsets [s, bus clock] of the decisions a session's source made live."""
+    from dammrl.recording import read_recording
+    from schemas import IntentEvidence
+
+    return [e.onset_ns / 1e9 for _, e in read_recording(path).decoded(IntentEvidence)
+            if isinstance(e, IntentEvidence) and e.acted]  # fmt: skip
+
+
+def write_csv(rows: list[dict[str, object]], path: Path) -> Path:
+    import csv
+
+    with open(path, "w", newline="") as handle:
+        writer = csv.DictWriter(handle, list(rows[0]) if rows else ["onset_s"])
+        writer.writeheader()
+        writer.writerows(rows)
     return path

@@ -71,10 +71,13 @@ class HumanModel(Settings):
         drawn = median * np.exp(self.decision_sigma * rng.standard_normal())
         return correct, float(max(self.decision_min_s, drawn))
 
-    def accuracy_log_likelihood(self, i: int, correct: bool) -> float:
-        """log p(correct | sub-model i)."""
+    def accuracy_log_likelihood(self, i: int, correct: bool, confidence: float = 1.0) -> float:
+        """log p(correct | sub-model i) of a command the source decoded with ``confidence``:
+        with that probability the command is the person's, otherwise the classifier's coin
+        (a mixture: a doubtful command says less about who the person is)."""
         accuracy = self.accuracy(i)
-        return math.log(accuracy if correct else 1.0 - accuracy)
+        intended = accuracy if correct else 1.0 - accuracy
+        return math.log(confidence * intended + (1.0 - confidence) * 0.5)
 
     def times_log_evidence(self, i: int, timed: int, log_time_sum: float) -> float:
         """log p(log decision times | sub-model i), up to a term equal for every i.

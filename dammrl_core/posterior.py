@@ -33,10 +33,13 @@ class HumanModelPosterior:
     decisions: int = 0
     map_history: list[int] = field(default_factory=list)
 
-    def update(self, correct: bool, decision_s: float | None = None) -> np.ndarray:
-        """Fold in one decision; return the posterior probabilities (one per model)."""
+    def update(self, correct: bool, decision_s: float | None = None,
+               confidence: float = 1.0) -> np.ndarray:  # fmt: skip
+        """Fold in one decision (decoded with ``confidence``: a wearable's classifier may
+        doubt it); return the posterior probabilities (one per model)."""
+        confidence = min(1.0, max(0.0, confidence))
         for k, model in enumerate(HUMAN_MODELS):
-            self.log_accuracy[k] += self.human.accuracy_log_likelihood(model, correct)
+            self.log_accuracy[k] += self.human.accuracy_log_likelihood(model, correct, confidence)
         self.log_accuracy -= self.log_accuracy.max()  # keep the numbers tame
         if self.use_decision_time and decision_s is not None:
             self._time(decision_s)

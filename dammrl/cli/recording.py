@@ -1,4 +1,5 @@
-"""Recordings: ``dammrl recording info|repair|export|human|plot|video`` and ``dammrl replay``."""
+"""Recordings: ``dammrl recording info|repair|export|human|plot|video|decode`` and
+``dammrl replay``."""
 
 from __future__ import annotations
 
@@ -40,7 +41,24 @@ def register(commands: Commands) -> None:
     human.add_argument("--json", action="store_true", help="one JSON object")
     human.set_defaults(handler=_human)
     _add_plot(actions)
+    _add_decode(actions)
     _add_replay(commands)
+
+
+def _add_decode(actions: Commands) -> None:
+    decode = actions.add_parser(
+        "decode",
+        help="decode a recorded wearable stream again, with a (another) person's classifier",
+        description="Run a calibration's classifier over the raw stream a session recorded "
+        "(sensor/chunk) or an XDF file (LabRecorder's), as the live source would: one row "
+        "per decision; with a session, how many match the decisions made live.",
+    )
+    decode.add_argument("file", type=Path, help="an MCAP recording or an .xdf file")
+    decode.add_argument("--calibration", type=Path, required=True,
+                        help="from `dammrl intent calibrate`")  # fmt: skip
+    decode.add_argument("--stream", help="the stream's name (when there are several)")
+    decode.add_argument("--csv", type=output_file(".csv"), help="also write the decisions here")
+    decode.set_defaults(handler=_decode)
 
 
 def _add_export(actions: Commands) -> None:
@@ -209,6 +227,39 @@ def _human(args: argparse.Namespace) -> int:
         print(f"  {radius:8s} {r['decisions']:5d} decisions, error rate {r['error_rate']:.3f}, "
               f"mean decision time {r['mean_decision_s']:.2f} s")  # fmt: skip
     return 0
+
+
+def _decode(args: argparse.Namespace) -> int:
+    """Decisions of a recorded stream under a calibration; agreement with the live ones."""
+    from dammrl.wearable import (
+        decode_signal,
+        live_onsets,
+        signal_of_recording,
+        signal_of_xdf,
+        write_csv,
+    )
+    from dammrl_core.intent.emg.calibration import load_calibration
+
+    calibration = load_calibration(args.calibration)
+    xdf = args.file.suffix.lower() == ".xdf"
+    signal = (signal_of_xdf if xdf else signal_of_recording)(args.file, args.stream)
+    found = decode_signal(signal, calibration)
+    rows = [{"onset_s": round(c.onset_s - signal.times_s[0], 3), "u_h": c.u_h,
+             "human_model": c.human_model, "duration_s": round(c.duration_s, 3),
+             "confidence": round(c.confidence, 3), "acted_on": c.accepted,
+             "reason": c.reason} for c in found]  # fmt: skip
+    for row in rows:
+        print("  ".join(f"{k} {v}" for k, v in row.items() if v != ""))
+    print(f"{len(found)} decisions ({sum(c.accepted for c in found)} would be acted on) in "
+          f"{signal.times_s[-1] - signal.times_s[0]:.1f} s of {signal.name!r}")  # fmt: skip
+    if not xdf:
+        live = live_onsets(args.file)
+        matched = sum(any(abs(c.onset_s - t) < 0.1 for t in live) for c in found if c.accepted)
+        print(f"live decisions in the recording: {len(live)}; matched here: {matched}")
+    if args.csv is not None:
+        write_csv(rows, args.csv)
+        print(f"decisions written to {args.csv}")
+    return Exit.OK
 
 
 def _replay(args: argparse.Namespace) -> int:

@@ -3,8 +3,9 @@
 It watches the bus like a patient watches the arm: each DecisionRequest (end-effector,
 goal, primary axis) is decided by the same stochastic human as in virtual mode, then
 *pressed* on the emulated sensor (or made as a contraction on the emulated EMG), so the
-decision travels the real semi-virtual path (serial frames, decoder, intent service): a firm press for +1, a light press for -1, a
-quick press for E_big, a held one for E_small, after the human's reaction time. The
+decision travels the real semi-virtual path (serial frames or an LSL stream, decoder,
+intent service): a firm press (flexion) for +1, a light press (extension) for -1, a quick
+one for E_big, a held one for E_small, after the human's reaction time. The
 patient keeps one sub-model (``human_model``); the policy's posterior should find it.
 """
 

@@ -50,8 +50,8 @@ class LslSettings(Settings):
     """Thresholds, e.g. DAMMRL_LSL_DECODER__MIN_CONFIDENCE=0.8."""
     stale_s: float = Field(0.5, ge=0.05, le=5.0)
     """No sample for this long: the stream is reported lost [s]."""
-    resolve_every_s: float = Field(2.0, ge=0.2, le=60.0)
-    """How often a missing stream is looked for again [s]."""
+    resolve_every_s: float = Field(1.0, ge=0.2, le=60.0)
+    """How often the stream is looked for again (missing, or another of its name) [s]."""
 
 
 class LslSource:
@@ -70,6 +70,7 @@ class LslSource:
         self.calibration: EmgCalibration = load_calibration(settings.calibration_file)
         self.decoder = WindowDecoder(self.calibration, settings.decoder)
         self.inlet: Any = None
+        self.resolver: Any = None
         self.stream_problem: str | None = "not opened yet"
         self.last_resolve = -np.inf
         self.last_sample = time.monotonic()
@@ -86,16 +87,24 @@ class LslSource:
         import pylsl
 
         pylsl.set_config_content(QUIET_LSL)  # harmless once liblsl already started
+        # looks for streams of the name in the background, for as long as the source runs:
+        # a second one appearing later (another device, another machine) is seen too
+        forget_s = self.settings.stale_s * 4
+        self.resolver = pylsl.ContinuousResolver("name", self.settings.stream, None, forget_s)
         self._connect()
 
+    def _candidates(self) -> list[Any]:
+        found = list(self.resolver.results())
+        if self.settings.source_id:
+            found = [s for s in found if s.source_id() == self.settings.source_id]
+        return found
+
     def _connect(self) -> None:
-        """Look for the stream; take it only if exactly one matches and fits the calibration."""
+        """Take the stream if exactly one matches and it fits the calibration."""
         import pylsl
 
         self.last_resolve = time.monotonic()
-        found = pylsl.resolve_byprop("name", self.settings.stream, 1, 0.5)
-        if self.settings.source_id:
-            found = [s for s in found if s.source_id() == self.settings.source_id]
+        found = self._candidates()
         if len(found) != 1:
             self.stream_problem = self._not_one(found)
             return
@@ -108,6 +117,11 @@ class LslSource:
         self.inlet.open_stream(2.0)
         self.stream_problem = None
         self.last_sample = time.monotonic()
+
+    def _twins(self) -> str | None:
+        """Another stream of the name appeared: which one is the person's is unknown."""
+        found = self._candidates()
+        return self._not_one(found) if len(found) > 1 else None
 
     def _not_one(self, found: list[Any]) -> str:
         name = self.settings.stream
@@ -147,6 +161,9 @@ class LslSource:
                 self._connect()
             time.sleep(0.005)
             return None
+        if now_s - self.last_resolve > self.settings.resolve_every_s:
+            self.last_resolve = now_s
+            self.stream_problem = self._twins()
         samples, stamps = self.inlet.pull_chunk(timeout=0.005, max_samples=4096)
         if not stamps:
             if time.monotonic() - self.last_sample > self.settings.stale_s:
@@ -158,6 +175,9 @@ class LslSource:
         self.samples += len(times)
         rate = self.calibration.stream.nominal_srate_hz
         self._chunks.append(Chunk(str(self.settings.stream), rate, chunk, times))
+        if self.stream_problem is not None:  # twins: nothing decides until one is left
+            self.decoder.reset()
+            return None
         decided = None
         for contraction in self.decoder.push(chunk, times):
             decided = self._take(contraction) or decided

@@ -88,7 +88,7 @@ class PolicyNode:
         if request is None or not self.estimating:
             return
         toward = direction_to_goal(request.ee_pos_m, request.goal_m, request.primary_axis)
-        self.posterior.update(intent.u_h == toward, intent.decision_s)
+        self.posterior.update(intent.u_h == toward, intent.decision_s, intent.confidence)
 
     def _new_episode(self, episode: int) -> None:
         """A new episode starts with no model in force (as in training)."""
