@@ -116,8 +116,8 @@ class EmgSynth:
         out += m.hum_rms * np.sqrt(2) * np.sin(2 * np.pi * HUM_HZ * t)[:, None]
         out += self._artefacts(t)[:, None]
         out *= np.exp(self._drift(n))
-        for channel, how in self.lifted.items():
-            out[:, channel] = 0.0 if how == "flat" else 5.0
+        for channel, how in self.lifted.items():  # flat: no contact; clip: the amplifier's
+            out[:, channel] = 0.0 if how == "flat" else np.clip(20 * out[:, channel], -1, 1)
         self.t_s = float(t[-1] + 1 / m.rate_hz) if n else self.t_s
         self.contractions = [c for c in self.contractions if c.start_s + c.duration_s > self.t_s]
         return np.asarray(out)

@@ -19,8 +19,9 @@ voted commands between rests; it becomes one decision when it ends:
 A decision below ``min_confidence``, or shorter than ``min_contraction_s`` (a twitch),
 is not acted on; one held longer than ``max_contraction_s`` is a stuck signal, not a
 decision. Bad signal (non-finite samples, a flat or clipping channel, a gap or a jump in
-the timestamps) drops the contraction in progress: no decision ever spans it, and
-``problem`` says what is wrong until the signal is clean again.
+the timestamps) drops the contraction in progress, and nothing counts until the signal
+is clean and the person has rested: no decision ever spans it, and ``problem`` says what
+is wrong until the signal is clean again.
 """
 
 from __future__ import annotations
@@ -109,6 +110,7 @@ class WindowDecoder:
         self.labels: deque[int] = deque(maxlen=settings.vote_windows)
         self.run: _Run | None = None
         self.stuck = False
+        self.need_rest = False
         self.signal_problem: str | None = None
         self.last_t: float | None = None
         self.windows = 0
@@ -180,6 +182,9 @@ class WindowDecoder:
     def _follow(self, label: int, p: np.ndarray, features: np.ndarray,
                 end_s: float) -> Contraction | None:  # fmt: skip
         """Grow the contraction in progress, start one, or end it into a decision."""
+        if self.need_rest:  # after bad signal: nothing counts until the person rests
+            self.need_rest = label != 0
+            return None
         if label in (-1, 1):
             if self.run is None:
                 self.run = _Run(end_s, end_s)
@@ -224,6 +229,7 @@ class WindowDecoder:
         self.signal_problem = problem
         self.run = None
         self.stuck = False
+        self.need_rest = True
         self.labels.clear()
         self.voted = 0
         if not keep_buffer:

@@ -5,8 +5,8 @@ slope sign changes (SSC), the field's standard set for EMG pattern recognition (
 "HTD" group). MAV and WL enter as logarithms, so the classes of a linear discriminant
 (whose covariance is shared) stay about equally spread whatever the contraction's
 strength; ZC and SSC are rates per second, so a window's length does not change them.
-ZC and SSC ignore crossings smaller than a deadband, a fraction of the window's own RMS
-(the sensor's noise then does not count as crossings at rest).
+ZC ignores crossings smaller than a deadband, a fraction of the window's own RMS; SSC
+counts every peak and trough (LibEMG's threshold 0).
 
 They work on IMU channels too: MAV of an accelerometer channel follows its tilt.
 """
@@ -17,7 +17,7 @@ import numpy as np
 
 FEATURES = ("log_mav", "log_wl", "zc_hz", "ssc_hz")
 DEADBAND_OF_RMS = 0.05
-"""ZC and SSC count changes larger than this fraction of the window's RMS."""
+"""ZC counts crossings whose step is larger than this fraction of the window's RMS."""
 FLOOR = 1e-9
 """Added before a logarithm (a flat channel gives log(1e-9), not -inf)."""
 
@@ -39,8 +39,7 @@ def window_features(window: np.ndarray, rate_hz: float) -> np.ndarray:
     a, b = centred[:-1], centred[1:]
     zc = np.sum((a * b < 0) & (np.abs(a - b) >= deadband), axis=0) / duration_s
     left, right = centred[1:-1] - centred[:-2], centred[1:-1] - centred[2:]
-    ssc = np.sum((left * right > 0) & ((np.abs(left) >= deadband) | (np.abs(right) >= deadband)),
-                 axis=0) / duration_s  # fmt: skip
+    ssc = np.sum(left * right > 0, axis=0) / duration_s
     return np.concatenate([np.log(mav + FLOOR), np.log(wl + FLOOR), zc, ssc])
 
 

@@ -81,7 +81,7 @@ def train(samples: np.ndarray, times: np.ndarray, cues: list[Cue], stream: Strea
         stream=stream,
         window_s=window_s,
         hop_s=hop_s,
-        classifier=fit(features, labels),
+        classifier=fit(features, labels).model_copy(update={"temperature": cv.temperature}),
         rest_rms=rest_rms(samples, times, cues).tolist(),
         cross_validation=cv,
     )

@@ -1,0 +1,290 @@
+"""The wearable's decoder: features against analytic signals, the classifier against
+scikit-learn, contractions into decisions, bad signal into no decision, calibration files,
+offline decoding of MCAP and XDF."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from dammrl.emulators.emg_signal import EmgSynth, model_named
+from dammrl.wearable import Signal, decode_signal, signal_of_xdf
+from dammrl_core.errors import ConfigurationError
+from dammrl_core.human import HumanModel
+from dammrl_core.intent.emg.calibration import (
+    EmgCalibration,
+    StreamDescription,
+    load_calibration,
+    save_calibration,
+)
+from dammrl_core.intent.emg.classifier import (
+    REJECTED,
+    decide_windows,
+    fit,
+    majority,
+    offline_metrics,
+)
+from dammrl_core.intent.emg.decoder import EmgDecoderSettings, WindowDecoder
+from dammrl_core.intent.emg.features import window_features
+from dammrl_core.intent.emg.training import Cue, refusal, train
+from dammrl_core.posterior import HumanModelPosterior
+from tests.xdf_writer import write_xdf
+
+RATE = 1000.0
+STREAM = StreamDescription(name="dammrl-emg", type="EMG", channel_count=8, nominal_srate_hz=RATE)
+
+
+def cued_session(noise: str = "medium", blocks: int = 3, seed: int = 1
+                 ) -> tuple[np.ndarray, np.ndarray, list[Cue]]:  # fmt: skip
+    """A cooperative participant's calibration: rest, -1, +1 per block, 3 s each."""
+    synth = EmgSynth(model_named(noise), seed)
+    order = np.random.default_rng(seed + 1)
+    chunks, cues, t = [], [], 0.0
+    for block in range(blocks):
+        for label in order.permutation([-1, 0, 1]):
+            if label:
+                synth.contract(int(label), 3.0, 0.3)
+            chunks.append(synth.generate(3000))
+            cues.append(Cue(int(label), t, t + 3.0, block))
+            chunks.append(synth.generate(1500))
+            t += 4.5
+    samples = np.concatenate(chunks)
+    return samples, np.arange(len(samples)) / RATE, cues
+
+
+@pytest.fixture(scope="module")
+def calibration() -> EmgCalibration:
+    samples, times, cues = cued_session()
+    return train(samples, times, cues, STREAM, participant="P001")
+
+
+def stream_through(decoder: WindowDecoder, synth: EmgSynth, seconds: float, t0: float = 0.0,
+                   chunk: int = 20) -> list:  # type: ignore[type-arg]  # fmt: skip
+    found = []
+    for _ in range(round(seconds * RATE / chunk)):
+        times = t0 + synth.t_s + np.arange(chunk) / RATE
+        found += decoder.push(synth.generate(chunk), times)
+    return found
+
+
+# ---- features ---------------------------------------------------------------------------------
+def test_features_of_a_sine_match_their_analytic_values() -> None:
+    amplitude, frequency = 2.0, 10.0
+    t = np.arange(1000) / RATE  # one second: ten periods
+    features = window_features((amplitude * np.sin(2 * np.pi * frequency * t))[:, None], RATE)
+    log_mav, log_wl, zc_hz, ssc_hz = features
+    np.testing.assert_allclose(np.exp(log_mav), 2 * amplitude / np.pi, rtol=1e-3)
+    np.testing.assert_allclose(np.exp(log_wl), 4 * amplitude * frequency, rtol=2e-3)  # n-1 steps
+    assert zc_hz == pytest.approx(2 * frequency, abs=1.0)  # two crossings a period
+    assert ssc_hz == pytest.approx(2 * frequency, abs=1.0)  # a peak and a trough
+
+
+def test_noise_inside_the_deadband_makes_no_crossings() -> None:
+    t = np.arange(200) / RATE
+    slow = np.sin(2 * np.pi * 5 * t) + 1e-4 * np.random.default_rng(0).normal(size=200)
+    zc_hz = window_features(slow[:, None], RATE)[2]
+    assert zc_hz <= 2 / 0.2  # the sine's own crossings, not the noise's
+
+
+# ---- classifier -------------------------------------------------------------------------------
+def test_the_classifier_kept_as_numbers_gives_scikit_learns_probabilities() -> None:
+    from sklearn.discriminant_analysis import LinearDiscriminantAnalysis
+
+    rng = np.random.default_rng(3)
+    labels = np.repeat([-1, 0, 1], 60)
+    features = rng.normal(size=(180, 6)) + labels[:, None] * np.linspace(0.5, 2, 6)
+    model = fit(features, labels)
+    mean, scale = features.mean(axis=0), features.std(axis=0)
+    lda = LinearDiscriminantAnalysis(solver="lsqr", shrinkage="auto").fit(
+        (features - mean) / scale, labels
+    )
+    np.testing.assert_allclose(model.probabilities(features),
+                               lda.predict_proba((features - mean) / scale), atol=1e-9)  # fmt: skip
+    again = type(model).model_validate_json(model.model_dump_json())
+    np.testing.assert_array_equal(again.probabilities(features), model.probabilities(features))
+
+
+def test_rejection_and_the_majority_vote() -> None:
+    p = np.array([[0.9, 0.05, 0.05], [0.4, 0.3, 0.3], [0.1, 0.1, 0.8], [0.1, 0.1, 0.8]])
+    raw = decide_windows(p, (-1, 0, 1), reject_below=0.6, vote=1)
+    assert list(raw) == [-1, REJECTED, 1, 1]
+    voted = decide_windows(p, (-1, 0, 1), reject_below=0.6, vote=3)
+    assert list(voted) == [-1, -1, 1, 1]  # a tie goes to the newest; rejected windows skip
+    assert majority([1, -1, -1, 1]) == 1
+
+
+def test_offline_metrics_follow_libemgs_definitions() -> None:
+    truth = np.array([0, 0, 1, 1, -1, -1, 1, 1])
+    decided = np.array([0, 1, 1, REJECTED, -1, 1, 1, 1])
+    m = offline_metrics(truth, decided)
+    assert m.accuracy == pytest.approx(5 / 7)  # over the 7 accepted windows
+    assert m.active_error_rate == pytest.approx(1 / 5)  # -1 taken for +1, of 5 active
+    assert m.rejection_rate == pytest.approx(1 / 8)
+    assert m.instability == pytest.approx(4 / 7)  # 0>1, 1>rejected, >-1, -1>1
+    assert m.confusion == [[1, 0, 1, 0], [0, 1, 1, 0], [0, 0, 3, 1]]
+
+
+# ---- calibration ------------------------------------------------------------------------------
+def test_a_cooperative_participant_calibrates_well(calibration: EmgCalibration) -> None:
+    cv = calibration.cross_validation
+    assert cv.accuracy > 0.95 and cv.active_error_rate < 0.05, cv
+    assert len(cv.per_block_accuracy) == 3
+    assert refusal(cv) is None
+
+
+def test_classes_that_do_not_separate_are_refused_with_the_reason() -> None:
+    samples, times, cues = cued_session("high")
+    reason = refusal(train(samples, times, cues, STREAM).cross_validation)
+    assert reason is not None and "confused" in reason and "accuracy" in reason
+
+
+def test_a_calibration_file_round_trips_and_bad_files_are_one_line(
+    calibration: EmgCalibration, tmp_path: Path
+) -> None:
+    path = save_calibration(calibration, tmp_path / "p.json")
+    assert load_calibration(path) == calibration
+    data = json.loads(path.read_text())
+    for change, words in (({"version": 7}, "version 7"),
+                          ({"rest_rms": [1.0]}, "rest levels"),
+                          ({"window_s": 0.01}, "window_s")):  # fmt: skip
+        (tmp_path / "bad.json").write_text(json.dumps(data | change))
+        with pytest.raises(ConfigurationError, match=words):
+            load_calibration(tmp_path / "bad.json")
+    (tmp_path / "junk.json").write_text("{not json")
+    with pytest.raises(ConfigurationError, match="cannot read"):
+        load_calibration(tmp_path / "junk.json")
+
+
+def test_a_calibration_holds_numbers_only_never_code(calibration: EmgCalibration) -> None:
+    def leaves(value: object) -> list[object]:
+        if isinstance(value, dict):
+            return [x for v in value.values() for x in leaves(v)]
+        if isinstance(value, list):
+            return [x for v in value for x in leaves(v)]
+        return [value]
+
+    kinds = {type(v) for v in leaves(json.loads(calibration.model_dump_json()))}
+    assert kinds <= {int, float, str, bool, type(None)}
+
+
+# ---- decisions --------------------------------------------------------------------------------
+@pytest.mark.parametrize(("u_h", "held"), [(1, False), (1, True), (-1, False), (-1, True)])
+def test_a_contraction_is_one_decision_its_length_choosing_the_radius(
+    calibration: EmgCalibration, u_h: int, held: bool
+) -> None:
+    synth = EmgSynth(model_named("medium"), seed=11)
+    decoder = WindowDecoder(calibration, EmgDecoderSettings())
+    stream_through(decoder, synth, 1.0)
+    synth.contract(u_h, 0.9 if held else 0.25, delay_s=0.2)
+    found = stream_through(decoder, synth, 1.5)
+    assert len(found) == 1, found
+    assert (found[0].u_h, found[0].human_model, found[0].accepted) == (u_h, 2 if held else 1, True)
+    assert found[0].onset_s == pytest.approx(1.2, abs=0.1)
+    assert found[0].confidence > 0.9 and len(found[0].features) == 32
+
+
+def test_rest_gives_no_decision_for_a_minute(calibration: EmgCalibration) -> None:
+    decoder = WindowDecoder(calibration, EmgDecoderSettings())
+    assert stream_through(decoder, EmgSynth(model_named("medium"), seed=5), 60.0) == []
+
+
+def test_a_twitch_and_a_doubtful_contraction_are_not_acted_on(
+    calibration: EmgCalibration,
+) -> None:
+    synth = EmgSynth(model_named("medium"), seed=12)
+    decoder = WindowDecoder(calibration, EmgDecoderSettings(min_contraction_s=0.5))
+    synth.contract(1, 0.25, delay_s=0.5)
+    twitch = stream_through(decoder, synth, 1.5)
+    assert len(twitch) == 1 and not twitch[0].accepted and "twitch" in twitch[0].reason
+    # on a noisy arm the classifier's honest probabilities are lower (its temperature)
+    samples, times, cues = cued_session("high")
+    noisy = train(samples, times, cues, STREAM)
+    decoder = WindowDecoder(noisy, EmgDecoderSettings(min_confidence=0.95))
+    synth = EmgSynth(model_named("high"), seed=4)
+    synth.contract(1, 0.8, delay_s=0.2)
+    doubtful = stream_through(decoder, synth, 1.5)
+    assert len(doubtful) == 1, doubtful
+    assert doubtful[0].confidence < 0.95 and not doubtful[0].accepted
+    assert "confidence" in doubtful[0].reason
+
+
+@pytest.mark.parametrize("fault", ["nan", "flat", "clip", "clock jump", "wrong channels"])
+def test_bad_signal_drops_the_contraction_and_says_why(
+    calibration: EmgCalibration, fault: str
+) -> None:
+    synth = EmgSynth(model_named("medium"), seed=13)
+    decoder = WindowDecoder(calibration, EmgDecoderSettings())
+    stream_through(decoder, synth, 0.5)
+    synth.contract(1, 0.9, delay_s=0.1)
+    found = stream_through(decoder, synth, 0.4)  # the contraction under way
+    words = {"nan": "non-finite", "flat": "flat", "clip": "clipping", "clock jump": "jumped",
+             "wrong channels": "channels"}[fault]  # fmt: skip
+    if fault == "nan":
+        bad = synth.generate(20)
+        bad[3, 2] = np.nan
+        found += decoder.push(bad, synth.t_s + np.arange(20) / RATE)
+    elif fault in ("flat", "clip"):
+        synth.lift(4, "flat" if fault == "flat" else "clip")
+        found += stream_through(decoder, synth, 0.3)
+        synth.put_back(4)
+    elif fault == "clock jump":
+        found += stream_through(decoder, synth, 0.1, t0=5.0)
+    else:
+        found += decoder.push(np.zeros((20, 6)), synth.t_s + np.arange(20) / RATE)
+    problem = decoder.problem()
+    assert problem is not None and words in problem, problem
+    found += stream_through(decoder, synth, 1.5, t0=5.0 if fault == "clock jump" else 0.0)
+    assert [c for c in found if c.accepted] == [], found
+    assert decoder.problem() is None  # clean signal again
+
+
+def test_a_contraction_held_too_long_is_a_stuck_signal(calibration: EmgCalibration) -> None:
+    synth = EmgSynth(model_named("medium"), seed=14)
+    decoder = WindowDecoder(calibration, EmgDecoderSettings(max_contraction_s=1.0))
+    synth.contract(-1, 2.0, delay_s=0.1)
+    found = stream_through(decoder, synth, 1.8)
+    assert decoder.problem() is not None and "held" in str(decoder.problem())
+    found += stream_through(decoder, synth, 1.0)
+    assert found == []
+
+
+# ---- the posterior ------------------------------------------------------------------------------
+def test_a_command_of_no_confidence_tells_the_posterior_nothing() -> None:
+    posterior = HumanModelPosterior(HumanModel(), use_decision_time=False)
+    before = posterior.probabilities.copy()
+    np.testing.assert_allclose(posterior.update(False, None, confidence=0.0), before)
+    doubtful = HumanModelPosterior(HumanModel(), use_decision_time=False)
+    sure = HumanModelPosterior(HumanModel(), use_decision_time=False)
+    # a wrong command favours E_big (80 % accurate) over E_small (90 %): less so if doubtful
+    assert sure.update(False)[0] > doubtful.update(False, confidence=0.5)[0] > 0.5
+    human = HumanModel()  # the mixture, by hand: 0.5 * 0.2 + 0.5 * 0.5 vs 0.5 * 0.1 + 0.25
+    np.testing.assert_allclose(doubtful.probabilities[0], 0.35 / (0.35 + 0.30))
+    assert human.accuracy(1) == 0.8 and human.accuracy(2) == 0.9
+
+
+# ---- offline decoding ---------------------------------------------------------------------------
+def test_an_xdf_file_from_other_lab_software_decodes_as_the_live_stream(
+    calibration: EmgCalibration, tmp_path: Path
+) -> None:
+    synth = EmgSynth(model_named("medium"), seed=21)
+    synth.contract(1, 0.3, 0.5)
+    synth.contract(-1, 0.9, 2.0)
+    samples = synth.generate(4000)
+    times = 5000.0 + np.arange(4000) / RATE
+    markers = np.zeros((3, 1))
+    path = write_xdf(tmp_path / "session.xdf", [("dammrl-emg", "EMG", RATE, samples, times),
+                                                ("other", "Misc", 10.0, markers,
+                                                 times[:3])])  # fmt: skip
+    signal = signal_of_xdf(path, "dammrl-emg")
+    assert signal.samples.shape == (4000, 8)
+    decided = [(c.u_h, c.human_model) for c in decode_signal(signal, calibration)]
+    live = decode_signal(Signal("dammrl-emg", RATE, samples, times), calibration)
+    assert decided == [(c.u_h, c.human_model) for c in live] == [(1, 1), (-1, 2)]
+    with pytest.raises(ConfigurationError, match="choose one with --stream"):
+        signal_of_xdf(path)
+    (tmp_path / "junk.xdf").write_bytes(b"XDF:garbage")
+    with pytest.raises(ConfigurationError, match="junk.xdf"):
+        signal_of_xdf(tmp_path / "junk.xdf")
