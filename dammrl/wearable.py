@@ -244,6 +244,8 @@ def signal_of_xdf(path: Path, stream: str | None = None) -> Signal:
         raise ConfigurationError(f"{path}: not a readable XDF file ({exc})") from None
     numeric = [s for s in streams if np.issubdtype(np.asarray(s["time_series"]).dtype, np.number)
                and len(s["time_stamps"]) > 0]  # fmt: skip
+    if not numeric:
+        raise ConfigurationError(f"{path}: no numeric stream with samples in this XDF file")
     named = [s for s in numeric if stream is None or s["info"]["name"][0] == stream]
     if len(named) != 1:
         found = [s["info"]["name"][0] for s in numeric]

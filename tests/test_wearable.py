@@ -286,5 +286,5 @@ def test_an_xdf_file_from_other_lab_software_decodes_as_the_live_stream(
     with pytest.raises(ConfigurationError, match="choose one with --stream"):
         signal_of_xdf(path)
     (tmp_path / "junk.xdf").write_bytes(b"XDF:garbage")
-    with pytest.raises(ConfigurationError, match=r"junk\.xdf: not a readable XDF"):
+    with pytest.raises(ConfigurationError, match=r"junk\.xdf: no numeric stream"):
         signal_of_xdf(tmp_path / "junk.xdf")
