@@ -140,7 +140,7 @@ class Answer:
 
     intent: Intent  # intent.t_s: when it is due on the robot clock [s]
     steps_m: np.ndarray | None  # delta (3,) [m] of the model choice; None: keep the current
-    correct: bool | None  # toward the goal (known for a simulated human)
+    correct: bool | None  # toward the goal (a simulated human knows; a person is scored)
 
 
 class Reach:

@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from dammrl_core.control.reach import Answer
+from dammrl_core.human import direction_to_goal
 from dammrl_core.models import ModelSet
 from dammrl_core.state import Intent as CoreIntent
 from schemas import DecisionRequest, Header, Intent, ModelChoice
@@ -95,4 +96,12 @@ class Requests:
         steps = None if choice is None else self.models.steps_m(choice.robot_model)
         self.intent = None
         chosen = None if choice is None else (choice.human_model, choice.robot_model)
-        return Answer(intent, steps, message.correct), chosen
+        return Answer(intent, steps, self._correct(message)), chosen
+
+    def _correct(self, message: Intent) -> bool | None:
+        """Toward the goal from where the hand was when asked: a simulated human says so
+        itself; a person's command is scored here, as the posterior scores it."""
+        if message.correct is not None or self.open is None:
+            return message.correct
+        ask = self.open
+        return message.u_h == direction_to_goal(ask.ee_pos_m, ask.goal_m, ask.primary_axis)
