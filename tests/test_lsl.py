@@ -152,7 +152,8 @@ def test_calibrate_a_person_then_run_an_episode_through_lsl(tmp_path: Path) -> N
     try:
         done = _dammrl("intent", "calibrate", "--stream", stream, "--blocks", "2",
                        "--trial-s", "2", "--relax-s", "0.5", "--participant", "P001",
-                       "--out", str(tmp_path / "p.json"), "--report", str(tmp_path / "p.md"))  # fmt: skip
+                       "--out", str(tmp_path / "p.json"),
+                       "--report", str(tmp_path / "p.md"))  # fmt: skip
     finally:
         cued.kill()
     assert done.returncode == 0, done.stdout + done.stderr
