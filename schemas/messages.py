@@ -250,6 +250,7 @@ class IntentEvidence(Message):
     human_model: HumanModel = Field(description="radius from the contraction's length")
     confidence: Finite = Field(ge=0, le=1)
     onset_ns: int = Field(ge=0, description="when the contraction began, bus clock [ns]")
+    decided_ns: int = Field(ge=0, description="the sample that completed it, bus clock [ns]")
     duration_s: Finite = Field(ge=0)
     windows: int = Field(ge=0, description="classifier windows it spans")
     features: tuple[Finite, ...] = Field(max_length=1024, description="mean window features")

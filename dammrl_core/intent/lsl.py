@@ -189,8 +189,8 @@ class LslSource:
         c = contraction
         reason = c.reason or ("" if acted else "no request open")
         self._evidence.append(Evidence(self.request, c.u_h, c.human_model, c.confidence,
-                                       c.onset_s, c.duration_s, c.windows, c.features, acted,
-                                       reason))  # fmt: skip
+                                       c.onset_s, c.decided_s, c.duration_s, c.windows,
+                                       c.features, acted, reason))  # fmt: skip
         if not acted:
             self.not_acted += 1
             return None

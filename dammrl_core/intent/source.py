@@ -80,6 +80,7 @@ class Evidence:
     human_model: int
     confidence: float
     onset_s: float  # this machine's monotonic clock [s]
+    decided_s: float  # the sample that completed the decision, same clock [s]
     duration_s: float
     windows: int
     features: tuple[float, ...]

@@ -211,6 +211,7 @@ class IntentNode:
             header=self.evidence.stamp(), episode=self.episode, request=e.request,
             source=self.name, u_h=1 if e.u_h > 0 else -1, human_model=e.human_model,
             confidence=min(1.0, max(0.0, e.confidence)), onset_ns=bus_ns(e.onset_s),
+            decided_ns=bus_ns(e.decided_s),
             duration_s=max(0.0, e.duration_s), windows=e.windows,
             features=tuple(e.features[:1024]), acted=e.acted, reason=e.reason[:200],
         )  # fmt: skip

@@ -73,6 +73,7 @@ class Contraction:
     confidence: float  # [0, 1]
     onset_s: float  # when it began [s, the samples' clock]
     end_s: float  # when it ended [s]
+    decided_s: float  # the time of the sample that completed the decision [s]
     windows: int
     features: tuple[float, ...]  # mean features over its windows
     accepted: bool
@@ -201,12 +202,12 @@ class WindowDecoder:
         if self.stuck:
             self.stuck = False
             return None
-        return self._decision(run)
+        return self._decision(run, end_s)
 
     def _index(self, label: int) -> int:
         return int(np.flatnonzero(self.classes == label)[0])
 
-    def _decision(self, run: _Run) -> Contraction:
+    def _decision(self, run: _Run, decided_s: float) -> Contraction:
         minus, plus = np.array(run.p_minus), np.array(run.p_plus)
         u_h = 1 if plus.sum() >= minus.sum() else -1
         chosen = plus if u_h > 0 else minus
@@ -219,7 +220,7 @@ class WindowDecoder:
             reason = f"a twitch ({duration:.2f} s)"
         elif confidence < self.settings.min_confidence:
             reason = f"confidence {confidence:.2f} < {self.settings.min_confidence}"
-        return Contraction(u_h, human_model, confidence, onset, onset + duration,
+        return Contraction(u_h, human_model, confidence, onset, onset + duration, decided_s,
                            len(minus), tuple(np.mean(run.features, axis=0).tolist()),
                            not reason, reason)  # fmt: skip
 
