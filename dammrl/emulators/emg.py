@@ -79,7 +79,7 @@ class EmgStream:
             channel = channels.append_child("channel")
             channel.append_child_value("label", f"EMG{k + 1}")
             channel.append_child_value("unit", "normalised")
-        return pylsl.StreamOutlet(info, chunk_size=round(CHUNK_S * m.rate_hz))
+        return pylsl.StreamOutlet(info)  # each chunk pushed through as it is made
 
     # ---- the stream ------------------------------------------------------------------------
     def _run(self) -> None:
@@ -102,9 +102,11 @@ class EmgStream:
                     self.outlet = self._outlet(self.source_id)
                 if now < self.nan_until:
                     samples[::7, 0] = np.nan
-                self.outlet.push_chunk(samples, now + self.clock_offset_s)
+                # each sample stamped as acquired at the rate, the newest now
+                stamps = now + self.clock_offset_s - np.arange(due)[::-1] / rate
+                self.outlet.push_chunk(samples, stamps.tolist())
                 if self.twin is not None:
-                    self.twin.push_chunk(samples[::-1], now)
+                    self.twin.push_chunk(samples[::-1], (stamps - self.clock_offset_s).tolist())
 
     # ---- faults ----------------------------------------------------------------------------
     def lose(self, seconds: float) -> None:
