@@ -1,9 +1,11 @@
 """The wearable intent path, in one run on this machine (figures, not pass/fail):
 
-(a) latency from the deciding sample (its LSL timestamp: when the emulated armband sent
-    it) to the Intent a bus subscriber receives, through the real intent service (its own
-    process, the LSL source); beside it, pylsl alone: every sample's timestamp to its
-    arrival at an inlet in another thread of this process (the same chunking);
+(a) latency from the deciding sample (its LSL timestamp: the emulated armband stamps each
+    sample as acquired at the rate, the newest when its chunk is sent) to the Intent a bus
+    subscriber receives, through the real intent service (its own process, the LSL
+    source); beside it, pylsl alone: every sample's timestamp to its arrival at an inlet
+    polled every millisecond in this process (the same chunks; note that liblsl's
+    ``pull_chunk`` with a timeout waits for a full buffer, which alone adds tens of ms);
 (b) offline, at the emulator's three noise levels: leave-one-block-out accuracy, active
     error rate, rejection rate of a 4-block calibration, and the same classifier on a
     fresh session it never saw (another seed);
@@ -139,10 +141,11 @@ def pylsl_alone(seconds: float) -> list[float]:
         inlet.time_correction(5)
         inlet.pull_chunk(timeout=1.0, max_samples=100_000)  # what came before we listened
         end = time.monotonic() + seconds
-        while time.monotonic() < end:
-            _, stamps = inlet.pull_chunk(timeout=0.1)
+        while time.monotonic() < end:  # what is there, every millisecond: pylsl at its best
+            _, stamps = inlet.pull_chunk(timeout=0.0, max_samples=4096)
             now = pylsl.local_clock()
             latencies += [now - s for s in stamps]
+            time.sleep(0.001)
     return latencies
 
 

@@ -31,6 +31,10 @@ CUE_WORDS = {0: "rest: relax your forearm", -1: "-1: open your hand (extend) and
              1: "+1: close your hand (flex) and hold"}  # fmt: skip
 
 
+CUE_WAIT_S = 3.0
+"""How long the calibration waits for a follower of its cue stream before it starts [s]."""
+
+
 @dataclass(frozen=True)
 class Protocol:
     blocks: int = 4
@@ -103,7 +107,10 @@ def calibrate(info: Any, protocol: Protocol, show: Callable[[str], None],
     marker = pylsl.StreamInfo(CUE_STREAM, "Markers", 1, 0, pylsl.cf_string, "dammrl-calibrate")
     cues_out = pylsl.StreamOutlet(marker)
     recorder = Recorder(info)
-    time.sleep(1.0)  # followers of the cues find the marker stream
+    # software that shows or follows the cues (the emulated armband) connects first; with
+    # none (the person reads the terminal) the session starts after CUE_WAIT_S
+    cues_out.wait_for_consumers(CUE_WAIT_S)
+    time.sleep(0.5)
     cues = _cue_blocks(protocol, cues_out, show)
     cues_out.push_sample(["end"])
     samples, times = recorder.finish()

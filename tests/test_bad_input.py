@@ -30,6 +30,7 @@ from dammrl_core.arm.dynamixel.plugin import DynamixelSettings
 from dammrl_core.arm.settings import ArmSettings
 from dammrl_core.control.settings import ControllerSettings
 from dammrl_core.errors import ConfigurationError, Exit
+from dammrl_core.intent.lsl import LslSettings
 from dammrl_core.intent.pad.source import PadSettings
 from dammrl_core.intent.simulated import SimulatedSettings
 from dammrl_core.policy.settings import PolicySettings
@@ -42,6 +43,7 @@ CLASSES: list[type[Settings]] = [
     PolicySettings, services.recorder.config.RecorderSettings, SimSettings,
     dammrl.rl.config.TrainSettings, human.HumanModel, models.ModelSet, task.TaskSettings,
     robot.RobotSettings, ArmSettings, PadSettings, SimulatedSettings, DynamixelSettings,
+    LslSettings,
 ]  # fmt: skip
 BAD = ("abc", "inf", "-inf", "nan", "-1", "1e309", "[1,", "[1, 2]", '{"x": 1}', "", "\x7f")
 

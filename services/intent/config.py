@@ -18,7 +18,8 @@ class IntentSettings(Settings):
 
     source: str = Field("simulated", min_length=1, max_length=64)
     """Who decides: ``simulated`` (virtual mode), ``pad`` (the pressure pad, semi-virtual),
-    or a source an installed package registers under the entry-point group
+    ``lsl`` (a wearable sensor's stream on Lab Streaming Layer), or a source an installed
+    package registers under the entry-point group
     ``dammrl.intent_sources`` (``dammrl intent sources`` lists them)."""
     policy_wait_s: float = Field(0.2, gt=0, le=5.0)
     """How long a request waits for the policy's ModelChoice, for a source that decides

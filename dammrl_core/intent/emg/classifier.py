@@ -27,6 +27,8 @@ CLASSES = (-1, 0, 1)
 """-1 and +1: the person's commands u_h; 0: rest."""
 REJECTED = 99
 """The label of a rejected window."""
+LABEL_NOISE = 0.05
+"""The share of calibration windows whose cue may not match what the muscles did."""
 CLASS_NAMES = {-1: "-1", 0: "rest", 1: "+1", REJECTED: "rejected"}
 
 
@@ -79,14 +81,17 @@ def fit_temperature(scores: np.ndarray, labels: np.ndarray, classes: tuple[int, 
     """The temperature that makes held-out probabilities honest (Guo et al. 2017): LDA's
     shared covariance gives log-odds of hundreds on well-separated EMG, "certain" even
     when wrong; dividing the scores by T fitted by maximum likelihood on windows the
-    classifier never saw makes its probability of a class mean what it says."""
+    classifier never saw makes its probability of a class mean what it says. The fit
+    allows ``LABEL_NOISE`` of the cues to be wrong (a mixture with a uniform guess)."""
     from scipy.optimize import minimize_scalar
 
     index = np.searchsorted(np.array(classes), labels)
 
     def loss(log_t: float) -> float:
-        p = softmax(scores / np.exp(log_t))
-        return float(-np.mean(np.log(p[np.arange(len(index)), index] + 1e-300)))
+        p = softmax(scores / np.exp(log_t))[np.arange(len(index)), index]
+        # a cue is not the muscle: a few windows are labelled wrongly (a late reaction, an
+        # early release); without this allowance they alone would flatten every probability
+        return float(-np.mean(np.log((1 - LABEL_NOISE) * p + LABEL_NOISE / len(classes))))
 
     return float(np.exp(minimize_scalar(loss, bounds=(-5, 12), method="bounded").x))
 
