@@ -2,7 +2,7 @@
 recorded stream (a session's MCAP, or an XDF file other lab software wrote) again offline.
 
 ``dammrl intent calibrate`` cues blocks of trials (rest, -1, +1, shuffled in each block)
-on the terminal and on an LSL marker stream (``dammrl-cues``: lab software and the
+on the terminal and on an LSL marker stream (``dammrl-cues:<stream>``: lab software and the
 emulated armband follow it, and LabRecorder records it beside the signal), records the
 stream, trains the person's classifier, cross-validates it leave-one-block-out and
 refuses it, saying why, when the classes do not separate.
@@ -15,11 +15,11 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
-from dammrl.emulators.emg import CUE_STREAM
+from dammrl.emulators.emg import cue_stream
 from dammrl_core.errors import ConfigurationError, JobFailedError
 from dammrl_core.intent.emg.calibration import EmgCalibration, StreamDescription
 from dammrl_core.intent.emg.classifier import CLASS_NAMES, CLASSES, REJECTED
@@ -99,22 +99,30 @@ class Recorder:
         return np.concatenate(self.samples), np.concatenate(self.times)
 
 
+def feature_set_of(info: Any) -> Literal["emg", "imu"]:
+    """The feature set for a stream, from its LSL type (IMU, accelerometer, ...: imu)."""
+    kind = str(info.type()).lower()
+    return "imu" if any(word in kind for word in ("imu", "acc", "gyro", "mocap")) else "emg"
+
+
 def calibrate(info: Any, protocol: Protocol, show: Callable[[str], None],
-              participant: str | None = None) -> tuple[EmgCalibration, str | None]:  # fmt: skip
+              participant: str | None = None, kind: Literal["emg", "imu"] = "emg",
+              ) -> tuple[EmgCalibration, str | None]:  # fmt: skip
     """Cue the protocol, record, train: the calibration and why not to use it (or None)."""
     import pylsl
 
-    marker = pylsl.StreamInfo(CUE_STREAM, "Markers", 1, 0, pylsl.cf_string, "dammrl-calibrate")
+    name = cue_stream(info.name())
+    marker = pylsl.StreamInfo(name, "Markers", 1, 0, pylsl.cf_string, "dammrl-calibrate")
     cues_out = pylsl.StreamOutlet(marker)
     recorder = Recorder(info)
     # software that shows or follows the cues (the emulated armband) connects first; with
     # none (the person reads the terminal) the session starts after CUE_WAIT_S
     cues_out.wait_for_consumers(CUE_WAIT_S)
-    time.sleep(0.5)
+    time.sleep(1.0)
     cues = _cue_blocks(protocol, cues_out, show)
     cues_out.push_sample(["end"])
     samples, times = recorder.finish()
-    calibration = train(samples, times, cues, describe(info), participant=participant)
+    calibration = train(samples, times, cues, describe(info), participant=participant, kind=kind)
     return calibration, refusal(calibration.cross_validation)
 
 
@@ -148,7 +156,9 @@ def write_report(calibration: EmgCalibration, reason: str | None, path: Path) ->
         f"{calibration.created}; {stream.channel_count} channels at {stream.nominal_srate_hz:g} "
         f"Hz from {stream.hostname or '?'} ({stream.source_id or 'no source id'}); windows "
         f"{calibration.window_s * 1000:.0f} ms, hop {calibration.hop_s * 1000:.0f} ms; LDA "
-        "on Hudgins' time-domain features (MAV, WL, ZC, SSC per channel).",
+        + ("on Hudgins' time-domain features (MAV, WL, ZC, SSC per channel)."
+           if calibration.features == "emg" else
+           "on IMU features (each channel's mean: the posture)."),
         "",
         f"**Verdict: {'refused: ' + reason if reason else 'usable'}**",
         "",

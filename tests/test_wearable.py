@@ -288,3 +288,34 @@ def test_an_xdf_file_from_other_lab_software_decodes_as_the_live_stream(
     (tmp_path / "junk.xdf").write_bytes(b"XDF:garbage")
     with pytest.raises(ConfigurationError, match=r"junk\.xdf: no numeric stream"):
         signal_of_xdf(tmp_path / "junk.xdf")
+
+
+def test_a_wrist_imu_decides_by_posture(tmp_path: Path) -> None:
+    """The IMU feature set: a wrist flexed (+1) or extended (-1) and held, on the emulated
+    6-axis IMU at 100 Hz; the sign of the posture decides, its length the radius."""
+    from dammrl.emulators.imu_signal import IMU_NOISE_LEVELS, ImuSynth
+
+    model = IMU_NOISE_LEVELS["medium"]
+    synth, order = ImuSynth(model, seed=1), np.random.default_rng(2)
+    chunks, cues, t = [], [], 0.0
+    for block in range(4):
+        for label in order.permutation([-1, 0, 1]):
+            if label:
+                synth.contract(int(label), 2.7, 0.3)
+            chunks += [synth.generate(300), synth.generate(150)]
+            cues.append(Cue(int(label), t, t + 3.0, block))
+            t += 4.5
+    samples = np.concatenate(chunks)
+    stream = StreamDescription(name="wrist", type="IMU", channel_count=6, nominal_srate_hz=100)
+    imu = train(samples, np.arange(len(samples)) / 100, cues, stream, kind="imu")
+    assert imu.features == "imu" and refusal(imu.cross_validation) is None
+    assert load_calibration(save_calibration(imu, tmp_path / "imu.json")) == imu
+    decoder, wrist = WindowDecoder(imu, EmgDecoderSettings()), ImuSynth(model, seed=9)
+    for u_h, held in ((1, True), (-1, False), (-1, True), (1, False)):
+        wrist.contract(u_h, 0.9 if held else 0.25, delay_s=0.5)
+        found = []
+        for _ in range(100):  # 2 s in 20 ms chunks
+            found += decoder.push(wrist.generate(2), wrist.t_s + np.arange(2) / 100)
+        assert [(c.u_h, c.human_model, c.accepted) for c in found] == [
+            (u_h, 2 if held else 1, True)
+        ]

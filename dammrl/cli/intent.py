@@ -21,6 +21,8 @@ from dammrl_core.errors import ConfigurationError, Exit
 
 if TYPE_CHECKING:
     from dammrl.emulators.emg import EmgStream
+    from dammrl.emulators.emg_signal import EmgSynth
+    from dammrl.emulators.imu_signal import ImuSynth
 
 EMULATED_STREAM = "dammrl-emg"
 
@@ -45,7 +47,7 @@ def _add_calibrate(actions: Commands) -> None:
         "calibrate",
         help="calibrate a person on a wearable sensor's LSL stream (cued blocks)",
         description="Cue blocks of trials (rest, -1, +1) on the terminal and on the LSL "
-        "marker stream 'dammrl-cues', record the stream, train the person's classifier, "
+        "marker stream 'dammrl-cues:STREAM', record the stream, train the person's classifier, "
         "cross-validate it leave-one-block-out; a calibration whose classes do not separate "
         "is refused with the reason (--force keeps it anyway).",
     )
@@ -60,6 +62,9 @@ def _add_calibrate(actions: Commands) -> None:
     calibrate.add_argument("--blocks", type=int, default=4, help="blocks of 3 trials (>= 2)")
     calibrate.add_argument("--trial-s", type=positive, default=3.0, help="trial length [s]")
     calibrate.add_argument("--relax-s", type=positive, default=1.5, help="pause after a trial [s]")
+    calibrate.add_argument("--features", choices=["auto", "emg", "imu"], default="auto",
+                           help="the feature set: EMG (Hudgins) or IMU (orientation and "
+                           "movement); auto: from the stream's type")  # fmt: skip
     calibrate.add_argument("--force", action="store_true", help="save a refused calibration")
     calibrate.set_defaults(handler=_calibrate)
 
@@ -75,10 +80,15 @@ def _add_emulate(actions: Commands) -> None:
     emulate.add_argument("--pattern", choices=["patient", "cued", "rest"], default="patient",
                          help="patient: answers the stack's decision requests; cued: follows "
                          "`dammrl intent calibrate`; rest: nobody moves")  # fmt: skip
+    emulate.add_argument("--kind", choices=["emg", "imu"], default="emg",
+                         help="an 8-channel EMG armband, or a 6-axis wrist IMU (a flexed or "
+                         "extended wrist)")  # fmt: skip
     emulate.add_argument("--noise", choices=["low", "medium", "high"], default="medium",
-                         help="electrode noise, crosstalk, artefacts, drift")  # fmt: skip
-    emulate.add_argument("--channels", type=int, default=8, help="channels (1-64)")
-    emulate.add_argument("--rate", type=positive, default=1000.0, help="samples per second")
+                         help="electrode noise, crosstalk, artefacts, drift (IMU: sensor "
+                         "noise, the arm's sway)")  # fmt: skip
+    emulate.add_argument("--channels", type=int, default=8, help="EMG channels (1-64)")
+    emulate.add_argument("--rate", type=positive,
+                         help="samples per second (default 1000 EMG, 100 IMU)")  # fmt: skip
     emulate.add_argument("--patient-model", type=int, choices=[1, 2], default=2,
                          help="patient: 1 hurried (quick contractions, E_big), 2 careful "
                          "(held, E_small)")  # fmt: skip
@@ -97,7 +107,7 @@ def _sources(args: argparse.Namespace) -> int:
 
 
 def _calibrate(args: argparse.Namespace) -> int:
-    from dammrl.wearable import Protocol, calibrate, find_stream, write_report
+    from dammrl.wearable import Protocol, calibrate, feature_set_of, find_stream, write_report
     from dammrl_core.intent.emg.calibration import save_calibration
 
     if args.blocks < 2:
@@ -106,7 +116,8 @@ def _calibrate(args: argparse.Namespace) -> int:
     print_out(f"calibrating on {info.name()!r}: {info.channel_count()} channels at "
               f"{info.nominal_srate():g} Hz from {info.hostname()}")  # fmt: skip
     protocol = Protocol(args.blocks, args.trial_s, args.relax_s)
-    calibration, refused = calibrate(info, protocol, print_out, args.participant)
+    kind = args.features if args.features != "auto" else feature_set_of(info)
+    calibration, refused = calibrate(info, protocol, print_out, args.participant, kind)
     cv = calibration.cross_validation
     print_out(f"leave-one-block-out: accuracy {cv.accuracy:.3f}, active error rate "
               f"{cv.active_error_rate:.3f}, instability {cv.instability:.3f}, rejection rate "
@@ -124,18 +135,18 @@ def _calibrate(args: argparse.Namespace) -> int:
 def _emulate(args: argparse.Namespace) -> int:
     from dammrl.cli.sensor import stop_after
     from dammrl.emulators.emg import EmgStream
-    from dammrl.emulators.emg_signal import EmgSynth, model_named
     from services.common.runtime import stop_on_signals
 
     if not 1 <= args.channels <= 64:
         raise ConfigurationError(f"--channels {args.channels}: 1-64")
     stop = stop_on_signals()
     stop_after(stop, args.seconds)
-    synth = EmgSynth(model_named(args.noise, channels=args.channels, rate_hz=args.rate),
-                     args.seed)  # fmt: skip
+    synth = _synth(args)
+    model = synth.model
     with EmgStream(args.stream, synth) as stream:
-        print_out(f"emulated EMG on LSL stream {args.stream!r}: {args.channels} channels at "
-                  f"{args.rate:g} Hz, {args.noise} noise; Ctrl-C stops")  # fmt: skip
+        print_out(f"emulated {stream.stream_type} on LSL stream {args.stream!r}: "
+                  f"{model.channels} channels at {model.rate_hz:g} Hz, {args.noise} noise; "
+                  "Ctrl-C stops")  # fmt: skip
         _faults_from_stdin(stream, stop)
         if args.pattern == "patient":
             _patient(args, stream, stop)
@@ -145,6 +156,19 @@ def _emulate(args: argparse.Namespace) -> int:
             stop.wait()
         print_out(f"sent {stream.sent} samples")
     return Exit.OK
+
+
+def _synth(args: argparse.Namespace) -> EmgSynth | ImuSynth:
+    from dataclasses import replace
+
+    from dammrl.emulators.emg_signal import EmgSynth, model_named
+    from dammrl.emulators.imu_signal import IMU_NOISE_LEVELS, ImuSynth
+
+    if args.kind == "imu":
+        model = IMU_NOISE_LEVELS[args.noise]
+        return ImuSynth(replace(model, rate_hz=args.rate or model.rate_hz), args.seed)
+    rate = args.rate or 1000.0
+    return EmgSynth(model_named(args.noise, channels=args.channels, rate_hz=rate), args.seed)
 
 
 def _patient(args: argparse.Namespace, stream: EmgStream, stop: threading.Event) -> None:

@@ -1,12 +1,14 @@
-"""An emulated EMG armband on Lab Streaming Layer: the wearable path without hardware.
+"""An emulated EMG armband (or wrist IMU) on Lab Streaming Layer: the wearable path
+without hardware.
 
-The synthetic forearm (:mod:`dammrl.emulators.emg_signal`) is streamed in real time on an
-LSL outlet, in chunks as an amplifier's software sends them. Who moves the forearm:
+The synthetic forearm (:mod:`dammrl.emulators.emg_signal`) or wrist
+(:mod:`dammrl.emulators.imu_signal`) is streamed in real time on an LSL outlet, in chunks
+as an amplifier's software sends them. Who moves the forearm:
 
 * ``patient``: a simulated patient answers the stack's decision requests with
   contractions (quick for E_big, held for E_small; see ``dammrl.emulators.patient``);
 * ``cued``: it follows the cues of ``dammrl intent calibrate`` (an LSL marker stream,
-  as lab software cues), as a cooperative participant would;
+  ``dammrl-cues:<stream>``, as lab software cues), as a cooperative participant would;
 * ``rest``: nobody moves (phantom decisions are then all errors).
 
 Faults on demand (methods, or lines on stdin from ``dammrl intent emulate``): an
@@ -23,13 +25,20 @@ from typing import Any
 import numpy as np
 
 from dammrl.emulators.emg_signal import EmgSynth
+from dammrl.emulators.imu_signal import ImuSynth
 
 log = logging.getLogger("dammrl.emg")
 
 CHUNK_S = 0.02
 """An amplifier's software sends chunks about this often [s]."""
-CUE_STREAM = "dammrl-cues"
-"""The marker stream of ``dammrl intent calibrate``: "rest", "-1", "+1", "end"."""
+
+
+def cue_stream(stream: str) -> str:
+    """The marker stream of ``dammrl intent calibrate`` on ``stream``: "rest", "-1", "+1",
+    "end" (named after the stream: two calibrations at once never cross)."""
+    return f"dammrl-cues:{stream}"
+
+
 QUICK_S = 0.25
 HELD_S = 0.9
 
@@ -37,12 +46,12 @@ HELD_S = 0.9
 class EmgStream:
     """Streams a synthetic forearm on an LSL outlet until stopped (a context manager)."""
 
-    def __init__(self, name: str, synth: EmgSynth, source_id: str = "dammrl-emulated-emg",
-                 stream_type: str = "EMG") -> None:  # fmt: skip
+    def __init__(self, name: str, synth: EmgSynth | ImuSynth,
+                 source_id: str = "dammrl-emulated-emg") -> None:  # fmt: skip
         self.name = name
         self.synth = synth
         self.source_id = source_id
-        self.stream_type = stream_type
+        self.stream_type = "IMU" if isinstance(synth, ImuSynth) else "EMG"
         self.outlet: Any = None
         self.twin: Any = None
         self.lock = threading.Lock()
@@ -75,11 +84,17 @@ class EmgStream:
         info = pylsl.StreamInfo(self.name, self.stream_type, m.channels, m.rate_hz,
                                 pylsl.cf_float32, source_id)  # fmt: skip
         channels = info.desc().append_child("channels")
-        for k in range(m.channels):
+        for label, unit in self._channels():
             channel = channels.append_child("channel")
-            channel.append_child_value("label", f"EMG{k + 1}")
-            channel.append_child_value("unit", "normalised")
+            channel.append_child_value("label", label)
+            channel.append_child_value("unit", unit)
         return pylsl.StreamOutlet(info)  # each chunk pushed through as it is made
+
+    def _channels(self) -> list[tuple[str, str]]:
+        """(label, unit) per channel, as LSL's metadata convention has them."""
+        if self.stream_type == "IMU":
+            return [(f"accel_{a}", "g") for a in "xyz"] + [(f"gyro_{a}", "rad/s") for a in "xyz"]
+        return [(f"EMG{k + 1}", "normalised") for k in range(self.synth.model.channels)]
 
     # ---- the stream ------------------------------------------------------------------------
     def _run(self) -> None:
@@ -172,13 +187,16 @@ class EmgStream:
         inlet = None
         followed = 0
         while not stop.is_set() and inlet is None:
-            found = pylsl.resolve_byprop("name", CUE_STREAM, 1, 0.5)
+            found = pylsl.resolve_byprop("name", cue_stream(self.name), 1, 0.5)
             inlet = pylsl.StreamInlet(found[0]) if found else None
+            if inlet is not None:
+                inlet.open_stream(5.0)  # subscribed before the first cue is sent
         while inlet is not None and not stop.is_set():
             marker, _ = inlet.pull_sample(timeout=0.2)
             if not marker:
                 continue
             cue = marker[0]
+            log.info("cue %s", cue)
             if cue == "end":
                 break
             with self.lock:

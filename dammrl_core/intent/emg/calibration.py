@@ -11,7 +11,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 
 from dammrl_core.errors import ConfigurationError
 from dammrl_core.intent.emg.classifier import CrossValidation, LinearClassifier
-from dammrl_core.intent.emg.features import FEATURES
+from dammrl_core.intent.emg.features import per_channel
 
 CALIBRATION_VERSION = 1
 
@@ -38,6 +38,7 @@ class EmgCalibration(BaseModel):
     created: str = Field(max_length=64, description="ISO 8601, UTC")
     participant: str | None = Field(None, max_length=64, description="a pseudonymous id")
     stream: StreamDescription
+    features: Literal["emg", "imu"] = Field("emg", description="the feature set")
     window_s: float = Field(ge=0.05, le=1.0)
     hop_s: float = Field(ge=0.01, le=0.5)
     classifier: LinearClassifier
@@ -47,7 +48,8 @@ class EmgCalibration(BaseModel):
     @model_validator(mode="after")
     def _fits_the_stream(self) -> EmgCalibration:
         channels = self.stream.channel_count
-        if self.classifier.features != len(FEATURES) * channels or len(self.rest_rms) != channels:
+        expected = per_channel(self.features) * channels
+        if self.classifier.features != expected or len(self.rest_rms) != channels:
             raise ValueError(
                 f"the classifier has {self.classifier.features} features and "
                 f"{len(self.rest_rms)} rest levels for {channels} channels"

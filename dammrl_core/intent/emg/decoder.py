@@ -34,13 +34,15 @@ from pydantic import BaseModel, Field
 
 from dammrl_core.intent.emg.calibration import EmgCalibration
 from dammrl_core.intent.emg.classifier import REJECTED, majority
-from dammrl_core.intent.emg.features import window_features, window_samples
+from dammrl_core.intent.emg.features import features_of, window_samples
 from dammrl_core.settings import FINITE
 
 FLAT_OF_REST = 0.05
 """A channel whose RMS over a window is below this fraction of its rest RMS is flat."""
 CLIPPED_SHARE = 0.05
-"""A channel with this share of a window's samples at its extreme value is clipping."""
+CLIPPED_MIN = 3
+"""A channel with this share of a window's samples (and this many at least) at its
+extreme value is clipping: a signal's own peak is one sample."""
 
 
 class EmgDecoderSettings(BaseModel):
@@ -160,7 +162,7 @@ class WindowDecoder:
             self._bad(problem, keep_buffer=True)
             return None
         self.signal_problem = None
-        features = window_features(window, self.rate_hz)
+        features = features_of(window, self.rate_hz, self.calibration.features)
         p = self.calibration.classifier.probabilities(features)[0]
         best = int(np.argmax(p))
         self.labels.append(int(self.classes[best]) if p[best] >= self.settings.reject_below
@@ -175,7 +177,8 @@ class WindowDecoder:
         if np.any(flat := rms < FLAT_OF_REST * self.rest_rms):
             return f"channel {int(np.argmax(flat))} flat (an electrode off?)"
         extreme = np.abs(window).max(axis=0)
-        clipped = np.mean(np.abs(window) >= extreme * (1 - 1e-9), axis=0) >= CLIPPED_SHARE
+        at_extreme = np.sum(np.abs(window) >= extreme * (1 - 1e-9), axis=0)
+        clipped = at_extreme >= max(CLIPPED_MIN, CLIPPED_SHARE * len(window))
         if np.any(clipped & (extreme > 0)):
             return f"channel {int(np.argmax(clipped))} clipping (saturated amplifier?)"
         return None

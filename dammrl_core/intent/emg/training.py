@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from datetime import UTC, datetime
+from typing import Literal
 
 import numpy as np
 
@@ -38,11 +39,11 @@ class Cue:
 
 
 def labelled_windows(samples: np.ndarray, times: np.ndarray, cues: list[Cue], rate_hz: float,
-                     window_s: float, hop_s: float
+                     window_s: float, hop_s: float, kind: str = "emg"
                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
     """(features, labels, blocks, trials) of every window wholly inside a trial after its
     settle (``trials``: the index of its cue)."""
-    features, ends = sliding_windows(samples, rate_hz, window_s, hop_s)
+    features, ends = sliding_windows(samples, rate_hz, window_s, hop_s, kind)
     end_t = times[ends] if len(ends) else np.zeros(0)
     labels, blocks, trials = (np.full(len(ends), -99) for _ in range(3))
     for k, cue in enumerate(cues):
@@ -66,11 +67,12 @@ def rest_rms(samples: np.ndarray, times: np.ndarray, cues: list[Cue]) -> np.ndar
 def train(samples: np.ndarray, times: np.ndarray, cues: list[Cue], stream: StreamDescription,
           window_s: float = 0.2, hop_s: float = 0.05,
           decoder: EmgDecoderSettings | None = None, participant: str | None = None,
-          ) -> EmgCalibration:  # fmt: skip
-    """The calibration of a cued recording (samples (n, channels) at ``times`` (n,))."""
+          kind: Literal["emg", "imu"] = "emg") -> EmgCalibration:  # fmt: skip
+    """The calibration of a cued recording (samples (n, channels) at ``times`` (n,)) with
+    the feature set ``kind``."""
     decoder = decoder or EmgDecoderSettings()
     features, labels, blocks, trials = labelled_windows(
-        samples, times, cues, stream.nominal_srate_hz, window_s, hop_s
+        samples, times, cues, stream.nominal_srate_hz, window_s, hop_s, kind
     )
     _enough(labels, blocks)
     cv = cross_validate(features, labels, blocks, trials, decoder.reject_below,
@@ -79,6 +81,7 @@ def train(samples: np.ndarray, times: np.ndarray, cues: list[Cue], stream: Strea
         created=datetime.now(UTC).isoformat(timespec="seconds"),
         participant=participant,
         stream=stream,
+        features=kind,
         window_s=window_s,
         hop_s=hop_s,
         classifier=fit(features, labels).model_copy(update={"temperature": cv.temperature}),
