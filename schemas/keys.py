@@ -69,10 +69,10 @@ LIMITS: dict[str, KeyLimits] = {
     "policy/model": KeyLimits(4096, 1_000.0),
     "task/goal": KeyLimits(4096, 1_000.0),
     "task/result": KeyLimits(4096, 1_000.0),
-    "intent/evidence": KeyLimits(32_768, 1_000.0),  # features: 4 per channel
-    # a wearable's raw stream: a chunk of 256 samples x 64 channels is ~150 kB at most; a
-    # 1 kHz, 8-channel stream sends ~3 kB every 20 ms
-    "sensor/chunk": KeyLimits(262_144, 1_000.0),
+    "intent/evidence": KeyLimits(32_768, 100.0),  # features: 4 per channel
+    # a wearable's raw stream: a chunk of 64 samples x 64 channels is ~38 kB at most; the
+    # source sends one per loop (a 1 kHz, 8-channel stream: ~1 kB, ~100 a second)
+    "sensor/chunk": KeyLimits(65_536, 500.0),
     "safety/stop": KeyLimits(1024, 1_000.0),  # per link: a flood never delays the console's
     "health/*": KeyLimits(32_768, 100.0),  # one a second per service
 }
