@@ -206,7 +206,7 @@ class SensorSample(Message):
     pressed: bool | None = Field(None, description="inside a press (hysteresis on)")
 
 
-MAX_CHUNK_SAMPLES = 64
+MAX_CHUNK_SAMPLES = 128
 MAX_CHANNELS = 64
 
 

@@ -319,3 +319,25 @@ def test_a_wrist_imu_decides_by_posture(tmp_path: Path) -> None:
         assert [(c.u_h, c.human_model, c.accepted) for c in found] == [
             (u_h, 2 if held else 1, True)
         ]
+
+
+def test_raw_samples_go_out_paced_and_whole() -> None:
+    """One message every 10 ms at most (the key's rate limit drops one that follows
+    another too soon), at most 128 samples each, none lost, none reordered."""
+    from dammrl_core.intent.source import Chunk
+    from services.intent.node import CHUNK_PERIOD_S, RawBacklog
+
+    backlog, rng = RawBacklog(), np.random.default_rng(0)
+    times = np.arange(1000) / RATE
+    for start in range(0, 1000, 37):  # an amplifier's chunks of any size
+        part = slice(start, start + 37)
+        backlog.add(Chunk("emg", RATE, rng.normal(size=(len(times[part]), 8)), times[part]))
+    sent, tick = [], 0
+    while backlog.waiting:
+        now = tick * CHUNK_PERIOD_S * 1.001
+        if (chunk := backlog.take(now)) is not None:
+            sent.append(chunk)
+        assert backlog.take(now + CHUNK_PERIOD_S / 2) is None  # not twice in a period
+        tick += 1
+    assert max(len(c.times_s) for c in sent) == 128 and len(sent) == 8
+    np.testing.assert_array_equal(np.concatenate([c.times_s for c in sent]), times)

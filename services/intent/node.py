@@ -73,6 +73,7 @@ class IntentNode:
         self.samples = bus.publisher(SensorSample)
         self.streaming = source if isinstance(source, StreamingSource) else None
         self.chunks = bus.publisher(SignalChunk)
+        self.raw = RawBacklog()
         self.evidence = bus.publisher(IntentEvidence)
         bus.subscribe(DecisionRequest, TaskGoal, ModelChoice)
         bus.expect(DecisionRequest, "controller")
@@ -190,20 +191,21 @@ class IntentNode:
             self.samples.send(sample)
 
     def _publish_stream(self) -> None:
-        """A streaming source's raw samples and the evidence of its decisions."""
+        """A streaming source's raw samples (paced: see RawBacklog) and the evidence of
+        its decisions."""
         if self.streaming is None:
             return
         for chunk in self.streaming.chunks():
-            for start in range(0, len(chunk.times_s), MAX_CHUNK_SAMPLES):
-                self.chunks.send(self._chunk(chunk, slice(start, start + MAX_CHUNK_SAMPLES)))
+            self.raw.add(chunk)
+        if (due := self.raw.take(time.monotonic())) is not None:
+            self.chunks.send(self._chunk(due))
         for evidence in self.streaming.evidence():
             self.evidence.send(self._evidence(evidence))
 
-    def _chunk(self, chunk: Chunk, part: slice) -> SignalChunk:
-        samples = chunk.samples[part]
-        rows = [[float(v) if np.isfinite(v) else None for v in row] for row in samples]
+    def _chunk(self, chunk: Chunk) -> SignalChunk:
+        rows = [[float(v) if np.isfinite(v) else None for v in row] for row in chunk.samples]
         return SignalChunk(header=self.chunks.stamp(), stream=chunk.stream, rate_hz=chunk.rate_hz,
-                           stamps_ns=[bus_ns(t) for t in chunk.times_s[part]],
+                           stamps_ns=[bus_ns(t) for t in chunk.times_s],
                            samples=rows)  # fmt: skip
 
     def _evidence(self, e: Evidence) -> IntentEvidence:
@@ -219,9 +221,48 @@ class IntentNode:
     def _report(self) -> None:
         problem = self.source.problem()
         state: HealthState = "ok" if problem is None else "degraded"
-        detail = "; ".join(filter(None, (self.source.detail(), problem)))
+        dropped = f"{self.raw.dropped} raw samples dropped" if self.raw.dropped else None
+        detail = "; ".join(filter(None, (self.source.detail(), problem, dropped)))
         self.bus.report_health(state, detail, force=state != self.health_state)
         self.health_state = state
+
+
+CHUNK_PERIOD_S = 0.01
+"""Raw samples go out at most this often: far below the key's rate limit, which drops a
+message that follows another too soon on a link (``schemas.keys.LIMITS``)."""
+MAX_BACKLOG_S = 5.0
+"""Raw samples waiting longer than this (a stream faster than the bus may carry) are
+dropped, oldest first, and counted in Health."""
+
+
+class RawBacklog:
+    """A streaming source's raw samples waiting for the bus: one message at most every
+    ``CHUNK_PERIOD_S`` with at most ``MAX_CHUNK_SAMPLES`` samples."""
+
+    def __init__(self) -> None:
+        self.waiting: list[Chunk] = []
+        self.last_s = -np.inf
+        self.dropped = 0
+
+    def add(self, chunk: Chunk) -> None:
+        self.waiting.append(chunk)
+        while sum(len(c.times_s) for c in self.waiting) > MAX_BACKLOG_S * chunk.rate_hz:
+            self.dropped += len(self.waiting.pop(0).times_s)
+
+    def take(self, now_s: float) -> Chunk | None:
+        """The next message's samples, when one is due."""
+        if not self.waiting or now_s - self.last_s < CHUNK_PERIOD_S:
+            return None
+        self.last_s = now_s
+        first = self.waiting[0]
+        stream = [c for c in self.waiting if c.stream == first.stream]
+        samples = np.concatenate([c.samples for c in stream])
+        times = np.concatenate([c.times_s for c in stream])
+        now, later = slice(0, MAX_CHUNK_SAMPLES), slice(MAX_CHUNK_SAMPLES, None)
+        self.waiting = [c for c in self.waiting if c.stream != first.stream]
+        if len(times) > MAX_CHUNK_SAMPLES:
+            self.waiting.insert(0, Chunk(first.stream, first.rate_hz, samples[later], times[later]))
+        return Chunk(first.stream, first.rate_hz, samples[now], times[now])
 
 
 def bus_ns(monotonic_s: float) -> int:
