@@ -69,10 +69,10 @@ LIMITS: dict[str, KeyLimits] = {
     "policy/model": KeyLimits(4096, 1_000.0),
     "task/goal": KeyLimits(4096, 1_000.0),
     "task/result": KeyLimits(4096, 1_000.0),
-    "intent/evidence": KeyLimits(32_768, 100.0),  # features: 4 per channel
-    # a wearable's raw stream: a chunk of 128 samples x 64 channels is ~75 kB at most; the
-    # intent service sends one every 10 ms at most (a 1 kHz, 8-channel stream: ~1 kB)
-    "sensor/chunk": KeyLimits(131_072, 200.0),
+    "intent/evidence": KeyLimits(16_384, 100.0),  # <= 1024 features: ~9 kB
+    # a wearable's raw stream: the intent service sends one chunk every 20 ms at most, of
+    # at most CHUNK_BYTES (a 1 kHz, 8-channel stream: ~2 kB)
+    "sensor/chunk": KeyLimits(32_768, 500.0),
     "safety/stop": KeyLimits(1024, 1_000.0),  # per link: a flood never delays the console's
     "health/*": KeyLimits(32_768, 100.0),  # one a second per service
 }

@@ -206,7 +206,17 @@ class SensorSample(Message):
     pressed: bool | None = Field(None, description="inside a press (hysteresis on)")
 
 
-MAX_CHUNK_SAMPLES = 128
+MAX_CHUNK_SAMPLES = 256
+CHUNK_BYTES = 24_000
+"""What a SignalChunk's samples may take on the wire (9 bytes a number): a sender puts
+fewer samples in a message the more channels it has (``samples_per_chunk``)."""
+
+
+def samples_per_chunk(channels: int) -> int:
+    """How many samples of ``channels`` fit in one SignalChunk."""
+    return max(1, min(MAX_CHUNK_SAMPLES, CHUNK_BYTES // (9 * (channels + 1))))
+
+
 MAX_CHANNELS = 64
 
 

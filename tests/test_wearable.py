@@ -322,9 +322,11 @@ def test_a_wrist_imu_decides_by_posture(tmp_path: Path) -> None:
 
 
 def test_raw_samples_go_out_paced_and_whole() -> None:
-    """One message every 10 ms at most (the key's rate limit drops one that follows
-    another too soon), at most 128 samples each, none lost, none reordered."""
+    """One message every 20 ms at most (the key's rate limit drops one that follows
+    another too soon), as many samples as fit in the key's size, none lost, none
+    reordered."""
     from dammrl_core.intent.source import Chunk
+    from schemas.messages import samples_per_chunk
     from services.intent.node import CHUNK_PERIOD_S, RawBacklog
 
     backlog, rng = RawBacklog(), np.random.default_rng(0)
@@ -339,5 +341,5 @@ def test_raw_samples_go_out_paced_and_whole() -> None:
             sent.append(chunk)
         assert backlog.take(now + CHUNK_PERIOD_S / 2) is None  # not twice in a period
         tick += 1
-    assert max(len(c.times_s) for c in sent) == 128 and len(sent) == 8
+    assert max(len(c.times_s) for c in sent) == samples_per_chunk(8) == 256 and len(sent) == 4
     np.testing.assert_array_equal(np.concatenate([c.times_s for c in sent]), times)

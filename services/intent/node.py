@@ -42,7 +42,7 @@ from schemas import (
     SignalChunk,
     TaskGoal,
 )
-from schemas.messages import MAX_CHUNK_SAMPLES, HealthState
+from schemas.messages import HealthState, samples_per_chunk
 from services.common.bus import Bus
 from services.common.entry import run_service
 from services.intent.config import IntentSettings
@@ -227,9 +227,10 @@ class IntentNode:
         self.health_state = state
 
 
-CHUNK_PERIOD_S = 0.01
-"""Raw samples go out at most this often: far below the key's rate limit, which drops a
-message that follows another too soon on a link (``schemas.keys.LIMITS``)."""
+CHUNK_PERIOD_S = 0.02
+"""Raw samples go out at most this often: a tenth of the key's rate limit, which drops a
+message that follows another too soon on a link (``schemas.keys.LIMITS``), so network
+jitter never bunches two legitimate ones into a drop."""
 MAX_BACKLOG_S = 5.0
 """Raw samples waiting longer than this (a stream faster than the bus may carry) are
 dropped, oldest first, and counted in Health."""
@@ -237,7 +238,7 @@ dropped, oldest first, and counted in Health."""
 
 class RawBacklog:
     """A streaming source's raw samples waiting for the bus: one message at most every
-    ``CHUNK_PERIOD_S`` with at most ``MAX_CHUNK_SAMPLES`` samples."""
+    ``CHUNK_PERIOD_S`` with at most ``samples_per_chunk`` samples."""
 
     def __init__(self) -> None:
         self.waiting: list[Chunk] = []
@@ -258,9 +259,10 @@ class RawBacklog:
         stream = [c for c in self.waiting if c.stream == first.stream]
         samples = np.concatenate([c.samples for c in stream])
         times = np.concatenate([c.times_s for c in stream])
-        now, later = slice(0, MAX_CHUNK_SAMPLES), slice(MAX_CHUNK_SAMPLES, None)
+        size = samples_per_chunk(samples.shape[1])
+        now, later = slice(0, size), slice(size, None)
         self.waiting = [c for c in self.waiting if c.stream != first.stream]
-        if len(times) > MAX_CHUNK_SAMPLES:
+        if len(times) > size:
             self.waiting.insert(0, Chunk(first.stream, first.rate_hz, samples[later], times[later]))
         return Chunk(first.stream, first.rate_hz, samples[now], times[now])
 
