@@ -37,6 +37,7 @@ import numpy as np
 
 from dammrl.emulators.emg import HELD_S, QUICK_S, EmgStream
 from dammrl.emulators.emg_signal import NOISE_LEVELS, EmgSynth, model_named
+from dammrl.emulators.movements import cued_session
 from dammrl_core.human import HumanModel
 from dammrl_core.intent.emg.calibration import EmgCalibration, StreamDescription, save_calibration
 from dammrl_core.intent.emg.classifier import decide_windows, offline_metrics
@@ -59,19 +60,8 @@ def percentiles(samples_s: list[float]) -> str:
 
 
 # ---- offline ------------------------------------------------------------------------------
-def cued(level: str, seed: int, blocks: int = 4) -> tuple[np.ndarray, np.ndarray, list[Cue]]:
-    synth = EmgSynth(NOISE_LEVELS[level], seed)
-    order = np.random.default_rng(seed + 1)
-    chunks, cues, t = [], [], 0.0
-    for block in range(blocks):
-        for label in order.permutation([-1, 0, 1]):
-            if label:
-                synth.contract(int(label), 3.0, 0.3)
-            chunks += [synth.generate(3000), synth.generate(1500)]
-            cues.append(Cue(int(label), t, t + 3.0, block))
-            t += 4.5
-    samples = np.concatenate(chunks)
-    return samples, np.arange(len(samples)) / RATE, cues
+def cued(level: str, seed: int) -> tuple[np.ndarray, np.ndarray, list[Cue]]:
+    return cued_session(EmgSynth(NOISE_LEVELS[level], seed), RATE, blocks=4, seed=seed)
 
 
 def held_out(calibration: EmgCalibration, level: str, seed: int) -> dict[str, float]:

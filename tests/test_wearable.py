@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from dammrl.emulators import movements
 from dammrl.emulators.emg_signal import EmgSynth, model_named
 from dammrl.wearable import Signal, decode_signal, signal_of_xdf
 from dammrl_core.errors import ConfigurationError
@@ -39,20 +40,8 @@ STREAM = StreamDescription(name="dammrl-emg", type="EMG", channel_count=8, nomin
 
 def cued_session(noise: str = "medium", blocks: int = 3, seed: int = 1
                  ) -> tuple[np.ndarray, np.ndarray, list[Cue]]:  # fmt: skip
-    """A cooperative participant's calibration: rest, -1, +1 per block, 3 s each."""
-    synth = EmgSynth(model_named(noise), seed)
-    order = np.random.default_rng(seed + 1)
-    chunks, cues, t = [], [], 0.0
-    for block in range(blocks):
-        for label in order.permutation([-1, 0, 1]):
-            if label:
-                synth.contract(int(label), 3.0, 0.3)
-            chunks.append(synth.generate(3000))
-            cues.append(Cue(int(label), t, t + 3.0, block))
-            chunks.append(synth.generate(1500))
-            t += 4.5
-    samples = np.concatenate(chunks)
-    return samples, np.arange(len(samples)) / RATE, cues
+    """A cooperative participant's calibration on the emulated armband, 3 s trials."""
+    return movements.cued_session(EmgSynth(model_named(noise), seed), RATE, blocks, seed=seed)
 
 
 @pytest.fixture(scope="module")
@@ -296,18 +285,9 @@ def test_a_wrist_imu_decides_by_posture(tmp_path: Path) -> None:
     from dammrl.emulators.imu_signal import IMU_NOISE_LEVELS, ImuSynth
 
     model = IMU_NOISE_LEVELS["medium"]
-    synth, order = ImuSynth(model, seed=1), np.random.default_rng(2)
-    chunks, cues, t = [], [], 0.0
-    for block in range(4):
-        for label in order.permutation([-1, 0, 1]):
-            if label:
-                synth.contract(int(label), 2.7, 0.3)
-            chunks += [synth.generate(300), synth.generate(150)]
-            cues.append(Cue(int(label), t, t + 3.0, block))
-            t += 4.5
-    samples = np.concatenate(chunks)
+    samples, times, cues = movements.cued_session(ImuSynth(model, seed=1), 100.0, seed=1)
     stream = StreamDescription(name="wrist", type="IMU", channel_count=6, nominal_srate_hz=100)
-    imu = train(samples, np.arange(len(samples)) / 100, cues, stream, kind="imu")
+    imu = train(samples, times, cues, stream, kind="imu")
     assert imu.features == "imu" and refusal(imu.cross_validation) is None
     assert load_calibration(save_calibration(imu, tmp_path / "imu.json")) == imu
     decoder, wrist = WindowDecoder(imu, EmgDecoderSettings()), ImuSynth(model, seed=9)

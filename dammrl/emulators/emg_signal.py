@@ -25,6 +25,8 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy import signal
 
+from dammrl.emulators.movements import Wearer
+
 REST_TONE = 0.03
 RAMP_S = 0.03
 HUM_HZ = 50.0
@@ -53,28 +55,17 @@ NOISE_LEVELS: dict[str, EmgModel] = {
 
 
 @dataclass
-class _Contraction:
-    u_h: int
-    start_s: float
-    duration_s: float
-    strength: float
-
-
-@dataclass
-class EmgSynth:
+class EmgSynth(Wearer):
     """Generates the samples of one forearm, chunk by chunk, on its own clock (from 0 s)."""
 
     model: EmgModel = field(default_factory=EmgModel)
     seed: int = 0
 
     def __post_init__(self) -> None:
+        Wearer.__init__(self, self.seed)
         m = self.model
-        self.rng = np.random.default_rng(self.seed)
-        self.t_s = 0.0
-        self.contractions: list[_Contraction] = []
         self.artefacts: list[tuple[float, float, float]] = []  # (start, frequency, sign)
         self.gain_log = np.zeros(m.channels)
-        self.lifted: dict[int, str] = {}  # channel -> "flat" | "clip"
         self.weights = self._crosstalk(m)
         self.band = signal.butter(2, [20, min(450, 0.45 * m.rate_hz)], "bandpass",
                                   fs=m.rate_hz, output="sos")  # fmt: skip
@@ -85,25 +76,6 @@ class EmgSynth:
         """(channels, 2): each channel's share of the flexors' and the extensors' signal."""
         over_flexors = np.arange(m.channels) < m.channels // 2
         return np.where(over_flexors[:, None], [1.0, m.crosstalk], [m.crosstalk, 1.0])
-
-    # ---- what the person does --------------------------------------------------------------
-    def contract(self, u_h: int, duration_s: float, delay_s: float = 0.0,
-                 strength: float | None = None) -> None:  # fmt: skip
-        """A contraction of the muscle group of ``u_h`` from ``delay_s`` after now."""
-        level = float(self.rng.uniform(0.4, 1.0)) if strength is None else strength
-        self.contractions.append(_Contraction(u_h, self.t_s + delay_s, duration_s, level))
-
-    def release(self) -> None:
-        """Every contraction in progress or planned ends now (the person relaxes)."""
-        for c in self.contractions:
-            c.duration_s = max(0.0, min(c.duration_s, self.t_s - c.start_s))
-
-    def lift(self, channel: int, how: str = "flat") -> None:
-        """An electrode comes off: its channel flat, or clipping at the amplifier's rail."""
-        self.lifted[channel] = how
-
-    def put_back(self, channel: int) -> None:
-        self.lifted.pop(channel, None)
 
     # ---- the samples -----------------------------------------------------------------------
     def generate(self, n: int) -> np.ndarray:
@@ -116,10 +88,8 @@ class EmgSynth:
         out += m.hum_rms * np.sqrt(2) * np.sin(2 * np.pi * HUM_HZ * t)[:, None]
         out += self._artefacts(t)[:, None]
         out *= np.exp(self._drift(n))
-        for channel, how in self.lifted.items():  # flat: no contact; clip: the amplifier's
-            out[:, channel] = 0.0 if how == "flat" else np.clip(20 * out[:, channel], -1, 1)
-        self.t_s = float(t[-1] + 1 / m.rate_hz) if n else self.t_s
-        self.contractions = [c for c in self.contractions if c.start_s + c.duration_s > self.t_s]
+        self._apply_lifted(out)
+        self._advance(t, m.rate_hz)
         return np.asarray(out)
 
     def _activity(self, n: int, t: np.ndarray) -> np.ndarray:

@@ -15,6 +15,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from dammrl.emulators.movements import Wearer
+
 
 @dataclass(frozen=True)
 class ImuModel:
@@ -36,16 +38,10 @@ IMU_NOISE_LEVELS: dict[str, ImuModel] = {
 
 
 @dataclass
-class _Tilt:
-    u_h: int
-    start_s: float
-    duration_s: float
-    strength: float
-
-
-@dataclass
-class ImuSynth:
+class ImuSynth(Wearer):
     """Generates the samples of one wrist IMU, chunk by chunk, on its own clock."""
+
+    STRENGTH = (0.5, 1.0)
 
     model: ImuModel = field(default_factory=ImuModel)
     seed: int = 0
@@ -53,28 +49,9 @@ class ImuSynth:
     def __post_init__(self) -> None:
         if self.model.channels != 6:
             raise ValueError("the IMU emulator streams 6 channels (accelerometer, gyroscope)")
-        self.rng = np.random.default_rng(self.seed)
-        self.t_s = 0.0
-        self.contractions: list[_Tilt] = []
-        self.lifted: dict[int, str] = {}
+        Wearer.__init__(self, self.seed)
         self.bias = np.zeros(3)
         self.sway_phase = float(self.rng.uniform(0, 2 * np.pi))
-
-    def contract(self, u_h: int, duration_s: float, delay_s: float = 0.0,
-                 strength: float | None = None) -> None:  # fmt: skip
-        """A wrist tilt for ``u_h`` from ``delay_s`` after now, held ``duration_s``."""
-        level = float(self.rng.uniform(0.5, 1.0)) if strength is None else strength
-        self.contractions.append(_Tilt(u_h, self.t_s + delay_s, duration_s, level))
-
-    def release(self) -> None:
-        for c in self.contractions:
-            c.duration_s = max(0.0, min(c.duration_s, self.t_s - c.start_s))
-
-    def lift(self, channel: int, how: str = "flat") -> None:
-        self.lifted[channel] = how
-
-    def put_back(self, channel: int) -> None:
-        self.lifted.pop(channel, None)
 
     def generate(self, n: int) -> np.ndarray:
         """The next ``n`` samples (n, 6)."""
@@ -89,11 +66,8 @@ class ImuSynth:
         out[:, :3] += self.rng.normal(0, m.accel_noise_g, (n, 3))
         out[:, 4] = rate
         out[:, 3:] += self.bias + self.rng.normal(0, m.gyro_noise_rad_s, (n, 3))
-        for channel, how in self.lifted.items():  # flat: a dead axis; clip: its range
-            out[:, channel] = 0.0 if how == "flat" else np.clip(20 * out[:, channel], -1, 1)
-        self.t_s = float(t[-1] + 1 / m.rate_hz) if n else self.t_s
-        self.contractions = [c for c in self.contractions
-                             if c.start_s + c.duration_s + m.ramp_s > self.t_s]  # fmt: skip
+        self._apply_lifted(out)
+        self._advance(t, m.rate_hz, linger_s=m.ramp_s)
         return out
 
     def _angle(self, t: np.ndarray) -> np.ndarray:
