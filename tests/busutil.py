@@ -9,9 +9,11 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import IO
 
 import zenoh
 
@@ -86,6 +88,29 @@ def wait_for(condition: Callable[[], bool], timeout_s: float, what: str) -> None
             return
         time.sleep(0.05)
     raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
+
+
+class Lines:
+    """A child's output read line by line on a thread: waits with a timeout (a bare
+    ``readline`` on a child that never prints would hang the suite)."""
+
+    def __init__(self, stream: IO[str]) -> None:
+        self.lines: list[str] = []
+        threading.Thread(target=self._read, args=(stream,), daemon=True).start()
+
+    def _read(self, stream: IO[str]) -> None:
+        for line in stream:
+            self.lines.append(line)
+
+    def wait_for(self, text: str, timeout_s: float) -> str:
+        """The first line containing ``text``; an AssertionError showing every line read
+        when none came within ``timeout_s``."""
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if found := next((line for line in list(self.lines) if text in line), None):
+                return found
+            time.sleep(0.05)
+        raise AssertionError(f"no line with {text!r} in {timeout_s} s: {self.lines[-20:]}")
 
 
 class Observer:

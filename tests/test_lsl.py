@@ -50,6 +50,15 @@ class Harness:
         self.problems: list[str] = []
         self.request = 0
 
+    def connect(self, timeout_s: float = 15.0) -> None:
+        """Until the stream is found, taken and a window of signal came (a loaded machine
+        takes a while to resolve a stream the first time)."""
+        deadline = time.monotonic() + timeout_s
+        while self.source.inlet is None or self.source.samples < 500:
+            assert time.monotonic() < deadline, self.problems[-3:]
+            self.run(0.1)
+        self.problems.clear()
+
     def ask(self) -> None:
         self.request += 1
         ask = Ask(1, self.request, 0, 0.0, np.zeros(3), np.ones(3), 0, 2)
@@ -75,7 +84,7 @@ class Harness:
 def armband(calibration_file: Path) -> Iterator[Harness]:
     with EmgStream(_name(), EmgSynth(model_named("medium"), seed=3)) as stream:
         harness = Harness(stream, calibration_file)
-        harness.run(1.5)  # found, connected, a window of signal
+        harness.connect()
         yield harness
         harness.source.close()
 
@@ -125,7 +134,7 @@ def test_a_stream_unlike_the_calibration_is_refused(
 ) -> None:
     with EmgStream(_name(), EmgSynth(model_named("medium", **changes), seed=3)) as stream:
         harness = Harness(stream, calibration_file)
-        harness.run(1.0)
+        harness.run(3.0)  # long enough to be found (never taken: it does not fit)
         assert harness.contract(1) == []
         assert any(words in p for p in harness.problems), sorted(set(harness.problems))
         harness.source.close()

@@ -13,7 +13,7 @@ import pytest
 from dammrl.emulators.pad import Press, SensorEmulator
 from dammrl.recording import session_traces
 from schemas import DecisionRequest, EpisodeResult, Health, Intent, ModelChoice, SensorSample
-from tests.busutil import Observer, free_port, start_patient, start_service, wait_for
+from tests.busutil import Lines, Observer, free_port, start_patient, start_service, wait_for
 
 pytestmark = pytest.mark.slow  # real processes on a real bus
 
@@ -189,16 +189,15 @@ def test_a_patient_started_before_the_stack_says_so_and_joins_it(tmp_path: Path)
     )  # fmt: skip
     try:
         assert patient.stderr is not None
-        started = time.monotonic()
-        assert "nothing answers at" in patient.stderr.readline()
-        assert time.monotonic() - started < 10
+        said = Lines(patient.stderr)
+        said.wait_for("nothing answers at", 10)
         up = subprocess.run(
             [sys.executable, "-m", "dammrl", "up", "--mode", "semi-virtual", "--port", str(link),
              "--episodes", "1", "--json", "--bus-port", str(port), "--model", "1,1"],
             capture_output=True, text=True, timeout=240,
         )  # fmt: skip
         assert up.returncode == 0, up.stderr[-2000:]
-        assert "joined the stack at tls/127.0.0.1:" in patient.stderr.readline()
+        said.wait_for("joined the stack at tls/127.0.0.1:", 10)
     finally:
         patient.terminate()
         patient.wait(10)

@@ -20,7 +20,7 @@ import pytest
 
 from dammrl_core.robot import RobotDescription
 from schemas import TOPICS, EpisodeResult, Health, RobotState, StepEvent, encode
-from tests.busutil import SERVICES, Observer, Stack, free_port, wait_for
+from tests.busutil import SERVICES, Lines, Observer, Stack, free_port, wait_for
 from tests.test_schemas import EXAMPLES
 
 pytestmark = pytest.mark.slow  # real processes on a real bus
@@ -62,24 +62,23 @@ def test_dammrl_up_runs_episodes_and_exits_zero(port: int) -> None:
     assert {"t_total_s", "n_osc", "jerk_isj", "human_error_rate", "seed"} <= result.keys()
 
 
-def _launch_until_alive(port: int) -> tuple[subprocess.Popen[str], list[str]]:
+def _launch_until_alive(port: int) -> tuple[subprocess.Popen[str], list[str], Lines]:
     """`dammrl up` until it reports every service alive; its child pids."""
     launcher = subprocess.Popen(
         [sys.executable, "-m", "dammrl.cli", "up", "--bus-port", str(port)],
         stderr=subprocess.PIPE, text=True,
     )  # fmt: skip
     assert launcher.stderr is not None
-    deadline = time.monotonic() + 60
-    while "all services alive" not in launcher.stderr.readline():
-        assert time.monotonic() < deadline and launcher.poll() is None
+    said = Lines(launcher.stderr)  # drained from now on
+    said.wait_for("all services alive", 60)
     children = subprocess.run(
         ["pgrep", "-P", str(launcher.pid)], capture_output=True, text=True, check=False
     ).stdout.split()
-    return launcher, children
+    return launcher, children, said
 
 
 def test_dammrl_up_stops_every_service_on_sigterm(port: int) -> None:
-    launcher, children = _launch_until_alive(port)
+    launcher, children, _ = _launch_until_alive(port)
     assert len(children) == 4
     launcher.send_signal(signal.SIGTERM)
     assert launcher.wait(30) == 0
@@ -232,10 +231,10 @@ def test_echo_ends_cleanly_on_ctrl_c_and_says_when_nothing_came(
 
 
 def test_dammrl_up_exits_non_zero_when_a_service_dies(port: int) -> None:
-    launcher, children = _launch_until_alive(port)
+    launcher, children, said = _launch_until_alive(port)
     os.kill(int(children[0]), signal.SIGKILL)
     assert launcher.wait(30) != 0
-    assert launcher.stderr is not None and "exited unexpectedly" in launcher.stderr.read()
+    said.wait_for("exited unexpectedly", 5)
     time.sleep(0.5)
     assert not [pid for pid in children[1:] if os.path.exists(f"/proc/{pid}")]
 
@@ -248,7 +247,7 @@ def test_a_stop_finds_the_runs_credentials_and_a_killed_launchers_services_and_k
     the run's credentials (every role's key) are removed by the last of them."""
     from services.common.security import run_credentials
 
-    launcher, children = _launch_until_alive(port)
+    launcher, children, _ = _launch_until_alive(port)
     folder = run_credentials(port)
     assert (folder / "controller.key").is_file()
     for endpoint in (f"tls/127.0.0.1:{port}", f"tcp/127.0.0.1:{port}"):

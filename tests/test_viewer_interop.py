@@ -18,7 +18,7 @@ import pytest
 from dammrl_core.dynamics import ArmModel
 from schemas import TaskGoal, encode, key
 from services.recorder.core import McapRecorder
-from tests.busutil import free_port
+from tests.busutil import Lines, free_port
 from tests.test_viewer import GOAL, _header, _state
 
 pytest.importorskip("foxglove")
@@ -64,9 +64,7 @@ def test_the_ws_protocol_client_connects_and_a_recording_waits_for_it_and_loops(
          str(port)], stderr=subprocess.PIPE, text=True)  # fmt: skip
     try:
         assert view.stderr is not None
-        deadline = time.monotonic() + 60
-        while "waiting for a viewer" not in (line := view.stderr.readline()):
-            assert view.poll() is None and time.monotonic() < deadline, line
+        Lines(view.stderr).wait_for("waiting for a viewer", 60)
         time.sleep(3)  # nobody connected: nothing is played meanwhile
         assert view.poll() is None
         done = subprocess.run(["node", str(ws_protocol_client), f"ws://127.0.0.1:{port}", "6",
