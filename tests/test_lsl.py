@@ -51,10 +51,11 @@ class Harness:
         self.request = 0
 
     def connect(self, timeout_s: float = 15.0) -> None:
-        """Until the stream is found, taken and a window of signal came (a loaded machine
-        takes a while to resolve a stream the first time)."""
+        """Until the stream is found, taken and half a second of signal came (a loaded
+        machine takes a while to resolve a stream, or to reconnect to one)."""
         deadline = time.monotonic() + timeout_s
-        while self.source.inlet is None or self.source.samples < 500:
+        enough = self.source.samples + 500
+        while self.source.inlet is None or self.source.samples < enough:
             assert time.monotonic() < deadline, self.problems[-3:]
             self.run(0.1)
         self.problems.clear()
@@ -77,7 +78,7 @@ class Harness:
     def contract(self, u_h: int = 1, held: bool = True) -> list[Decided]:
         self.ask()
         self.stream.act(u_h, held, 0.2)
-        return self.run(1.8)
+        return self.run(3.0)  # the emulator in this process falls behind on a busy machine
 
 
 @pytest.fixture()
@@ -93,8 +94,8 @@ def test_a_contraction_through_lsl_answers_the_open_request(armband: Harness) ->
     assert armband.source.problem() is None, armband.problems[-3:]
     decided = armband.contract(-1, held=False)
     assert [(d.u_h, d.human_model) for d in decided] == [(-1, 1)]
-    assert 0.0 <= decided[0].decision_s < 0.6  # onset ~0.2 s after the ask
-    unasked = armband.stream.act(1, True, 0.1) and armband.run(1.5)
+    assert 0.0 <= decided[0].decision_s < 1.5  # onset ~0.2 s after the ask (later if busy)
+    unasked = armband.stream.act(1, True, 0.1) and armband.run(3.0)
     assert unasked == []  # no request open: evidence only
     evidence = armband.source.evidence()
     assert [e.acted for e in evidence] == [True, False]
@@ -106,7 +107,8 @@ def test_a_lost_stream_decides_nothing_until_it_is_back(armband: Harness) -> Non
     armband.stream.lose(1.5)
     during = armband.contract(1)
     assert during == [] and any("silent" in p for p in armband.problems), armband.problems[-3:]
-    armband.run(1.5)  # back: LSL reconnects by itself
+    armband.connect()  # back: LSL reconnects by itself (in seconds, on a loaded machine)
+    armband.run(0.5)  # and a rest after the gap
     assert armband.contract(1) != []
 
 

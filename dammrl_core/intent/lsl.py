@@ -185,17 +185,17 @@ class LslSource:
 
     def _take(self, contraction: Contraction) -> Decided | None:
         self.decisions += 1
-        acted = contraction.accepted and self.open_since is not None
+        since = self.open_since
+        acted = contraction.accepted and since is not None
         c = contraction
         reason = c.reason or ("" if acted else "no request open")
         self._evidence.append(Evidence(self.request, c.u_h, c.human_model, c.confidence,
                                        c.onset_s, c.decided_s, c.duration_s, c.windows,
                                        c.features, acted, reason))  # fmt: skip
-        if not acted:
+        if not acted or since is None:
             self.not_acted += 1
             return None
         # LSL's local clock is this machine's monotonic clock (as time.monotonic)
-        since = self.open_since if self.open_since is not None else contraction.onset_s
         self.open_since, self.request = None, -1
         return Decided(contraction.u_h, contraction.human_model, contraction.confidence,
                        max(0.0, contraction.onset_s - since))  # fmt: skip
