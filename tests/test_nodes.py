@@ -300,3 +300,31 @@ def test_the_controller_sends_an_unanswered_request_again() -> None:
     node._resend_if_unanswered()
     assert len(bus.published) == sent + 1 and bus.published[-1].request == 1
     assert "waiting for the answer to request 1" in node._waiting_for()
+
+
+def test_planning_an_episode_is_not_a_stall_of_the_controller() -> None:
+    """Planning the next reach may take longer than the state's staleness (a loaded
+    machine: 0.3 s seen); the first state after it starts the reach, it does not end it as
+    the controller's own stall. A real gap in the loop after that still does."""
+    from dammrl_core.control.settings import ControllerSettings
+    from dammrl_core.models import ModelSet
+    from dammrl_core.robot import RobotSettings
+    from dammrl_core.task import TaskSettings
+    from services.controller import node as controller
+
+    node = controller.ControllerNode(ControllerSettings(), TaskSettings(), RobotSettings(),
+                                     ModelSet(), FakeBus())  # type: ignore[arg-type]  # fmt: skip
+    plan = controller.plan_reach
+
+    def slow_plan(*args: object) -> controller.Plan:
+        time.sleep(2 * node.stale_s)
+        return plan(*args)  # type: ignore[arg-type]
+
+    controller.plan_reach = slow_plan  # type: ignore[assignment]
+    try:
+        node._next_episode()
+    finally:
+        controller.plan_reach = plan
+    node.started = True  # its first state came with the first look
+    assert not node._stalled_itself(time.monotonic())
+    assert node._stalled_itself(time.monotonic() + 2 * node.stale_s)

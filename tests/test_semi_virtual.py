@@ -197,8 +197,8 @@ def test_a_patient_started_before_the_stack_says_so_and_joins_it(tmp_path: Path)
             capture_output=True, text=True, timeout=240,
         )  # fmt: skip
         assert up.returncode == 0, up.stderr[-2000:]
+        assert '"success": true' in up.stdout, up.stdout + up.stderr[-2000:]
         said.wait_for("joined the stack at tls/127.0.0.1:", 10)
     finally:
         patient.terminate()
         patient.wait(10)
-    assert '"success": true' in up.stdout, up.stdout

@@ -294,6 +294,9 @@ class ControllerNode:
         self.requests = Requests(number, seed, self.models, self.timing)
         self.started = False
         self._announce(self.plan)
+        # planning is this process working, before the arm moves: the stall clock starts
+        # here (a plan slower than the state's staleness ended the first reach at once)
+        self.loop_s = time.monotonic()
 
     def _announce(self, plan: Plan) -> None:
         self.announced_s = time.monotonic()
