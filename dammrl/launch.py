@@ -91,6 +91,7 @@ class StackOptions:
     namespace: str = "dammrl"
     json: bool = False
     record: Path | None = None  # also run the recorder into this MCAP file
+    study: str = ""  # the session the recording belongs to (JSON, into its metadata)
     pad_port: str | None = None  # the pressure pad's serial device (semi-virtual, or real)
     lsl_stream: str | None = None  # a wearable sensor's LSL stream (semi-virtual, or real)
     intent: str | None = None  # the intent source (default: pad with pad_port, lsl with a stream)
@@ -263,8 +264,10 @@ class Stack:
         options: StackOptions,
         out: Callable[[str], None] = print,
         info: Callable[[str], None] = print,
+        on_result: Callable[[EpisodeResult], None] | None = None,
     ) -> None:
-        """``out`` receives the episode results, ``info`` the progress lines."""
+        """``out`` receives the episode results, ``info`` the progress lines; ``on_result``
+        each episode's result as it is counted (a session's trial log keeps it at once)."""
         check_options(options)
         self.options = options
         self.out = out
@@ -277,6 +280,7 @@ class Stack:
         self.children: dict[str, subprocess.Popen[bytes]] = {}
         self.emulator: subprocess.Popen[bytes] | None = None
         self.results: list[EpisodeResult] = []
+        self.on_result = on_result
         self.prompts: PatientPrompts | None = None
         self.recorder_restarts = 0
         self.ignored = 0  # messages on task/result that were not an episode's result
@@ -308,7 +312,7 @@ class Stack:
             settings.append(PolicySettings(kind="fixed", **chosen))  # type: ignore[arg-type]
         settings += self._intent_settings() + self._arm_settings()
         if o.record is not None:
-            settings.append(RecorderSettings(out=o.record, mode=o.mode))
+            settings.append(RecorderSettings(out=o.record, mode=o.mode, study=o.study))
         return settings
 
     def _intent_settings(self) -> list[BaseSettings]:
@@ -457,6 +461,8 @@ class Stack:
             if self.progress is not None:
                 self.progress.advanced()
             self.results.append(result)
+            if self.on_result is not None:
+                self.on_result(result)
             self._report(result)
             if total is not None and len(self.results) >= total:
                 self.info(summary(self.results))

@@ -15,13 +15,26 @@ import shtab
 from pydantic import ValidationError
 
 from dammrl import __version__
-from dammrl.cli import bus, intent, reach, recording, rl, robot, sensor, stack, study, view
+from dammrl.cli import (
+    bus,
+    intent,
+    reach,
+    recording,
+    rl,
+    robot,
+    sensor,
+    session,
+    stack,
+    study,
+    view,
+)
 from dammrl_core.errors import EXIT_CODES_HELP, DammrlError, Exit
 from dammrl_core.settings import error_line
 
 GROUPS = (
     reach.register,
     stack.register,
+    session.register,
     recording.register,
     intent.register,
     sensor.register,

@@ -178,6 +178,17 @@ def table(rows: list[dict[str, object]]) -> str:
     keys = [k for k in rows[0] if k not in ("start_m", "goal_m")] + ["start_m", "goal_m"]
     header = ["metric"] + [str(r["trigger"]) for r in rows]
     lines = [[f"{k} [{UNITS[k]}]" if k in UNITS else k] + [fmt(r[k]) for r in rows] for k in keys]
+    return aligned(header, lines)
+
+
+def table_of_rows(rows: list[dict[str, object]]) -> str:
+    """Rows as aligned text, one column per key (the first row's)."""
+    header = list(rows[0])
+    return aligned(header, [[str(r.get(k, "")) for k in header] for r in rows])
+
+
+def aligned(header: list[str], lines: list[list[str]]) -> str:
+    """A header, a rule and lines, their columns aligned."""
     widths = [max(len(line[c]) for line in [header, *lines]) for c in range(len(header))]
     out = ["  ".join(h.ljust(w) for h, w in zip(header, widths, strict=True))]
     out.append("  ".join("-" * w for w in widths))

@@ -30,6 +30,9 @@ class RecorderSettings(Settings):
     """After a write error (disk full), try a new file this often [s]."""
     mode: str = "virtual"
     """Stack mode written into the recording's metadata."""
+    study: str = Field("", max_length=4096)
+    """The session this recording belongs to (participant, session, protocol and its
+    SHA-256, as JSON from ``dammrl session run``), written into the metadata; empty: none."""
 
 
 SETTINGS: tuple[type[Settings], ...] = (RecorderSettings,)

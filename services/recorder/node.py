@@ -169,6 +169,8 @@ class RecorderNode:
         """Start a new file. At start-up a path that cannot be created is a bad setting
         (DammrlError); any other failure pauses the recording until a retry succeeds."""
         metadata = {"mode": self.settings.mode, "settings": self.settings.model_dump_json()}
+        if self.settings.study:
+            metadata["study"] = self.settings.study
         try:
             path = self._next_path()
             try:

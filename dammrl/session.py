@@ -1,0 +1,442 @@
+"""Sessions with people: pseudonymous participants, a folder per sitting, a protocol's
+trials run through the service stack, and resumption after any crash.
+
+A session folder holds everything a sitting produced::
+
+    <root>/<participant>/participant.json      id, Latin-square row, current calibration
+    <root>/<participant>/ses-01/session.json   protocol (name, version, SHA-256), set-up
+    <root>/<participant>/ses-01/protocol.yaml  the protocol as run
+    <root>/<participant>/ses-01/trials.jsonl   one line per finished trial (fsync'd)
+    <root>/<participant>/ses-01/events.jsonl   who did what and why (start, interruptions,
+                                               resumption, rests, the end)
+    <root>/<participant>/ses-01/recordings/    part-NN.mcap, one per stack run, never reused
+    <root>/<participant>/ses-01/calibration.*  the calibration the session used
+
+A trial counts as done only once its line is in ``trials.jsonl``; whatever stopped a
+session (``kill -9`` of the runner or of a service, a lost cable, Ctrl-C), the next
+``dammrl session run`` for that participant resumes at the first trial without a line,
+after checking that the set-up is the one the session recorded. The recording of an
+interrupted run is kept as it is; its trial runs again in a new part.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import re
+import shutil
+import sys
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, replace
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+from dammrl import __version__
+from dammrl.launch import Stack, StackOptions, result_dict
+from dammrl_core.errors import ConfigurationError, DammrlError, Exit, UsageError
+from dammrl_core.protocol import Protocol, Trial, load_protocol, plan_trials
+from dammrl_core.robot import RobotSettings
+from schemas import EpisodeResult
+
+PARTICIPANT_ID = re.compile(r"^[A-Za-z]{1,4}[0-9]{1,6}$")
+"""A pseudonym such as P012: letters then digits, nothing a name could hide in."""
+
+
+def check_participant(participant: str) -> str:
+    """``participant`` if it is a pseudonymous id; a UsageError saying what is expected."""
+    if not PARTICIPANT_ID.match(participant):
+        raise UsageError(
+            f"participant {participant!r}: give a pseudonymous id such as P012 (1-4 letters, "
+            "1-6 digits); names and other personal data are never stored"
+        )
+    return participant.upper()
+
+
+def now_utc() -> str:
+    return datetime.now(UTC).isoformat(timespec="milliseconds")
+
+
+def sha256_of(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def write_json(path: Path, content: dict[str, Any]) -> None:
+    """Replace ``path`` atomically (a crash leaves the old file or the new one)."""
+    temporary = path.with_suffix(path.suffix + ".tmp")
+    temporary.write_text(json.dumps(content, indent=2) + "\n")
+    with open(temporary, "rb+") as handle:
+        os.fsync(handle.fileno())
+    temporary.replace(path)
+
+
+def read_json(path: Path) -> dict[str, Any]:
+    try:
+        content = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise ConfigurationError(f"{path}: unreadable ({exc})") from exc
+    if not isinstance(content, dict):
+        raise ConfigurationError(f"{path}: not a JSON object")
+    return content
+
+
+class JsonLines:
+    """An append-only log, one JSON object a line, each on disk before ``add`` returns. A
+    torn last line (a crash mid-write) is skipped when read, and counted."""
+
+    def __init__(self, path: Path):
+        self.path = path
+
+    def add(self, entry: dict[str, Any]) -> None:
+        with open(self.path, "a", encoding="utf-8") as handle:
+            handle.write(json.dumps(entry) + "\n")
+            handle.flush()
+            os.fsync(handle.fileno())
+
+    def read(self) -> tuple[list[dict[str, Any]], int]:
+        """The entries, and how many lines were unreadable."""
+        if not self.path.exists():
+            return [], 0
+        entries, torn = [], 0
+        for line in self.path.read_text(encoding="utf-8", errors="replace").splitlines():
+            try:
+                entry = json.loads(line)
+            except ValueError:
+                torn += 1
+                continue
+            if isinstance(entry, dict):
+                entries.append(entry)
+            else:
+                torn += 1
+        return entries, torn
+
+
+@dataclass(frozen=True)
+class SetUp:
+    """What a session runs with, from the command line (the protocol says the rest)."""
+
+    mode: str = "virtual"
+    intent: str = "simulated"
+    """Who decides where a block does not say: simulated, pad, lsl or an installed source."""
+    pad_port: str | None = None
+    stream: str | None = None
+    calibration: Path | None = None
+    bus_port: int = 7447
+    lockstep: bool = False
+    operator: str = "operator"
+    """Who runs the session (initials or a staff id), written beside every action."""
+
+    def fingerprint(self, protocol: Protocol, calibration_sha256: str | None) -> dict[str, Any]:
+        """What must not change between the start of a session and its resumption."""
+        urdf = RobotSettings().urdf_path
+        return {
+            "protocol": protocol.name,
+            "protocol_version": protocol.version,
+            "protocol_sha256": protocol.sha256,
+            "dammrl": __version__,
+            "mode": self.mode,
+            "intent": self.intent,
+            "calibration_sha256": calibration_sha256,
+            "arm_sha256": sha256_of(urdf),
+            "lockstep": self.lockstep,
+        }
+
+
+class Participant:
+    """A pseudonymous participant's folder: their Latin-square row (their enrolment
+    order), their current calibration and their sessions."""
+
+    def __init__(self, root: Path, participant: str):
+        self.id = check_participant(participant)
+        self.root = root
+        self.folder = root / self.id
+        self.file = self.folder / "participant.json"
+
+    def enrol(self) -> dict[str, Any]:
+        """Their record, enrolling them (the next row) on first sight."""
+        if self.file.exists():
+            return read_json(self.file)
+        self.root.mkdir(parents=True, exist_ok=True)
+        row = sum(1 for p in self.root.glob("*/participant.json"))
+        self.folder.mkdir(exist_ok=True)
+        record = {"id": self.id, "row": row, "enrolled": now_utc(), "calibration": None}
+        write_json(self.file, record)
+        return record
+
+    def sessions(self) -> list[Path]:
+        return sorted(p for p in self.folder.glob("ses-*") if (p / "session.json").exists())
+
+    def keep_calibration(self, calibration: Path) -> Path:
+        """Carry ``calibration`` to their later sessions: copied into their folder."""
+        kept = self.folder / f"calibration{calibration.suffix or '.json'}"
+        if calibration.resolve() != kept.resolve():
+            shutil.copyfile(calibration, kept)
+        record = read_json(self.file) | {"calibration": kept.name}
+        write_json(self.file, record)
+        return kept
+
+    def calibration(self) -> Path | None:
+        """The calibration their last session kept, if any."""
+        name = read_json(self.file).get("calibration")
+        return None if not name else self.folder / str(name)
+
+
+@dataclass
+class Progress:
+    """What a session folder says about its trials."""
+
+    done: dict[int, dict[str, Any]]
+    torn: int
+    ended: bool
+
+
+class SessionFolder:
+    """One sitting's folder (see the module docstring)."""
+
+    def __init__(self, folder: Path):
+        self.folder = folder
+        self.manifest = folder / "session.json"
+        self.trials = JsonLines(folder / "trials.jsonl")
+        self.events = JsonLines(folder / "events.jsonl")
+        self.recordings = folder / "recordings"
+
+    @classmethod
+    def create(cls, participant: Participant, protocol: Protocol, protocol_file: Path,
+               manifest: dict[str, Any]) -> SessionFolder:  # fmt: skip
+        number = len(participant.sessions()) + 1
+        folder = participant.folder / f"ses-{number:02d}"
+        while folder.exists():  # a folder a crash left without its manifest: never reused
+            number += 1
+            folder = participant.folder / f"ses-{number:02d}"
+        folder.mkdir(parents=True)
+        session = cls(folder)
+        session.recordings.mkdir()
+        shutil.copyfile(protocol_file, folder / "protocol.yaml")
+        write_json(session.manifest, manifest | {"session": folder.name, "started": now_utc()})
+        return session
+
+    def read_manifest(self) -> dict[str, Any]:
+        return read_json(self.manifest)
+
+    def progress(self) -> Progress:
+        entries, torn = self.trials.read()
+        done = {int(e["trial"]): e for e in entries if isinstance(e.get("trial"), int)}
+        return Progress(done, torn, "ended" in self.read_manifest())
+
+    def next_part(self) -> Path:
+        """A recording file no run has used."""
+        parts = [int(p.stem.split("-")[1]) for p in self.recordings.glob("part-*.mcap")]
+        return self.recordings / f"part-{max(parts, default=0) + 1:02d}.mcap"
+
+    def end(self) -> None:
+        write_json(self.manifest, self.read_manifest() | {"ended": now_utc()})
+
+
+def differences(recorded: dict[str, Any], now: dict[str, Any]) -> list[str]:
+    """What changed between the set-up a session recorded and this one."""
+    keys = sorted(set(recorded) | set(now))
+    return [f"{k}: {recorded.get(k)!r} then, {now.get(k)!r} now" for k in keys
+            if recorded.get(k) != now.get(k)]  # fmt: skip
+
+
+def runs(trials: list[Trial]) -> Iterator[list[Trial]]:
+    """Remaining trials grouped into stack runs: consecutive trials of one block with
+    consecutive seeds (a stack runs seeds ``seed``, ``seed + 1``, ...)."""
+    group: list[Trial] = []
+    for trial in trials:
+        if group and (trial.block != group[-1].block or trial.seed != group[-1].seed + 1):
+            yield group
+            group = []
+        group.append(trial)
+    if group:
+        yield group
+
+
+Say = Callable[[str], None]
+
+
+class SessionRunner:
+    """Runs (or resumes) a participant's session of a protocol through the stack."""
+
+    def __init__(self, root: Path, participant: str, protocol_file: Path, setup: SetUp,
+                 say: Say = print, new: bool = False, accept_changes: str | None = None,
+                 wait_for_operator: bool | None = None) -> None:  # fmt: skip
+        self.participant = Participant(root, participant)
+        self.protocol_file = protocol_file
+        self.protocol = load_protocol(protocol_file)
+        self.setup = setup
+        self.say = say
+        self.new = new
+        self.accept_changes = accept_changes
+        self.wait = sys.stdin.isatty() if wait_for_operator is None else wait_for_operator
+
+    def run(self) -> int:
+        """Run every trial not yet done; the exit code."""
+        record = self.participant.enrol()
+        calibration = self._calibration()
+        setup = replace(self.setup, calibration=calibration)
+        fingerprint = setup.fingerprint(
+            self.protocol, None if calibration is None else sha256_of(calibration)
+        )
+        session = self._session(record, fingerprint)
+        if calibration is not None:
+            kept = session.folder / f"calibration{calibration.suffix or '.json'}"
+            if not kept.exists():
+                shutil.copyfile(calibration, kept)
+        trials = plan_trials(self.protocol, int(record["row"]))
+        progress = session.progress()
+        remaining = [t for t in trials if t.number not in progress.done]
+        if not remaining:
+            self.say(f"{session.folder}: all {len(trials)} trials are done")
+            return Exit.OK
+        return self._run_trials(session, setup, remaining, len(trials))
+
+    def _calibration(self) -> Path | None:
+        """The calibration given now (kept for later sessions), else the participant's."""
+        if self.setup.calibration is not None:
+            return self.participant.keep_calibration(self.setup.calibration)
+        return self.participant.calibration() if self.setup.intent in ("pad", "lsl") else None
+
+    def _session(self, record: dict[str, Any], fingerprint: dict[str, Any]) -> SessionFolder:
+        """The unfinished session to resume (its set-up checked), or a new one."""
+        sessions = self.participant.sessions()
+        if sessions and not self.new:
+            last = SessionFolder(sessions[-1])
+            manifest = last.read_manifest()
+            if "ended" not in manifest:
+                self._check_resumable(last, manifest, fingerprint)
+                return last
+        if sessions and "ended" not in (last := SessionFolder(sessions[-1])).read_manifest():
+            last.events.add(self._event("left unfinished: a new session started"))
+        manifest = {"participant": self.participant.id, "row": record["row"],
+                    "setup": fingerprint, "operator": self.setup.operator}  # fmt: skip
+        session = SessionFolder.create(self.participant, self.protocol, self.protocol_file,
+                                       manifest)  # fmt: skip
+        session.events.add(self._event("start", protocol=self.protocol.name))
+        self.say(f"new session {session.folder}")
+        return session
+
+    def _check_resumable(self, session: SessionFolder, manifest: dict[str, Any],
+                         fingerprint: dict[str, Any]) -> None:  # fmt: skip
+        """Refuse to resume under another set-up unless the operator says why."""
+        changed = differences(manifest.get("setup", {}), fingerprint)
+        if changed and self.accept_changes is None:
+            raise UsageError(
+                f"{session.folder} was started with another set-up ({'; '.join(changed)}): "
+                'resume it with --accept-changes "why", or start a new session with --new'
+            )
+        progress = session.progress()
+        session.events.add(self._event("resume", done=len(progress.done),
+                                       changed=changed, why=self.accept_changes))  # fmt: skip
+        torn = f" ({progress.torn} torn log line skipped)" if progress.torn else ""
+        self.say(f"resuming {session.folder}: {len(progress.done)} trials done{torn}")
+
+    def _event(self, what: str, **details: Any) -> dict[str, Any]:
+        return {"utc": now_utc(), "who": self.setup.operator, "what": what} | details
+
+    def _run_trials(self, session: SessionFolder, setup: SetUp, remaining: list[Trial],
+                    total: int) -> int:  # fmt: skip
+        blocks = {b.name: b for b in self.protocol.blocks}
+        for group in runs(remaining):
+            block = blocks[group[0].block]
+            if group[0].index == 1:
+                self._begin_block(session, group[0], block.instructions)
+            try:
+                code = self._run(session, setup, group, total)
+            except DammrlError as exc:
+                self._stopped(session, group, str(exc))
+                raise
+            if code != Exit.OK:
+                self._stopped(session, group, f"exit code {int(code)}")
+                return code
+            if group[-1].index == block.trials:
+                session.events.add(self._event("block-end", block=block.name))
+                if block.rest_s > 0 and group[-1].number < total:
+                    self._rest(session, block.rest_s)
+        session.events.add(self._event("end"))
+        session.end()
+        self.say(f"session complete: {total} trials in {session.folder}")
+        return Exit.OK
+
+    def _stopped(self, session: SessionFolder, group: list[Trial], reason: str) -> None:
+        trial = self._first_undone(session, group)
+        session.events.add(self._event("stopped", trial=trial, reason=reason))
+        self.say(f"stopped at trial {trial}: `dammrl session run` again with the same "
+                 f"participant resumes there ({session.folder})")  # fmt: skip
+
+    @staticmethod
+    def _first_undone(session: SessionFolder, group: list[Trial]) -> int | None:
+        done = session.progress().done
+        return next((t.number for t in group if t.number not in done), None)
+
+    def _begin_block(self, session: SessionFolder, trial: Trial, instructions: str) -> None:
+        kind = "practice block" if trial.practice else "block"
+        self.say(f"{kind} {trial.block_position} ({trial.block}): {instructions}".rstrip(": "))
+        session.events.add(self._event("block-start", block=trial.block))
+        if self.wait:
+            input("press Enter when the participant is ready ")
+
+    def _rest(self, session: SessionFolder, rest_s: float) -> None:
+        session.events.add(self._event("rest", seconds=rest_s))
+        self.say(f"rest for {rest_s:.0f} s (Ctrl-C ends the session here; it resumes later)")
+        time.sleep(rest_s)
+
+    def _run(self, session: SessionFolder, setup: SetUp, group: list[Trial], total: int) -> int:
+        """One stack run over ``group``; each trial logged as its result comes."""
+        part = session.next_part()
+        condition = group[0].condition
+        study = json.dumps({"participant": self.participant.id, "session": session.folder.name,
+                            "protocol": self.protocol.name, "version": self.protocol.version,
+                            "sha256": self.protocol.sha256, "block": group[0].block,
+                            "trials": [t.number for t in group]})  # fmt: skip
+        intent = condition.intent or setup.intent
+        person = intent in ("pad", "lsl")
+        options = StackOptions(
+            mode=setup.mode, episodes=len(group), seed=group[0].seed, model=condition.model,
+            trigger=condition.trigger, port=setup.bus_port, record=part, study=study,
+            intent=None if person else intent,
+            pad_port=setup.pad_port if intent == "pad" else None,
+            lsl_stream=setup.stream if intent == "lsl" else None,
+            calibration=setup.calibration if person else None, lockstep=setup.lockstep,
+        )  # fmt: skip
+        session.events.add(self._event("run", block=group[0].block, recording=part.name,
+                                       trials=[t.number for t in group]))  # fmt: skip
+
+        def keep(result: EpisodeResult) -> None:
+            trial = group[result.episode - 1]
+            session.trials.add({"trial": trial.number, "block": trial.block,
+                                "block_position": trial.block_position, "index": trial.index,
+                                "seed": trial.seed, "practice": trial.practice,
+                                "condition": trial.condition.model_dump(mode="json"),
+                                "recording": f"recordings/{part.name}",
+                                "episode": result.episode, "utc": now_utc(),
+                                "result": result_dict(result)})  # fmt: skip
+            self.say(f"trial {trial.number}/{total} ({trial.block} {trial.index}): "
+                     f"{result.outcome} in {result.t_total_s:.1f} s")  # fmt: skip
+
+        stack = Stack(options, out=lambda _: None, info=self.say, on_result=keep)
+        return stack.run()
+
+
+def session_table(root: Path, participant: str | None = None) -> list[dict[str, Any]]:
+    """One row per session under ``root`` (one participant's, if given)."""
+    folders = [Participant(root, participant).folder] if participant else sorted(
+        p for p in root.glob("*") if (p / "participant.json").exists()
+    )  # fmt: skip
+    rows = []
+    for folder in folders:
+        for path in sorted(folder.glob("ses-*/session.json")):
+            session = SessionFolder(path.parent)
+            manifest, progress = session.read_manifest(), session.progress()
+            total = len(plan_trials(load_protocol(path.parent / "protocol.yaml"),
+                                    int(manifest.get("row", 0))))  # fmt: skip
+            successes = sum(bool(e["result"].get("success")) for e in progress.done.values())
+            rows.append({"participant": folder.name, "session": path.parent.name,
+                         "protocol": manifest["setup"]["protocol"],
+                         "started": manifest.get("started", ""),
+                         "trials": f"{len(progress.done)}/{total}",
+                         "successes": successes,
+                         "state": "ended" if progress.ended else "unfinished"})  # fmt: skip
+    return rows
