@@ -265,9 +265,12 @@ class Stack:
         out: Callable[[str], None] = print,
         info: Callable[[str], None] = print,
         on_result: Callable[[EpisodeResult], None] | None = None,
+        on_up: Callable[[zenoh.Session], None] | None = None,
     ) -> None:
         """``out`` receives the episode results, ``info`` the progress lines; ``on_result``
-        each episode's result as it is counted (a session's trial log keeps it at once)."""
+        each episode's result as it is counted (a session's trial log keeps it at once);
+        ``on_up`` the stack's hub session once every service is alive (a participant
+        display subscribes there)."""
         check_options(options)
         self.options = options
         self.out = out
@@ -281,6 +284,7 @@ class Stack:
         self.emulator: subprocess.Popen[bytes] | None = None
         self.results: list[EpisodeResult] = []
         self.on_result = on_result
+        self.on_up = on_up
         self.prompts: PatientPrompts | None = None
         self.recorder_restarts = 0
         self.ignored = 0  # messages on task/result that were not an episode's result
@@ -371,6 +375,8 @@ class Stack:
                     self.prompts = PatientPrompts(session, self.options.namespace, self.info)
                 self._start_children(session, stop)
                 self._wait_alive(session, stop)
+                if self.on_up is not None:
+                    self.on_up(session)
                 self.progress = Progress(session, self.options.namespace, self.info)
                 return self._watch(results, stop)
             finally:

@@ -3,6 +3,7 @@
 from schemas.codec import DecodeError, decode, encode
 from schemas.keys import DEFAULT_NAMESPACE, TOPICS, key, type_of
 from schemas.messages import (
+    ComfortRating,
     DecisionRequest,
     EmergencyStop,
     EpisodeResult,
@@ -23,6 +24,7 @@ from schemas.messages import (
 __all__ = [
     "DEFAULT_NAMESPACE",
     "TOPICS",
+    "ComfortRating",
     "DecisionRequest",
     "DecodeError",
     "EmergencyStop",

@@ -8,6 +8,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from schemas.messages import (
+    ComfortRating,
     DecisionRequest,
     EmergencyStop,
     EpisodeResult,
@@ -39,6 +40,7 @@ TOPICS: dict[str, type[Message]] = {
     "sensor/chunk": SignalChunk,
     "intent/evidence": IntentEvidence,
     "safety/stop": EmergencyStop,
+    "session/comfort": ComfortRating,
     "health/*": Health,  # one key per service: health/<service>
 }
 
@@ -73,6 +75,7 @@ LIMITS: dict[str, KeyLimits] = {
     # a wearable's raw stream: the intent service sends one chunk every 20 ms at most, of
     # at most CHUNK_BYTES (a 1 kHz, 8-channel stream: ~2 kB)
     "sensor/chunk": KeyLimits(32_768, 500.0),
+    "session/comfort": KeyLimits(1024, 100.0),  # one per block
     "safety/stop": KeyLimits(1024, 1_000.0),  # per link: a flood never delays the console's
     "health/*": KeyLimits(32_768, 100.0),  # one a second per service
 }

@@ -303,3 +303,19 @@ class EmergencyStop(Message):
 
     engaged: bool = Field(description="true: stop now; false: release a stop")
     reason: str = Field("", max_length=200, description="who stopped and why (for the record)")
+
+
+class ComfortRating(Message):
+    """The participant's comfort after a block of reaches, as they rated it on the
+    participant display (the paper's S3 weighs "user comfort"): 1 very uncomfortable ...
+    5 very comfortable."""
+
+    participant: str = Field(
+        max_length=16, pattern=r"^[A-Za-z0-9]*$", description="the pseudonymous id (or empty)"
+    )
+    block: str = Field(max_length=64, description="the protocol block just finished")
+    trial: int = Field(ge=0, description="the session's last trial before the rating")
+    rating: int = Field(ge=1, le=5, description="1 very uncomfortable ... 5 very comfortable")
+    asked_s: float = Field(
+        ge=0, allow_inf_nan=False, description="how long the question was shown [s]"
+    )

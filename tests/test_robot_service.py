@@ -360,6 +360,10 @@ def test_every_fault_ends_in_a_hold_or_a_stop_without_a_jump(
         inject(rig.arm, recovery)
         rig.run(2.0)
         assert rig.last_health[0] == "holding", rig.bus.health[-3:]
+        for _ in range(20):  # settled: on a loaded machine (fewer cycles a second) later
+            if rig.fastest(len(rig.speeds) - 50) < 0.05:
+                break
+            rig.run(0.1)
         assert rig.fastest(len(rig.speeds) - 50) < 0.05
 
 

@@ -10,6 +10,7 @@ import pytest
 
 from schemas import (
     TOPICS,
+    ComfortRating,
     DecisionRequest,
     DecodeError,
     EmergencyStop,
@@ -69,6 +70,8 @@ EXAMPLES: list[Message] = [
     Health(header=HEADER, service="sim", state="ok", rejected={"dammrl/robot/command": 2},
            rates_hz={"dammrl/robot/state": 100.0}, uptime_s=3.0),
     EmergencyStop(header=HEADER, engaged=True, reason="the patient asked"),
+    ComfortRating(header=HEADER, participant="P012", block="event", trial=7, rating=4,
+                  asked_s=3.2),
 ]  # fmt: skip
 
 

@@ -38,7 +38,9 @@ PUBLISHES: dict[str, tuple[str, ...]] = {
     "intent": ("intent", "intent/evidence", "sensor/sample", "sensor/chunk"),
     "policy": ("policy/model",),
     "recorder": (),
-    "tool": ("safety/stop",),  # status, echo, the launcher, `dammrl stop`: read, and stop
+    # status, echo, the launcher (and the session's participant display), `dammrl stop`:
+    # read, stop, and the participant's comfort ratings
+    "tool": ("safety/stop", "session/comfort"),
 }  # fmt: skip
 ROLES = tuple(PUBLISHES)
 

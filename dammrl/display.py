@@ -1,0 +1,284 @@
+"""The participant display: a page in any browser of the lab's network (viser serves it
+and its web client from the wheel, no build step) showing what the participant needs to
+decide, and nothing else.
+
+- The arm, drawn from the URDF's collision geometry (cylinders, boxes, spheres) posed by
+  each robot state with pinocchio's forward kinematics; the table; the goal button.
+- The current subgoal with its admission sphere (its radius the chosen ε).
+- A large, high-contrast cue: "Decide now: forward or back", with the input to use,
+  while a decision request is open; the outcome after each reach; the instructions
+  before a block; the rest between blocks with its countdown.
+- A comfort rating (1-5) after a block, returned to the caller (a session publishes it
+  on the bus and logs it).
+
+Operator tools (Foxglove through ``dammrl view``) stay apart: this page is for a patient,
+possibly older, at arm's length from a screen: few things, large type, strong colours.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import viser
+
+from dammrl_core.robot import RobotDescription
+from dammrl_core.task import TaskSettings
+from schemas import (
+    DecisionRequest,
+    EpisodeResult,
+    Intent,
+    Message,
+    RobotState,
+    StepEvent,
+    TaskGoal,
+)
+
+ARM = (205, 210, 220)
+TABLE = (120, 92, 64)
+GOAL = (230, 40, 40)
+SUBGOAL = (40, 140, 255)
+BACKGROUND_TEXT = "#ffffff"
+CUE_COLOURS = {"decide": "#ffd000", "info": "#ffffff", "good": "#35e06a", "bad": "#ff6b5b"}
+CAP_RADIUS_M = 0.03
+STATE_HZ = 30.0
+"""The page is redrawn at most this often from the robot state (a screen shows 60 Hz)."""
+
+
+@dataclass(frozen=True)
+class Shape:
+    """One collision shape of a link: its kind, size and placement on its joint."""
+
+    kind: str  # cylinder, box or sphere
+    size: tuple[float, ...]  # radius, length | x, y, z | radius [m]
+    joint: int
+    placement: Any  # pinocchio SE3 of the shape in its joint's frame
+
+
+class ArmShapes:
+    """The URDF's collision shapes and their world poses for a joint vector."""
+
+    def __init__(self, robot: RobotDescription) -> None:
+        import pinocchio as pin
+
+        self._pin = pin
+        self.model = robot.pinocchio_model()
+        self.data = self.model.createData()
+        geometry = pin.buildGeomFromUrdf(self.model, str(robot.urdf_path), pin.COLLISION)
+        self.shapes = [s for s in map(_shape, geometry.geometryObjects) if s is not None]
+
+    def poses(self, q: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+        """(position, quaternion w x y z) of every shape at ``q``."""
+        pin = self._pin
+        pin.forwardKinematics(self.model, self.data, np.asarray(q, dtype=float))
+        poses = []
+        for shape in self.shapes:
+            world = self.data.oMi[shape.joint] * shape.placement
+            x, y, z, w = pin.Quaternion(world.rotation).coeffs()
+            poses.append((np.array(world.translation), np.array([w, x, y, z])))
+        return poses
+
+
+def _shape(geometry: Any) -> Shape | None:
+    """A collision object as a Shape (None: a kind the display does not draw)."""
+    kind = type(geometry.geometry).__name__
+    g = geometry.geometry
+    if kind == "Cylinder":
+        size: tuple[float, ...] = (float(g.radius), 2 * float(g.halfLength))
+    elif kind == "Box":
+        size = tuple(2 * float(v) for v in g.halfSide)
+    elif kind == "Sphere":
+        size = (float(g.radius),)
+    else:
+        return None
+    return Shape(kind.lower(), size, int(geometry.parentJoint), geometry.placement)
+
+
+class ParticipantDisplay:
+    """The page (see the module docstring); ``feed`` it bus messages from any thread."""
+
+    def __init__(self, robot: RobotDescription, task: TaskSettings, host: str = "0.0.0.0",
+                 port: int = 8080, decide_with: str = "the pad") -> None:  # fmt: skip
+        self.server = viser.ViserServer(host=host, port=port, label="dammrl", verbose=False)
+        self.port = self.server.get_port()
+        self.decide_with = decide_with
+        self.arm = ArmShapes(robot)
+        self._lock = threading.Lock()
+        self._drawn_s = 0.0
+        self.frames = 0  # robot states drawn
+        self.episode = 0
+        self._scene(task)
+        self._panel()
+        self.say("Welcome", "The session starts soon.")
+
+    # ---- the scene ----------------------------------------------------------------
+    def _scene(self, task: TaskSettings) -> None:
+        server = self.server
+        server.gui.configure_theme(control_width="large", dark_mode=True, show_logo=False,
+                                   show_share_button=False)  # fmt: skip
+        server.gui.main_panel.dock_right()
+        server.scene.set_up_direction("+z")
+        # where a seated participant beside the arm looks from: over the shoulder
+        server.initial_camera.position = (-0.3, -0.7, 0.25)
+        server.initial_camera.look_at = (0.3, 0.0, -0.2)
+        top = task.table_top_z_m
+        server.scene.add_box("/table", TABLE, (0.9, 1.0, 0.04),
+                             position=(0.35, 0.0, top - 0.02))  # fmt: skip
+        self.goal = server.scene.add_cylinder("/goal", CAP_RADIUS_M, 0.012, GOAL,
+                                              position=(0.4, 0.0, top), visible=False)  # fmt: skip
+        # a halo over the true-size cap: a 6 cm button is small on a screen
+        self.halo = server.scene.add_icosphere("/goal/halo", 0.05, GOAL, opacity=0.3)
+        self.subgoal = server.scene.add_icosphere("/subgoal", 0.01, SUBGOAL, opacity=0.35,
+                                                  visible=False)  # fmt: skip
+        self.subgoal_centre = server.scene.add_icosphere("/subgoal_centre", 0.004, SUBGOAL,
+                                                         visible=False)  # fmt: skip
+        self.links = [self._add_shape(i, s) for i, s in enumerate(self.arm.shapes)]
+        self.show_state(np.zeros(len(self.arm.model.names) - 1))
+
+    def _add_shape(self, index: int, shape: Shape) -> Any:
+        name, scene = f"/arm/{index}", self.server.scene
+        if shape.kind == "cylinder":
+            return scene.add_cylinder(name, shape.size[0], shape.size[1], ARM)
+        if shape.kind == "box":
+            return scene.add_box(name, ARM, np.array(shape.size))
+        return scene.add_icosphere(name, shape.size[0], (255, 170, 40))
+
+    def show_state(self, q: np.ndarray) -> None:
+        with self.server.atomic():
+            for handle, (position, wxyz) in zip(self.links, self.arm.poses(q), strict=True):
+                handle.position, handle.wxyz = position, wxyz
+        self.frames += 1
+
+    # ---- the words ----------------------------------------------------------------
+    def _panel(self) -> None:
+        self.text = self.server.gui.add_html("")
+        self.comfort = self.server.gui.add_button_group(
+            "How comfortable was it? 1 very uncomfortable, 5 very comfortable",
+            ("1", "2", "3", "4", "5"),
+            visible=False,
+        )
+        self._rated: list[int] = []  # the clicks since the question was shown
+        self._answered = threading.Event()
+        self.comfort.on_click(self._take_rating)
+
+    def _take_rating(self, event: Any) -> None:
+        if self.comfort.visible and not self._answered.is_set():
+            self._rated.append(int(event.target.value))
+            self._answered.set()
+
+    def say(self, title: str, line: str = "", tone: str = "info") -> None:
+        """A title and a line in large type, coloured by ``tone`` (info, decide, good, bad)."""
+        colour = CUE_COLOURS[tone]
+        self.text.content = (
+            f'<div style="padding:12px;font-family:sans-serif;color:{BACKGROUND_TEXT}">'
+            f'<div style="font-size:44px;font-weight:700;color:{colour};line-height:1.1">'
+            f"{_escape(title)}</div>"
+            f'<div style="font-size:26px;margin-top:14px;line-height:1.3">{_escape(line)}</div>'
+            "</div>"
+        )
+
+    def rest(self, seconds: float, stop: threading.Event | None = None) -> None:
+        """A rest screen counting down ``seconds`` (until ``stop`` is set)."""
+        end = time.monotonic() + seconds
+        while (left := end - time.monotonic()) > 0 and not (stop and stop.is_set()):
+            self.say("Rest", f"Relax your arm. We go on in {left:.0f} s.")
+            time.sleep(min(1.0, left))
+
+    def ask_comfort(self, timeout_s: float) -> tuple[int, float] | None:
+        """Show the rating until the participant answers or ``timeout_s`` passes; (rating,
+        seconds it took) or None."""
+        self._rated.clear()
+        self._answered.clear()
+        self.say("How comfortable was that block?", "Touch a number: 1 very uncomfortable, "
+                 "5 very comfortable.", "decide")  # fmt: skip
+        self.comfort.visible = True
+        asked = time.monotonic()
+        self._answered.wait(timeout_s)
+        self.comfort.visible = False
+        choice = list(self._rated)
+        if not choice:
+            return None
+        self.say("Thank you", "", "good")
+        return choice[0], time.monotonic() - asked
+
+    # ---- the bus ------------------------------------------------------------------
+    def feed(self, message: Message) -> None:
+        """One bus message (states redrawn at most STATE_HZ)."""
+        with self._lock:
+            if isinstance(message, RobotState):
+                now = time.monotonic()
+                if now - self._drawn_s >= 1.0 / STATE_HZ:
+                    self._drawn_s = now
+                    self.show_state(np.array(message.q_rad))
+            elif isinstance(message, TaskGoal):
+                self._new_reach(message)
+            elif isinstance(message, StepEvent):
+                self.subgoal.position = self.subgoal_centre.position = message.subgoal_m
+                self.subgoal.scale = message.radius_m / 0.01  # the sphere's radius is 1 cm
+                self.subgoal.visible = self.subgoal_centre.visible = True
+            elif isinstance(message, DecisionRequest):
+                self.say("Decide now", f"Forward or back? Use {self.decide_with}.", "decide")
+            elif isinstance(message, Intent):
+                way = "forward" if message.u_h > 0 else "back"
+                self.say("Moving", f"You chose {way}.")
+            elif isinstance(message, EpisodeResult):
+                self._outcome(message)
+
+    def _new_reach(self, goal: TaskGoal) -> None:
+        if goal.episode == self.episode:
+            return  # announced again
+        self.episode = goal.episode
+        x, y, z = goal.goal_m
+        self.goal.position = (x, y, z - 0.006)  # the cap's top at the goal point
+        self.goal.wxyz = (1.0, 0.0, 0.0, 0.0)
+        self.goal.visible = True
+        self.subgoal.visible = self.subgoal_centre.visible = False
+        self.say("Get ready", "Reach for the red button.")
+
+    def _outcome(self, result: EpisodeResult) -> None:
+        if result.success:
+            self.say("Well done!", f"Button pressed in {result.t_total_s:.0f} s.", "good")
+        else:
+            self.say("Reach ended", "That one did not reach the button. Next one soon.", "bad")
+
+    def close(self) -> None:
+        self.server.stop()
+
+
+def _escape(text: str) -> str:
+    return text.replace("&", "&amp;").replace("<", "&lt;").replace(">", "&gt;")
+
+
+Feed = Callable[[Message], None]
+
+
+DISPLAYED = (RobotState, TaskGoal, StepEvent, DecisionRequest, Intent, EpisodeResult)
+
+
+class BusFeed:
+    """Feeds a display from a stack's bus: subscribers on ``session`` that decode and hand
+    on every message the display draws (bad messages are the services' business)."""
+
+    def __init__(self, display: ParticipantDisplay, namespace: str) -> None:
+        self.display, self.namespace = display, namespace
+        self.subscribers: list[Any] = []  # kept: a dropped subscriber stops
+
+    def attach(self, session: Any) -> None:
+        """Subscribe on ``session`` (a stack's hub, while it runs)."""
+        from schemas import DecodeError, decode, key
+
+        for message_type in DISPLAYED:
+
+            def take(sample: Any, message_type: type[Message] = message_type) -> None:
+                try:
+                    self.display.feed(decode(message_type, sample.payload.to_bytes()))
+                except DecodeError:
+                    return
+
+            self.subscribers.append(
+                session.declare_subscriber(key(self.namespace, message_type), take)
+            )

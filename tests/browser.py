@@ -1,0 +1,80 @@
+"""Headless Chromium (Debian's package) driven over the Chrome DevTools Protocol: open a
+page, wait, screenshot. Playwright and Puppeteer download their own browser (which fails
+here); CDP over one WebSocket needs nothing but ``websockets``."""
+
+from __future__ import annotations
+
+import base64
+import json
+import shutil
+import subprocess
+import tempfile
+import time
+import urllib.request
+from pathlib import Path
+from typing import Any
+
+from websockets.sync.client import connect
+
+from tests.busutil import free_port
+
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+
+
+class Browser:
+    """One headless Chromium showing ``url`` (software WebGL)."""
+
+    def __init__(self, url: str, width: int = 1280, height: int = 800) -> None:
+        assert CHROMIUM is not None, "chromium is not installed (apt-get install chromium)"
+        self.port = free_port()
+        self.profile = tempfile.mkdtemp(prefix="dammrl-chromium-")
+        self.process = subprocess.Popen(
+            [CHROMIUM, "--headless", "--no-sandbox", "--use-gl=angle",
+             "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
+             f"--remote-debugging-port={self.port}", f"--user-data-dir={self.profile}",
+             f"--window-size={width},{height}", "--hide-scrollbars", url],
+            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+        )  # fmt: skip
+        self.ws = connect(self._page_socket(), max_size=None, open_timeout=10)
+        self.next_id = 0
+        self.call("Page.enable")
+
+    def _page_socket(self) -> str:
+        deadline = time.monotonic() + 20
+        while time.monotonic() < deadline:
+            try:
+                with urllib.request.urlopen(f"http://127.0.0.1:{self.port}/json") as answer:
+                    pages = [p for p in json.load(answer) if p.get("type") == "page"]
+                if pages:
+                    return str(pages[0]["webSocketDebuggerUrl"])
+            except OSError:
+                pass
+            time.sleep(0.1)
+        raise AssertionError("chromium did not open its DevTools port")
+
+    def call(self, method: str, **params: Any) -> dict[str, Any]:
+        self.next_id += 1
+        ident = self.next_id
+        self.ws.send(json.dumps({"id": ident, "method": method, "params": params}))
+        while True:
+            reply = json.loads(self.ws.recv(timeout=30))
+            if reply.get("id") == ident:
+                if "error" in reply:
+                    raise AssertionError(f"{method}: {reply['error']}")
+                return dict(reply.get("result", {}))
+
+    def evaluate(self, expression: str) -> Any:
+        result = self.call("Runtime.evaluate", expression=expression, returnByValue=True)
+        return result.get("result", {}).get("value")
+
+    def screenshot(self, path: Path | None = None) -> bytes:
+        png = base64.b64decode(self.call("Page.captureScreenshot", format="png")["data"])
+        if path is not None:
+            path.write_bytes(png)
+        return png
+
+    def close(self) -> None:
+        self.ws.close()
+        self.process.terminate()
+        self.process.wait(10)
+        shutil.rmtree(self.profile, ignore_errors=True)

@@ -1,0 +1,123 @@
+"""A session through the real stack: ``kill -9`` of the runner, then of a service,
+mid-block; each time ``dammrl session run`` again resumes, and in the end every trial is
+done exactly once and every recording still holds the results its trials point at."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from dammrl.launch import check_port
+from dammrl.recording import read_recording
+from dammrl_core.errors import DammrlError
+from schemas import EpisodeResult
+from tests.busutil import free_port
+
+pytestmark = pytest.mark.slow
+
+PROTOCOL = """\
+format: 1
+name: crash-test
+version: "1"
+blocks:
+  - {name: event, trials: 3, seed: 7100100, condition: {policy: fixed, model: [2, 1]}}
+  - {name: fixed, trials: 3, seed: 7100100,
+     condition: {trigger: fixed, policy: fixed, model: [2, 1]}}
+"""
+
+
+def _start(tmp_path: Path, port: int) -> subprocess.Popen[bytes]:
+    log = open(tmp_path / "runner.log", "ab")  # noqa: SIM115  (the child writes it)
+    return subprocess.Popen(
+        [sys.executable, "-m", "dammrl", "session", "run", "--participant", "P001",
+         "--protocol", str(tmp_path / "protocol.yaml"), "--root", str(tmp_path / "sessions"),
+         "--lockstep", "--bus-port", str(port), "--operator", "T1"],
+        stdin=subprocess.DEVNULL, stdout=log, stderr=log,
+    )  # fmt: skip
+
+
+def _done(tmp_path: Path) -> list[dict[str, object]]:
+    path = tmp_path / "sessions" / "P001" / "ses-01" / "trials.jsonl"
+    lines = path.read_text().splitlines() if path.exists() else []
+    return [json.loads(line) for line in lines]
+
+
+def _wait(condition: object, timeout_s: float, what: str, tmp_path: Path) -> None:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if callable(condition) and condition():
+            return
+        time.sleep(0.1)
+    log = (tmp_path / "runner.log").read_text(errors="replace")[-3000:]
+    raise AssertionError(f"no {what} in {timeout_s} s; the runner said:\n{log}")
+
+
+def _port_free(port: int) -> bool:
+    try:
+        check_port(port)
+    except DammrlError:
+        return False
+    return True
+
+
+def _child(parent: int, service: str) -> int:
+    """The pid of ``services.<service>`` started by ``parent``."""
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            ppid = int((entry / "stat").read_text().rsplit(")", 1)[1].split()[1])
+            command = (entry / "cmdline").read_bytes().replace(b"\0", b" ")
+        except (OSError, IndexError, ValueError):
+            continue
+        if ppid == parent and f"services.{service}".encode() in command:
+            return int(entry.name)
+    raise AssertionError(f"no {service} under {parent}")
+
+
+def _kill_after(tmp_path: Path, port: int, trials: int, victim: str | None) -> None:
+    """Run the session until ``trials`` trials are logged, then kill -9 the runner (None)
+    or one of its services; wait until everything it started is gone."""
+    runner = _start(tmp_path, port)
+    try:
+        _wait(lambda: len(_done(tmp_path)) >= trials, 180, f"{trials} trials", tmp_path)
+        pid = runner.pid if victim is None else _child(runner.pid, victim)
+        os.kill(pid, signal.SIGKILL)
+        runner.wait(60)  # a dead service ends the runner's run with an error
+    finally:
+        if runner.poll() is None:
+            runner.kill()
+            runner.wait()
+    _wait(lambda: _port_free(port), 30, "free port (the services die with the runner)", tmp_path)
+
+
+def test_a_session_killed_twice_resumes_and_runs_every_trial_exactly_once(
+    tmp_path: Path,
+) -> None:
+    (tmp_path / "protocol.yaml").write_text(PROTOCOL)
+    port = free_port()
+    _kill_after(tmp_path, port, 2, None)  # the runner, mid first block
+    _kill_after(tmp_path, port, 4, "controller")  # a service, mid second block
+    runner = _start(tmp_path, port)
+    assert runner.wait(300) == 0, (tmp_path / "runner.log").read_text()[-3000:]
+
+    done = _done(tmp_path)
+    assert sorted(int(str(t["trial"])) for t in done) == [1, 2, 3, 4, 5, 6], done
+    folder = tmp_path / "sessions" / "P001" / "ses-01"
+    events = [json.loads(line) for line in (folder / "events.jsonl").read_text().splitlines()]
+    whats = [e["what"] for e in events]
+    assert whats.count("resume") == 2 and whats[-1] == "end" and "stopped" in whats
+    assert all(e["who"] == "T1" for e in events)
+    for trial in done:  # its recording holds its result, whatever killed the run after it
+        recording = read_recording(folder / str(trial["recording"]))
+        results = [m for _, m in recording.decoded(EpisodeResult)]
+        assert any(r.episode == trial["episode"] and r.seed == trial["seed"] for r in results)
+        study = json.loads(recording.metadata["dammrl.session"]["study"])
+        assert study["participant"] == "P001" and trial["trial"] in study["trials"]
