@@ -17,6 +17,7 @@ possibly older, at arm's length from a screen: few things, large type, strong co
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
 from collections.abc import Callable
@@ -45,6 +46,9 @@ SUBGOAL = (40, 140, 255)
 BACKGROUND_TEXT = "#ffffff"
 CUE_COLOURS = {"decide": "#ffd000", "info": "#ffffff", "good": "#35e06a", "bad": "#ff6b5b"}
 CAP_RADIUS_M = 0.03
+COMFORT_SCALE = ((5, "very comfortable"), (4, "comfortable"), (3, "neither"),
+                 (2, "uncomfortable"), (1, "very uncomfortable"))  # fmt: skip
+BUTTON_STYLE = "button { min-height: 64px !important; font-size: 26px !important; }"
 STATE_HZ = 30.0
 """The page is redrawn at most this often from the robot state (a screen shows 60 Hz)."""
 
@@ -103,6 +107,8 @@ class ParticipantDisplay:
 
     def __init__(self, robot: RobotDescription, task: TaskSettings, host: str = "0.0.0.0",
                  port: int = 8080, decide_with: str = "the pad") -> None:  # fmt: skip
+        # a browser's dropped pre-connection is no error of ours
+        logging.getLogger("websockets.server").setLevel(logging.CRITICAL)
         self.server = viser.ViserServer(host=host, port=port, label="dammrl", verbose=False)
         self.port = self.server.get_port()
         self.decide_with = decide_with
@@ -123,7 +129,7 @@ class ParticipantDisplay:
         server.gui.main_panel.dock_right()
         server.scene.set_up_direction("+z")
         # where a seated participant beside the arm looks from: over the shoulder
-        server.initial_camera.position = (-0.3, -0.7, 0.25)
+        server.initial_camera.position = (0.0, -0.8, 0.3)
         server.initial_camera.look_at = (0.3, 0.0, -0.2)
         top = task.table_top_z_m
         server.scene.add_box("/table", TABLE, (0.9, 1.0, 0.04),
@@ -155,19 +161,21 @@ class ParticipantDisplay:
 
     # ---- the words ----------------------------------------------------------------
     def _panel(self) -> None:
+        # large touch targets: the panel's buttons at the height of a finger
+        self.server.gui.add_html(f"<style>{BUTTON_STYLE}</style>")
         self.text = self.server.gui.add_html("")
-        self.comfort = self.server.gui.add_button_group(
-            "How comfortable was it? 1 very uncomfortable, 5 very comfortable",
-            ("1", "2", "3", "4", "5"),
-            visible=False,
-        )
-        self._rated: list[int] = []  # the clicks since the question was shown
+        self._rated: list[int] = []  # the rating given since the question was shown
         self._answered = threading.Event()
-        self.comfort.on_click(self._take_rating)
+        self.comfort = [self._rating_button(n, label) for n, label in COMFORT_SCALE]
 
-    def _take_rating(self, event: Any) -> None:
-        if self.comfort.visible and not self._answered.is_set():
-            self._rated.append(int(event.target.value))
+    def _rating_button(self, rating: int, label: str) -> Any:
+        button = self.server.gui.add_button(f"{rating}   {label}", visible=False)
+        button.on_click(lambda _: self._take_rating(rating))
+        return button
+
+    def _take_rating(self, rating: int) -> None:
+        if self.comfort[0].visible and not self._answered.is_set():
+            self._rated.append(rating)
             self._answered.set()
 
     def say(self, title: str, line: str = "", tone: str = "info") -> None:
@@ -193,12 +201,13 @@ class ParticipantDisplay:
         seconds it took) or None."""
         self._rated.clear()
         self._answered.clear()
-        self.say("How comfortable was that block?", "Touch a number: 1 very uncomfortable, "
-                 "5 very comfortable.", "decide")  # fmt: skip
-        self.comfort.visible = True
+        self.say("How comfortable was that block?", "Touch one answer.", "decide")
+        for button in self.comfort:
+            button.visible = True
         asked = time.monotonic()
         self._answered.wait(timeout_s)
-        self.comfort.visible = False
+        for button in self.comfort:
+            button.visible = False
         choice = list(self._rated)
         if not choice:
             return None

@@ -32,14 +32,17 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass, replace
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from dammrl import __version__
 from dammrl.launch import Stack, StackOptions, result_dict
 from dammrl_core.errors import ConfigurationError, DammrlError, Exit, UsageError
 from dammrl_core.protocol import Protocol, Trial, load_protocol, plan_trials
 from dammrl_core.robot import RobotSettings
-from schemas import EpisodeResult
+from schemas import DEFAULT_NAMESPACE, ComfortRating, EpisodeResult, Header, encode, key
+
+if TYPE_CHECKING:
+    from dammrl.display import ParticipantDisplay
 
 PARTICIPANT_ID = re.compile(r"^[A-Za-z]{1,4}[0-9]{1,6}$")
 """A pseudonym such as P012: letters then digits, nothing a name could hide in."""
@@ -262,10 +265,16 @@ class SessionRunner:
 
     def __init__(self, root: Path, participant: str, protocol_file: Path, setup: SetUp,
                  say: Say = print, new: bool = False, accept_changes: str | None = None,
-                 wait_for_operator: bool | None = None) -> None:  # fmt: skip
+                 wait_for_operator: bool | None = None, display: ParticipantDisplay | None = None,
+                 comfort_timeout_s: float = 120.0) -> None:  # fmt: skip
         self.participant = Participant(root, participant)
+        self.display = display
+        self.comfort_timeout_s = comfort_timeout_s
+        self.hub: Any = None  # the running stack's bus session (a rating goes out on it)
+        self.ratings = 0  # comfort ratings sent (their sequence numbers)
         self.protocol_file = protocol_file
         self.protocol = load_protocol(protocol_file)
+        self.blocks = {b.name: b for b in self.protocol.blocks}
         self.setup = setup
         self.say = say
         self.new = new
@@ -338,9 +347,8 @@ class SessionRunner:
 
     def _run_trials(self, session: SessionFolder, setup: SetUp, remaining: list[Trial],
                     total: int) -> int:  # fmt: skip
-        blocks = {b.name: b for b in self.protocol.blocks}
         for group in runs(remaining):
-            block = blocks[group[0].block]
+            block = self.blocks[group[0].block]
             if group[0].index == 1:
                 self._begin_block(session, group[0], block.instructions)
             try:
@@ -357,6 +365,8 @@ class SessionRunner:
                     self._rest(session, block.rest_s)
         session.events.add(self._event("end"))
         session.end()
+        if self.display is not None:
+            self.display.say("Thank you", "The session is complete.", "good")
         self.say(f"session complete: {total} trials in {session.folder}")
         return Exit.OK
 
@@ -374,6 +384,8 @@ class SessionRunner:
     def _begin_block(self, session: SessionFolder, trial: Trial, instructions: str) -> None:
         kind = "practice block" if trial.practice else "block"
         self.say(f"{kind} {trial.block_position} ({trial.block}): {instructions}".rstrip(": "))
+        if self.display is not None:
+            self.display.say(f"{kind.capitalize()} {trial.block_position}", instructions)
         session.events.add(self._event("block-start", block=trial.block))
         if self.wait:
             input("press Enter when the participant is ready ")
@@ -381,7 +393,34 @@ class SessionRunner:
     def _rest(self, session: SessionFolder, rest_s: float) -> None:
         session.events.add(self._event("rest", seconds=rest_s))
         self.say(f"rest for {rest_s:.0f} s (Ctrl-C ends the session here; it resumes later)")
-        time.sleep(rest_s)
+        if self.display is not None:
+            self.display.rest(rest_s)
+        else:
+            time.sleep(rest_s)
+
+    def _ask_comfort(self, session: SessionFolder, trial: Trial) -> None:
+        """The participant's comfort after ``trial``'s block, on the display: on the bus
+        (the recording keeps it; the block's stack still runs) and in the events."""
+        if self.display is None or self.protocol.comfort == "none":
+            return
+        answer = self.display.ask_comfort(self.comfort_timeout_s)
+        if answer is None:
+            session.events.add(self._event("comfort", block=trial.block, rating=None))
+            self.say(f"no comfort rating within {self.comfort_timeout_s:.0f} s")
+            return
+        rating, asked_s = answer
+        message = ComfortRating(
+            header=Header(stamp_ns=time.time_ns(), seq=self.ratings, source="tool"),
+            participant=self.participant.id, block=trial.block, trial=trial.number,
+            rating=rating, asked_s=asked_s,
+        )  # fmt: skip
+        self.ratings += 1
+        if self.hub is not None:
+            self.hub.put(key(DEFAULT_NAMESPACE, ComfortRating), encode(message))
+            time.sleep(0.2)  # the recorder takes it before the stack stops
+        session.events.add(self._event("comfort", block=trial.block, rating=rating,
+                                       asked_s=round(asked_s, 2)))  # fmt: skip
+        self.say(f"comfort after {trial.block}: {rating} of 5")
 
     def _run(self, session: SessionFolder, setup: SetUp, group: list[Trial], total: int) -> int:
         """One stack run over ``group``; each trial logged as its result comes."""
@@ -415,9 +454,23 @@ class SessionRunner:
                                 "result": result_dict(result)})  # fmt: skip
             self.say(f"trial {trial.number}/{total} ({trial.block} {trial.index}): "
                      f"{result.outcome} in {result.t_total_s:.1f} s")  # fmt: skip
+            if trial.index == self.blocks[trial.block].trials:
+                self._ask_comfort(session, trial)
 
-        stack = Stack(options, out=lambda _: None, info=self.say, on_result=keep)
-        return stack.run()
+        stack = Stack(options, out=lambda _: None, info=self.say, on_result=keep,
+                      on_up=self._attach)  # fmt: skip
+        try:
+            return stack.run()
+        finally:
+            self.hub = None
+
+    def _attach(self, hub: Any) -> None:
+        """A stack is up: the display follows its bus."""
+        self.hub = hub
+        if self.display is not None:
+            from dammrl.display import BusFeed
+
+            BusFeed(self.display, DEFAULT_NAMESPACE).attach(hub)
 
 
 def session_table(root: Path, participant: str | None = None) -> list[dict[str, Any]]:

@@ -78,6 +78,8 @@ class Protocol(_Strict):
     """latin-square: the test blocks' order follows a balanced Latin square (Williams),
     one row per participant in the order they were enrolled."""
     blocks: tuple[Block, ...] = Field(min_length=1, max_length=100)
+    comfort: Literal["after-block", "none"] = "after-block"
+    """Ask the participant's comfort (1-5) on the display after each block."""
 
     @model_validator(mode="after")
     def _names_unique(self) -> Protocol:

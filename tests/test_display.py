@@ -107,7 +107,7 @@ def test_the_arm_and_the_goal_are_drawn_and_the_arm_moves_with_the_state(
 
 
 def test_the_cue_the_outcome_and_the_comfort_rating_by_touch(
-    page: tuple[ParticipantDisplay, Browser],
+    page: tuple[ParticipantDisplay, Browser], tmp_path: Path
 ) -> None:
     display, browser = page
 
@@ -126,8 +126,10 @@ def test_the_cue_the_outcome_and_the_comfort_rating_by_touch(
     asking = threading.Thread(target=lambda: answer.append(display.ask_comfort(30)))
     asking.start()
     click_four = """(() => { const b = [...document.querySelectorAll('button')]
-        .find(b => b.innerText.trim() === '4'); if (b) { b.click(); return true; }
+        .find(b => b.innerText.trim().startsWith('4 ')); if (b) { b.click(); return true; }
         return false; })()"""
+    _until(lambda: "Touch one answer" in text(), 15, "the rating's question")
+    browser.screenshot(tmp_path / "comfort.png")
     _until(lambda: bool(browser.evaluate(click_four)), 15, "the rating's buttons")
     asking.join(15)
     assert answer and answer[0] is not None and answer[0][0] == 4

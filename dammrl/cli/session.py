@@ -4,9 +4,13 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from dammrl.cli.common import Commands, print_err, print_out
 from dammrl_core.errors import Exit, UsageError
+
+if TYPE_CHECKING:
+    from dammrl.display import ParticipantDisplay
 
 PROTOCOLS = Path(__file__).resolve().parent.parent / "protocols"
 """The protocols shipped with dammrl, addressable by name."""
@@ -64,6 +68,15 @@ def _add_run(actions: Commands) -> None:
     run.add_argument("--lockstep", action="store_true",
                      help="simulated human only: every service on the robot clock, faster "
                           "than real time")  # fmt: skip
+    run.add_argument("--display-port", type=int, default=8080,
+                     help="the participant display: http://THIS-MACHINE:PORT in a browser "
+                          "(default 8080)")  # fmt: skip
+    run.add_argument("--display-host", default="0.0.0.0",
+                     help="the address the display listens on (default all: the display "
+                          "may be another machine; 127.0.0.1: this one only)")  # fmt: skip
+    run.add_argument("--no-display", action="store_true", help="no participant display")
+    run.add_argument("--comfort-timeout", type=float, default=120.0, metavar="S",
+                     help="how long the comfort question waits for an answer [s]")  # fmt: skip
     run.add_argument("--new", action="store_true",
                      help="start a new session even if the last one is unfinished")  # fmt: skip
     run.add_argument("--accept-changes", metavar="WHY",
@@ -82,9 +95,33 @@ def _run(args: argparse.Namespace) -> int:
     setup = SetUp(mode=args.mode, intent=intent, pad_port=args.port, stream=args.stream,
                   calibration=args.calibration, bus_port=args.bus_port,
                   lockstep=args.lockstep, operator=args.operator)  # fmt: skip
-    runner = SessionRunner(args.root, args.participant, args.protocol, setup, say=print_err,
-                           new=args.new, accept_changes=args.accept_changes)  # fmt: skip
-    return runner.run()
+    display = None if args.no_display else open_display(args.display_host, args.display_port,
+                                                         intent)  # fmt: skip
+    try:
+        runner = SessionRunner(args.root, args.participant, args.protocol, setup,
+                               say=print_err, new=args.new, accept_changes=args.accept_changes,
+                               display=display, comfort_timeout_s=args.comfort_timeout)  # fmt: skip
+        return runner.run()
+    finally:
+        if display is not None:
+            display.close()
+
+
+DECIDE_WITH = {"pad": "the pad", "lsl": "your armband", "simulated": "nothing: it is simulated"}
+
+
+def open_display(host: str, port: int, intent: str | None) -> ParticipantDisplay:
+    """The participant display, its address said."""
+    from dammrl.display import ParticipantDisplay
+    from dammrl_core.robot import RobotSettings
+    from dammrl_core.task import TaskSettings
+
+    with_what = DECIDE_WITH.get(intent or "simulated", f"the {intent}")
+    display = ParticipantDisplay(RobotSettings().load(), TaskSettings(), host, port, with_what)
+    where = "localhost" if host in ("0.0.0.0", "127.0.0.1") else host
+    print_err(f"participant display: open http://{where}:{display.port} in a browser, full "
+              "screen (F11)")  # fmt: skip
+    return display
 
 
 def _list(args: argparse.Namespace) -> int:
