@@ -20,6 +20,7 @@ from schemas.messages import (
     ModelChoice,
     RobotState,
     SensorSample,
+    SessionControl,
     SignalChunk,
     StepEvent,
     TaskGoal,
@@ -41,6 +42,7 @@ TOPICS: dict[str, type[Message]] = {
     "intent/evidence": IntentEvidence,
     "safety/stop": EmergencyStop,
     "session/comfort": ComfortRating,
+    "session/control": SessionControl,
     "health/*": Health,  # one key per service: health/<service>
 }
 
@@ -76,6 +78,7 @@ LIMITS: dict[str, KeyLimits] = {
     # at most CHUNK_BYTES (a 1 kHz, 8-channel stream: ~2 kB)
     "sensor/chunk": KeyLimits(32_768, 500.0),
     "session/comfort": KeyLimits(1024, 100.0),  # one per block
+    "session/control": KeyLimits(1024, 100.0),  # a therapist's keys
     "safety/stop": KeyLimits(1024, 1_000.0),  # per link: a flood never delays the console's
     "health/*": KeyLimits(32_768, 100.0),  # one a second per service
 }

@@ -176,7 +176,7 @@ class EpisodeResult(Message):
     model: tuple[HumanModel, RobotModel]
     success: bool = Field(description="the button pressed and held for the dwell time")
     reached: bool = Field(description="the paper's criterion ||x - x_g|| <= eps_g was met")
-    outcome: Literal["success", "hold", "timeout"]
+    outcome: Literal["success", "hold", "timeout", "skipped"]
     reason: str = Field(max_length=500)
     t_total_s: Finite
     t_step_mean_s: Finite | None = Field(description="None when no step was taken")
@@ -319,3 +319,15 @@ class ComfortRating(Message):
     asked_s: float = Field(
         ge=0, allow_inf_nan=False, description="how long the question was shown [s]"
     )
+
+
+class SessionControl(Message):
+    """The therapist's hand on the running reach (the session console): ``pause`` holds
+    the arm where its reference is and stops the reach's clock, ``resume`` goes on from
+    there, ``skip`` ends the reach. Applies to ``episode`` only (a late one changes
+    nothing). The emergency stop is ``EmergencyStop``, apart."""
+
+    episode: int = Field(ge=1, description="the reach it applies to")
+    action: Literal["pause", "resume", "skip"]
+    who: str = Field(min_length=1, max_length=32, description="the operator's id")
+    why: str = Field("", max_length=200, description="the reason, for the record")

@@ -24,6 +24,7 @@ from schemas import (
     ModelChoice,
     RobotState,
     SensorSample,
+    SessionControl,
     SignalChunk,
     StepEvent,
     TaskGoal,
@@ -72,6 +73,7 @@ EXAMPLES: list[Message] = [
     EmergencyStop(header=HEADER, engaged=True, reason="the patient asked"),
     ComfortRating(header=HEADER, participant="P012", block="event", trial=7, rating=4,
                   asked_s=3.2),
+    SessionControl(header=HEADER, episode=3, action="pause", who="T1", why="the patient coughs"),
 ]  # fmt: skip
 
 

@@ -12,6 +12,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from dammrl.launch import check_port
@@ -38,7 +39,7 @@ def _start(tmp_path: Path, port: int) -> subprocess.Popen[bytes]:
     return subprocess.Popen(
         [sys.executable, "-m", "dammrl", "session", "run", "--participant", "P001",
          "--protocol", str(tmp_path / "protocol.yaml"), "--root", str(tmp_path / "sessions"),
-         "--lockstep", "--bus-port", str(port), "--operator", "T1"],
+         "--lockstep", "--bus-port", str(port), "--operator", "T1", "--no-display"],
         stdin=subprocess.DEVNULL, stdout=log, stderr=log,
     )  # fmt: skip
 
@@ -121,3 +122,67 @@ def test_a_session_killed_twice_resumes_and_runs_every_trial_exactly_once(
         assert any(r.episode == trial["episode"] and r.seed == trial["seed"] for r in results)
         study = json.loads(recording.metadata["dammrl.session"]["study"])
         assert study["participant"] == "P001" and trial["trial"] in study["trials"]
+
+
+def test_a_pause_holds_the_arm_without_a_jump_and_a_skip_ends_the_reach() -> None:
+    """On the real stack: pause a reach under way for 2 s, resume it, then skip the next
+    one. The reference never steps further than in ordinary running; the paused reach
+    still succeeds and its time leaves the pause out."""
+    import threading
+
+    from dammrl.launch import Stack, StackOptions
+    from schemas import Header, JointCommand, SessionControl, decode, encode, key
+
+    commands: list[tuple[float, JointCommand]] = []
+    results: list[EpisodeResult] = []
+    keep: list[object] = []
+    marks: dict[str, float] = {}
+
+    def control(hub: object, episode: int, action: str) -> None:
+        header = Header(stamp_ns=time.time_ns(), seq=len(marks), source="tool")
+        message = SessionControl(header=header, episode=episode, action=action, who="T1",
+                                 why="a test")  # fmt: skip
+        marks[f"{action}{episode}"] = time.monotonic()
+        hub.put(key("dammrl", SessionControl), encode(message))  # type: ignore[attr-defined]
+
+    def script(hub: object) -> None:
+        deadline = time.monotonic() + 60
+        while len(commands) < 300 and time.monotonic() < deadline:  # a reach under way
+            time.sleep(0.05)
+        control(hub, 1, "pause")
+        time.sleep(2.0)
+        control(hub, 1, "resume")
+        while not results and time.monotonic() < deadline + 60:
+            time.sleep(0.05)
+        time.sleep(1.0)
+        control(hub, 2, "skip")
+
+    def on_up(hub: object) -> None:
+        def take(sample: object) -> None:
+            payload = sample.payload.to_bytes()  # type: ignore[attr-defined]
+            commands.append((time.monotonic(), decode(JointCommand, payload)))
+
+        keep.append(hub.declare_subscriber(key("dammrl", JointCommand), take))  # type: ignore[attr-defined]
+        threading.Thread(target=script, args=(hub,), daemon=True).start()
+
+    options = StackOptions(episodes=2, seed=7100100, model=(2, 1), port=free_port())
+    stack = Stack(options, out=lambda line: None, info=lambda line: None,
+                  on_result=results.append, on_up=on_up)  # fmt: skip
+    assert stack.run() == 0
+    first, second = results
+    assert first.success, first.reason
+    assert second.outcome == "skipped" and "skipped by T1: a test" in second.reason
+    paused = [c for t, c in commands if marks["pause1"] + 0.3 < t < marks["resume1"]]
+    assert paused and all(c.dq_ref_rad_s == (0.0,) * 6 for c in paused)  # held at rest
+    assert len({c.q_ref_rad for c in paused}) == 1  # at one posture
+    episode1 = [c for _, c in commands if c.episode == 1]
+    steps = np.abs(np.diff(np.array([c.q_ref_rad for c in episode1]), axis=0)).max(axis=1)
+    around = [i for i, (t, c) in enumerate(commands[:len(episode1)])
+              if abs(t - marks["pause1"]) < 0.2 or abs(t - marks["resume1"]) < 0.2]  # fmt: skip
+    ordinary = np.delete(steps, [i for i in around if i < len(steps)])
+    assert steps.max() <= max(ordinary.max(), 1e-3) + 1e-9, (steps.max(), ordinary.max())
+    reach_s = first.t_total_s
+    took_s = max(t for t, c in commands if c.episode == 1) - min(
+        t for t, c in commands if c.episode == 1
+    )
+    assert took_s - reach_s > 1.5, (took_s, reach_s)  # the pause is not the reach's time

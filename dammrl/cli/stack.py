@@ -100,6 +100,9 @@ def _add_up(commands: Commands) -> None:
     up.add_argument(
         "--record", type=Path, metavar="MCAP", help="also run the recorder into this file"
     )
+    up.add_argument("--display", type=int, nargs="?", const=8080, metavar="PORT",
+                    help="serve the participant display at http://THIS-MACHINE:PORT "
+                         "(default 8080)")  # fmt: skip
     up.set_defaults(handler=_up)
 
 
@@ -117,7 +120,18 @@ def _up(args: argparse.Namespace) -> int:
         robot_port=args.robot_port, robot_calibration=args.robot_calibration,
         emulate_robot=args.emulate_robot,
     )  # fmt: skip
-    return Stack(options, out=print_out, info=print_err).run()
+    if args.display is None:
+        return Stack(options, out=print_out, info=print_err).run()
+    from dammrl.cli.session import open_display
+    from dammrl.display import BusFeed
+
+    intent = args.intent or ("pad" if args.port else "lsl" if args.stream else "simulated")
+    display = open_display("0.0.0.0", args.display, intent)
+    try:
+        feed = BusFeed(display, args.namespace)
+        return Stack(options, out=print_out, info=print_err, on_up=feed.attach).run()
+    finally:
+        display.close()
 
 
 def _status(args: argparse.Namespace) -> int:

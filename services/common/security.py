@@ -38,9 +38,9 @@ PUBLISHES: dict[str, tuple[str, ...]] = {
     "intent": ("intent", "intent/evidence", "sensor/sample", "sensor/chunk"),
     "policy": ("policy/model",),
     "recorder": (),
-    # status, echo, the launcher (and the session's participant display), `dammrl stop`:
-    # read, stop, and the participant's comfort ratings
-    "tool": ("safety/stop", "session/comfort"),
+    # status, echo, the launcher (a session's display and console), `dammrl stop`: read,
+    # stop, the participant's comfort ratings and the therapist's pause, resume and skip
+    "tool": ("safety/stop", "session/comfort", "session/control"),
 }  # fmt: skip
 ROLES = tuple(PUBLISHES)
 

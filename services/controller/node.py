@@ -14,11 +14,14 @@ before the answer is known: the stack then reproduces the in-process runner exac
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import threading
 import time
 from collections.abc import Sequence
 
+from dammrl_core import state as core
+from dammrl_core.control.pause import Pause, hold_command
 from dammrl_core.control.reach import Plan, Reach, plan_reach
 from dammrl_core.control.settings import ControllerSettings
 from dammrl_core.dynamics import ArmModel
@@ -35,6 +38,7 @@ from schemas import (
     Message,
     ModelChoice,
     RobotState,
+    SessionControl,
     StepEvent,
     TaskGoal,
 )
@@ -92,10 +96,13 @@ class ControllerNode:
         self.asks = bus.publisher(DecisionRequest)
         self.goals = bus.publisher(TaskGoal)
         self.results = bus.publisher(EpisodeResult)
-        bus.subscribe(RobotState, Intent, ModelChoice)
+        bus.subscribe(RobotState, Intent, ModelChoice, SessionControl)
         bus.expect(RobotState, "sim", "robot")  # the simulated or the real arm
         bus.expect(Intent, "intent")
         bus.expect(ModelChoice, "policy")
+        bus.expect(SessionControl, "tool")  # the session's console
+        self.pause = Pause()  # the therapist's pauses of the running reach
+        self.last_command: core.JointCommand | None = None  # the last command sent
 
     @property
     def reach(self) -> Reach | None:
@@ -107,7 +114,9 @@ class ControllerNode:
         while not stop.is_set():
             self._dispatch_all(self.bus.receive_all(0.02))
             self._watch()
-            holding = self.reach is not None and self.reach.controller.hold_reason is not None
+            holding = self.pause.paused or (
+                self.reach is not None and self.reach.controller.hold_reason is not None
+            )
             self.bus.report_health("holding" if holding else "ok", self._waiting_for())
 
     def _stalled_itself(self, now: float) -> bool:
@@ -127,6 +136,8 @@ class ControllerNode:
         """What the controller waits for, and since when; states it had to skip (Health
         detail)."""
         late = f"{self.superseded} states superseded before answered"
+        if self.pause.paused:
+            return f"paused by the session's console; {late}"
         if self.reach is not None and self.reach.asked:
             since = time.monotonic() - self.requests.sent_s
             number = self.requests.number
@@ -167,6 +178,8 @@ class ControllerNode:
         for message in messages:
             if isinstance(message, Intent | ModelChoice):
                 self._take_answer(message)
+            elif isinstance(message, SessionControl):
+                self._take_control(message)
         for state in states[:-1]:
             self._on_state(state, answer=False)
         if states:
@@ -189,13 +202,18 @@ class ControllerNode:
             return
         state = convert.robot_state(message)
         self.last_t = state.t_s
+        # the reach runs on its own clock, stopped while paused
+        state = dataclasses.replace(state, t_s=self.pause.reach_time(state.t_s))
         if not self.started:
             self.started = True
             log.info("episode %d started (seed %d)", self.number, plan.seed)
         if not answer:
             self.superseded += 1
-            if plan.reach.observe(state) is not None:
+            if not self.pause.paused and plan.reach.observe(state) is not None:
                 self._finish()
+            return
+        if self.pause.paused:
+            self._hold_paused(message.header.stamp_ns)
             return
         tick = plan.reach.tick(state)
         if tick.ask:
@@ -205,6 +223,7 @@ class ControllerNode:
             if self.bus.settings.lockstep:
                 self._await_answer()
         if tick.command is not None:
+            self.last_command = tick.command
             self.commands.send(convert.command_message(
                 self.commands.stamp(), tick.command, self.number, message.header.stamp_ns
             ))  # fmt: skip
@@ -212,6 +231,33 @@ class ControllerNode:
             self.steps.send(convert.step_message(self.steps.stamp(), step, self.number))
         self.last_state_s = time.monotonic()
         if tick.ended is not None:
+            self._finish()
+
+    def _hold_paused(self, state_stamp_ns: int) -> None:
+        """Paused: the arm holds the last reference at rest."""
+        self.last_state_s = time.monotonic()
+        if self.last_command is None:
+            return  # no reference yet: the arm holds its start as it does unasked
+        hold = hold_command(self.arm, self.last_command, self.robot.tau_max)
+        self.commands.send(convert.command_message(
+            self.commands.stamp(), hold, self.number, state_stamp_ns
+        ))  # fmt: skip
+
+    def _take_control(self, control: SessionControl) -> None:
+        """The therapist's pause, resume or skip of the running reach (another episode's
+        is late: ignored)."""
+        reach = self.reach
+        if reach is None or control.episode != self.number or reach.ended is not None:
+            log.info("%s of episode %d ignored: not running", control.action, control.episode)
+            return
+        who = f"{control.who}" + (f": {control.why}" if control.why else "")
+        if control.action == "pause" and self.pause.begin(self.last_t):
+            log.warning("paused by %s", who)
+        elif control.action == "resume" and self.pause.end(self.last_t):
+            log.warning("resumed by %s (paused %.1f s in all)", who, self.pause.total_s)
+        elif control.action == "skip":
+            self.pause.end(self.last_t)
+            reach.end("skipped", f"skipped by {who}", self.pause.reach_time(self.last_t))
             self._finish()
 
     def _implausible_time(self, t_s: float) -> str | None:
@@ -222,8 +268,9 @@ class ControllerNode:
         return None
 
     def _resend_if_unanswered(self) -> None:
-        """Never a silent wait: the same request again while nobody answered it."""
-        asked = self.reach is not None and self.reach.asked
+        """Never a silent wait: the same request again while nobody answered it (not
+        while paused: nobody is asked to decide then)."""
+        asked = self.reach is not None and self.reach.asked and not self.pause.paused
         if (again := self.requests.again(self.asks.stamp, asked)) is not None:
             self.asks.send(again)
 
@@ -293,6 +340,7 @@ class ControllerNode:
                                self.ik, self.control_dt_s)  # fmt: skip
         self.requests = Requests(number, seed, self.models, self.timing)
         self.started = False
+        self.pause, self.last_command = Pause(), None
         self._announce(self.plan)
         # planning is this process working, before the arm moves: the stall clock starts
         # here (a plan slower than the state's staleness ended the first reach at once)
