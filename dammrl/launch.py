@@ -18,6 +18,7 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -285,6 +286,7 @@ class Stack:
         self.results: list[EpisodeResult] = []
         self.on_result = on_result
         self.on_up = on_up
+        self.finishing = threading.Event()  # finish(): end the run after the current result
         self.prompts: PatientPrompts | None = None
         self.recorder_restarts = 0
         self.ignored = 0  # messages on task/result that were not an episode's result
@@ -385,6 +387,10 @@ class Stack:
                 if self.own_credentials and self.credentials is not None:
                     shutil.rmtree(self.credentials, ignore_errors=True)
 
+    def finish(self) -> None:
+        """End the run before its last episode (a session ends a block early)."""
+        self.finishing.set()
+
     def services(self) -> tuple[str, ...]:
         recorder = ("recorder",) if self.options.record is not None else ()
         return recorder + MODES[self.options.mode]  # the recorder first: it sees everything
@@ -452,6 +458,9 @@ class Stack:
     ) -> int:
         total = self.options.episodes
         while not stop.is_set():
+            if self.finishing.is_set():
+                self.info(summary(self.results))
+                return 0
             self._check_children()
             if self.prompts is not None:
                 self.prompts.show()

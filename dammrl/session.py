@@ -27,19 +27,31 @@ import os
 import re
 import shutil
 import sys
+import threading
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, replace
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TextIO
 
 from dammrl import __version__
+from dammrl.console import HELP, Command, Lines, parse
 from dammrl.launch import Stack, StackOptions, result_dict
 from dammrl_core.errors import ConfigurationError, DammrlError, Exit, UsageError
 from dammrl_core.protocol import Protocol, Trial, load_protocol, plan_trials
 from dammrl_core.robot import RobotSettings
-from schemas import DEFAULT_NAMESPACE, ComfortRating, EpisodeResult, Header, encode, key
+from schemas import (
+    DEFAULT_NAMESPACE,
+    ComfortRating,
+    EmergencyStop,
+    EpisodeResult,
+    Header,
+    Message,
+    SessionControl,
+    encode,
+    key,
+)
 
 if TYPE_CHECKING:
     from dammrl.display import ParticipantDisplay
@@ -225,7 +237,8 @@ class SessionFolder:
 
     def progress(self) -> Progress:
         entries, torn = self.trials.read()
-        done = {int(e["trial"]): e for e in entries if isinstance(e.get("trial"), int)}
+        done = {int(e["trial"]): e for e in entries
+                if isinstance(e.get("trial"), int) and not e.get("repeat")}  # fmt: skip
         return Progress(done, torn, "ended" in self.read_manifest())
 
     def next_part(self) -> Path:
@@ -263,15 +276,24 @@ Say = Callable[[str], None]
 class SessionRunner:
     """Runs (or resumes) a participant's session of a protocol through the stack."""
 
-    def __init__(self, root: Path, participant: str, protocol_file: Path, setup: SetUp,
-                 say: Say = print, new: bool = False, accept_changes: str | None = None,
-                 wait_for_operator: bool | None = None, display: ParticipantDisplay | None = None,
-                 comfort_timeout_s: float = 120.0) -> None:  # fmt: skip
+    def __init__(
+        self,
+        root: Path,
+        participant: str,
+        protocol_file: Path,
+        setup: SetUp,
+        say: Say = print,
+        new: bool = False,
+        accept_changes: str | None = None,
+        wait_for_operator: bool | None = None,
+        display: ParticipantDisplay | None = None,
+        comfort_timeout_s: float = 120.0,
+        console: TextIO | None = None,
+    ) -> None:
         self.participant = Participant(root, participant)
         self.display = display
         self.comfort_timeout_s = comfort_timeout_s
-        self.hub: Any = None  # the running stack's bus session (a rating goes out on it)
-        self.ratings = 0  # comfort ratings sent (their sequence numbers)
+        self.console = Lines(sys.stdin if console is None else console)
         self.protocol_file = protocol_file
         self.protocol = load_protocol(protocol_file)
         self.blocks = {b.name: b for b in self.protocol.blocks}
@@ -295,12 +317,13 @@ class SessionRunner:
             if not kept.exists():
                 shutil.copyfile(calibration, kept)
         trials = plan_trials(self.protocol, int(record["row"]))
+        self.say(HELP)
         progress = session.progress()
         remaining = [t for t in trials if t.number not in progress.done]
         if not remaining:
             self.say(f"{session.folder}: all {len(trials)} trials are done")
             return Exit.OK
-        return self._run_trials(session, setup, remaining, len(trials))
+        return self._run_trials(session, setup, trials)
 
     def _calibration(self) -> Path | None:
         """The calibration given now (kept for later sessions), else the participant's."""
@@ -318,12 +341,12 @@ class SessionRunner:
                 self._check_resumable(last, manifest, fingerprint)
                 return last
         if sessions and "ended" not in (last := SessionFolder(sessions[-1])).read_manifest():
-            last.events.add(self._event("left unfinished: a new session started"))
+            last.events.add(self.event("left unfinished: a new session started"))
         manifest = {"participant": self.participant.id, "row": record["row"],
                     "setup": fingerprint, "operator": self.setup.operator}  # fmt: skip
         session = SessionFolder.create(self.participant, self.protocol, self.protocol_file,
                                        manifest)  # fmt: skip
-        session.events.add(self._event("start", protocol=self.protocol.name))
+        session.events.add(self.event("start", protocol=self.protocol.name))
         self.say(f"new session {session.folder}")
         return session
 
@@ -337,33 +360,36 @@ class SessionRunner:
                 'resume it with --accept-changes "why", or start a new session with --new'
             )
         progress = session.progress()
-        session.events.add(self._event("resume", done=len(progress.done),
+        session.events.add(self.event("resume", done=len(progress.done),
                                        changed=changed, why=self.accept_changes))  # fmt: skip
         torn = f" ({progress.torn} torn log line skipped)" if progress.torn else ""
         self.say(f"resuming {session.folder}: {len(progress.done)} trials done{torn}")
 
-    def _event(self, what: str, **details: Any) -> dict[str, Any]:
+    def event(self, what: str, **details: Any) -> dict[str, Any]:
         return {"utc": now_utc(), "who": self.setup.operator, "what": what} | details
 
-    def _run_trials(self, session: SessionFolder, setup: SetUp, remaining: list[Trial],
-                    total: int) -> int:  # fmt: skip
-        for group in runs(remaining):
+    def _run_trials(self, session: SessionFolder, setup: SetUp, trials: list[Trial]) -> int:
+        """Run stack after stack until every trial is done (a repeated one runs again)."""
+        total = len(trials)
+        while remaining := [t for t in trials if t.number not in session.progress().done]:
+            group = next(runs(remaining))
             block = self.blocks[group[0].block]
             if group[0].index == 1:
                 self._begin_block(session, group[0], block.instructions)
             try:
-                code = self._run(session, setup, group, total)
+                code = StackRun(self, session, setup, group, total).run()
             except DammrlError as exc:
                 self._stopped(session, group, str(exc))
                 raise
             if code != Exit.OK:
                 self._stopped(session, group, f"exit code {int(code)}")
                 return code
-            if group[-1].index == block.trials:
-                session.events.add(self._event("block-end", block=block.name))
-                if block.rest_s > 0 and group[-1].number < total:
+            done = session.progress().done
+            if all(t.number in done for t in trials if t.block == block.name):
+                session.events.add(self.event("block-end", block=block.name))
+                if block.rest_s > 0 and len(done) < total:
                     self._rest(session, block.rest_s)
-        session.events.add(self._event("end"))
+        session.events.add(self.event("end"))
         session.end()
         if self.display is not None:
             self.display.say("Thank you", "The session is complete.", "good")
@@ -372,7 +398,7 @@ class SessionRunner:
 
     def _stopped(self, session: SessionFolder, group: list[Trial], reason: str) -> None:
         trial = self._first_undone(session, group)
-        session.events.add(self._event("stopped", trial=trial, reason=reason))
+        session.events.add(self.event("stopped", trial=trial, reason=reason))
         self.say(f"stopped at trial {trial}: `dammrl session run` again with the same "
                  f"participant resumes there ({session.folder})")  # fmt: skip
 
@@ -386,91 +412,194 @@ class SessionRunner:
         self.say(f"{kind} {trial.block_position} ({trial.block}): {instructions}".rstrip(": "))
         if self.display is not None:
             self.display.say(f"{kind.capitalize()} {trial.block_position}", instructions)
-        session.events.add(self._event("block-start", block=trial.block))
+        session.events.add(self.event("block-start", block=trial.block))
         if self.wait:
-            input("press Enter when the participant is ready ")
+            self.say("press Enter when the participant is ready")
+            self.console.get(None)
 
     def _rest(self, session: SessionFolder, rest_s: float) -> None:
-        session.events.add(self._event("rest", seconds=rest_s))
+        session.events.add(self.event("rest", seconds=rest_s))
         self.say(f"rest for {rest_s:.0f} s (Ctrl-C ends the session here; it resumes later)")
         if self.display is not None:
             self.display.rest(rest_s)
         else:
             time.sleep(rest_s)
 
-    def _ask_comfort(self, session: SessionFolder, trial: Trial) -> None:
-        """The participant's comfort after ``trial``'s block, on the display: on the bus
-        (the recording keeps it; the block's stack still runs) and in the events."""
-        if self.display is None or self.protocol.comfort == "none":
-            return
-        answer = self.display.ask_comfort(self.comfort_timeout_s)
-        if answer is None:
-            session.events.add(self._event("comfort", block=trial.block, rating=None))
-            self.say(f"no comfort rating within {self.comfort_timeout_s:.0f} s")
-            return
-        rating, asked_s = answer
-        message = ComfortRating(
-            header=Header(stamp_ns=time.time_ns(), seq=self.ratings, source="tool"),
-            participant=self.participant.id, block=trial.block, trial=trial.number,
-            rating=rating, asked_s=asked_s,
-        )  # fmt: skip
-        self.ratings += 1
-        if self.hub is not None:
-            self.hub.put(key(DEFAULT_NAMESPACE, ComfortRating), encode(message))
-            time.sleep(0.2)  # the recorder takes it before the stack stops
-        session.events.add(self._event("comfort", block=trial.block, rating=rating,
-                                       asked_s=round(asked_s, 2)))  # fmt: skip
-        self.say(f"comfort after {trial.block}: {rating} of 5")
 
-    def _run(self, session: SessionFolder, setup: SetUp, group: list[Trial], total: int) -> int:
-        """One stack run over ``group``; each trial logged as its result comes."""
-        part = session.next_part()
+class StackRun:
+    """One stack run over trials of one block: each trial logged as its result comes,
+    the therapist's console obeyed meanwhile, the comfort asked at the block's end."""
+
+    def __init__(self, runner: SessionRunner, session: SessionFolder, setup: SetUp,
+                 group: list[Trial], total: int) -> None:  # fmt: skip
+        self.runner, self.session, self.setup = runner, session, setup
+        self.group, self.total = group, total
+        self.part = session.next_part()
+        self.hub: Any = None  # the stack's bus session, once it is up
+        self.stack: Stack | None = None
+        self.episode = 1  # the reach under way (this run counts from 1)
+        self.actions: list[dict[str, Any]] = []  # the console's, on the reach under way
+        self.paused_since: float | None = None
+        self.paused_s = 0.0
+        self.again = False  # the reach under way runs again
+        self.end_block = False  # the rest of the block is skipped...
+        self.end_block_why = ""  # ... by whom and why
+        self.running = threading.Event()
+        self.sent = 0  # messages this run sent (their sequence numbers)
+
+    def run(self) -> int:
+        runner, group = self.runner, self.group
         condition = group[0].condition
-        study = json.dumps({"participant": self.participant.id, "session": session.folder.name,
-                            "protocol": self.protocol.name, "version": self.protocol.version,
-                            "sha256": self.protocol.sha256, "block": group[0].block,
+        study = json.dumps({"participant": runner.participant.id,
+                            "session": self.session.folder.name,
+                            "protocol": runner.protocol.name, "version": runner.protocol.version,
+                            "sha256": runner.protocol.sha256, "block": group[0].block,
                             "trials": [t.number for t in group]})  # fmt: skip
+        setup = self.setup
         intent = condition.intent or setup.intent
         person = intent in ("pad", "lsl")
         options = StackOptions(
             mode=setup.mode, episodes=len(group), seed=group[0].seed, model=condition.model,
-            trigger=condition.trigger, port=setup.bus_port, record=part, study=study,
+            trigger=condition.trigger, port=setup.bus_port, record=self.part, study=study,
             intent=None if person else intent,
             pad_port=setup.pad_port if intent == "pad" else None,
             lsl_stream=setup.stream if intent == "lsl" else None,
             calibration=setup.calibration if person else None, lockstep=setup.lockstep,
         )  # fmt: skip
-        session.events.add(self._event("run", block=group[0].block, recording=part.name,
-                                       trials=[t.number for t in group]))  # fmt: skip
-
-        def keep(result: EpisodeResult) -> None:
-            trial = group[result.episode - 1]
-            session.trials.add({"trial": trial.number, "block": trial.block,
-                                "block_position": trial.block_position, "index": trial.index,
-                                "seed": trial.seed, "practice": trial.practice,
-                                "condition": trial.condition.model_dump(mode="json"),
-                                "recording": f"recordings/{part.name}",
-                                "episode": result.episode, "utc": now_utc(),
-                                "result": result_dict(result)})  # fmt: skip
-            self.say(f"trial {trial.number}/{total} ({trial.block} {trial.index}): "
-                     f"{result.outcome} in {result.t_total_s:.1f} s")  # fmt: skip
-            if trial.index == self.blocks[trial.block].trials:
-                self._ask_comfort(session, trial)
-
-        stack = Stack(options, out=lambda _: None, info=self.say, on_result=keep,
-                      on_up=self._attach)  # fmt: skip
+        self.session.events.add(runner.event("run", block=group[0].block,
+                                             recording=self.part.name,
+                                             trials=[t.number for t in group]))  # fmt: skip
+        self.stack = Stack(options, out=lambda _: None, info=runner.say, on_result=self.keep,
+                           on_up=self.attach)  # fmt: skip
         try:
-            return stack.run()
+            return self.stack.run()
         finally:
+            self.running.clear()
             self.hub = None
 
-    def _attach(self, hub: Any) -> None:
-        """A stack is up: the display follows its bus."""
+    def attach(self, hub: Any) -> None:
+        """The stack is up: the display follows its bus, the console acts on it."""
         self.hub = hub
-        if self.display is not None:
+        if self.runner.display is not None:
             from dammrl.display import BusFeed
 
-            BusFeed(self.display, DEFAULT_NAMESPACE).attach(hub)
+            BusFeed(self.runner.display, DEFAULT_NAMESPACE).attach(hub)
+        self.running.set()
+        threading.Thread(target=self._console, daemon=True).start()
+
+    # ---- results --------------------------------------------------------------------
+    def keep(self, result: EpisodeResult) -> None:
+        trial = self.group[result.episode - 1]
+        if self.paused_since is not None:  # skipped while paused
+            self.paused_s += time.monotonic() - self.paused_since
+            self.paused_since = None
+        entry = {"trial": trial.number, "block": trial.block,
+                 "block_position": trial.block_position, "index": trial.index,
+                 "seed": trial.seed, "practice": trial.practice,
+                 "condition": trial.condition.model_dump(mode="json"),
+                 "recording": f"recordings/{self.part.name}", "episode": result.episode,
+                 "utc": now_utc(), "result": result_dict(result),
+                 "pauses": sum(a["action"] == "pause" for a in self.actions),
+                 "paused_s": round(self.paused_s, 2), "actions": self.actions}  # fmt: skip
+        if self.again:
+            entry["repeat"] = True  # an attempt: the trial is not done
+        self.session.trials.add(entry)
+        self.runner.say(f"trial {trial.number}/{self.total} ({trial.block} {trial.index}): "
+                        f"{result.outcome} in {result.t_total_s:.1f} s"
+                        + (": it runs again" if self.again else ""))  # fmt: skip
+        self.episode, self.actions, self.paused_s = result.episode + 1, [], 0.0
+        last = trial.index == self.runner.blocks[trial.block].trials
+        if self.end_block:
+            self._skip_rest_of_block(trial)
+        if last or self.end_block:
+            self._ask_comfort(trial)
+        if self.again or self.end_block:
+            assert self.stack is not None
+            self.stack.finish()
+
+    def _skip_rest_of_block(self, after: Trial) -> None:
+        """Log the block's trials after ``after`` as skipped (the operator ended it)."""
+        why = self.end_block_why
+        for trial in self.group[self.group.index(after) + 1 :]:
+            self.session.trials.add({"trial": trial.number, "block": trial.block,
+                                     "block_position": trial.block_position,
+                                     "index": trial.index, "seed": trial.seed,
+                                     "practice": trial.practice, "utc": now_utc(),
+                                     "result": None, "skipped": why})  # fmt: skip
+
+    def _ask_comfort(self, trial: Trial) -> None:
+        """The participant's comfort after the block, on the display: on the bus (the
+        recording keeps it; the block's stack still runs) and in the events."""
+        runner = self.runner
+        if runner.display is None or runner.protocol.comfort == "none":
+            return
+        answer = runner.display.ask_comfort(runner.comfort_timeout_s)
+        if answer is None:
+            self.session.events.add(runner.event("comfort", block=trial.block, rating=None))
+            runner.say(f"no comfort rating within {runner.comfort_timeout_s:.0f} s")
+            return
+        rating, asked_s = answer
+        self._send(ComfortRating(header=self._header(), participant=runner.participant.id,
+                                 block=trial.block, trial=trial.number, rating=rating,
+                                 asked_s=asked_s))  # fmt: skip
+        time.sleep(0.2)  # the recorder takes it before the stack stops
+        self.session.events.add(runner.event("comfort", block=trial.block, rating=rating,
+                                             asked_s=round(asked_s, 2)))  # fmt: skip
+        runner.say(f"comfort after {trial.block}: {rating} of 5")
+
+    # ---- the therapist's console ------------------------------------------------------
+    def _console(self) -> None:
+        while self.running.is_set():
+            line = self.runner.console.get(0.2)
+            if line is None or not line.strip():
+                continue
+            command = parse(line)
+            if isinstance(command, str):
+                self.runner.say(command)
+            else:
+                self.act(command)
+
+    def act(self, command: Command) -> None:
+        """Carry out one console command on the reach under way, logged with who and why."""
+        runner, action = self.runner, command.action
+        if action == "help":
+            runner.say(HELP)
+            return
+        trial = self.group[min(self.episode, len(self.group)) - 1]
+        record = {"action": action, "who": runner.setup.operator, "why": command.why,
+                  "utc": now_utc()}  # fmt: skip
+        self.actions.append(record)
+        self.session.events.add(runner.event("console", trial=trial.number, action=action,
+                                             why=command.why))  # fmt: skip
+        if action in ("stop", "release"):
+            reason = f"{runner.setup.operator}: {command.why}"[:200]
+            self._send(EmergencyStop(header=self._header(), engaged=action == "stop",
+                                     reason=reason))  # fmt: skip
+        elif action == "pause" and self.paused_since is None:
+            self.paused_since = time.monotonic()
+            self._control("pause", command.why)
+        elif action == "resume" and self.paused_since is not None:
+            self.paused_s += time.monotonic() - self.paused_since
+            self.paused_since = None
+            self._control("resume", command.why)
+        elif action in ("skip", "again", "end-block"):
+            self.again = action == "again"
+            if action == "end-block":
+                self.end_block, self.end_block_why = True, f"{runner.setup.operator}: {command.why}"
+            self._control("skip", command.why)
+        runner.say(f"console: {action} (trial {trial.number})")
+
+    def _control(self, action: str, why: str) -> None:
+        self._send(SessionControl(header=self._header(), episode=self.episode, action=action,
+                                  who=self.runner.setup.operator, why=why))  # fmt: skip
+
+    def _header(self) -> Header:
+        self.sent += 1
+        return Header(stamp_ns=time.time_ns(), seq=self.sent - 1, source="tool")
+
+    def _send(self, message: Message) -> None:
+        if self.hub is not None:
+            self.hub.put(key(DEFAULT_NAMESPACE, type(message)), encode(message))
 
 
 def session_table(root: Path, participant: str | None = None) -> list[dict[str, Any]]:
@@ -485,7 +614,8 @@ def session_table(root: Path, participant: str | None = None) -> list[dict[str, 
             manifest, progress = session.read_manifest(), session.progress()
             total = len(plan_trials(load_protocol(path.parent / "protocol.yaml"),
                                     int(manifest.get("row", 0))))  # fmt: skip
-            successes = sum(bool(e["result"].get("success")) for e in progress.done.values())
+            successes = sum(bool((e.get("result") or {}).get("success"))
+                            for e in progress.done.values())  # fmt: skip
             rows.append({"participant": folder.name, "session": path.parent.name,
                          "protocol": manifest["setup"]["protocol"],
                          "started": manifest.get("started", ""),

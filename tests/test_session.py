@@ -3,6 +3,7 @@ stack replaced by a scripted one here; tests/test_session_stack.py runs the real
 
 from __future__ import annotations
 
+import io
 import itertools
 import json
 from pathlib import Path
@@ -10,6 +11,7 @@ from typing import Any, ClassVar
 
 import pytest
 
+from dammrl.console import parse
 from dammrl.launch import StackOptions
 from dammrl.session import JsonLines, SessionRunner, SetUp, check_participant, session_table
 from dammrl_core.errors import ConfigurationError, DammrlError, JobFailedError, UsageError
@@ -101,11 +103,11 @@ def test_a_torn_last_log_line_is_skipped_and_counted(tmp_path: Path) -> None:
     assert log.read() == ([{"trial": 1}], 1)
 
 
-def _result(episode: int, seed: int) -> EpisodeResult:
-    return EpisodeResult(
+def _result(episode: int, seed: int, outcome: str = "success") -> EpisodeResult:
+    return EpisodeResult(  # type: ignore[arg-type]  # outcome: one of the Literal's
         header=Header(stamp_ns=1, seq=episode, source="controller"), episode=episode,
-        seed=seed, trigger="event", model=(2, 1), success=True, reached=True,
-        outcome="success", reason="button pressed", t_total_s=5.0, t_step_mean_s=0.5,
+        seed=seed, trigger="event", model=(2, 1), success=outcome == "success", reached=True,
+        outcome=outcome, reason="button pressed", t_total_s=5.0, t_step_mean_s=0.5,
         final_error_m=0.01, n_osc=1, n_osc_per_step=0.1, jerk_isj=1.0, sparc=-2.0, ldlj=-7.0,
         human_error_rate=0.1, n_steps=10, n_decisions=10, button_pressed=True,
         start_m=(0.3, 0, 0), goal_m=(0.5, 0, -0.2),
@@ -114,24 +116,45 @@ def _result(episode: int, seed: int) -> EpisodeResult:
 
 class ScriptedStack:
     """The launcher's part a session uses: episodes of the given seeds, results handed on;
-    ``crash_after`` results in all, it dies as a dead service makes it."""
+    ``crash_after`` results in all, it dies as a dead service makes it; ``console`` lines
+    are typed (to the run's console) before the reach of the given number in all."""
 
     runs: ClassVar[list[StackOptions]] = []
     crash_after: ClassVar[int | None] = None
     given: ClassVar[int] = 0
+    console: ClassVar[dict[int, list[str]]] = {}
+    sent: ClassVar[list[Any]] = []
 
-    def __init__(self, options: StackOptions, out: Any, info: Any, on_result: Any) -> None:
-        self.options, self.on_result = options, on_result
+    def __init__(self, options: StackOptions, out: Any, info: Any, on_result: Any,
+                 on_up: Any) -> None:  # fmt: skip
+        self.options, self.on_result, self.on_up = options, on_result, on_up
+        self.finishing = False
+
+    def put(self, key: str, payload: bytes) -> None:  # the hub session's
+        ScriptedStack.sent.append((key, payload))
+
+    def finish(self) -> None:
+        self.finishing = True
 
     def run(self) -> int:
         ScriptedStack.runs.append(self.options)
         assert self.options.episodes is not None and self.options.record is not None
         self.options.record.write_bytes(b"mcap")
+        stack_run = self.on_up.__self__
+        stack_run.hub = self  # as attach() does, without its console thread
         for episode in range(1, self.options.episodes + 1):
             if ScriptedStack.crash_after is not None and self.given >= self.crash_after:
                 raise JobFailedError("service controller exited unexpectedly with code -9")
             ScriptedStack.given += 1
-            self.on_result(_result(episode, self.options.seed + episode - 1))
+            outcome = "success"
+            for line in ScriptedStack.console.get(ScriptedStack.given, []):
+                command = parse(line)
+                assert not isinstance(command, str)
+                stack_run.act(command)
+                outcome = "skipped" if command.action in ("skip", "again", "end-block") else outcome
+            self.on_result(_result(episode, self.options.seed + episode - 1, outcome))
+            if self.finishing:
+                break
         return 0
 
 
@@ -139,13 +162,15 @@ class ScriptedStack:
 def scripted(monkeypatch: pytest.MonkeyPatch) -> type[ScriptedStack]:
     monkeypatch.setattr("dammrl.session.Stack", ScriptedStack)
     ScriptedStack.runs, ScriptedStack.crash_after, ScriptedStack.given = [], None, 0
+    ScriptedStack.console, ScriptedStack.sent = {}, []
     return ScriptedStack
 
 
 def _runner(tmp_path: Path, **kwargs: Any) -> SessionRunner:
     setup = kwargs.pop("setup", SetUp())
     return SessionRunner(tmp_path / "sessions", "P001", _protocol(tmp_path), setup,
-                         say=lambda line: None, wait_for_operator=False, **kwargs)  # fmt: skip
+                         say=lambda line: None, wait_for_operator=False,
+                         console=io.StringIO(), **kwargs)  # fmt: skip
 
 
 def _trials(tmp_path: Path, session: str = "ses-01") -> list[dict[str, Any]]:
@@ -211,7 +236,8 @@ def test_a_new_session_leaves_the_unfinished_one_marked_and_a_second_participant
     assert len(_trials(tmp_path, "ses-02")) == 7
     assert "left unfinished" in (tmp_path / "sessions/P001/ses-01/events.jsonl").read_text()
     second = SessionRunner(tmp_path / "sessions", "P002", _protocol(tmp_path), SetUp(),
-                           say=lambda line: None, wait_for_operator=False)  # fmt: skip
+                           say=lambda line: None, wait_for_operator=False,
+                           console=io.StringIO())  # fmt: skip
     scripted.runs.clear()
     assert second.run() == 0
     assert [o.trigger for o in scripted.runs] == ["event", "fixed", "event"]  # row 1
@@ -231,3 +257,29 @@ def test_a_calibration_given_once_is_kept_for_the_participants_next_sessions(
     used = scripted.runs[-1].calibration
     assert used is not None and used.read_text() == '{"threshold": 1}'
     assert (tmp_path / "sessions/P001/ses-02/calibration.json").exists()
+
+
+def test_the_consoles_pause_skip_again_and_end_of_block_are_logged_and_counted(
+    tmp_path: Path, scripted: type[ScriptedStack]
+) -> None:
+    """Reach 2 paused and resumed, reach 3 skipped, reach 4 run again, reach 6 ends its
+    block (the rest of it is skipped); the stop reaches the bus."""
+    scripted.console = {2: ["p the patient coughs", "r"], 3: ["s"], 4: ["a the arm slipped"],
+                        6: ["e tired", "x"]}  # fmt: skip
+    assert _runner(tmp_path).run() == 0
+    trials = _trials(tmp_path)
+    by_trial: dict[int, list[dict[str, Any]]] = {}
+    for t in trials:
+        by_trial.setdefault(t["trial"], []).append(t)
+    assert by_trial[2][0]["pauses"] == 1
+    assert [a["why"] for a in by_trial[2][0]["actions"]] == ["the patient coughs", ""]
+    assert by_trial[3][0]["result"]["outcome"] == "skipped"
+    again = by_trial[4]
+    assert [t.get("repeat", False) for t in again] == [True, False]  # then done
+    assert again[0]["recording"] != again[1]["recording"]  # a new stack run for it
+    ended = by_trial[5][0]  # trial 5 (block 'fixed' 1) was reach 6
+    assert ended["result"]["outcome"] == "skipped"
+    assert by_trial[6][0]["skipped"] == "operator: tired" and by_trial[6][0]["result"] is None
+    assert sorted(by_trial) == list(range(1, 8))
+    keys = [k for k, _ in scripted.sent]
+    assert "dammrl/safety/stop" in keys and keys.count("dammrl/session/control") == 5
