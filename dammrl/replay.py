@@ -20,7 +20,7 @@ import zenoh
 from dammrl.recording import Recording
 from dammrl_core.errors import DammrlError, JobFailedError
 from dammrl_core.models import ModelSet
-from schemas import DecisionRequest, EmergencyStop, ModelChoice
+from schemas import DecisionRequest, EmergencyStop, ModelChoice, SessionControl
 from schemas.keys import topic_of
 from services.common.bus import JOIN_S, linked, not_joined_line, zenoh_config
 from services.common.config import BusSettings
@@ -40,8 +40,9 @@ class ReplayOptions:
     force: bool = False
 
 
-NEVER_REPLAYED = frozenset({topic_of(EmergencyStop)})
-"""An emergency stop, or its release, is an operator's act now, never a recording's."""
+NEVER_REPLAYED = frozenset({topic_of(EmergencyStop), topic_of(SessionControl)})
+"""An emergency stop or its release, a pause, a resume or a skip: an operator's act now,
+never a recording's."""
 
 
 def selected(recording: Recording, options: ReplayOptions) -> list[tuple[str, int, bytes]]:

@@ -497,7 +497,7 @@ class StackRun:
                  "block_position": trial.block_position, "index": trial.index,
                  "seed": trial.seed, "practice": trial.practice,
                  "condition": trial.condition.model_dump(mode="json"),
-                 "recording": f"recordings/{self.part.name}", "episode": result.episode,
+                 "recording": f"recordings/{self._recording().name}", "episode": result.episode,
                  "utc": now_utc(), "result": result_dict(result),
                  "pauses": sum(a["action"] == "pause" for a in self.actions),
                  "paused_s": round(self.paused_s, 2), "actions": self.actions}  # fmt: skip
@@ -516,6 +516,12 @@ class StackRun:
         if self.again or self.end_block:
             assert self.stack is not None
             self.stack.finish()
+
+    def _recording(self) -> Path:
+        """The file the recorder writes now: the part, or its newest continuation after
+        a restarted recorder (``part-NN-001.mcap``, ...)."""
+        continued = sorted(self.part.parent.glob(f"{self.part.stem}-[0-9][0-9][0-9].mcap"))
+        return continued[-1] if continued else self.part
 
     def _skip_rest_of_block(self, after: Trial) -> None:
         """Log the block's trials after ``after`` as skipped (the operator ended it)."""

@@ -54,7 +54,8 @@ def _valid(message: BusMessage, seq: int, source: str) -> bytes:
 
 _SOURCES = {"EmergencyStop": "tool", "RobotState": "sim", "SensorSample": "intent",
             "Intent": "intent", "Health": "sim", "ModelChoice": "policy",
-            "SignalChunk": "intent", "IntentEvidence": "intent"}  # fmt: skip
+            "SignalChunk": "intent", "IntentEvidence": "intent", "ComfortRating": "tool",
+            "SessionControl": "tool"}  # fmt: skip
 
 
 def _session(writer: Writer) -> dict[str, int]:
@@ -243,7 +244,7 @@ def test_replay_selects_only_readable_messages_of_every_crafted_file(
             recording = read_recording(path)
             chosen = selected(recording, ReplayOptions())
             assert len(chosen) <= len(recording.messages)
-            assert all(topic != "safety/stop" for topic, _, _ in chosen)  # never replayed
+            assert all(topic not in ("safety/stop", "session/control") for topic, _, _ in chosen)
 
 
 # ---- the recorder as a process ------------------------------------------------------
@@ -396,7 +397,7 @@ def test_replay_of_a_crafted_file_publishes_what_is_readable(
             assert main(argv) == 0, capsys.readouterr().err
     finally:
         observer.close()
-    replayable = len(EXAMPLES) - 1  # one message per topic; an emergency stop never replays
+    replayable = len(EXAMPLES) - 2  # one message per topic; an operator's acts never replay
     assert f"replayed {replayable} messages" in capsys.readouterr().out
 
 

@@ -28,8 +28,8 @@ format: 1
 name: crash-test
 version: "1"
 blocks:
-  - {name: event, trials: 3, seed: 7100100, condition: {policy: fixed, model: [2, 1]}}
-  - {name: fixed, trials: 3, seed: 7100100,
+  - {name: event, trials: 5, seed: 7100100, condition: {policy: fixed, model: [2, 1]}}
+  - {name: fixed, trials: 5, seed: 7100100,
      condition: {trigger: fixed, policy: fixed, model: [2, 1]}}
 """
 
@@ -86,6 +86,7 @@ def _child(parent: int, service: str) -> int:
 def _kill_after(tmp_path: Path, port: int, trials: int, victim: str | None) -> None:
     """Run the session until ``trials`` trials are logged, then kill -9 the runner (None)
     or one of its services; wait until everything it started is gone."""
+    trials = max(trials, len(_done(tmp_path)) + 1)  # at least one trial in this run
     runner = _start(tmp_path, port)
     try:
         _wait(lambda: len(_done(tmp_path)) >= trials, 180, f"{trials} trials", tmp_path)
@@ -99,23 +100,32 @@ def _kill_after(tmp_path: Path, port: int, trials: int, victim: str | None) -> N
     _wait(lambda: _port_free(port), 30, "free port (the services die with the runner)", tmp_path)
 
 
-def test_a_session_killed_twice_resumes_and_runs_every_trial_exactly_once(
+def test_a_session_killed_again_and_again_resumes_and_runs_every_trial_exactly_once(
     tmp_path: Path,
 ) -> None:
+    """2 blocks x 5 trials: kill -9 of the runner, then of each service of the stack, at
+    successive trials; each time `dammrl session run` again resumes. A killed recorder is
+    restarted by the stack itself (the session goes on)."""
     (tmp_path / "protocol.yaml").write_text(PROTOCOL)
     port = free_port()
-    _kill_after(tmp_path, port, 2, None)  # the runner, mid first block
-    _kill_after(tmp_path, port, 4, "controller")  # a service, mid second block
+    # mid-block (a block's last trial ends its stack: a kill then would hit a stopping one)
+    for after, victim in ((1, None), (2, "controller"), (3, "sim"), (6, "intent"), (7, "policy")):
+        _kill_after(tmp_path, port, after, victim)
     runner = _start(tmp_path, port)
+    at_least = max(8, len(_done(tmp_path)) + 1)
+    assert at_least < 10, "the session ran past the recorder's kill point"
+    _wait(lambda: len(_done(tmp_path)) >= at_least, 180, "trials", tmp_path)
+    os.kill(_child(runner.pid, "recorder"), signal.SIGKILL)
     assert runner.wait(300) == 0, (tmp_path / "runner.log").read_text()[-3000:]
 
     done = _done(tmp_path)
-    assert sorted(int(str(t["trial"])) for t in done) == [1, 2, 3, 4, 5, 6], done
+    assert sorted(int(str(t["trial"])) for t in done) == list(range(1, 11)), done
     folder = tmp_path / "sessions" / "P001" / "ses-01"
     events = [json.loads(line) for line in (folder / "events.jsonl").read_text().splitlines()]
     whats = [e["what"] for e in events]
-    assert whats.count("resume") == 2 and whats[-1] == "end" and "stopped" in whats
+    assert whats.count("resume") == 5 and whats[-1] == "end" and whats.count("stopped") == 4
     assert all(e["who"] == "T1" for e in events)
+    assert "restarted into a new file" in (tmp_path / "runner.log").read_text()
     for trial in done:  # its recording holds its result, whatever killed the run after it
         recording = read_recording(folder / str(trial["recording"]))
         results = [m for _, m in recording.decoded(EpisodeResult)]

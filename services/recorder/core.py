@@ -28,10 +28,21 @@ from mcap.writer import CompressionType, Writer
 
 from dammrl_core import __version__
 from dammrl_core.errors import DammrlError
-from schemas import Message, type_of
+from schemas import (
+    ComfortRating,
+    EmergencyStop,
+    EpisodeResult,
+    Message,
+    SessionControl,
+    type_of,
+)
 from services.recorder.gaps import SequenceAccount
 
 PROFILE = "dammrl"
+AT_ONCE: tuple[type[Message], ...] = (EpisodeResult, ComfortRating, SessionControl, EmergencyStop)
+"""The rare messages a study is built on (a reach's result, the participant's rating, the
+therapist's acts): their chunk is closed and handed to the OS as each one comes, so even
+a recorder killed right after one keeps it."""
 log = logging.getLogger("dammrl.recorder")
 
 
@@ -114,6 +125,8 @@ class McapRecorder:
         channel = self._channel(key, message_type)
         publish_ns = header["stamp_ns"] if header["stamp_ns"] >= 0 else log_time_ns
         self.writer.add_message(channel, log_time_ns, payload, publish_ns, seq % 2**32)
+        if message_type in AT_ONCE:
+            self.flush()
 
     def flush_due(self, now_ns: int, chunk_s: float) -> bool:
         """Whether the oldest message not yet handed to the OS is ``chunk_s`` old."""
