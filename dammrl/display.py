@@ -106,7 +106,7 @@ class ParticipantDisplay:
     """The page (see the module docstring); ``feed`` it bus messages from any thread."""
 
     def __init__(self, robot: RobotDescription, task: TaskSettings, host: str = "0.0.0.0",
-                 port: int = 8080, decide_with: str = "the pad") -> None:  # fmt: skip
+                 port: int = 8080, decide_with: str = "Forward or back?") -> None:  # fmt: skip
         # a browser's dropped pre-connection is no error of ours
         logging.getLogger("websockets.server").setLevel(logging.CRITICAL)
         self.server = viser.ViserServer(host=host, port=port, label="dammrl", verbose=False)
@@ -138,7 +138,7 @@ class ParticipantDisplay:
                                               position=(0.4, 0.0, top), visible=False)  # fmt: skip
         # a halo over the true-size cap: a 6 cm button is small on a screen
         self.halo = server.scene.add_icosphere("/goal/halo", 0.05, GOAL, opacity=0.3)
-        self.subgoal = server.scene.add_icosphere("/subgoal", 0.01, SUBGOAL, opacity=0.35,
+        self.subgoal = server.scene.add_icosphere("/subgoal", 0.01, SUBGOAL, opacity=0.55,
                                                   visible=False)  # fmt: skip
         self.subgoal_centre = server.scene.add_icosphere("/subgoal_centre", 0.004, SUBGOAL,
                                                          visible=False)  # fmt: skip
@@ -230,7 +230,7 @@ class ParticipantDisplay:
                 self.subgoal.scale = message.radius_m / 0.01  # the sphere's radius is 1 cm
                 self.subgoal.visible = self.subgoal_centre.visible = True
             elif isinstance(message, DecisionRequest):
-                self.say("Decide now", f"Forward or back? Use {self.decide_with}.", "decide")
+                self.say("Decide now", self.decide_with, "decide")
             elif isinstance(message, Intent):
                 way = "forward" if message.u_h > 0 else "back"
                 self.say("Moving", f"You chose {way}.")

@@ -37,6 +37,7 @@ class Browser:
         )  # fmt: skip
         self.ws = connect(self._page_socket(), max_size=None, open_timeout=10)
         self.next_id = 0
+        self.events: list[dict[str, Any]] = []
         self.call("Page.enable")
 
     def _page_socket(self) -> str:
@@ -62,6 +63,23 @@ class Browser:
                 if "error" in reply:
                     raise AssertionError(f"{method}: {reply['error']}")
                 return dict(reply.get("result", {}))
+            if "method" in reply:
+                self.events.append(reply)
+
+    def event(self, method: str, timeout_s: float) -> dict[str, Any] | None:
+        """The next event ``method`` (events come once a domain is enabled)."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            for i, message in enumerate(self.events):
+                if message["method"] == method:
+                    return dict(self.events.pop(i)["params"])
+            left = deadline - time.monotonic()
+            if left <= 0:
+                return None
+            try:
+                self.events.append(json.loads(self.ws.recv(timeout=left)))
+            except TimeoutError:
+                return None
 
     def evaluate(self, expression: str) -> Any:
         result = self.call("Runtime.evaluate", expression=expression, returnByValue=True)

@@ -107,7 +107,14 @@ def _run(args: argparse.Namespace) -> int:
             display.close()
 
 
-DECIDE_WITH = {"pad": "the pad", "lsl": "your armband", "simulated": "nothing: it is simulated"}
+DECIDE_WITH = {
+    "pad": "Press the pad: firm for forward, light for back. Quick for big steps, held for "
+    "small precise ones.",
+    "lsl": "Close your hand for forward, open it for back. Briefly for big steps, held for "
+    "small precise ones.",
+    "simulated": "The simulated patient decides.",
+}
+"""The decision cue on the participant display, per intent source."""
 
 
 def open_display(host: str, port: int, intent: str | None) -> ParticipantDisplay:
@@ -116,7 +123,7 @@ def open_display(host: str, port: int, intent: str | None) -> ParticipantDisplay
     from dammrl_core.robot import RobotSettings
     from dammrl_core.task import TaskSettings
 
-    with_what = DECIDE_WITH.get(intent or "simulated", f"the {intent}")
+    with_what = DECIDE_WITH.get(intent or "simulated", f"Forward or back? Use the {intent}.")
     display = ParticipantDisplay(RobotSettings().load(), TaskSettings(), host, port, with_what)
     where = "localhost" if host in ("0.0.0.0", "127.0.0.1") else host
     print_err(f"participant display: open http://{where}:{display.port} in a browser, full "
