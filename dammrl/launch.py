@@ -93,6 +93,7 @@ class StackOptions:
     json: bool = False
     record: Path | None = None  # also run the recorder into this MCAP file
     study: str = ""  # the session the recording belongs to (JSON, into its metadata)
+    prior: tuple[float, float] | None = None  # the person's carried human-model posterior
     pad_port: str | None = None  # the pressure pad's serial device (semi-virtual, or real)
     lsl_stream: str | None = None  # a wearable sensor's LSL stream (semi-virtual, or real)
     intent: str | None = None  # the intent source (default: pad with pad_port, lsl with a stream)
@@ -316,6 +317,8 @@ class Stack:
         settings.append(ControllerSettings(trigger=o.trigger, **chosen))  # type: ignore[arg-type]
         if o.model is not None:
             settings.append(PolicySettings(kind="fixed", **chosen))  # type: ignore[arg-type]
+        if o.prior is not None:
+            settings.append(PolicySettings(prior=o.prior))
         settings += self._intent_settings() + self._arm_settings()
         if o.record is not None:
             settings.append(RecorderSettings(out=o.record, mode=o.mode, study=o.study))

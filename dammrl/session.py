@@ -21,6 +21,7 @@ interrupted run is kept as it is; its trial runs again in a new part.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import os
@@ -44,11 +45,14 @@ from dammrl_core.robot import RobotSettings
 from schemas import (
     DEFAULT_NAMESPACE,
     ComfortRating,
+    DecodeError,
     EmergencyStop,
     EpisodeResult,
     Header,
     Message,
+    ModelChoice,
     SessionControl,
+    decode,
     encode,
     key,
 )
@@ -191,6 +195,24 @@ class Participant:
         record = read_json(self.file) | {"calibration": kept.name}
         write_json(self.file, record)
         return kept
+
+    def posterior(self) -> tuple[float, float] | None:
+        """The human-model posterior their earlier runs ended with (None: none yet)."""
+        path = self.folder / "posterior.json"
+        if not path.exists():
+            return None
+        p = read_json(path).get("probabilities")
+        if not (isinstance(p, list) and len(p) == 2 and all(isinstance(v, float) for v in p)):
+            raise ConfigurationError(f"{path}: no 'probabilities' of the two human models")
+        return (p[0], p[1])
+
+    def keep_posterior(self, probabilities: tuple[float, ...], session: str, trials: list[int]
+                       ) -> None:  # fmt: skip
+        """Carry the posterior a run ended with to the next run and session."""
+        write_json(self.folder / "posterior.json", {
+            "probabilities": [float(v) for v in probabilities], "session": session,
+            "after_trials": trials, "utc": now_utc(),
+        })  # fmt: skip
 
     def calibration(self) -> Path | None:
         """The calibration their last session kept, if any."""
@@ -446,6 +468,8 @@ class StackRun:
         self.end_block_why = ""  # ... by whom and why
         self.running = threading.Event()
         self.sent = 0  # messages this run sent (their sequence numbers)
+        self.posterior: tuple[float, float] | None = None  # the policy's, last heard
+        self.subscribers: list[Any] = []
 
     def run(self) -> int:
         runner, group = self.runner, self.group
@@ -456,6 +480,7 @@ class StackRun:
                             "sha256": runner.protocol.sha256, "block": group[0].block,
                             "trials": [t.number for t in group]})  # fmt: skip
         setup = self.setup
+        prior = runner.participant.posterior()  # what this person's earlier runs said
         intent = condition.intent or setup.intent
         person = intent in ("pad", "lsl")
         options = StackOptions(
@@ -465,6 +490,7 @@ class StackRun:
             pad_port=setup.pad_port if intent == "pad" else None,
             lsl_stream=setup.stream if intent == "lsl" else None,
             calibration=setup.calibration if person else None, lockstep=setup.lockstep,
+            prior=prior,
         )  # fmt: skip
         self.session.events.add(runner.event("run", block=group[0].block,
                                              recording=self.part.name,
@@ -475,7 +501,11 @@ class StackRun:
             return self.stack.run()
         finally:
             self.running.clear()
-            self.hub = None
+            self.hub, self.subscribers = None, []
+            if self.posterior is not None and self.posterior != prior:
+                runner.participant.keep_posterior(self.posterior, self.session.folder.name,
+                                                  [t.number for t in self.group])  # fmt: skip
+                self.session.events.add(runner.event("posterior", p=list(self.posterior)))
 
     def attach(self, hub: Any) -> None:
         """The stack is up: the display follows its bus, the console acts on it."""
@@ -484,8 +514,17 @@ class StackRun:
             from dammrl.display import BusFeed
 
             BusFeed(self.runner.display, DEFAULT_NAMESPACE).attach(hub)
+        self.subscribers = [hub.declare_subscriber(key(DEFAULT_NAMESPACE, ModelChoice),
+                                                   self._choice)]  # fmt: skip
         self.running.set()
         threading.Thread(target=self._console, daemon=True).start()
+
+    def _choice(self, sample: Any) -> None:
+        """The policy's posterior of this person, as it learns (kept after the run)."""
+        with contextlib.suppress(DecodeError):
+            choice = decode(ModelChoice, sample.payload.to_bytes())
+            if choice.posterior is not None and len(choice.posterior) == 2:
+                self.posterior = (choice.posterior[0], choice.posterior[1])
 
     # ---- results --------------------------------------------------------------------
     def keep(self, result: EpisodeResult) -> None:

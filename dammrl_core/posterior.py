@@ -32,6 +32,9 @@ class HumanModelPosterior:
     log_time_sum: float = 0.0  # sum of their log decision times [log s]
     decisions: int = 0
     map_history: list[int] = field(default_factory=list)
+    log_prior: np.ndarray = field(default_factory=lambda: np.zeros(len(HUMAN_MODELS)))
+    """What earlier runs and sessions of the same person said (``carried_prior``); flat
+    by default."""
 
     def update(self, correct: bool, decision_s: float | None = None,
                confidence: float = 1.0) -> np.ndarray:  # fmt: skip
@@ -55,10 +58,10 @@ class HumanModelPosterior:
 
     @property
     def log_probability(self) -> np.ndarray:
-        """Unnormalised log posterior, one per model (a flat prior), largest 0."""
+        """Unnormalised log posterior, one per model, largest 0."""
         evidence = self.human.times_log_evidence
         times = [evidence(m, self.timed, self.log_time_sum) for m in HUMAN_MODELS]
-        log_p = self.log_accuracy + np.array(times)
+        log_p = self.log_prior + self.log_accuracy + np.array(times)
         return np.asarray(log_p - log_p.max())
 
     @property
@@ -77,3 +80,21 @@ class HumanModelPosterior:
             if history[k] != history[-1]:
                 return k + 2
         return 1 if history else 0
+
+
+PRIOR_CAP = 0.9
+"""A carried prior is never surer than this of one model: a person may change between
+sessions (practice, fatigue), and new evidence must be able to overturn the old."""
+
+
+def carried_prior(probabilities: tuple[float, ...] | None) -> np.ndarray:
+    """The log prior from a posterior carried from earlier runs or sessions, each model's
+    probability clipped to [1 - PRIOR_CAP, PRIOR_CAP]; flat when there is none."""
+    if probabilities is None:
+        return np.zeros(len(HUMAN_MODELS))
+    p = np.asarray(probabilities, dtype=float)
+    if p.shape != (len(HUMAN_MODELS),) or not np.all(np.isfinite(p)) or p.sum() <= 0:
+        raise ValueError(f"a prior is one probability per human model, got {probabilities}")
+    p = np.clip(p / p.sum(), 1 - PRIOR_CAP, PRIOR_CAP)
+    log_p = np.log(p / p.sum())
+    return np.asarray(log_p - log_p.max())

@@ -77,3 +77,16 @@ def test_time_evidence_is_bounded_by_the_scale_spread() -> None:
     odds = evidence[1] - evidence[0]
     gap = math.log(human.decision_median_small_s / human.decision_median_big_s)
     assert 0 < odds <= gap**2 / (2 * human.decision_scale_sd**2)
+
+
+def test_a_carried_prior_starts_the_posterior_where_the_person_was_but_never_certain() -> None:
+    from dammrl_core.human import HumanModel
+    from dammrl_core.posterior import PRIOR_CAP, HumanModelPosterior, carried_prior
+
+    fresh = HumanModelPosterior(HumanModel(), log_prior=carried_prior((0.3, 0.7)))
+    np.testing.assert_allclose(fresh.probabilities, [0.3, 0.7])
+    sure = HumanModelPosterior(HumanModel(), log_prior=carried_prior((0.0, 1.0)))
+    np.testing.assert_allclose(sure.probabilities, [1 - PRIOR_CAP, PRIOR_CAP])
+    for _ in range(30):  # a person who changed: 30 quick, inaccurate decisions
+        sure.update(correct=False, decision_s=0.4)
+    assert sure.map_model == 1  # the evidence overturns the carried belief

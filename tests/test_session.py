@@ -124,6 +124,7 @@ class ScriptedStack:
     given: ClassVar[int] = 0
     console: ClassVar[dict[int, list[str]]] = {}
     sent: ClassVar[list[Any]] = []
+    posterior: ClassVar[tuple[float, float] | None] = None
 
     def __init__(self, options: StackOptions, out: Any, info: Any, on_result: Any,
                  on_up: Any) -> None:  # fmt: skip
@@ -152,6 +153,8 @@ class ScriptedStack:
                 assert not isinstance(command, str)
                 stack_run.act(command)
                 outcome = "skipped" if command.action in ("skip", "again", "end-block") else outcome
+            if ScriptedStack.posterior is not None:  # the policy spoke of the person
+                stack_run.posterior = ScriptedStack.posterior
             self.on_result(_result(episode, self.options.seed + episode - 1, outcome))
             if self.finishing:
                 break
@@ -162,7 +165,7 @@ class ScriptedStack:
 def scripted(monkeypatch: pytest.MonkeyPatch) -> type[ScriptedStack]:
     monkeypatch.setattr("dammrl.session.Stack", ScriptedStack)
     ScriptedStack.runs, ScriptedStack.crash_after, ScriptedStack.given = [], None, 0
-    ScriptedStack.console, ScriptedStack.sent = {}, []
+    ScriptedStack.console, ScriptedStack.sent, ScriptedStack.posterior = {}, [], None
     return ScriptedStack
 
 
@@ -283,3 +286,18 @@ def test_the_consoles_pause_skip_again_and_end_of_block_are_logged_and_counted(
     assert sorted(by_trial) == list(range(1, 8))
     keys = [k for k, _ in scripted.sent]
     assert "dammrl/safety/stop" in keys and keys.count("dammrl/session/control") == 5
+
+
+def test_the_persons_posterior_is_carried_to_the_next_run_and_session(
+    tmp_path: Path, scripted: type[ScriptedStack]
+) -> None:
+    """Each stack run starts its policy from what the earlier runs said of the person."""
+    scripted.posterior = (0.2, 0.8)
+    assert _runner(tmp_path).run() == 0
+    assert [o.prior for o in scripted.runs] == [None, (0.2, 0.8), (0.2, 0.8)]
+    scripted.runs.clear()
+    scripted.posterior = None
+    assert _runner(tmp_path, new=True).run() == 0  # the next session
+    assert scripted.runs[0].prior == (0.2, 0.8)
+    kept = json.loads((tmp_path / "sessions/P001/posterior.json").read_text())
+    assert kept["probabilities"] == [0.2, 0.8] and kept["session"] == "ses-01"

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from importlib import resources
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
 from pydantic import Field
 from pydantic_settings import SettingsConfigDict
@@ -14,6 +14,9 @@ from dammrl_core.settings import Settings
 SHIPPED_POLICY = Path(
     str(resources.files("dammrl_core").joinpath("policies/reward2/checkpoint.pt"))
 )
+
+
+Probability = Annotated[float, Field(ge=0, le=1, allow_inf_nan=False)]
 
 
 class PolicySettings(Settings):
@@ -37,5 +40,9 @@ class PolicySettings(Settings):
     estimate_human: Literal["auto", "always", "never"] = "auto"
     """Estimate the human sub-model from their decisions (posterior) and use its MAP
     radius: 'auto' when the intents come from a real sensor, or always, or never."""
+    prior: tuple[Probability, Probability] | None = None
+    """The person's posterior from their earlier runs and sessions (P(E_big), P(E_small)),
+    carried by ``dammrl session run``; capped at 0.9 (see dammrl_core.posterior). None:
+    flat."""
     publish_period_s: float = Field(0.5, ge=0.05, le=10)
     """The latest ModelChoice is repeated this often, so late joiners learn it [s]."""

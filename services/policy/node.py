@@ -21,7 +21,7 @@ from dammrl_core.models import ModelSet
 from dammrl_core.policy import ModelChoice as CoreChoice
 from dammrl_core.policy.loading import load_policy
 from dammrl_core.policy.settings import PolicySettings
-from dammrl_core.posterior import HumanModelPosterior
+from dammrl_core.posterior import HumanModelPosterior, carried_prior
 from schemas import DecisionRequest, Intent, ModelChoice, TaskGoal
 from services.common.bus import Bus
 from services.common.entry import run_service
@@ -43,7 +43,7 @@ class PolicyNode:
         self.answers: dict[tuple[int, int], CoreChoice] = {}  # this episode's choices
         self._new_episode(0)
         self.publisher = bus.publisher(ModelChoice)
-        self.posterior = HumanModelPosterior(human)
+        self.posterior = HumanModelPosterior(human, log_prior=carried_prior(settings.prior))
         self.requests: dict[tuple[int, int], DecisionRequest] = {}
         bus.subscribe(DecisionRequest, TaskGoal, Intent)
         bus.expect(DecisionRequest, "controller")
