@@ -16,12 +16,17 @@ COMMANDS = {
     "e": "end-block",  # end this trial and skip the rest of the block
     "x": "stop",  # the emergency stop (latched until released)
     "release": "release",
+    "t": "take",  # the therapist decides for the participant (the device is ignored)
+    "+": "forward",  # taken over: the therapist's decision, forward (add 'small': E_small)
+    "-": "back",
+    "g": "give",  # the participant decides again
     "h": "help",
 }
 HELP = (
     "console (type, then Enter; a reason may follow, e.g. 'p the patient coughs'): "
     "p pause | r resume | s skip the trial | a run the trial again | e end the block | "
-    "x emergency stop | release | h help"
+    "x emergency stop | release | t take the decisions over, then + forward or - back "
+    "('+ small' for a small step), g give them back | h help"
 )
 
 

@@ -35,6 +35,7 @@ from schemas import (
     Intent,
     Message,
     RobotState,
+    SessionControl,
     StepEvent,
     TaskGoal,
 )
@@ -117,6 +118,7 @@ class ParticipantDisplay:
         self._drawn_s = 0.0
         self.frames = 0  # robot states drawn
         self.episode = 0
+        self.guided = False  # the therapist has taken the decisions over
         self._scene(task)
         self._panel()
         self.say("Welcome", "The session starts soon.")
@@ -229,13 +231,30 @@ class ParticipantDisplay:
                 self.subgoal.position = self.subgoal_centre.position = message.subgoal_m
                 self.subgoal.scale = message.radius_m / 0.01  # the sphere's radius is 1 cm
                 self.subgoal.visible = self.subgoal_centre.visible = True
+            elif isinstance(message, SessionControl):
+                self._control(message)
             elif isinstance(message, DecisionRequest):
-                self.say("Decide now", self.decide_with, "decide")
+                if self.guided:
+                    self.say("Your therapist decides", "Relax and watch the arm.")
+                else:
+                    self.say("Decide now", self.decide_with, "decide")
             elif isinstance(message, Intent):
                 way = "forward" if message.u_h > 0 else "back"
                 self.say("Moving", f"You chose {way}.")
             elif isinstance(message, EpisodeResult):
                 self._outcome(message)
+
+    def _control(self, control: SessionControl) -> None:
+        if control.action == "take":
+            self.guided = True
+            self.say("Your therapist decides", "Relax and watch the arm.")
+        elif control.action == "give":
+            self.guided = False
+            self.say("Your turn again", self.decide_with)
+        elif control.action == "pause":
+            self.say("Paused", "Relax. We go on soon.")
+        elif control.action == "resume":
+            self.say("Going on", "")
 
     def _new_reach(self, goal: TaskGoal) -> None:
         if goal.episode == self.episode:
@@ -265,7 +284,8 @@ def _escape(text: str) -> str:
 Feed = Callable[[Message], None]
 
 
-DISPLAYED = (RobotState, TaskGoal, StepEvent, DecisionRequest, Intent, EpisodeResult)
+DISPLAYED = (RobotState, TaskGoal, StepEvent, DecisionRequest, Intent, EpisodeResult,
+             SessionControl)  # fmt: skip
 
 
 class BusFeed:

@@ -627,6 +627,12 @@ class StackRun:
             self.paused_s += time.monotonic() - self.paused_since
             self.paused_since = None
             self._control("resume", command.why)
+        elif action in ("take", "give"):
+            self._control(action, command.why)
+        elif action in ("forward", "back"):
+            small = command.why.split()[:1] == ["small"]
+            self._control("decide", command.why, u_h=1 if action == "forward" else -1,
+                          human_model=2 if small else 1)  # fmt: skip
         elif action in ("skip", "again", "end-block"):
             self.again = action == "again"
             if action == "end-block":
@@ -634,9 +640,10 @@ class StackRun:
             self._control("skip", command.why)
         runner.say(f"console: {action} (trial {trial.number})")
 
-    def _control(self, action: str, why: str) -> None:
+    def _control(self, action: str, why: str, **decision: int) -> None:
         self._send(SessionControl(header=self._header(), episode=self.episode, action=action,
-                                  who=self.runner.setup.operator, why=why))  # fmt: skip
+                                  who=self.runner.setup.operator, why=why,
+                                  **decision))  # fmt: skip
 
     def _header(self) -> Header:
         self.sent += 1

@@ -321,13 +321,31 @@ class ComfortRating(Message):
     )
 
 
+OPERATOR = "operator"
+"""``Intent.source`` of a decision the therapist made for the participant (a takeover):
+no person's evidence (the posterior skips it)."""
+
+
 class SessionControl(Message):
     """The therapist's hand on the running reach (the session console): ``pause`` holds
     the arm where its reference is and stops the reach's clock, ``resume`` goes on from
-    there, ``skip`` ends the reach. Applies to ``episode`` only (a late one changes
-    nothing). The emergency stop is ``EmergencyStop``, apart."""
+    there, ``skip`` ends the reach; ``take`` hands the decisions to the therapist (the
+    participant's device is ignored), ``decide`` is the therapist's answer to the open
+    request, ``give`` hands the decisions back. Applies to ``episode`` only (a late one
+    changes nothing). The emergency stop is ``EmergencyStop``, apart."""
 
     episode: int = Field(ge=1, description="the reach it applies to")
-    action: Literal["pause", "resume", "skip"]
+    action: Literal["pause", "resume", "skip", "take", "give", "decide"]
     who: str = Field(min_length=1, max_length=32, description="the operator's id")
     why: str = Field("", max_length=200, description="the reason, for the record")
+    u_h: Literal[-1, 1] | None = Field(None, description="decide: the command")
+    human_model: HumanModel | None = Field(None, description="decide: the radius i")
+
+    @model_validator(mode="after")
+    def _decision_with_decide(self) -> SessionControl:
+        decision = self.u_h is not None and self.human_model is not None
+        if decision != (self.action == "decide") or (self.u_h is None) != (
+            self.human_model is None
+        ):
+            raise ValueError("'decide' carries u_h and human_model, other actions neither")
+        return self

@@ -328,3 +328,53 @@ def test_planning_an_episode_is_not_a_stall_of_the_controller() -> None:
     node.started = True  # its first state came with the first look
     assert not node._stalled_itself(time.monotonic())
     assert node._stalled_itself(time.monotonic() + 2 * node.stale_s)
+
+
+def _control(action: str, **decision: int) -> Message:
+    from schemas import SessionControl
+
+    return SessionControl(header=HEADER, episode=1, action=action, who="T1",
+                          **decision)  # type: ignore[arg-type]  # fmt: skip
+
+
+def test_a_takeover_answers_with_the_therapists_decisions_and_hands_back() -> None:
+    """Taken over, the participant's device is not asked and its decisions are dropped;
+    the therapist's answer goes out as the operator's, not a person's; handed back, the
+    open request is asked of the participant afresh."""
+    node, person, bus = _person_node()
+    _step(node, _goal(1, 5), _request(1))
+    assert len(person.asked) == 1
+    _step(node, _control("take"))
+    person.coming.append(Decided(u_h=-1, human_model=1, confidence=0.9, decision_s=0.5))
+    _step(node)  # the participant pressed anyway: dropped
+    assert bus.published == []
+    _step(node, _control("decide", u_h=1, human_model=2))
+    (answer,) = _fields(bus)
+    assert (answer["source"], answer["person"], answer["u_h"]) == ("operator", False, 1)
+    assert answer["human_model"] == 2 and answer["confidence"] == 1.0
+    _step(node, _request(2))
+    assert len(person.asked) == 1  # taken over: the device is not asked
+    _step(node, _control("give"))
+    assert len(person.asked) == 2 and person.asked[-1].request == 2  # asked afresh
+    person.coming.append(Decided(u_h=-1, human_model=1, confidence=0.9, decision_s=0.5))
+    _step(node)
+    assert _fields(bus)[-1]["source"] == "pad" and _fields(bus)[-1]["person"]
+    _step(node, _control("decide", u_h=1, human_model=1))  # not taken over: ignored
+    assert len(bus.published) == 2
+
+
+def test_the_posterior_learns_nothing_from_the_therapists_decisions() -> None:
+    from dammrl_core.human import HumanModel
+    from dammrl_core.policy.settings import PolicySettings
+    from schemas import Intent
+    from services.policy.node import PolicyNode
+
+    settings = PolicySettings(kind="fixed", estimate_human="always")
+    node = PolicyNode(settings, HumanModel(), ModelSet(), FakeBus())  # type: ignore[arg-type]
+    for request, source in ((1, "operator"), (2, "pad")):
+        node._answer(_request(request))
+        node._observe_human(Intent(header=HEADER, episode=1, request=request, u_h=1,
+                                   human_model=2, radius_m=0.01, confidence=1.0,
+                                   source=source, person=source == "pad",
+                                   decision_s=0.6))  # fmt: skip
+    assert node.posterior.decisions == 1  # the participant's only

@@ -301,3 +301,17 @@ def test_the_persons_posterior_is_carried_to_the_next_run_and_session(
     assert scripted.runs[0].prior == (0.2, 0.8)
     kept = json.loads((tmp_path / "sessions/P001/posterior.json").read_text())
     assert kept["probabilities"] == [0.2, 0.8] and kept["session"] == "ses-01"
+
+
+def test_the_console_takes_the_decisions_over_and_gives_them_back(
+    tmp_path: Path, scripted: type[ScriptedStack]
+) -> None:
+    from schemas import SessionControl, decode
+
+    scripted.console = {2: ["t the patient is tired", "+ small", "-", "g"]}
+    assert _runner(tmp_path).run() == 0
+    sent = [decode(SessionControl, p) for k, p in scripted.sent if k == "dammrl/session/control"]
+    assert [(c.action, c.u_h, c.human_model) for c in sent] == [
+        ("take", None, None), ("decide", 1, 2), ("decide", -1, 1), ("give", None, None)
+    ]  # fmt: skip
+    assert sent[0].why == "the patient is tired" and all(c.who == "operator" for c in sent)

@@ -196,3 +196,56 @@ def test_a_pause_holds_the_arm_without_a_jump_and_a_skip_ends_the_reach() -> Non
         t for t, c in commands if c.episode == 1
     )
     assert took_s - reach_s > 1.5, (took_s, reach_s)  # the pause is not the reach's time
+
+
+def test_the_therapist_takes_the_decisions_over_and_hands_them_back() -> None:
+    """On the real stack: taken over, the therapist's decisions answer the requests (the
+    simulated human's are dropped); after three, handed back, the human answers again,
+    and the reach reaches the button."""
+    import threading
+
+    from dammrl.launch import Stack, StackOptions
+    from schemas import DecisionRequest, Header, Intent, SessionControl, decode, encode, key
+
+    intents: list[Intent] = []
+    results: list[EpisodeResult] = []
+    keep: list[object] = []
+    answered: set[int] = set()
+    sent = [0]
+
+    def control(hub: object, action: str, **decision: int) -> None:
+        header = Header(stamp_ns=time.time_ns(), seq=sent[0], source="tool")
+        sent[0] += 1
+        message = SessionControl(header=header, episode=1, action=action, who="T1",
+                                 **decision)  # type: ignore[arg-type]  # fmt: skip
+        hub.put(key("dammrl", SessionControl), encode(message))  # type: ignore[attr-defined]
+
+    def on_up(hub: object) -> None:
+        control(hub, "take")
+
+        def request(sample: object) -> None:
+            asked = decode(DecisionRequest, sample.payload.to_bytes())  # type: ignore[attr-defined]
+            if len(answered) < 3 and asked.request not in answered:
+                answered.add(asked.request)
+                axis = asked.primary_axis
+                ahead = asked.goal_m[axis] - asked.ee_pos_m[axis]
+                control(hub, "decide", u_h=1 if ahead > 0 else -1, human_model=1)
+                if len(answered) == 3:
+                    threading.Timer(0.5, control, args=(hub, "give")).start()
+
+        def intent(sample: object) -> None:
+            intents.append(decode(Intent, sample.payload.to_bytes()))  # type: ignore[attr-defined]
+
+        subscribe = hub.declare_subscriber  # type: ignore[attr-defined]
+        keep.extend([subscribe(key("dammrl", DecisionRequest), request),
+                     subscribe(key("dammrl", Intent), intent)])  # fmt: skip
+
+    options = StackOptions(episodes=1, seed=7100100, model=(1, 1), port=free_port())
+    stack = Stack(options, out=lambda line: None, info=lambda line: None,
+                  on_result=results.append, on_up=on_up)  # fmt: skip
+    assert stack.run() == 0
+    assert results[0].success, results[0].reason
+    sources = [i.source for i in intents]
+    operator = {i.request for i in intents if i.source == "operator"}
+    assert operator and operator <= answered, sources
+    assert "simulated" in sources[sources.index("operator") :], sources  # handed back

@@ -13,6 +13,7 @@ into Health ("degraded").
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
 from collections import OrderedDict
@@ -39,15 +40,17 @@ from schemas import (
     Message,
     ModelChoice,
     SensorSample,
+    SessionControl,
     SignalChunk,
     TaskGoal,
 )
-from schemas.messages import HealthState, samples_per_chunk
+from schemas.messages import OPERATOR, HealthState, samples_per_chunk
 from services.common.bus import Bus
 from services.common.entry import run_service
 from services.intent.config import IntentSettings
 
 MAX_REMEMBERED = 256  # answers kept for re-sent requests
+log = logging.getLogger("dammrl.intent")
 Key = tuple[int, int]  # (episode, request)
 
 
@@ -75,10 +78,13 @@ class IntentNode:
         self.chunks = bus.publisher(SignalChunk)
         self.raw = RawBacklog()
         self.evidence = bus.publisher(IntentEvidence)
-        bus.subscribe(DecisionRequest, TaskGoal, ModelChoice)
+        bus.subscribe(DecisionRequest, TaskGoal, ModelChoice, SessionControl)
         bus.expect(DecisionRequest, "controller")
         bus.expect(TaskGoal, "controller")
         bus.expect(ModelChoice, "policy")
+        bus.expect(SessionControl, "tool")  # the session's console: a takeover
+        self.taken_by: str | None = None  # the therapist deciding for the participant
+        self.asked_s = 0.0  # when the open request was asked
 
     def run(self, stop: threading.Event) -> None:
         self.source.open()
@@ -104,6 +110,36 @@ class IntentNode:
         elif isinstance(message, ModelChoice) and message.request > 0:
             self.choices[(message.episode, message.request)] = message.human_model
             self._ask_if_chosen((message.episode, message.request))
+        elif isinstance(message, SessionControl):
+            self._take_control(message)
+
+    # ---- the therapist's takeover --------------------------------------------------------
+    def _take_control(self, control: SessionControl) -> None:
+        """``take``: the therapist decides (the source is not asked, its decisions are
+        dropped); ``decide``: their answer to the open request; ``give``: back to the
+        participant, who is asked the open request afresh."""
+        if control.action == "take" and self.taken_by is None:
+            self.taken_by = control.who
+            self.source.cancel()
+            log.warning("decisions taken over by %s", control.who)
+        elif control.action == "give" and self.taken_by is not None:
+            self.taken_by = None
+            log.warning("decisions handed back by %s", control.who)
+            if self.open is not None:
+                self._ask(self.open, self.open.human_model)
+        elif control.action == "decide":
+            self._decide_for(control)
+
+    def _decide_for(self, control: SessionControl) -> None:
+        request = self.open
+        if self.taken_by is None or request is None or request.episode != control.episode:
+            log.info("an operator's decision with nothing to answer: ignored")
+            return
+        assert control.u_h is not None and control.human_model is not None  # the schema's
+        decided = Decided(control.u_h, control.human_model, 1.0,
+                          time.monotonic() - self.asked_s)  # fmt: skip
+        self.open = None
+        self._send_answer(request, decided, OPERATOR, person=False)
 
     def _take_request(self, request: DecisionRequest) -> None:
         if request.episode > self.episode:  # its announcement was missed (never an older one)
@@ -151,7 +187,9 @@ class IntentNode:
                 self._ask(request, request.human_model)
 
     def _ask(self, request: DecisionRequest, human_model: int) -> None:
-        self.open = request
+        self.open, self.asked_s = request, time.monotonic()
+        if self.taken_by is not None:
+            return  # the therapist answers it
         ask = Ask(request.episode, request.request, request.seed, request.t_s,
                   np.array(request.ee_pos_m), np.array(request.goal_m), request.primary_axis,
                   human_model)  # fmt: skip
@@ -159,9 +197,16 @@ class IntentNode:
 
     # ---- answers -------------------------------------------------------------------------
     def _answer(self, decided: Decided) -> None:
+        """The source's decision for the open request (dropped while taken over)."""
+        if self.taken_by is not None:
+            return
         request, self.open = self.open, None
         if request is None:
             return
+        self._send_answer(request, decided, self.name, self.source.person)
+
+    def _send_answer(self, request: DecisionRequest, decided: Decided, source: str,
+                     person: bool) -> None:  # fmt: skip
         answer = Intent(
             header=self.intents.stamp(),
             episode=request.episode,
@@ -170,8 +215,8 @@ class IntentNode:
             human_model=decided.human_model,
             radius_m=self.models.radius_m(decided.human_model),
             confidence=decided.confidence,
-            source=self.name,
-            person=self.source.person,
+            source=source,
+            person=person,
             decision_s=decided.decision_s,
             correct=decided.correct,
         )

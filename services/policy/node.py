@@ -23,6 +23,7 @@ from dammrl_core.policy.loading import load_policy
 from dammrl_core.policy.settings import PolicySettings
 from dammrl_core.posterior import HumanModelPosterior, carried_prior
 from schemas import DecisionRequest, Intent, ModelChoice, TaskGoal
+from schemas.messages import OPERATOR
 from services.common.bus import Bus
 from services.common.entry import run_service
 
@@ -85,8 +86,8 @@ class PolicyNode:
         """Score a command against the request it answered; update the posterior."""
         self.real_human = self.real_human or intent.person
         request = self.requests.pop((intent.episode, intent.request), None)
-        if request is None or not self.estimating:
-            return
+        if request is None or not self.estimating or intent.source == OPERATOR:
+            return  # a therapist's decision says nothing of the participant
         toward = direction_to_goal(request.ee_pos_m, request.goal_m, request.primary_axis)
         self.posterior.update(intent.u_h == toward, intent.decision_s, intent.confidence)
 
