@@ -17,6 +17,8 @@ possibly older, at arm's length from a screen: few things, large type, strong co
 
 from __future__ import annotations
 
+import contextlib
+import io
 import logging
 import threading
 import time
@@ -110,7 +112,8 @@ class ParticipantDisplay:
                  port: int = 8080, decide_with: str = "Forward or back?") -> None:  # fmt: skip
         # a browser's dropped pre-connection is no error of ours
         logging.getLogger("websockets.server").setLevel(logging.CRITICAL)
-        self.server = viser.ViserServer(host=host, port=port, label="dammrl", verbose=False)
+        with contextlib.redirect_stdout(io.StringIO()):  # its banner: stdout is for results
+            self.server = viser.ViserServer(host=host, port=port, label="dammrl", verbose=False)
         self.port = self.server.get_port()
         self.decide_with = decide_with
         self.arm = ArmShapes(robot)
@@ -274,7 +277,8 @@ class ParticipantDisplay:
             self.say("Reach ended", "That one did not reach the button. Next one soon.", "bad")
 
     def close(self) -> None:
-        self.server.stop()
+        with contextlib.redirect_stdout(io.StringIO()):
+            self.server.stop()
 
 
 def _escape(text: str) -> str:

@@ -95,16 +95,16 @@ def _run(args: argparse.Namespace) -> int:
     setup = SetUp(mode=args.mode, intent=intent, pad_port=args.port, stream=args.stream,
                   calibration=args.calibration, bus_port=args.bus_port,
                   lockstep=args.lockstep, operator=args.operator)  # fmt: skip
-    display = None if args.no_display else open_display(args.display_host, args.display_port,
-                                                         intent)  # fmt: skip
+    runner = SessionRunner(args.root, args.participant, args.protocol, setup, say=print_err,
+                           new=args.new, accept_changes=args.accept_changes,
+                           comfort_timeout_s=args.comfort_timeout)  # fmt: skip
+    if not args.no_display:  # once the participant and the protocol are known good
+        runner.display = open_display(args.display_host, args.display_port, intent)
     try:
-        runner = SessionRunner(args.root, args.participant, args.protocol, setup,
-                               say=print_err, new=args.new, accept_changes=args.accept_changes,
-                               display=display, comfort_timeout_s=args.comfort_timeout)  # fmt: skip
         return runner.run()
     finally:
-        if display is not None:
-            display.close()
+        if runner.display is not None:
+            runner.display.close()
 
 
 DECIDE_WITH = {
