@@ -361,6 +361,9 @@ def test_a_takeover_answers_with_the_therapists_decisions_and_hands_back() -> No
     assert _fields(bus)[-1]["source"] == "pad" and _fields(bus)[-1]["person"]
     _step(node, _control("decide", u_h=1, human_model=1))  # not taken over: ignored
     assert len(bus.published) == 2
+    _step(node, _control("take"), _control("decide", u_h=-1, human_model=1))  # too early
+    _step(node, _request(3))  # its request comes after it: answered at once
+    assert _fields(bus)[-1]["request"] == 3 and _fields(bus)[-1]["source"] == "operator"
 
 
 def test_the_posterior_learns_nothing_from_the_therapists_decisions() -> None:

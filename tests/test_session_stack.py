@@ -210,7 +210,7 @@ def test_the_therapist_takes_the_decisions_over_and_hands_them_back() -> None:
     intents: list[Intent] = []
     results: list[EpisodeResult] = []
     keep: list[object] = []
-    answered: set[int] = set()
+    answered: set[int] = set()  # requests the therapist's decision answered
     sent = [0]
 
     def control(hub: object, action: str, **decision: int) -> None:
@@ -223,18 +223,20 @@ def test_the_therapist_takes_the_decisions_over_and_hands_them_back() -> None:
     def on_up(hub: object) -> None:
         control(hub, "take")
 
-        def request(sample: object) -> None:
+        def request(sample: object) -> None:  # asked, or asked again: the therapist decides
             asked = decode(DecisionRequest, sample.payload.to_bytes())  # type: ignore[attr-defined]
             if len(answered) < 3 and asked.request not in answered:
-                answered.add(asked.request)
                 axis = asked.primary_axis
                 ahead = asked.goal_m[axis] - asked.ee_pos_m[axis]
                 control(hub, "decide", u_h=1 if ahead > 0 else -1, human_model=1)
-                if len(answered) == 3:
-                    threading.Timer(0.5, control, args=(hub, "give")).start()
 
         def intent(sample: object) -> None:
-            intents.append(decode(Intent, sample.payload.to_bytes()))  # type: ignore[attr-defined]
+            answer = decode(Intent, sample.payload.to_bytes())  # type: ignore[attr-defined]
+            intents.append(answer)
+            if answer.source == "operator" and answer.request not in answered:
+                answered.add(answer.request)
+                if len(answered) == 3:
+                    threading.Timer(0.5, control, args=(hub, "give")).start()
 
         subscribe = hub.declare_subscriber  # type: ignore[attr-defined]
         keep.extend([subscribe(key("dammrl", DecisionRequest), request),

@@ -50,6 +50,9 @@ from services.common.entry import run_service
 from services.intent.config import IntentSettings
 
 MAX_REMEMBERED = 256  # answers kept for re-sent requests
+OPERATOR_HOLD_S = 2.0
+"""A therapist's decision typed before its request opened answers it if it opens this soon
+[s] (later, it is dropped: it was meant for a moment that has passed)."""
 log = logging.getLogger("dammrl.intent")
 Key = tuple[int, int]  # (episode, request)
 
@@ -84,6 +87,7 @@ class IntentNode:
         bus.expect(ModelChoice, "policy")
         bus.expect(SessionControl, "tool")  # the session's console: a takeover
         self.taken_by: str | None = None  # the therapist deciding for the participant
+        self.operator_early: tuple[SessionControl, float] | None = None  # before its request
         self.asked_s = 0.0  # when the open request was asked
 
     def run(self, stop: threading.Event) -> None:
@@ -123,7 +127,7 @@ class IntentNode:
             self.source.cancel()
             log.warning("decisions taken over by %s", control.who)
         elif control.action == "give" and self.taken_by is not None:
-            self.taken_by = None
+            self.taken_by, self.operator_early = None, None
             log.warning("decisions handed back by %s", control.who)
             if self.open is not None:
                 self._ask(self.open, self.open.human_model)
@@ -131,14 +135,20 @@ class IntentNode:
             self._decide_for(control)
 
     def _decide_for(self, control: SessionControl) -> None:
+        """The therapist's answer to the open request; one that comes before its request
+        (the console and the request travel apart) answers the next one of the episode,
+        if it opens within OPERATOR_HOLD_S."""
+        if self.taken_by is None or control.episode != self.episode:
+            log.info("an operator's decision while not taken over: ignored")
+            return
         request = self.open
-        if self.taken_by is None or request is None or request.episode != control.episode:
-            log.info("an operator's decision with nothing to answer: ignored")
+        if request is None:
+            self.operator_early = (control, time.monotonic())
             return
         assert control.u_h is not None and control.human_model is not None  # the schema's
         decided = Decided(control.u_h, control.human_model, 1.0,
                           time.monotonic() - self.asked_s)  # fmt: skip
-        self.open = None
+        self.open, self.operator_early = None, None
         self._send_answer(request, decided, OPERATOR, person=False)
 
     def _take_request(self, request: DecisionRequest) -> None:
@@ -188,8 +198,11 @@ class IntentNode:
 
     def _ask(self, request: DecisionRequest, human_model: int) -> None:
         self.open, self.asked_s = request, time.monotonic()
-        if self.taken_by is not None:
-            return  # the therapist answers it
+        if self.taken_by is not None:  # the therapist answers it
+            early = self.operator_early
+            if early is not None and time.monotonic() - early[1] <= OPERATOR_HOLD_S:
+                self._decide_for(early[0])
+            return
         ask = Ask(request.episode, request.request, request.seed, request.t_s,
                   np.array(request.ee_pos_m), np.array(request.goal_m), request.primary_axis,
                   human_model)  # fmt: skip
