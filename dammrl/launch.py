@@ -215,12 +215,17 @@ def _a_person(options: StackOptions) -> bool:
     return bool(options.pad_port or options.lsl_stream) or named != "simulated"
 
 
+def recording_files(record: Path) -> list[Path]:
+    """The recorder's files of ``record``: itself, then its rotations and continuations
+    after a restart (``NAME-001.mcap``, ...), in the order they were written."""
+    return [record, *sorted(record.parent.glob(f"{record.stem}-[0-9][0-9][0-9].mcap"))]
+
+
 def cut_recordings(record: Path) -> list[Path]:
-    """The recorder's files of ``record`` (``record`` and its rotations) that a death cut."""
+    """The recorder's files of ``record`` that a death cut."""
     from services.recorder.core import complete_mcap
 
-    files = [record, *sorted(record.parent.glob(f"{record.stem}-[0-9][0-9][0-9].mcap"))]
-    return [f for f in files if f.exists() and not complete_mcap(f)]
+    return [f for f in recording_files(record) if f.exists() and not complete_mcap(f)]
 
 
 def check_settings(services: tuple[str, ...], env: dict[str, str]) -> None:

@@ -38,7 +38,7 @@ from typing import TYPE_CHECKING, Any, TextIO
 
 from dammrl import __version__
 from dammrl.console import HELP, Command, Lines, parse
-from dammrl.launch import Stack, StackOptions, result_dict
+from dammrl.launch import Stack, StackOptions, recording_files, result_dict
 from dammrl_core.errors import ConfigurationError, DammrlError, Exit, UsageError
 from dammrl_core.protocol import Protocol, Trial, load_protocol, plan_trials
 from dammrl_core.robot import RobotSettings
@@ -559,8 +559,7 @@ class StackRun:
     def _recording(self) -> Path:
         """The file the recorder writes now: the part, or its newest continuation after
         a restarted recorder (``part-NN-001.mcap``, ...)."""
-        continued = sorted(self.part.parent.glob(f"{self.part.stem}-[0-9][0-9][0-9].mcap"))
-        return continued[-1] if continued else self.part
+        return recording_files(self.part)[-1]
 
     def _skip_rest_of_block(self, after: Trial) -> None:
         """Log the block's trials after ``after`` as skipped (the operator ended it)."""

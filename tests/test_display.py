@@ -7,7 +7,7 @@ from __future__ import annotations
 import io
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -18,7 +18,7 @@ from dammrl_core.robot import RobotSettings
 from dammrl_core.task import TaskSettings
 from schemas import DecisionRequest, EpisodeResult, Header, RobotState, StepEvent, TaskGoal
 from tests.browser import CHROMIUM, Browser
-from tests.busutil import free_port
+from tests.busutil import free_port, wait_for
 
 pytestmark = [
     pytest.mark.slow,
@@ -53,15 +53,6 @@ def _arm(image: np.ndarray) -> np.ndarray:
     return (b > 150) & (abs(r - g) < 25) & (b >= r - 5) & (b - r < 60)
 
 
-def _until(check: Callable[[], bool], timeout_s: float, what: str) -> None:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if check():
-            return
-        time.sleep(0.3)
-    raise AssertionError(f"no {what} within {timeout_s} s")
-
-
 @pytest.fixture
 def page(tmp_path: Path) -> Iterator[tuple[ParticipantDisplay, Browser]]:
     display = ParticipantDisplay(RobotSettings().load(), TaskSettings(), host="127.0.0.1",
@@ -89,7 +80,7 @@ def test_the_arm_and_the_goal_are_drawn_and_the_arm_moves_with_the_state(
         shots.append(_pixels(browser.screenshot(tmp_path / "a.png")))
         return int(_red(shots[-1]).sum()) > 30 and int(_arm(shots[-1]).sum()) > 2000
 
-    _until(drawn, 60, "arm and goal on the page")
+    wait_for(drawn, 60, "arm and goal on the page")
     before = _arm(shots[-1])
     time.sleep(1 / 20)  # the display redraws states at most 30 a second
     display.feed(_state(Q_B))
@@ -98,7 +89,7 @@ def test_the_arm_and_the_goal_are_drawn_and_the_arm_moves_with_the_state(
         shots.append(_arm(_pixels(browser.screenshot(tmp_path / "b.png"))))
         return int((shots[-1] ^ before).sum()) > 1500
 
-    _until(moved, 30, "arm moved on the page")
+    wait_for(moved, 30, "arm moved on the page")
     after = shots[-1]
     rows, cols = np.nonzero(before)
     rows_b, cols_b = np.nonzero(after)
@@ -114,13 +105,13 @@ def test_the_cue_the_outcome_and_the_comfort_rating_by_touch(
     def text() -> str:
         return str(browser.evaluate("document.body.innerText"))
 
-    _until(lambda: "Get ready" in text(), 60, "the reach's first words")
+    wait_for(lambda: "Get ready" in text(), 60, "the reach's first words")
     display.feed(StepEvent.model_construct(subgoal_m=(0.4, 0.05, -0.1), radius_m=0.02))
     display.feed(DecisionRequest.model_construct(episode=1, request=1))
-    _until(lambda: "Decide now" in text(), 10, "the decision cue")
+    wait_for(lambda: "Decide now" in text(), 10, "the decision cue")
     result = EpisodeResult.model_construct(success=True, t_total_s=12.3, outcome="success")
     display.feed(result)
-    _until(lambda: "Well done" in text(), 10, "the outcome")
+    wait_for(lambda: "Well done" in text(), 10, "the outcome")
 
     answer: list[tuple[int, float] | None] = []
     asking = threading.Thread(target=lambda: answer.append(display.ask_comfort(30)))
@@ -128,9 +119,9 @@ def test_the_cue_the_outcome_and_the_comfort_rating_by_touch(
     click_four = """(() => { const b = [...document.querySelectorAll('button')]
         .find(b => b.innerText.trim().startsWith('4 ')); if (b) { b.click(); return true; }
         return false; })()"""
-    _until(lambda: "Touch one answer" in text(), 15, "the rating's question")
+    wait_for(lambda: "Touch one answer" in text(), 15, "the rating's question")
     browser.screenshot(tmp_path / "comfort.png")
-    _until(lambda: bool(browser.evaluate(click_four)), 15, "the rating's buttons")
+    wait_for(lambda: bool(browser.evaluate(click_four)), 15, "the rating's buttons")
     asking.join(15)
     assert answer and answer[0] is not None and answer[0][0] == 4
-    _until(lambda: "Thank you" in text(), 10, "the thanks")
+    wait_for(lambda: "Thank you" in text(), 10, "the thanks")

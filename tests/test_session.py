@@ -213,13 +213,18 @@ def test_a_crashed_session_resumes_at_its_first_unfinished_trial_each_trial_once
     assert '"what": "stopped", "trial": 4' in events and '"what": "resume"' in events
 
 
-def test_a_changed_set_up_is_refused_unless_the_operator_says_why(
-    tmp_path: Path, scripted: type[ScriptedStack]
-) -> None:
+def _crash_after_one_trial(tmp_path: Path, scripted: type[ScriptedStack]) -> None:
+    """A session whose stack dies after its first trial (left unfinished)."""
     scripted.crash_after = 1
     with pytest.raises(DammrlError):
         _runner(tmp_path).run()
     scripted.crash_after = None
+
+
+def test_a_changed_set_up_is_refused_unless_the_operator_says_why(
+    tmp_path: Path, scripted: type[ScriptedStack]
+) -> None:
+    _crash_after_one_trial(tmp_path, scripted)
     other = SetUp(mode="virtual", lockstep=True)
     with pytest.raises(UsageError, match="lockstep: False then, True now"):
         _runner(tmp_path, setup=other).run()
@@ -231,10 +236,7 @@ def test_a_changed_set_up_is_refused_unless_the_operator_says_why(
 def test_a_new_session_leaves_the_unfinished_one_marked_and_a_second_participant_alternates(
     tmp_path: Path, scripted: type[ScriptedStack]
 ) -> None:
-    scripted.crash_after = 1
-    with pytest.raises(DammrlError):
-        _runner(tmp_path).run()
-    scripted.crash_after = None
+    _crash_after_one_trial(tmp_path, scripted)
     assert _runner(tmp_path, new=True).run() == 0
     assert len(_trials(tmp_path, "ses-02")) == 7
     assert "left unfinished" in (tmp_path / "sessions/P001/ses-01/events.jsonl").read_text()
