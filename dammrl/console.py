@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import queue
 import threading
+import time
 from dataclasses import dataclass
 from typing import TextIO
 
@@ -62,8 +63,10 @@ class Lines:
         self.queue.put(None)
 
     def get(self, timeout_s: float | None) -> str | None:
-        """The next line; None on a timeout or once the stream has ended."""
+        """The next line; None on a timeout or once the stream has ended (after
+        ``timeout_s`` all the same: a loop polling a closed console must not spin)."""
         if self.closed:
+            time.sleep(timeout_s or 0.0)
             return None
         try:
             line = self.queue.get(timeout=timeout_s)

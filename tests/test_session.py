@@ -4,6 +4,7 @@ stack replaced by a scripted one here; tests/test_session_stack.py runs the real
 from __future__ import annotations
 
 import io
+import time
 import itertools
 import json
 from pathlib import Path
@@ -317,3 +318,17 @@ def test_the_console_takes_the_decisions_over_and_gives_them_back(
         ("take", None, None), ("decide", 1, 2), ("decide", -1, 1), ("give", None, None)
     ]  # fmt: skip
     assert sent[0].why == "the patient is tired" and all(c.who == "operator" for c in sent)
+
+
+def test_a_closed_console_waits_its_timeout_instead_of_spinning() -> None:
+    """With stdin at its end (a session run from a script, CI), the console thread polls
+    a closed console: it must wait as an open, silent one does (it once spun a core)."""
+    from dammrl.console import Lines
+
+    lines = Lines(io.StringIO(""))
+    time.sleep(0.1)  # the reader thread meets the end
+    assert lines.get(0.0) is None and lines.closed
+    started = time.monotonic()
+    assert lines.get(0.2) is None
+    assert time.monotonic() - started >= 0.19
+    assert lines.get(None) is None  # no timeout: at once, never for ever
