@@ -4,9 +4,9 @@ stack replaced by a scripted one here; tests/test_session_stack.py runs the real
 from __future__ import annotations
 
 import io
-import time
 import itertools
 import json
+import time
 from pathlib import Path
 from typing import Any, ClassVar
 
