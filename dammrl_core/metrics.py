@@ -34,6 +34,12 @@ class ReachMetrics:
     n_steps: int  # micro-steps executed
     n_decisions: int  # human decisions made
     button_pressed: bool  # the goal button was pushed past its detection travel
+    # the rehabilitation literature's core kinematic set (see kinematics())
+    movement_time_s: float  # movement onset to offset [s]
+    peak_speed_m_s: float  # the end-effector's peak speed [m/s]
+    time_to_peak_speed_s: float  # movement onset to the peak speed [s]
+    n_speed_peaks: int  # local maxima of the speed profile (1: one smooth movement)
+    path_length_ratio: float  # path length / straight start-end distance [-] (1: straight)
 
     def as_dict(self) -> dict[str, Any]:
         """The fields as a JSON-safe dict: a number that is not finite becomes None."""
@@ -104,7 +110,71 @@ def reach_metrics(
         n_steps=n_steps,
         n_decisions=len(decisions_correct),
         button_pressed=button_pressed,
+        **asdict(kinematics(t, x, v)),
     )
+
+
+@dataclass(frozen=True)
+class Kinematics:
+    """The core kinematic measures of upper-limb reaching used in rehabilitation (the
+    measures whose clinimetric properties are best documented: Schwarz et al. 2019,
+    Neurorehabil Neural Repair 33:590; smoothness by SPARC and LDLJ beside them)."""
+
+    movement_time_s: float
+    peak_speed_m_s: float
+    time_to_peak_speed_s: float
+    n_speed_peaks: int
+    path_length_ratio: float
+
+
+ONSET_FRACTION = 0.05
+"""Movement onset and offset: the speed first rises above and last falls below this share
+of its peak (5 %, the usual threshold; Schwarz et al. 2019)."""
+PEAK_FRACTION = 0.10
+"""A speed peak counts when it stands out of the profile by this share of the peak speed
+(its prominence; a dip of less is the same peak). Rohrer et al. 2002 count peaks the same
+way on a filtered speed."""
+
+
+def kinematics(t: np.ndarray, x: np.ndarray, v: np.ndarray) -> Kinematics:
+    """Movement time, peak speed, time to peak speed, number of speed peaks and path-length
+    ratio of a reach: ``t`` (N,) [s], the measured positions ``x`` and velocities ``v``
+    (N, 3). Speed and path are those of :func:`motion_estimate` (sensor noise is neither a
+    peak nor a detour). A reach without motion: times 0, no peak, a ratio of 1."""
+    if len(t) < 2:
+        return Kinematics(0.0, 0.0, 0.0, 0, 1.0)
+    speed = _speed(motion_estimate(v, _rate(t)))
+    peak = int(np.argmax(speed))
+    if speed[peak] <= 0.0:
+        return Kinematics(0.0, 0.0, 0.0, 0, 1.0)
+    moving = np.nonzero(speed >= ONSET_FRACTION * speed[peak])[0]
+    onset, offset = int(moving[0]), int(moving[-1])
+    return Kinematics(
+        movement_time_s=float(t[offset] - t[onset]),
+        peak_speed_m_s=float(speed[peak]),
+        time_to_peak_speed_s=float(t[peak] - t[onset]),
+        n_speed_peaks=n_speed_peaks(speed),
+        path_length_ratio=path_length_ratio(motion_estimate(x, _rate(t))),
+    )
+
+
+def n_speed_peaks(speed: np.ndarray, prominence: float = PEAK_FRACTION) -> int:
+    """Local maxima of a speed profile (N,) standing out by ``prominence`` of its peak."""
+    from scipy.signal import find_peaks
+
+    top = float(np.max(speed)) if len(speed) else 0.0
+    if top <= 0.0:
+        return 0
+    padded = np.concatenate([[0.0], speed, [0.0]])  # a profile may start or end at speed
+    return len(find_peaks(padded, prominence=prominence * top)[0])
+
+
+def path_length_ratio(x: np.ndarray) -> float:
+    """The path's length over the straight distance from its first to its last point
+    (N, 3) [-]: 1 for a straight path, larger for a detour (1 without displacement)."""
+    length = float(np.sum(np.linalg.norm(np.diff(x, axis=0), axis=1))) if len(x) > 1 else 0.0
+    straight = float(np.linalg.norm(x[-1] - x[0])) if len(x) else 0.0
+    return length / straight if straight > 1e-9 else 1.0
 
 
 def goal_error(x: np.ndarray, goal: np.ndarray) -> np.ndarray:

@@ -190,6 +190,14 @@ class EpisodeResult(Message):
     n_steps: int = Field(ge=0)
     n_decisions: int = Field(ge=0)
     button_pressed: bool
+    # the clinical kinematic set (None in recordings made before it existed)
+    movement_time_s: Finite | None = Field(None, description="movement onset to offset [s]")
+    peak_speed_m_s: Finite | None = Field(None, description="peak end-effector speed [m/s]")
+    time_to_peak_speed_s: Finite | None = Field(None, description="onset to peak speed [s]")
+    n_speed_peaks: int | None = Field(None, ge=0, description="speed-profile peaks")
+    path_length_ratio: Finite | None = Field(
+        None, description="path length / straight start-end distance [-] (1: straight)"
+    )
     start_m: Vec3
     goal_m: Vec3
 

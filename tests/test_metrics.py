@@ -140,3 +140,69 @@ def test_an_episode_summary_is_strict_json_even_without_a_step() -> None:
     summary = episode_summary(metrics, "event", (2, 1), 7, task)
     assert summary["t_step_mean_s"] is None and summary["n_osc_per_step"] is None
     json.dumps(summary, allow_nan=False)  # raises on NaN or infinity
+
+
+# ---- the clinical kinematic set, against analytic profiles --------------------------
+
+
+def _min_jerk_path(
+    distance: float, duration: float, rate_hz: float = 1000.0, rest_s: float = 0.5
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A straight minimum-jerk reach along x with ``rest_s`` at rest before and after:
+    t (N,), x, v (N, 3)."""
+    t = np.arange(0.0, duration + 2 * rest_s, 1.0 / rate_hz)
+    s = np.clip((t - rest_s) / duration, 0.0, 1.0)
+    position = distance * (10 * s**3 - 15 * s**4 + 6 * s**5)
+    speed = distance / duration * (30 * s**2 - 60 * s**3 + 30 * s**4)
+    zeros = 0 * t
+    return t, np.stack([position, zeros, zeros], 1), np.stack([speed, zeros, zeros], 1)
+
+
+def test_a_minimum_jerk_reach_has_its_analytic_kinematics() -> None:
+    """Peak speed 1.875 D/T at T/2, one peak, a straight path; the movement time is where
+    the speed exceeds 5 % of its peak: 30 s^2 (1-s)^2 = 0.05 * 1.875 at s = 0.0586."""
+    from dammrl_core.metrics import kinematics
+
+    t, x, v = _min_jerk_path(0.3, 1.5)
+    k = kinematics(t, x, v)
+    assert k.peak_speed_m_s == pytest.approx(1.875 * 0.3 / 1.5, rel=1e-3)
+    onset = 0.5 * (1 - np.sqrt(1 - 4 * np.sqrt(0.05 * 1.875 / 30)))  # s at 5 % of the peak
+    assert k.movement_time_s == pytest.approx(1.5 * (1 - 2 * onset), abs=2e-3)
+    assert k.time_to_peak_speed_s == pytest.approx(1.5 * (0.5 - onset), abs=2e-3)
+    assert k.n_speed_peaks == 1
+    assert k.path_length_ratio == pytest.approx(1.0, abs=1e-3)  # the filter overshoots a hair
+
+
+def test_two_sub_movements_are_two_speed_peaks_and_a_bump_below_a_tenth_is_none() -> None:
+    from dammrl_core.metrics import n_speed_peaks
+
+    t = np.arange(0.0, 2.0, 0.001)
+    bump = lambda centre, height: height * np.exp(-(((t - centre) / 0.1) ** 2))  # noqa: E731
+    assert n_speed_peaks(bump(0.5, 1.0) + bump(1.2, 0.6)) == 2
+    assert n_speed_peaks(bump(0.5, 1.0) + bump(1.2, 0.05)) == 1  # 5 % of the peak
+    assert n_speed_peaks(np.zeros_like(t)) == 0
+
+
+def test_a_semicircle_has_a_path_length_ratio_of_half_pi() -> None:
+    from dammrl_core.metrics import path_length_ratio
+
+    angle = np.linspace(0.0, np.pi, 2001)
+    semicircle = np.stack([0.1 * np.cos(angle), 0.1 * np.sin(angle), 0 * angle], 1)
+    assert path_length_ratio(semicircle) == pytest.approx(np.pi / 2, rel=1e-6)
+    assert path_length_ratio(np.zeros((5, 3))) == 1.0  # no displacement: no detour
+
+
+def test_an_l_shaped_reach_has_its_path_length_ratio_and_sensor_noise_adds_no_detour() -> None:
+    """Two minimum-jerk legs at right angles (0.2 m then 0.2 m): ratio sqrt(2); the same
+    with 0.5 mm of white position noise stays within 2 % (the motion estimate)."""
+    from dammrl_core.metrics import kinematics
+
+    t, leg, speed = _min_jerk_path(0.2, 1.0, rest_s=0.2)
+    x = np.concatenate([leg, leg[-1] + leg[:, [1, 0, 2]]])
+    v = np.concatenate([speed, speed[:, [1, 0, 2]]])
+    t = np.arange(len(x)) * 0.001
+    assert kinematics(t, x, v).path_length_ratio == pytest.approx(np.sqrt(2), rel=1e-3)
+    noisy = x + np.random.default_rng(0).normal(0.0, 0.0005, x.shape)
+    k = kinematics(t, noisy, v)
+    assert k.path_length_ratio == pytest.approx(np.sqrt(2), rel=0.02)
+    assert k.n_speed_peaks == 2
