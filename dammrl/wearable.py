@@ -31,8 +31,10 @@ CUE_WORDS = {0: "rest: relax your forearm", -1: "-1: open your hand (extend) and
              1: "+1: close your hand (flex) and hold"}  # fmt: skip
 
 
-CUE_WAIT_S = 3.0
-"""How long the calibration waits for a follower of its cue stream before it starts [s]."""
+CUE_WAIT_S = 10.0
+"""How long the calibration waits for a follower of its cue stream before it starts [s]:
+a follower started beside it on a busy machine resolved the stream after more than 3 s and
+missed the first cue (the calibration was then refused)."""
 
 
 @dataclass(frozen=True)
@@ -117,6 +119,7 @@ def calibrate(info: Any, protocol: Protocol, show: Callable[[str], None],
     recorder = Recorder(info)
     # software that shows or follows the cues (the emulated armband) connects first; with
     # none (the person reads the terminal) the session starts after CUE_WAIT_S
+    show("get ready: the first cue comes in a few seconds")
     cues_out.wait_for_consumers(CUE_WAIT_S)
     time.sleep(1.0)
     cues = _cue_blocks(protocol, cues_out, show)
