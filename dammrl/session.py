@@ -478,6 +478,8 @@ class StackRun:
                             "session": self.session.folder.name,
                             "protocol": runner.protocol.name, "version": runner.protocol.version,
                             "sha256": runner.protocol.sha256, "block": group[0].block,
+                            "practice": group[0].practice,
+                            "condition": condition.model_dump(mode="json"),
                             "trials": [t.number for t in group]})  # fmt: skip
         setup = self.setup
         prior = runner.participant.posterior()  # what this person's earlier runs said

@@ -140,3 +140,31 @@ def test_study_refuses_bad_options_in_one_line(tmp_path: Path) -> None:
         done = subprocess.run(command, capture_output=True, text=True, timeout=120)
         assert done.returncode in (1, 2, 3), done.stderr
         assert message in done.stderr and len(done.stderr.strip().splitlines()) == 1, done.stderr
+
+
+SHROUT_FLEISS = np.array([[9, 2, 5, 8], [6, 1, 3, 2], [8, 4, 6, 8], [7, 1, 2, 6],
+                          [10, 5, 6, 9], [6, 2, 4, 7]], float)  # fmt: skip
+"""Shrout & Fleiss (1979), Table 2: 6 targets rated by 4 judges."""
+
+
+def test_icc_reproduces_shrout_and_fleiss_and_pingouin() -> None:
+    """ICC(3,1) 0.71 and ICC(2,1) 0.29 as published; the intervals as pingouin 0.7.0
+    computes them on the same table ([0.34, 0.95] and [0.02, 0.76])."""
+    from dammrl.study.stats import icc
+
+    consistency = icc(SHROUT_FLEISS, "consistency")
+    agreement = icc(SHROUT_FLEISS, "agreement")
+    assert consistency.value == pytest.approx(0.714841, abs=1e-6)
+    assert agreement.value == pytest.approx(0.289764, abs=1e-6)
+    assert (round(consistency.low, 2), round(consistency.high, 2)) == (0.34, 0.95)
+    assert (round(agreement.low, 2), round(agreement.high, 2)) == (0.02, 0.76)
+
+
+def test_icc_is_one_for_a_repeated_measure_and_undefined_without_two_occasions() -> None:
+    from dammrl.study.stats import icc
+
+    targets = np.array([[1.0, 1.0], [2.0, 2.0], [4.0, 4.0]])
+    assert icc(targets).value == pytest.approx(1.0)
+    assert icc(targets + np.array([0.0, 5.0]), "agreement").value < 0.5  # shifted: no agreement
+    assert icc(targets + np.array([0.0, 5.0]), "consistency").value == pytest.approx(1.0)
+    assert icc(targets[:, :1]).n == 0 and np.isnan(icc(np.ones((3, 2))).value)

@@ -86,7 +86,8 @@ def parser() -> argparse.ArgumentParser:
 
 def _with_exit_codes(commands: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     """Every command's ``--help`` ends with the exit codes (nested actions included)."""
-    for command in commands.choices.values():
+    unique = {id(parser): parser for parser in commands.choices.values()}  # aliases: once
+    for command in unique.values():
         command.epilog = (
             f"{command.epilog}\n\n{EXIT_CODES_HELP}" if command.epilog else EXIT_CODES_HELP
         )

@@ -1,4 +1,5 @@
-"""Sessions with people: ``dammrl session run`` and ``dammrl session list``."""
+"""Sessions with people: ``dammrl session run`` and ``list``; the catalogue's actions
+(``dammrl/cli/catalogue.py``)."""
 
 from __future__ import annotations
 
@@ -30,10 +31,14 @@ def protocol_file(text: str) -> Path:
 
 def register(commands: Commands) -> None:
     """Add ``session run`` and ``session list``."""
+    from dammrl.cli.catalogue import add_actions
+
     helptext = "sessions with people: a participant, a protocol of blocks and trials"
-    session = commands.add_parser("session", help=helptext, description=helptext)
+    session = commands.add_parser("session", aliases=["sessions"], help=helptext,
+                                  description=helptext)  # fmt: skip
     actions = session.add_subparsers(required=True, metavar="ACTION")
     _add_run(actions)
+    add_actions(actions)
     helptext = "the sessions under a folder, with their progress"
     listing = actions.add_parser("list", help=helptext, description=helptext)
     listing.add_argument("--root", type=Path, default=Path("sessions"),

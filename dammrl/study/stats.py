@@ -124,3 +124,58 @@ def stratified_difference(
     draws = [statistic(draw(a)) - statistic(draw(b)) for _ in range(BOOTSTRAP_DRAWS)]
     low, high = np.nanpercentile(draws, [2.5, 97.5])
     return Estimate(statistic(a) - statistic(b), float(low), float(high), int(a.size + b.size))
+
+
+def icc(ratings: np.ndarray, kind: str = "consistency") -> Estimate:
+    """Intraclass correlation of single measurements with its 95 % interval: ``ratings``
+    (n targets, k occasions), no value missing. Two-way models (Shrout & Fleiss 1979;
+    McGraw & Wong 1996): ``consistency`` is ICC(3,1) = ICC(C,1), ``agreement`` ICC(2,1) =
+    ICC(A,1), which also counts a shift between occasions against reliability. Test-retest
+    here: the targets are a block's trials (the same target each session), the occasions
+    the sessions. NaN throughout with fewer than 2 targets or 2 occasions."""
+    y = np.asarray(ratings, dtype=float)
+    if y.ndim != 2 or min(y.shape) < 2 or not np.all(np.isfinite(y)):
+        return NO_DATA
+    n, k = y.shape
+    grand = y.mean()
+    msr = k * float(np.sum((y.mean(axis=1) - grand) ** 2)) / (n - 1)
+    msc = n * float(np.sum((y.mean(axis=0) - grand) ** 2)) / (k - 1)
+    residual = y - y.mean(axis=1, keepdims=True) - y.mean(axis=0, keepdims=True) + grand
+    mse = float(np.sum(residual**2)) / ((n - 1) * (k - 1))
+    if msr + (k - 1) * mse <= 0:
+        return NO_DATA  # every value the same: reliability is undefined
+    if kind == "consistency":
+        return _icc_consistency(msr, mse, n, k)
+    if kind == "agreement":
+        return _icc_agreement(msr, msc, mse, n, k)
+    raise ValueError(f"icc kind {kind!r}: consistency or agreement")
+
+
+def _icc_consistency(msr: float, mse: float, n: int, k: int) -> Estimate:
+    from scipy.stats import f
+
+    value = (msr - mse) / (msr + (k - 1) * mse)
+    if mse == 0:
+        return Estimate(value, value, value, n)
+    ratio, df1, df2 = msr / mse, n - 1, (n - 1) * (k - 1)
+    low_f, high_f = ratio / f.ppf(0.975, df1, df2), ratio * f.ppf(0.975, df2, df1)
+    return Estimate(value, (low_f - 1) / (low_f + k - 1), (high_f - 1) / (high_f + k - 1), n)
+
+
+def _icc_agreement(msr: float, msc: float, mse: float, n: int, k: int) -> Estimate:
+    """ICC(A,1) with McGraw & Wong's (1996) interval (Satterthwaite's degrees of freedom)."""
+    from scipy.stats import f
+
+    value = (msr - mse) / (msr + (k - 1) * mse + k * (msc - mse) / n)
+    if value >= 1 or mse == 0:
+        return Estimate(value, value, value, n)
+    a = k * value / (n * (1 - value))
+    b = 1 + k * value * (n - 1) / (n * (1 - value))
+    dof = (a * msc + b * mse) ** 2 / (
+        (a * msc) ** 2 / (k - 1) + (b * mse) ** 2 / ((n - 1) * (k - 1))
+    )
+    f_low, f_high = f.ppf(0.975, n - 1, dof), f.ppf(0.975, dof, n - 1)
+    spread = k * msc + (k * n - k - n) * mse
+    low = n * (msr - f_low * mse) / (f_low * spread + n * msr)
+    high = n * (f_high * msr - mse) / (spread + n * f_high * msr)
+    return Estimate(value, min(value, low), max(value, high), n)
