@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import csv
 import gzip
+import io
 import json
 import shutil
 from collections.abc import Iterator
@@ -326,12 +327,35 @@ def _physio(
     folder: Path, stem: str, columns: list[str], rows: list[list[Any]], rate: float
 ) -> None:
     folder.mkdir(parents=True, exist_ok=True)
-    with gzip.open(folder / f"{stem}_physio.tsv.gz", "wt", newline="") as f:
-        csv.writer(f, delimiter="\t", lineterminator="\n").writerows(rows)
-    _write_json(
-        folder / f"{stem}_physio.json",
-        {"SamplingFrequency": rate, "StartTime": rows[0][0] if rows else 0.0, "Columns": columns},
+    text = io.StringIO(newline="")
+    csv.writer(text, delimiter="\t", lineterminator="\n").writerows(
+        [["n/a" if v is None else v for v in row] for row in rows]  # a lost sample
     )
+    with open(folder / f"{stem}_physio.tsv.gz", "wb") as f:  # no name, no time: as BIDS asks
+        with gzip.GzipFile(filename="", mode="wb", fileobj=f, mtime=0) as packed:
+            packed.write(text.getvalue().encode())
+    sidecar: dict[str, Any] = {
+        "SamplingFrequency": rate,
+        "StartTime": rows[0][0] if rows else 0.0,
+        "Columns": columns,
+    }
+    sidecar |= {
+        name: PHYSIO_COLUMNS.get(name)
+        or {"Description": f"the wearable's channel {name[2:]}, as its stream sent it"}
+        for name in columns
+    }
+    _write_json(folder / f"{stem}_physio.json", sidecar)
+
+
+PHYSIO_COLUMNS = {
+    "time": {"Description": "seconds from the reach's first state (robot clock)", "Units": "s"},
+    "raw_counts": {"Description": "the pad's ADC counts, as it sent them"},
+    "level": {
+        "Description": "the filtered pressure normalised by the person's calibration: "
+        "0 at rest, 1 a firm press"
+    },
+}
+"""What the physio files' columns mean (a wearable's channels are described apart)."""
 
 
 # ---- the dataset's own files ----------------------------------------------------------

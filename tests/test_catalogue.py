@@ -4,7 +4,10 @@ here (the recorder's own writer): rebuilt identically, attempts numbered, bad in
 
 from __future__ import annotations
 
+import gzip
 import json
+import subprocess
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -19,13 +22,16 @@ from schemas import (
     EpisodeResult,
     Header,
     RobotState,
+    SensorSample,
     SessionControl,
+    SignalChunk,
     TaskGoal,
     encode,
     key,
 )
 from services.recorder.core import McapRecorder
 from tests.test_schemas import EXAMPLES
+from tests.test_session_outcomes import VALIDATOR
 
 RESULT = next(m for m in EXAMPLES if isinstance(m, EpisodeResult))
 GOAL = next(m for m in EXAMPLES if isinstance(m, TaskGoal))
@@ -47,10 +53,11 @@ def write_run(
     study: dict[str, Any],
     reaches: list[tuple[int, float]],
     t0_ns: int,
-    extra: list[Any] = (),
-) -> None:  # type: ignore[assignment]
+    extra: Sequence[Any] = (),
+    during: Sequence[Any] = (),
+) -> None:
     """A stack run's recording: for each (episode, time) a goal, 20 states on a straight
-    line and its result; then ``extra`` messages."""
+    line (``during`` messages among them) and its result; then ``extra`` messages."""
     path.parent.mkdir(parents=True, exist_ok=True)
     recorder = McapRecorder(
         path, "dammrl", {"mode": "virtual", "study": json.dumps(study)}, chunk_bytes=4096
@@ -67,6 +74,8 @@ def write_run(
                 }
             )
             _put(recorder, state, now + k * 10 * MS, seq := seq + 1)
+            if k < len(during):
+                _put(recorder, during[k], now + k * 10 * MS + 1, seq := seq + 1)
         result = RESULT.model_copy(update={"episode": episode, "t_total_s": t_total})
         now += 300 * MS
         _put(recorder, result, now, seq := seq + 1)
@@ -242,3 +251,42 @@ def test_the_bids_export_has_a_run_per_reach_and_never_deletes_a_folder_of_other
     with pytest.raises(CatalogueError, match="not empty"):
         export(root, other)
     assert (other / "chapter1.tex").read_text() == "precious"
+
+
+def test_the_persons_raw_input_is_exported_as_physio_beside_the_motion(tmp_path: Path) -> None:
+    """The pad's samples and a wearable's chunks recorded during a reach become
+    ``beh/..._recording-pressure_physio.tsv.gz`` and ``..._recording-wearable_...``; a lost
+    wearable sample is n/a, never an empty cell; the validator accepts them (when here)."""
+    sample = next(m for m in EXAMPLES if isinstance(m, SensorSample))
+    chunk = next(m for m in EXAMPLES if isinstance(m, SignalChunk))
+    t0 = 10_000 * MS
+    chunk = chunk.model_copy(update={"stamps_ns": [t0 + k * MS for k in range(20)]})
+    write_run(
+        tmp_path / "P007" / "ses-01" / "recordings" / "part-01.mcap",
+        _study("b", [1]),
+        [(1, 5.0)],
+        t0,
+        [],
+        during=[sample] * 5 + [chunk],
+    )
+    build(tmp_path)
+    export(tmp_path, tmp_path / "bids")
+    beh = tmp_path / "bids" / "sub-P007" / "ses-01" / "beh"
+    pressure = beh / "sub-P007_ses-01_task-reach_run-01_recording-pressure_physio.tsv.gz"
+    wearable = beh / "sub-P007_ses-01_task-reach_run-01_recording-wearable_physio.tsv.gz"
+    assert len(gzip.decompress(pressure.read_bytes()).decode().splitlines()) == 5
+    lines = gzip.decompress(wearable.read_bytes()).decode().splitlines()
+    assert len(lines) == 20 and lines[3].endswith("\tn/a") and "\t\t" not in "".join(lines)
+    columns = json.loads(wearable.with_name(wearable.name.replace(".tsv.gz", ".json")).read_text())[
+        "Columns"
+    ]
+    assert columns == ["time", *(f"ch{c}" for c in range(1, 9))]
+    if Path(VALIDATOR).exists():
+        report = subprocess.run(
+            [VALIDATOR, str(tmp_path / "bids"), "--format", "json"],
+            capture_output=True,
+            text=True,
+            timeout=300,
+        )
+        issues = json.loads(report.stdout)["issues"]["issues"]
+        assert [i for i in issues if i["severity"] == "error"] == []
