@@ -331,9 +331,8 @@ def _physio(
     csv.writer(text, delimiter="\t", lineterminator="\n").writerows(
         [["n/a" if v is None else v for v in row] for row in rows]  # a lost sample
     )
-    with open(folder / f"{stem}_physio.tsv.gz", "wb") as f:  # no name, no time: as BIDS asks
-        with gzip.GzipFile(filename="", mode="wb", fileobj=f, mtime=0) as packed:
-            packed.write(text.getvalue().encode())
+    packed = gzip.compress(text.getvalue().encode(), mtime=0)  # no name, no time: as BIDS asks
+    (folder / f"{stem}_physio.tsv.gz").write_bytes(packed)
     sidecar: dict[str, Any] = {
         "SamplingFrequency": rate,
         "StartTime": rows[0][0] if rows else 0.0,
