@@ -397,3 +397,34 @@ def test_an_overloaded_servo_is_rebooted_and_holds_where_its_joint_is(rig: Rig) 
     inject(rig.arm, "overload 6")
     rig.run(0.5)
     assert "left off after 1 restarts: support the arm" in rig.last_health[1]
+
+
+def test_a_controller_starting_where_the_arm_rests_after_homing_meets_no_cap(rig: Rig) -> None:
+    """Homing ends once the arm rests near its start (within the homing tolerance); the
+    controller's reach begins where the arm is measured. The hold between them is there
+    too: the first command (the measured posture) is no jump for the arm's rate cap (the
+    hold at the exact start posture made command #1 of every episode a clamp)."""
+    rig.node.law.settings = rig.node.law.settings.model_copy(
+        update={"homing_tolerance_rad": 0.08}
+    )  # the arm may still lag the move's end when the episode begins
+
+    def answer_measured(r: Rig) -> None:
+        state = r.bus.states()[-1]
+        if state.episode == 0 or r.node.law.homing is not None:
+            return
+        gravity = r.node.arm.inverse_dynamics(np.array(state.q_rad), np.zeros(6), np.zeros(6))
+        r.bus.send(JointCommand(
+            header=Header(stamp_ns=time.time_ns(), seq=0, source="controller"),
+            episode=state.episode, state_stamp_ns=state.header.stamp_ns, q_ref_rad=state.q_rad,
+            dq_ref_rad_s=(0.0,) * 6, tau_ff_nm=tuple(gravity),
+            kp_nm_per_rad=(400.0, 400, 200, 200, 50, 50),
+            kd_nms_per_rad=(30.0, 30, 12, 12, 1.5, 1.5),
+        ))  # fmt: skip
+
+    rig.run(0.5)
+    starts = ((0.1, 0.9, 0.0, 1.5, 0.1, 0.3), (-0.4, 0.5, 0.3, 1.0, 0.0, 0.0))
+    for episode, start in enumerate(starts, 1):
+        rig.bus.send(_goal(episode, start))
+        rig.run(4.0, answer_measured)
+        assert rig.node.law.episode == episode, rig.bus.rejected
+    assert rig.node.law.clamped == 0

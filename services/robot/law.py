@@ -261,8 +261,8 @@ class ArmLaw:
         there = float(np.max(np.abs(joint.q_rad - homing.start.q_rad)))
         late = now - homing.t0_s - homing.duration_s
         if late >= 0 and resting and there < self.settings.homing_tolerance_rad:
-            self._begin_episode(homing.start, now)
-        elif late > self.settings.homing_timeout_s:
+            return self._begin_episode(homing.start, joint.q_rad, now)
+        if late > self.settings.homing_timeout_s:
             return self._give_up_homing(homing, joint, now)
         gravity = self.arm.inverse_dynamics(q_ref, np.zeros(6), np.zeros(6))
         kp, kd = (
@@ -284,10 +284,14 @@ class ArmLaw:
         self.homing = None
         return self.begin_hold(joint.q_rad, now, None)
 
-    def _begin_episode(self, start: Start, now: float) -> None:
+    def _begin_episode(self, start: Start, q: np.ndarray, now: float) -> CoreCommand:
+        """The arm rests near its start: the episode begins, holding where the arm is (the
+        controller's reach starts from the measured posture; a hold at the exact start
+        would make its first command a jump for the rate cap)."""
         self.homing = None
         self.episode = start.episode
         self.episode_t0_s = now
-        self.held = self._hold_law(start.q_rad, np.array(self.settings.hold_kp_nm_per_rad),
+        self.held = self._hold_law(q, np.array(self.settings.hold_kp_nm_per_rad),
                                    np.array(self.settings.hold_kd_nms_per_rad), now)  # fmt: skip
         log.info("episode %d: the arm rests at its start", start.episode)
+        return self.held
