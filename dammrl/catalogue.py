@@ -26,17 +26,20 @@ tools that read Parquet (pandas, R's arrow, DuckDB itself).
 
 from __future__ import annotations
 
-import json
 import shutil
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable
 from dataclasses import dataclass, field, fields
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+from pydantic import ValidationError
+
 from dammrl.recording import RecordingError, read_recording
 from dammrl_core.errors import DammrlError
 from dammrl_core.metrics import ReachMetrics
+from dammrl_core.protocol import StudyTag
+from dammrl_core.settings import error_line
 from schemas import ComfortRating, EpisodeResult, SessionControl, TaskGoal
 
 METRICS = tuple(f.name for f in fields(ReachMetrics))
@@ -134,20 +137,30 @@ class Run:
     """One stack run of a session: its recordings (a restarted recorder's continuations
     included) and what its metadata says it served."""
 
-    study: dict[str, Any]
+    study: StudyTag
     files: list[Path] = field(default_factory=list)
+
+
+@dataclass
+class Built:
+    """A catalogue built: where, and the recordings passed over with why."""
+
+    path: Path
+    passed_over: list[str]
 
 
 def catalogue_path(root: Path) -> Path:
     return root / "catalogue" / "catalogue.duckdb"
 
 
-def build(root: Path) -> Path:
+def build(root: Path) -> Built:
     """Build the catalogue of every session recording under ``root`` afresh (the old one
-    is replaced); its path."""
+    is replaced)."""
     import duckdb
 
-    runs = list(find_runs(root))
+    if not root.is_dir():
+        raise CatalogueError(f"no sessions' folder at {root}")
+    runs, passed_over = find_runs(root)
     rows = _rows(root, runs)
     folder = root / "catalogue"
     shutil.rmtree(folder, ignore_errors=True)
@@ -165,7 +178,7 @@ def build(root: Path) -> Path:
                 "COPY (SELECT * FROM trials ORDER BY participant, session, start_ns) "
                 f"TO '{target}' (FORMAT PARQUET, PARTITION_BY (participant, session))"
             )
-    return catalogue_path(root)
+    return Built(catalogue_path(root), passed_over)
 
 
 RUN_COLUMNS = (
@@ -189,23 +202,39 @@ def _create(
         db.executemany(f"INSERT INTO {table} VALUES ({marks})", rows)
 
 
-def find_runs(root: Path) -> Iterator[Run]:
+def find_runs(root: Path) -> tuple[list[Run], list[str]]:
     """The stack runs of sessions under ``root``, each with its recordings in the order
-    they were written; recordings that are no session's are passed over."""
+    they were written; and the recordings passed over, each with why (not a recording,
+    no valid study tag, or a tag that names another participant or session than the
+    folder it is in: a file copied there must not join someone else's data)."""
+    runs, passed_over = [], []
     for first in sorted(root.glob("*/ses-*/recordings/part-[0-9][0-9].mcap")):
         files = [first, *sorted(first.parent.glob(f"{first.stem}-[0-9][0-9][0-9].mcap"))]
-        study = _study(first)
-        if study is not None:
-            yield Run(study, files)
+        study, why = _study(first)
+        if study is None:
+            passed_over.append(f"{first.relative_to(root)}: {why}")
+        else:
+            runs.append(Run(study, files))
+    return runs, passed_over
 
 
-def _study(path: Path) -> dict[str, Any] | None:
+def _study(path: Path) -> tuple[StudyTag | None, str]:
+    """The recording's study tag, checked against the folder it lies in; or why not."""
     try:
-        metadata = read_recording(path).metadata.get("dammrl.session", {})
-        study = json.loads(metadata.get("study") or "null")
-    except (RecordingError, json.JSONDecodeError):
-        return None
-    return study if isinstance(study, dict) and "participant" in study else None
+        text = read_recording(path).metadata.get("dammrl.session", {}).get("study", "")
+    except RecordingError as exc:
+        return None, str(exc)
+    if not text:
+        return None, "no session's recording (no study tag)"
+    try:
+        study = StudyTag.model_validate_json(text)
+    except ValidationError as exc:
+        return None, f"its study tag is not valid: {error_line(exc)}"
+    session, participant = path.parents[1].name, path.parents[2].name
+    if (study.participant, study.session) != (participant, session):
+        return None, (f"its tag says {study.participant}/{study.session}, its folder "
+                      f"{participant}/{session}")  # fmt: skip
+    return study, ""
 
 
 def _rows(root: Path, runs: Iterable[Run]) -> dict[str, list[tuple[Any, ...]]]:
@@ -226,7 +255,7 @@ class RunReader:
 
     def __init__(self, root: Path, run: Run) -> None:
         self.root, self.run, self.study = root, run, run.study
-        self.who = (str(self.study["participant"]), str(self.study.get("session", "")))
+        self.who = (run.study.participant, run.study.session)
         self.starts: dict[int, int] = {}  # episode -> its TaskGoal's log time
         self.episode = 0  # the reach under way (for the console's acts)
 
@@ -245,12 +274,7 @@ class RunReader:
                 self._take(message, log_ns, where, rows)
 
     def _protocol(self) -> tuple[str, str, str]:
-        study = self.study
-        return (
-            str(study.get("protocol", "")),
-            str(study.get("version", "")),
-            str(study.get("sha256", "")),
-        )
+        return self.study.protocol, self.study.version, self.study.sha256
 
     def _take(
         self, message: Any, log_ns: int, where: str, rows: dict[str, list[tuple[Any, ...]]]
@@ -281,22 +305,22 @@ class RunReader:
             )
 
     def _trial(self, episode: int) -> int | None:
-        trials = self.study.get("trials") or []
-        return int(trials[episode - 1]) if 0 < episode <= len(trials) else None
+        trials = self.study.trials
+        return trials[episode - 1] if 0 < episode <= len(trials) else None
 
     def _trial_row(
         self, trial: int, result: EpisodeResult, log_ns: int, where: str
     ) -> tuple[Any, ...]:
-        condition = self.study.get("condition") or {}
+        condition = self.study.condition
         metrics = result.model_dump()
         return (
             *self.who,
-            str(self.study.get("block", "")),
+            self.study.block,
             trial,
             0,
             False,
-            bool(self.study.get("practice", False)),
-            condition.get("policy"),
+            self.study.practice,
+            None if condition is None else condition.policy,
             result.trigger,
             result.model[0],
             result.model[1],

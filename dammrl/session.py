@@ -40,7 +40,14 @@ from dammrl import __version__
 from dammrl.console import HELP, Command, Lines, parse
 from dammrl.launch import Stack, StackOptions, recording_files, result_dict
 from dammrl_core.errors import ConfigurationError, DammrlError, Exit, UsageError
-from dammrl_core.protocol import Protocol, Trial, load_protocol, plan_trials
+from dammrl_core.protocol import (
+    PARTICIPANT_ID,
+    Protocol,
+    StudyTag,
+    Trial,
+    load_protocol,
+    plan_trials,
+)
 from dammrl_core.robot import RobotSettings
 from schemas import (
     DEFAULT_NAMESPACE,
@@ -60,13 +67,10 @@ from schemas import (
 if TYPE_CHECKING:
     from dammrl.display import ParticipantDisplay
 
-PARTICIPANT_ID = re.compile(r"^[A-Za-z]{1,4}[0-9]{1,6}$")
-"""A pseudonym such as P012: letters then digits, nothing a name could hide in."""
-
 
 def check_participant(participant: str) -> str:
     """``participant`` if it is a pseudonymous id; a UsageError saying what is expected."""
-    if not PARTICIPANT_ID.match(participant):
+    if not re.match(PARTICIPANT_ID, participant):
         raise UsageError(
             f"participant {participant!r}: give a pseudonymous id such as P012 (1-4 letters, "
             "1-6 digits); names and other personal data are never stored"
@@ -474,13 +478,11 @@ class StackRun:
     def run(self) -> int:
         runner, group = self.runner, self.group
         condition = group[0].condition
-        study = json.dumps({"participant": runner.participant.id,
-                            "session": self.session.folder.name,
-                            "protocol": runner.protocol.name, "version": runner.protocol.version,
-                            "sha256": runner.protocol.sha256, "block": group[0].block,
-                            "practice": group[0].practice,
-                            "condition": condition.model_dump(mode="json"),
-                            "trials": [t.number for t in group]})  # fmt: skip
+        study = StudyTag(participant=runner.participant.id, session=self.session.folder.name,
+                         protocol=runner.protocol.name, version=runner.protocol.version,
+                         sha256=runner.protocol.sha256, block=group[0].block,
+                         practice=group[0].practice, condition=condition,
+                         trials=[t.number for t in group]).model_dump_json()  # fmt: skip
         setup = self.setup
         prior = runner.participant.posterior()  # what this person's earlier runs said
         intent = condition.intent or setup.intent

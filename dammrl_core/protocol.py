@@ -50,6 +50,34 @@ class Condition(_Strict):
         return self
 
 
+PARTICIPANT_ID = r"^[A-Za-z]{1,4}[0-9]{1,6}$"
+"""A pseudonym such as P012: letters then digits, nothing a name could hide in."""
+SESSION_ID = r"^ses-[0-9]{2,4}$"
+"""A session's folder: ses-01, ses-02, ..."""
+
+
+class StudyTag(_Strict):
+    """What a session's stack run served, written into its recording's metadata
+    (``dammrl.session`` -> ``study``) and read back by the catalogue: the recordings alone
+    say whose trials they hold. A tag that does not validate is no session's."""
+
+    participant: str = Field(pattern=PARTICIPANT_ID)
+    session: str = Field(pattern=SESSION_ID)
+    protocol: str = Field(max_length=200)
+    version: str = Field(max_length=64)
+    sha256: str = Field(pattern=r"^[0-9a-f]{64}$")
+    block: str = Field(max_length=64)
+    practice: bool = False
+    condition: Condition | None = None  # None: recorded before the tag carried it
+    trials: list[int] = Field(min_length=1, max_length=500)  # the tag fits the recorder's 4 KiB
+
+    @model_validator(mode="after")
+    def _trial_numbers(self) -> StudyTag:
+        if any(t < 1 for t in self.trials):
+            raise ValueError("trial numbers count from 1")
+        return self
+
+
 class Block(_Strict):
     """Trials under one condition, one reach each, seeds ``seed``, ``seed + 1``, ..."""
 

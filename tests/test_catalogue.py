@@ -6,7 +6,9 @@ from __future__ import annotations
 
 import gzip
 import json
+import shutil
 import subprocess
+import sys
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -31,8 +33,11 @@ from schemas import (
 )
 from services.recorder.core import McapRecorder
 from tests.test_schemas import EXAMPLES
-from tests.test_session_outcomes import VALIDATOR
 
+VALIDATOR = shutil.which("bids-validator-deno") or str(
+    Path(sys.executable).parent / "bids-validator-deno"
+)
+"""The official BIDS validator (from PyPI, runs offline)."""
 RESULT = next(m for m in EXAMPLES if isinstance(m, EpisodeResult))
 GOAL = next(m for m in EXAMPLES if isinstance(m, TaskGoal))
 STATE = next(m for m in EXAMPLES if isinstance(m, RobotState))
@@ -132,7 +137,7 @@ def root(tmp_path: Path) -> Path:
     return tmp_path
 
 
-def _dump(root: Path) -> dict[str, list[tuple[Any, ...]]]:
+def dump_catalogue(root: Path) -> dict[str, list[tuple[Any, ...]]]:
     return {
         table: query(root, f"SELECT * FROM {table} ORDER BY ALL")[1]
         for table in ("participants", "sessions", "trials", "comfort", "actions")
@@ -173,10 +178,10 @@ def test_every_row_points_at_its_reach_in_the_recording(root: Path) -> None:
 
 def test_a_deleted_catalogue_is_rebuilt_identically(root: Path) -> None:
     build(root)
-    first = _dump(root)
+    first = dump_catalogue(root)
     (root / "catalogue" / "catalogue.duckdb").unlink()
     build(root)
-    assert _dump(root) == first and first["trials"]
+    assert dump_catalogue(root) == first and first["trials"]
 
 
 def test_the_trials_can_be_filtered_by_participant_day_and_condition(root: Path) -> None:
@@ -290,3 +295,26 @@ def test_the_persons_raw_input_is_exported_as_physio_beside_the_motion(tmp_path:
         )
         issues = json.loads(report.stdout)["issues"]["issues"]
         assert [i for i in issues if i["severity"] == "error"] == []
+
+
+@pytest.mark.parametrize(
+    "tag",
+    [
+        {"participant": "P008"},  # another participant's folder
+        {"session": "ses-02"},  # another session's
+        {"participant": "../../etc"},  # a path, not a pseudonym
+        {"trials": ["one"]},
+        {"sha256": "not a hash"},
+    ],
+)
+def test_a_recording_whose_study_tag_is_invalid_or_misplaced_is_passed_over(
+    tmp_path: Path, tag: dict[str, Any]
+) -> None:
+    """A file copied into another participant's folder, or crafted, joins no one's data;
+    the build says which and why, and keeps everyone else's."""
+    recordings = tmp_path / "P007" / "ses-01" / "recordings"
+    write_run(recordings / "part-01.mcap", _study("b", [1]), [(1, 5.0)], 10_000 * MS)
+    write_run(recordings / "part-02.mcap", _study("b", [2]) | tag, [(1, 6.0)], 20_000 * MS)
+    built = build(tmp_path)
+    assert len(built.passed_over) == 1 and "part-02.mcap" in built.passed_over[0]
+    assert query(tmp_path, "SELECT trial FROM trials")[1] == [(1,)]

@@ -16,12 +16,10 @@ import yaml
 
 from dammrl.catalogue import query
 from tests.busutil import free_port
+from tests.test_catalogue import VALIDATOR, dump_catalogue
 
 pytestmark = pytest.mark.slow
 SHIPPED = Path(__file__).resolve().parents[1] / "dammrl" / "protocols" / "event-vs-fixed.yaml"
-VALIDATOR = shutil.which("bids-validator-deno") or str(
-    Path(sys.executable).parent / "bids-validator-deno"
-)
 
 
 def _protocol(tmp_path: Path) -> Path:
@@ -44,13 +42,6 @@ def _dammrl(*args: str) -> subprocess.CompletedProcess[str]:
     )
     assert done.returncode == 0, done.stderr[-3000:]
     return done
-
-
-def _dump(root: Path) -> dict[str, list[tuple[object, ...]]]:
-    return {
-        t: query(root, f"SELECT * FROM {t} ORDER BY ALL")[1]
-        for t in ("participants", "sessions", "trials", "comfort", "actions")
-    }
 
 
 def test_two_sessions_give_a_catalogue_reports_and_valid_bids(tmp_path: Path) -> None:
@@ -90,10 +81,10 @@ def test_two_sessions_give_a_catalogue_reports_and_valid_bids(tmp_path: Path) ->
             for e in logged
         ]
 
-    first = _dump(root)
+    first = dump_catalogue(root)
     shutil.rmtree(root / "catalogue")
     _dammrl("sessions", "catalogue", "--root", str(root))
-    assert _dump(root) == first
+    assert dump_catalogue(root) == first
 
     listed = _dammrl("sessions", "trials", "--root", str(root), "--condition", "fixed", "--json")
     assert len(listed.stdout.splitlines()) == 6  # the fixed block, twice

@@ -87,7 +87,11 @@ def _root(parser: argparse.ArgumentParser) -> None:
 def _build(args: argparse.Namespace) -> int:
     from dammrl.catalogue import build, query
 
-    path = build(args.root)
+    built = build(args.root)
+    for why in built.passed_over[:10]:
+        print_err(f"passed over {why}")
+    if len(built.passed_over) > 10:
+        print_err(f"... and {len(built.passed_over) - 10} more recordings passed over")
     counting = (
         "SELECT (SELECT count(*) FROM participants), (SELECT count(*) FROM sessions), "
         "(SELECT count(*) FROM trials WHERE final)"
@@ -95,7 +99,8 @@ def _build(args: argparse.Namespace) -> int:
     _, counts = query(args.root, counting)
     participants, sessions, trials = counts[0]
     print_out(
-        f"catalogue: {participants} participants, {sessions} sessions, {trials} trials -> {path}"
+        f"catalogue: {participants} participants, {sessions} sessions, {trials} trials "
+        f"-> {built.path}"
     )
     return Exit.OK
 
