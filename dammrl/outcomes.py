@@ -11,6 +11,7 @@ they are the targets rated, and the sessions the occasions.
 
 from __future__ import annotations
 
+import html
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -180,7 +181,8 @@ def session_report(root: Path, participant: str, session: str, out: Path) -> Pat
     lines = [
         f"# {participant.upper()}, {session}",
         "",
-        f"{info['started']} UTC · protocol **{info['protocol']}** {info['protocol_version']} "
+        f"{info['started']} UTC · protocol **{esc(info['protocol'])}** "
+        f"{esc(info['protocol_version'])} "
         f"(SHA-256 `{str(info['protocol_sha256'])[:12]}…`) · {info['trials']} trials, "
         f"{info['successes']} successes",
         "",
@@ -301,8 +303,8 @@ def participant_report(root: Path, participant: str, out: Path) -> Path:
     who = participant.upper()
     figure = trend_figure(final, names, out / f"{who}_trends.png", who)
     listing = [
-        f"- [{s['session']}]({p.name}): {s['started']} UTC, {s['protocol']} "
-        f"{s['protocol_version']}, {s['trials']} trials, {s['successes']} successes"
+        f"- [{s['session']}]({p.name}): {s['started']} UTC, {esc(s['protocol'])} "
+        f"{esc(s['protocol_version'])}, {s['trials']} trials, {s['successes']} successes"
         for s, p in zip(sessions, reports, strict=True)
     ]
     lines = [
@@ -432,7 +434,13 @@ def _icc_cell(ratings: np.ndarray) -> str:
 
 
 def _row(cells: list[str]) -> str:
-    return "| " + " | ".join(c.replace("|", "/") for c in cells) + " |"
+    return "| " + " | ".join(esc(c).replace("|", "/") for c in cells) + " |"
+
+
+def esc(text: object) -> str:
+    """A value from the catalogue as Markdown text: HTML in it stays text in the HTML
+    report (a crafted protocol version or recording must not run in a browser)."""
+    return html.escape(str(text), quote=False)
 
 
 def _how_to_read() -> str:

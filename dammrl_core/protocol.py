@@ -54,6 +54,8 @@ PARTICIPANT_ID = r"^[A-Za-z]{1,4}[0-9]{1,6}$"
 """A pseudonym such as P012: letters then digits, nothing a name could hide in."""
 SESSION_ID = r"^ses-[0-9]{2,4}$"
 """A session's folder: ses-01, ses-02, ..."""
+NAME = r"^[A-Za-z0-9_.-]+$"
+"""A protocol's or a block's name: it names files and shows in reports."""
 
 
 class StudyTag(_Strict):
@@ -63,10 +65,10 @@ class StudyTag(_Strict):
 
     participant: str = Field(pattern=PARTICIPANT_ID)
     session: str = Field(pattern=SESSION_ID)
-    protocol: str = Field(max_length=200)
-    version: str = Field(max_length=64)
+    protocol: str = Field(max_length=64, pattern=NAME)
+    version: str = Field(max_length=32)
     sha256: str = Field(pattern=r"^[0-9a-f]{64}$")
-    block: str = Field(max_length=64)
+    block: str = Field(max_length=64, pattern=NAME)
     practice: bool = False
     condition: Condition | None = None  # None: recorded before the tag carried it
     trials: list[int] = Field(min_length=1, max_length=500)  # the tag fits the recorder's 4 KiB
@@ -81,7 +83,7 @@ class StudyTag(_Strict):
 class Block(_Strict):
     """Trials under one condition, one reach each, seeds ``seed``, ``seed + 1``, ..."""
 
-    name: str = Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.-]+$")
+    name: str = Field(min_length=1, max_length=64, pattern=NAME)
     trials: int = Field(ge=1, le=1000)
     seed: int = Field(ge=0, lt=2**31)
     """The first trial's task seed (start and goal); held out from training by convention
@@ -99,7 +101,7 @@ class Protocol(_Strict):
     """A study protocol (see the module docstring)."""
 
     format: Literal[1] = FORMAT
-    name: str = Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.-]+$")
+    name: str = Field(min_length=1, max_length=64, pattern=NAME)
     version: str = Field(min_length=1, max_length=32)
     description: str = Field("", max_length=4000)
     counterbalance: Literal["latin-square", "none"] = "latin-square"

@@ -318,3 +318,15 @@ def test_a_recording_whose_study_tag_is_invalid_or_misplaced_is_passed_over(
     built = build(tmp_path)
     assert len(built.passed_over) == 1 and "part-02.mcap" in built.passed_over[0]
     assert query(tmp_path, "SELECT trial FROM trials")[1] == [(1,)]
+
+
+def test_html_in_a_recorded_value_stays_text_in_the_report(root: Path, tmp_path: Path) -> None:
+    """A protocol version is free text: a crafted one must not become markup (a script)
+    in the HTML report a clinician opens."""
+    recordings = root / "P007" / "ses-03" / "recordings"
+    crafted = _study("b", [1], "ses-03") | {"version": "<script>alert(1)</script>"}
+    write_run(recordings / "part-01.mcap", crafted, [(1, 5.0)], 200_000 * MS)
+    build(root)
+    participant_report(root, "P007", tmp_path / "reports")
+    page = (tmp_path / "reports" / "P007.html").read_text()
+    assert "<script>" not in page and "&lt;script&gt;" in page
