@@ -455,7 +455,15 @@ def _write_tsv(
         writer = csv.writer(f, delimiter="\t", lineterminator="\n")
         if new:
             writer.writerow(columns)
-        writer.writerows([["n/a" if v is None else v for v in row] for row in rows])
+        writer.writerows([[_cell(v) for v in row] for row in rows])
+
+
+def _cell(value: Any) -> Any:
+    """A TSV cell: n/a for nothing; free text (a therapist's reason) on one line without
+    tabs, as TSV has no quoting."""
+    if value is None:
+        return "n/a"
+    return " ".join(value.split()) or "n/a" if isinstance(value, str) else value
 
 
 def _write_json(path: Path, content: dict[str, Any]) -> None:

@@ -330,3 +330,29 @@ def test_html_in_a_recorded_value_stays_text_in_the_report(root: Path, tmp_path:
     participant_report(root, "P007", tmp_path / "reports")
     page = (tmp_path / "reports" / "P007.html").read_text()
     assert "<script>" not in page and "&lt;script&gt;" in page
+
+
+def test_a_reason_with_tabs_and_newlines_keeps_the_events_file_one_row_per_event(
+    root: Path, tmp_path: Path
+) -> None:
+    recordings = root / "P007" / "ses-04" / "recordings"
+    pause = SessionControl(
+        header=RESULT.header,
+        episode=1,
+        action="pause",
+        who="T1",
+        why="the patient\tcoughs\nand asks\r\nfor water",
+    )
+    write_run(
+        recordings / "part-01.mcap",
+        _study("b", [1], "ses-04"),
+        [(1, 5.0)],
+        300_000 * MS,
+        during=[pause],
+    )
+    build(root)
+    export(root, tmp_path / "bids")
+    events = next((tmp_path / "bids" / "sub-P007" / "ses-04").rglob("*_events.tsv"))
+    rows = [line.split("\t") for line in events.read_text().splitlines()]
+    assert all(len(row) == 6 for row in rows)
+    assert any(row[-1] == "the patient coughs and asks for water" for row in rows)
