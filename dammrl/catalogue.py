@@ -153,6 +153,17 @@ def catalogue_path(root: Path) -> Path:
     return root / "catalogue" / "catalogue.duckdb"
 
 
+def stale(root: Path) -> bool:
+    """Whether a recording under ``root`` changed since the catalogue was built (or there
+    is none): what a reader of the catalogue would miss."""
+    path = catalogue_path(root)
+    if not path.is_file():
+        return True
+    built = path.stat().st_mtime
+    recordings = root.glob("*/ses-*/recordings/*.mcap")
+    return any(recording.stat().st_mtime > built for recording in recordings)
+
+
 def build(root: Path) -> Built:
     """Build the catalogue of every session recording under ``root`` afresh (the old one
     is replaced)."""

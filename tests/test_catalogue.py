@@ -6,9 +6,11 @@ from __future__ import annotations
 
 import gzip
 import json
+import os
 import shutil
 import subprocess
 import sys
+import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -356,3 +358,24 @@ def test_a_reason_with_tabs_and_newlines_keeps_the_events_file_one_row_per_event
     rows = [line.split("\t") for line in events.read_text().splitlines()]
     assert all(len(row) == 6 for row in rows)
     assert any(row[-1] == "the patient coughs and asks for water" for row in rows)
+
+
+def test_a_recording_newer_than_the_catalogue_is_in_the_next_answer(
+    root: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A session run after the last build: `dammrl sessions trials` rebuilds first and
+    says so on stderr (its stdout stays the answer)."""
+    from dammrl.catalogue import stale
+    from dammrl.cli import main
+
+    assert stale(root)
+    build(root)
+    assert not stale(root)
+    later = root / "P007" / "ses-02" / "recordings" / "part-02.mcap"
+    write_run(later, _study("b", [3], "ses-02"), [(1, 9.0)], 95_000 * MS)
+    os.utime(later, (time.time() + 5, time.time() + 5))  # a file system's coarse clock
+    assert stale(root)
+    assert main(["sessions", "trials", "--root", str(root), "--participant", "P007", "--json"]) == 0
+    out, err = capsys.readouterr()
+    assert "rebuilding it" in err and len(out.splitlines()) == 6
+    assert all(json.loads(line)["participant"] == "P007" for line in out.splitlines())

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from collections.abc import Callable
 from pathlib import Path
 
 from dammrl.cli.common import Commands, aligned, output_dir, print_err, print_out
@@ -84,10 +85,26 @@ def _root(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def _fresh(root: Path) -> None:
+    """Rebuild the catalogue first when a recording is newer (a session just run is in
+    every answer without a step to remember)."""
+    from dammrl.catalogue import stale
+
+    if root.is_dir() and stale(root):
+        print_err("the catalogue is older than the recordings: rebuilding it")
+        _built(root, print_err)  # stdout is for the answer
+
+
 def _build(args: argparse.Namespace) -> int:
+    _built(args.root, print_out)
+    return Exit.OK
+
+
+def _built(root: Path, say: Callable[[str], None]) -> None:
+    """Build the catalogue, say what it passed over (stderr) and what it holds (``say``)."""
     from dammrl.catalogue import build, query
 
-    built = build(args.root)
+    built = build(root)
     for why in built.passed_over[:10]:
         print_err(f"passed over {why}")
     if len(built.passed_over) > 10:
@@ -96,18 +113,17 @@ def _build(args: argparse.Namespace) -> int:
         "SELECT (SELECT count(*) FROM participants), (SELECT count(*) FROM sessions), "
         "(SELECT count(*) FROM trials WHERE final)"
     )
-    _, counts = query(args.root, counting)
-    participants, sessions, trials = counts[0]
-    print_out(
+    participants, sessions, trials = query(root, counting)[1][0]
+    say(
         f"catalogue: {participants} participants, {sessions} sessions, {trials} trials "
         f"-> {built.path}"
     )
-    return Exit.OK
 
 
 def _trials(args: argparse.Namespace) -> int:
     from dammrl.catalogue import trials_of
 
+    _fresh(args.root)
     names, rows = trials_of(args.root, args.participant, args.since, args.condition)
     return _show(names, rows, args.json)
 
@@ -115,6 +131,7 @@ def _trials(args: argparse.Namespace) -> int:
 def _query(args: argparse.Namespace) -> int:
     from dammrl.catalogue import query
 
+    _fresh(args.root)
     names, rows = query(args.root, args.sql)
     return _show(names, rows, args.json)
 
@@ -124,6 +141,7 @@ def _report(args: argparse.Namespace) -> int:
     from dammrl.session import check_participant
 
     participant = check_participant(args.participant)
+    _fresh(args.root)
     if args.session:
         path = session_report(args.root, participant, args.session, args.out)
     else:
@@ -135,6 +153,7 @@ def _report(args: argparse.Namespace) -> int:
 def _bids(args: argparse.Namespace) -> int:
     from dammrl.bids import export
 
+    _fresh(args.root)
     counts = export(args.root, args.out, args.author, args.license)
     print_out(
         f"BIDS: {counts['participants']} participants, {counts['sessions']} sessions, "
