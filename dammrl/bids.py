@@ -125,7 +125,7 @@ def _reaches(root: Path) -> Iterator[Reach]:
 # ---- one run ---------------------------------------------------------------------------
 
 
-def _stem(reach: Reach, run: int) -> str:
+def _stem(reach: Reach) -> str:
     return f"sub-{reach.participant}_ses-{_label(reach.session)}_task-{TASK}"
 
 
@@ -146,12 +146,12 @@ def _write_run(
         return
     clock = RobotClock(states)
     folder = out / f"sub-{reach.participant}" / f"ses-{_label(reach.session)}"
-    stem = f"{_stem(reach, run)}_tracksys-{TRACKING_SYSTEM}_run-{run:02d}"
+    stem = f"{_stem(reach)}_tracksys-{TRACKING_SYSTEM}_run-{run:02d}"
     _write_motion(folder / "motion", stem, states, clock, joints)
     _write_tsv(
         folder / "motion" / f"{stem}_events.tsv", EVENT_COLUMNS, _events(messages, clock, reach)
     )
-    _write_physio(folder / "beh", f"{_stem(reach, run)}_run-{run:02d}", messages, clock)
+    _write_physio(folder / "beh", f"{_stem(reach)}_run-{run:02d}", messages, clock)
 
 
 KEPT = (

@@ -17,12 +17,12 @@ def add_actions(actions: Commands) -> None:
     """Add ``catalogue``, ``trials`` and ``query`` to ``dammrl session``."""
     helptext = "build the session catalogue afresh from the recordings (DuckDB and Parquet)"
     build = actions.add_parser("catalogue", help=helptext, description=helptext)
-    _root(build)
+    add_root(build)
     build.set_defaults(handler=_build)
 
     helptext = "every trial (its final attempt) from the catalogue, filtered"
     trials = actions.add_parser("trials", help=helptext, description=helptext)
-    _root(trials)
+    add_root(trials)
     trials.add_argument("--participant", help="only this participant's trials")
     trials.add_argument("--since", metavar="YYYY-MM-DD", help="only sessions from this day on")
     trials.add_argument(
@@ -39,7 +39,7 @@ def add_actions(actions: Commands) -> None:
     )
     ask = actions.add_parser("query", help=helptext, description=helptext)
     ask.add_argument("sql", help='e.g. "SELECT trigger, avg(t_total_s) FROM trials GROUP BY 1"')
-    _root(ask)
+    add_root(ask)
     ask.add_argument("--json", action="store_true", help="JSON lines instead of a table")
     ask.set_defaults(handler=_query)
     _add_report(actions)
@@ -55,7 +55,7 @@ def _add_report(actions: Commands) -> None:
     report.add_argument("--participant", required=True, help="the participant's id")
     report.add_argument("--session", help="only this session's report (e.g. ses-02)")
     report.add_argument("--out", type=output_dir, required=True, help="the reports' folder")
-    _root(report)
+    add_root(report)
     report.set_defaults(handler=_report)
 
 
@@ -72,11 +72,12 @@ def _add_bids(actions: Commands) -> None:
         "--author", action="append", default=[], help="an author of the dataset (repeat for each)"
     )
     bids.add_argument("--license", help="the dataset's licence, e.g. CC0 or CC-BY-4.0")
-    _root(bids)
+    add_root(bids)
     bids.set_defaults(handler=_bids)
 
 
-def _root(parser: argparse.ArgumentParser) -> None:
+def add_root(parser: argparse.ArgumentParser) -> None:
+    """``--root``: the sessions' folder every catalogue action reads."""
     parser.add_argument(
         "--root",
         type=Path,

@@ -31,7 +31,7 @@ def protocol_file(text: str) -> Path:
 
 def register(commands: Commands) -> None:
     """Add ``session run`` and ``session list``."""
-    from dammrl.cli.catalogue import add_actions
+    from dammrl.cli.catalogue import add_actions, add_root
 
     helptext = "sessions with people: a participant, a protocol of blocks and trials"
     session = commands.add_parser("session", aliases=["sessions"], help=helptext,
@@ -41,8 +41,7 @@ def register(commands: Commands) -> None:
     add_actions(actions)
     helptext = "the sessions under a folder, with their progress"
     listing = actions.add_parser("list", help=helptext, description=helptext)
-    listing.add_argument("--root", type=Path, default=Path("sessions"),
-                         help="the sessions' folder (default ./sessions)")  # fmt: skip
+    add_root(listing)
     listing.add_argument("--participant", help="only this participant's sessions")
     listing.set_defaults(handler=_list)
 
