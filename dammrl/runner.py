@@ -19,6 +19,12 @@ from dataclasses import dataclass, field
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
+from dammrl_core.coadaptation import (
+    DecisionEvidence,
+    ReachEvidence,
+    ReachRecord,
+    robot_model_of,
+)
 from dammrl_core.control.controller import Controller
 from dammrl_core.control.reach import HOLD_OBSERVATION_S, Answer, Reach, Trajectory
 from dammrl_core.control.settings import ControllerSettings
@@ -80,6 +86,21 @@ class ReachResult:
     def summary(self) -> dict[str, object]:
         """The metrics plus what identifies the run (the ``--json`` object)."""
         return episode_summary(self.metrics, self.trigger, self.model, self.seed, self.task)
+
+
+def evidence_of(result: ReachResult, models: ModelSet) -> ReachEvidence:
+    """What a finished reach tells the posterior over M_ij: the same numbers the policy
+    service collects on the bus from the reach's messages."""
+    record = ReachRecord(
+        choices=[(c.human_model, c.robot_model) for c in result.choices],
+        decisions=[DecisionEvidence(c.human_model, d.correct, d.decision_s)
+                   for d, c in zip(result.decisions, result.choices, strict=True)],
+        asked_s=[d.intent.t_s - d.decision_s for d in result.decisions],
+        steps=[(robot_model_of(models, s.steps_m), float(np.linalg.norm(s.dx)), s.start_s)
+               for s in result.steps],
+    )  # fmt: skip
+    m = result.metrics
+    return record.evidence(m.success, m.t_total_s, m.final_error_m, m.sparc, result.model)
 
 
 class ReachRunner:

@@ -62,11 +62,13 @@ class KeyLimits:
 
 
 LIMITS: dict[str, KeyLimits] = {
-    # the arm's loop and the sensors: <= 1 kHz by the settings, at times back to back
-    "robot/state": KeyLimits(4096, 10_000.0),
-    "robot/command": KeyLimits(4096, 10_000.0),
-    "sensor/sample": KeyLimits(4096, 10_000.0),
-    "controller/step": KeyLimits(4096, 10_000.0),  # several steps may start in one tick
+    # the arm's loop and the sensors: <= 1 kHz by the settings, at times back to back. The
+    # size limits are the tightest with the margin below: they bound what a peer holding a
+    # role's key can make every receiver read (size x rate, ~20 MB/s per key)
+    "robot/state": KeyLimits(2048, 10_000.0),
+    "robot/command": KeyLimits(2048, 10_000.0),
+    "sensor/sample": KeyLimits(1024, 10_000.0),
+    "controller/step": KeyLimits(2048, 10_000.0),  # several steps may start in one tick
     # decisions and episodes: a few per second
     "intent": KeyLimits(4096, 1_000.0),
     "intent/request": KeyLimits(4096, 1_000.0),

@@ -25,8 +25,10 @@ from dataclasses import dataclass, field
 import numpy as np
 import pytest
 
-from dammrl.runner import ReachResult, ReachRunner, ReachSettings
+from dammrl.runner import ReachResult, ReachRunner, ReachSettings, evidence_of
+from dammrl_core.coadaptation import ModelPosterior, ModelTable, Targets
 from dammrl_core.policy import Policy
+from dammrl_core.policy.adaptive import AdaptivePolicy
 from dammrl_core.policy.learned import LearnedPolicy
 from dammrl_core.policy.settings import SHIPPED_POLICY
 from dammrl_core.sim.settings import DomainRandomization, SimSettings
@@ -201,6 +203,29 @@ def test_lockstep_bus_stack_reproduces_the_in_process_runner(
     local = _in_process(runner, SEEDS, trigger, local_policy)
     worst = max(_assert_same(bus[s], local[s], runner) for s in SEEDS)
     assert worst <= EXACT
+
+
+def test_the_adaptive_policy_adapts_alike_in_process_and_on_the_bus(runner: ReachRunner) -> None:
+    """The posterior over M_ij hears the same evidence from the bus as in-process and
+    switches after the same reach to the same model: the choices of every episode agree,
+    those after the switch included. Targets no policy meets (a median reach <= 5 s over 2
+    reaches) force the switch."""
+    targets = Targets(window=2, time_max_s=5.0)
+    bus = _run_stack(
+        SEEDS[:6],
+        DAMMRL_POLICY_KIND="adaptive",
+        DAMMRL_POLICY_TARGETS__WINDOW="2",
+        DAMMRL_POLICY_TARGETS__TIME_MAX_S="5",
+    )
+    models = runner.settings.models
+    base = LearnedPolicy(models, SHIPPED_POLICY)
+    posterior = ModelPosterior(ModelTable.load(), runner.settings.human, models)
+    adaptive = AdaptivePolicy(base, models, posterior, targets)
+    for seed in SEEDS[:6]:
+        local = runner.run(seed, trigger="event", policy=adaptive)
+        adaptive.observe(evidence_of(local, models))
+        assert _assert_same(bus[seed], local, runner) <= EXACT
+    assert len(adaptive.switches) >= 2  # after reaches 2 and 4 at least
 
 
 def test_lockstep_parity_holds_with_domain_randomisation() -> None:

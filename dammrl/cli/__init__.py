@@ -17,6 +17,7 @@ from pydantic import ValidationError
 from dammrl import __version__
 from dammrl.cli import (
     bus,
+    coadapt,
     intent,
     reach,
     recording,
@@ -41,6 +42,7 @@ GROUPS = (
     robot.register,
     rl.register,
     study.register,
+    coadapt.register,
     view.register,
     bus.register,
     robot.register_stop,

@@ -10,6 +10,7 @@ import logging
 from typing import Literal
 
 from dammrl_core.errors import DammrlError
+from dammrl_core.human import HumanModel
 from dammrl_core.models import ModelSet
 from dammrl_core.policy import FixedPolicy, Policy
 from dammrl_core.policy.settings import PolicySettings
@@ -18,9 +19,28 @@ log = logging.getLogger("dammrl.policy")
 
 
 def load_policy(
+    settings: PolicySettings, models: ModelSet, human: HumanModel | None = None
+) -> tuple[Policy, Literal["ok", "degraded"], str]:
+    """(policy, health state, description); never raises for a bad checkpoint or table."""
+    policy, health, description = _load_base(settings, models)
+    if settings.kind != "adaptive":
+        return policy, health, description
+    from dammrl_core.coadaptation import ModelPosterior, ModelTable
+    from dammrl_core.policy.adaptive import AdaptivePolicy
+
+    try:
+        table = ModelTable.load()
+    except DammrlError as exc:
+        log.error("cannot adapt (%s); the base policy alone chooses", exc)
+        return policy, "degraded", f"{description}; not adaptive: {exc}"
+    posterior = ModelPosterior(table, human or HumanModel(), models)
+    adaptive = AdaptivePolicy(policy, models, posterior, settings.targets)
+    return adaptive, health, f"adaptive around the {description}"
+
+
+def _load_base(
     settings: PolicySettings, models: ModelSet
 ) -> tuple[Policy, Literal["ok", "degraded"], str]:
-    """(policy, health state, description); never raises for a bad checkpoint."""
     if settings.kind == "fixed":
         policy = FixedPolicy(models, settings.human_model, settings.robot_model)
         return policy, "ok", f"fixed M_{settings.human_model},{settings.robot_model}"

@@ -9,6 +9,7 @@ from typing import Annotated, Literal
 from pydantic import Field
 from pydantic_settings import SettingsConfigDict
 
+from dammrl_core.coadaptation import Targets
 from dammrl_core.settings import Settings
 
 SHIPPED_POLICY = Path(
@@ -24,8 +25,13 @@ class PolicySettings(Settings):
 
     model_config = SettingsConfigDict(env_prefix="DAMMRL_POLICY_")
 
-    kind: Literal["learned", "fixed"] = "learned"
-    """'learned': the DQN of ``checkpoint``; 'fixed': always M_{human_model,robot_model}."""
+    kind: Literal["learned", "fixed", "adaptive"] = "learned"
+    """'learned': the DQN of ``checkpoint``; 'fixed': always M_{human_model,robot_model};
+    'adaptive': the DQN with the posterior over M_ij and the re-selection when
+    ``targets`` are missed (dammrl_core.policy.adaptive)."""
+    targets: Targets = Field(default_factory=Targets)
+    """What the adaptive policy asks of the last ``window`` reaches
+    (``DAMMRL_POLICY_TARGETS__SUCCESS_MIN=0.9``, ``__TIME_MAX_S``, ``__COMFORT_MIN``, ...)."""
     checkpoint: Path = SHIPPED_POLICY
     """Training run directory or checkpoint file (default: the shipped Reward 2 policy).
     The model set M_ij is the stack's one ``DAMMRL_MODELS_*`` setting."""

@@ -6,6 +6,9 @@ force; if its checkpoint is missing, corrupt or made for another layout, the nod
 When the human is real (intents from a sensor), their sub-model is not given: the node
 scores each of their commands against the request it answered, updates the Bayesian
 posterior, uses its MAP radius as i and publishes the posterior with every choice.
+The adaptive policy (``DAMMRL_POLICY_KIND=adaptive``) also hears each reach's steps,
+result and the participant's comfort ratings, hands them to the posterior over M_ij as the
+in-process runner does, and says every switch (log, Health).
 """
 
 from __future__ import annotations
@@ -16,13 +19,23 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from dammrl_core.coadaptation import DecisionEvidence, ReachRecord, robot_model_of
 from dammrl_core.human import HumanModel, direction_to_goal
 from dammrl_core.models import ModelSet
 from dammrl_core.policy import ModelChoice as CoreChoice
+from dammrl_core.policy.adaptive import AdaptivePolicy
 from dammrl_core.policy.loading import load_policy
 from dammrl_core.policy.settings import PolicySettings
 from dammrl_core.posterior import HumanModelPosterior, carried_prior
-from schemas import DecisionRequest, Intent, ModelChoice, TaskGoal
+from schemas import (
+    ComfortRating,
+    DecisionRequest,
+    EpisodeResult,
+    Intent,
+    ModelChoice,
+    StepEvent,
+    TaskGoal,
+)
 from schemas.messages import OPERATOR
 from services.common.bus import Bus
 from services.common.entry import run_service
@@ -36,8 +49,11 @@ class PolicyNode:
     ) -> None:
         self.settings = settings
         self.bus = bus
-        self.policy, self.health, self.description = load_policy(settings, models)
+        self.models = models
+        self.policy, self.health, self.description = load_policy(settings, models, human)
         log.info("policy: %s", self.description)
+        self.adaptive = self.policy if isinstance(self.policy, AdaptivePolicy) else None
+        self.record = ReachRecord()  # what the adaptive policy hears of this episode
         self.latest: CoreChoice = self.policy.decide(np.zeros(3), np.zeros(3))
         self.episode = 0
         self.real_human = False
@@ -46,6 +62,10 @@ class PolicyNode:
         self.publisher = bus.publisher(ModelChoice)
         self.posterior = HumanModelPosterior(human, log_prior=carried_prior(settings.prior))
         self.requests: dict[tuple[int, int], DecisionRequest] = {}
+        if self.adaptive is not None:  # a result is taken before the next episode's request
+            bus.subscribe(EpisodeResult, StepEvent, ComfortRating)
+            bus.expect(EpisodeResult, "controller")
+            bus.expect(StepEvent, "controller")
         bus.subscribe(DecisionRequest, TaskGoal, Intent)
         bus.expect(DecisionRequest, "controller")
         bus.expect(TaskGoal, "controller")
@@ -61,6 +81,8 @@ class PolicyNode:
                 self._observe_human(message)
             elif isinstance(message, TaskGoal):
                 self._new_episode(message.episode)
+            elif isinstance(message, (EpisodeResult, StepEvent, ComfortRating)):
+                self._adapt(message)
             else:
                 self._publish(-1)
             self.bus.report_health(self.health, self.description)
@@ -74,6 +96,9 @@ class PolicyNode:
             ee, goal = np.array(message.ee_pos_m), np.array(message.goal_m)
             human = self.posterior.map_model if self.estimating else None
             self.answers[request] = self.policy.decide(ee, goal, human)
+            self.record.asked_s.append(message.t_s)
+            choice = self.answers[request]
+            self.record.choices.append((choice.human_model, choice.robot_model))
         self.latest = self.answers[request]
         self._publish(message.request)
 
@@ -86,10 +111,34 @@ class PolicyNode:
         """Score a command against the request it answered; update the posterior."""
         self.real_human = self.real_human or intent.person
         request = self.requests.pop((intent.episode, intent.request), None)
-        if request is None or not self.estimating or intent.source == OPERATOR:
+        if request is None or intent.source == OPERATOR:
             return  # a therapist's decision says nothing of the participant
         toward = direction_to_goal(request.ee_pos_m, request.goal_m, request.primary_axis)
-        self.posterior.update(intent.u_h == toward, intent.decision_s, intent.confidence)
+        correct = intent.u_h == toward
+        if self.estimating:
+            self.posterior.update(correct, intent.decision_s, intent.confidence)
+        confidence = intent.confidence if intent.person else 1.0
+        if intent.episode == self.episode:
+            self.record.decisions.append(
+                DecisionEvidence(intent.human_model, correct, intent.decision_s, confidence)
+            )
+
+    def _adapt(self, message: EpisodeResult | StepEvent | ComfortRating) -> None:
+        """The adaptive policy's evidence: this episode's steps, its result, a rating."""
+        assert self.adaptive is not None
+        if isinstance(message, StepEvent) and message.episode == self.episode:
+            j = robot_model_of(self.models, np.array(message.steps_m))
+            self.record.steps.append((j, float(np.linalg.norm(message.dx_m)), message.start_s))
+        elif isinstance(message, ComfortRating):
+            self.adaptive.rating(message.rating)
+        elif isinstance(message, EpisodeResult) and message.episode == self.episode:
+            evidence = self.record.evidence(message.success, message.t_total_s,
+                                            message.final_error_m, message.sparc,
+                                            message.model)  # fmt: skip
+            self.record = ReachRecord()
+            if (switch := self.adaptive.observe(evidence)) is not None:
+                log.warning("adaptive: %s", switch.line)
+                self.description = f"adaptive: {switch.line}"
 
     def _new_episode(self, episode: int) -> None:
         """A new episode starts with no model in force (as in training)."""
@@ -97,6 +146,7 @@ class PolicyNode:
             self.episode = episode
             self.policy.reset()
             self.answers.clear()
+            self.record = ReachRecord()
 
     def _publish(self, request: int) -> None:
         choice = self.latest

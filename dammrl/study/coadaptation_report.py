@@ -1,0 +1,120 @@
+"""The co-adaptation comparison as a report: a table per person, a figure, the JSON."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+
+from dammrl.study.coadaptation import PersonResult, figures, settled_after
+from dammrl_core.coadaptation import Targets
+
+ARMS = ("oracle", "shipped", "adaptive")
+
+
+def write_report(results: list[PersonResult], targets: Targets, out: Path) -> Path:
+    """report.md, results.json and coadaptation.png in ``out``; the report's path."""
+    out.mkdir(parents=True, exist_ok=True)
+    lines = [
+        "# Co-adaptation: oracle, shipped and adaptive policy per kind of person",
+        "",
+        f"Targets over the last {targets.window} reaches: "
+        + ", ".join(
+            f"{k} {v}" for k, v in targets.model_dump().items() if v is not None and k != "window"
+        ),
+        "",
+        "Success: Wilson 95 % interval; time and error: bootstrap 95 % intervals; "
+        "'- shipped': paired by seed (bootstrap over seeds).",
+        "",
+    ]
+    for result in results:
+        lines += _person(result)
+    report = out / "report.md"
+    report.write_text("\n".join(lines) + "\n")
+    (out / "results.json").write_text(json.dumps([_json(r) for r in results], indent=1) + "\n")
+    _figure(results, out / "coadaptation.png")
+    return report
+
+
+def _person(result: PersonResult) -> list[str]:
+    session = result.session
+    o_i, o_j = result.oracle
+    lines = [
+        f"## {result.person}",
+        "",
+        f"Oracle (best fixed model on its own seeds): M_{o_i},{o_j}. "
+        f"Posterior's MAP model settled after {settled_after(session.map_models)} of "
+        f"{len(session.map_models)} reaches (last: M_{session.map_models[-1][0]},"
+        f"{session.map_models[-1][1]}).",
+        "",
+        "| policy | measure | estimate |",
+        "|---|---|---|",
+    ]
+    for arm, measure, estimate in figures(result):
+        scale, digits = (100.0, 0) if measure.startswith("success") else (1.0, 2)
+        lines.append(f"| {arm} | {measure} | {estimate.text(scale, digits)} |")
+    regret = _regret(result)
+    lines += [
+        "",
+        f"Regret against the oracle (success pp, mean time s): shipped "
+        f"{regret['shipped'][0]:+.0f} pp, {regret['shipped'][1]:+.2f} s; adaptive "
+        f"{regret['adaptive'][0]:+.0f} pp, {regret['adaptive'][1]:+.2f} s.",
+        "",
+    ]
+    lines += ["Switches:", ""] + [f"- {s}" for s in session.switches or ["none"]] + [""]
+    return lines
+
+
+def _regret(result: PersonResult) -> dict[str, tuple[float, float]]:
+    oracle = result.arms["oracle"]
+    best_success = float(np.mean([r.success for r in oracle])) * 100
+    best_time = float(np.mean([r.t_total_s for r in oracle]))
+    return {
+        arm: (
+            best_success - float(np.mean([r.success for r in rows])) * 100,
+            float(np.mean([r.t_total_s for r in rows]) - best_time),
+        )
+        for arm, rows in result.arms.items()
+        if arm != "oracle"
+    }
+
+
+def _json(result: PersonResult) -> dict[str, object]:
+    return {
+        "person": result.person,
+        "oracle": list(result.oracle),
+        "figures": [{"policy": a, "measure": m, **asdict(e)} for a, m, e in figures(result)],
+        "regret": _regret(result),
+        "switches": result.session.switches,
+        "map_settled_after": settled_after(result.session.map_models),
+        "posterior": {
+            k: (v if not isinstance(v, dict) else {str(kk): vv for kk, vv in v.items()})
+            for k, v in result.session.summary.items()
+        },
+        "reaches": {arm: [asdict(r) for r in rows] for arm, rows in result.arms.items()},
+    }
+
+
+def _figure(results: list[PersonResult], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(12, 0.55 * len(results) + 2), constrained_layout=True)
+    y = np.arange(len(results))
+    for k, arm in enumerate(ARMS):
+        success = [np.mean([r.success for r in res.arms[arm]]) * 100 for res in results]
+        times = [np.mean([r.t_total_s for r in res.arms[arm]]) for res in results]
+        axes[0].barh(y + (k - 1) * 0.27, success, height=0.27, label=arm)
+        axes[1].barh(y + (k - 1) * 0.27, times, height=0.27, label=arm)
+    for ax, title in zip(axes, ("success [%]", "mean reach time [s]"), strict=True):
+        ax.set_yticks(y, [r.person for r in results])
+        ax.invert_yaxis()
+        ax.set_title(title)
+    axes[0].legend(loc="lower left")
+    fig.suptitle("Co-adaptation on held-out seeds, per kind of simulated person")
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
