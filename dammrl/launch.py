@@ -30,6 +30,7 @@ from pydantic_settings import BaseSettings
 from zenoh.handlers import RingChannel
 
 from dammrl_core.arm.settings import ArmSettings
+from dammrl_core.coadaptation import Targets
 from dammrl_core.control.settings import ControllerSettings
 from dammrl_core.errors import (
     ConfigurationError,
@@ -94,6 +95,8 @@ class StackOptions:
     record: Path | None = None  # also run the recorder into this MCAP file
     study: str = ""  # the session the recording belongs to (JSON, into its metadata)
     prior: tuple[float, float] | None = None  # the person's carried human-model posterior
+    checkpoint: Path | None = None  # a policy refined for the person (None: the settings')
+    adaptive: Targets | None = None  # the adaptive policy with these targets (None: not)
     pad_port: str | None = None  # the pressure pad's serial device (semi-virtual, or real)
     lsl_stream: str | None = None  # a wearable sensor's LSL stream (semi-virtual, or real)
     intent: str | None = None  # the intent source (default: pad with pad_port, lsl with a stream)
@@ -324,6 +327,10 @@ class Stack:
             settings.append(PolicySettings(kind="fixed", **chosen))  # type: ignore[arg-type]
         if o.prior is not None:
             settings.append(PolicySettings(prior=o.prior))
+        if o.checkpoint is not None:
+            settings.append(PolicySettings(checkpoint=o.checkpoint.resolve()))
+        if o.adaptive is not None:
+            settings.append(PolicySettings(kind="adaptive", targets=o.adaptive))
         settings += self._intent_settings() + self._arm_settings()
         if o.record is not None:
             settings.append(RecorderSettings(out=o.record, mode=o.mode, study=o.study))
@@ -578,6 +585,10 @@ class Stack:
                 child.wait()
 
 
+SWITCH = "adaptive: after reach"
+"""How the policy's Health detail begins after a switch (services.policy.node)."""
+
+
 class Progress:
     """``dammrl up`` never waits silently: the arm's first state must come within
     ``FIRST_STATE_S`` of the services being alive (else the run fails, with what the
@@ -591,6 +602,7 @@ class Progress:
         self.since = time.monotonic()
         self.said = self.since
         self.stopped: dict[str, bool] = {}
+        self.switch = ""  # the adaptive policy's last switch said
         self._healths = session.declare_subscriber(f"{namespace}/health/*", RingChannel(256))
         self._states = session.declare_subscriber(key(namespace, RobotState), RingChannel(1))
 
@@ -610,6 +622,7 @@ class Progress:
     def check(self) -> None:
         self._take()
         self._say_stops()
+        self._say_switch()
         now = time.monotonic()
         if not self.first_state and now - self.since > FIRST_STATE_S:
             raise JobFailedError(
@@ -628,6 +641,13 @@ class Progress:
                 reason = health.detail.split(";")[0]
                 self.out(f"{health.service} stopped: {reason} (it holds; Ctrl-C ends the run)")
             self.stopped[health.service] = stopped
+
+    def _say_switch(self) -> None:
+        """The adaptive policy re-selected its models (S3): said once, with its reason."""
+        policy = self.health.get("policy")
+        if policy is not None and policy.detail.startswith(SWITCH) and policy.detail != self.switch:
+            self.switch = policy.detail
+            self.out(f"policy {policy.detail}")
 
     def report(self) -> str:
         """What each service's last Health says, on one line."""

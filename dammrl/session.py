@@ -39,6 +39,7 @@ from typing import TYPE_CHECKING, Any, TextIO
 from dammrl import __version__
 from dammrl.console import HELP, Command, Lines, parse
 from dammrl.launch import Stack, StackOptions, recording_files, result_dict
+from dammrl_core.coadaptation import Targets
 from dammrl_core.errors import ConfigurationError, DammrlError, Exit, UsageError
 from dammrl_core.protocol import (
     PARTICIPANT_ID,
@@ -187,6 +188,16 @@ class Participant:
         record = {"id": self.id, "row": row, "enrolled": now_utc(), "calibration": None}
         write_json(self.file, record)
         return record
+
+    @property
+    def policy_folder(self) -> Path:
+        """Where ``dammrl adapt --participant`` puts the policy refined for them; their
+        sessions load it when it is there."""
+        return self.folder / "policy"
+
+    def refined_policy(self) -> Path | None:
+        folder = self.policy_folder
+        return folder if (folder / "checkpoint.pt").is_file() else None
 
     def sessions(self) -> list[Path]:
         return sorted(p for p in self.folder.glob("ses-*") if (p / "session.json").exists())
@@ -485,6 +496,7 @@ class StackRun:
                          trials=[t.number for t in group]).model_dump_json()  # fmt: skip
         setup = self.setup
         prior = runner.participant.posterior()  # what this person's earlier runs said
+        checkpoint = runner.participant.refined_policy()  # dammrl adapt --participant
         intent = condition.intent or setup.intent
         person = intent in ("pad", "lsl")
         options = StackOptions(
@@ -494,7 +506,8 @@ class StackRun:
             pad_port=setup.pad_port if intent == "pad" else None,
             lsl_stream=setup.stream if intent == "lsl" else None,
             calibration=setup.calibration if person else None, lockstep=setup.lockstep,
-            prior=prior,
+            prior=prior, checkpoint=checkpoint if condition.model is None else None,
+            adaptive=(condition.targets or Targets()) if condition.policy == "adaptive" else None,
         )  # fmt: skip
         self.session.events.add(runner.event("run", block=group[0].block,
                                              recording=self.part.name,

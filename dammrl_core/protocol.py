@@ -19,6 +19,7 @@ from typing import Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from dammrl_core.coadaptation import Targets
 from dammrl_core.errors import ConfigurationError
 
 FORMAT: Literal[1] = 1
@@ -33,8 +34,11 @@ class Condition(_Strict):
     """What a block varies: how progression is triggered, who chooses M_ij, who decides."""
 
     trigger: Literal["event", "fixed"] = "event"
-    policy: Literal["learned", "fixed"] = "learned"
-    """learned: the shipped DAMMRL policy; fixed: ``model`` throughout."""
+    policy: Literal["learned", "fixed", "adaptive"] = "learned"
+    """learned: the shipped DAMMRL policy; fixed: ``model`` throughout; adaptive: the
+    shipped policy with the posterior over M_ij, re-selecting when ``targets`` are missed."""
+    targets: Targets | None = None
+    """What an adaptive block asks of its last reaches (default: Targets())."""
     model: tuple[int, int] | None = None
     """M_ij for a fixed policy (human model i, robot model j)."""
     intent: str | None = None
@@ -45,6 +49,8 @@ class Condition(_Strict):
     def _model_with_fixed(self) -> Condition:
         if (self.policy == "fixed") != (self.model is not None):
             raise ValueError("a fixed policy needs its model [i, j], a learned one none")
+        if self.targets is not None and self.policy != "adaptive":
+            raise ValueError("targets are for an adaptive policy")
         if self.model is not None and not all(1 <= m <= 9 for m in self.model):
             raise ValueError(f"model {list(self.model)}: i and j count from 1")
         return self

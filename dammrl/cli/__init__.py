@@ -43,6 +43,7 @@ GROUPS = (
     rl.register,
     study.register,
     coadapt.register,
+    coadapt.register_adapt,
     view.register,
     bus.register,
     robot.register_stop,

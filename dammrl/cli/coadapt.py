@@ -110,3 +110,92 @@ def _compare(args: argparse.Namespace) -> int:
     print(report.read_text())
     print(json.dumps({"report": str(report)}))
     return 0
+
+
+def register_adapt(commands: Commands) -> None:
+    """Add ``adapt``: per-person refinement from recordings."""
+    adapt = commands.add_parser(
+        "adapt",
+        help="refine the policy for one person from their recorded sessions",
+        description="Fine-tune the dual-agent DQN on a person's recorded reaches (conservative "
+        "Q-learning) and on simulated reaches with a simulated person fitted to them. With "
+        "--participant the refined policy goes into their folder, and their next "
+        "`dammrl session run` loads it.",
+    )
+    source = adapt.add_mutually_exclusive_group(required=True)
+    source.add_argument("--recordings", type=Path, nargs="+", metavar="MCAP",
+                        help="the person's recordings")  # fmt: skip
+    source.add_argument(
+        "--participant",
+        metavar="ID",
+        help="every recording of this participant's sessions under --root",
+    )
+    adapt.add_argument(
+        "--root",
+        type=Path,
+        default=Path("sessions"),
+        help="the sessions' folder (with --participant; default: sessions)",
+    )
+    adapt.add_argument("--from", dest="start", type=Path, default=Path("reward2"),
+                       help="the policy to refine: a run, a .pt or a shipped policy "
+                       "(default: reward2)")  # fmt: skip
+    adapt.add_argument("--out", type=Path,
+                       help="the refined run's directory (default with --participant: their "
+                       "policy folder)")  # fmt: skip
+    adapt.add_argument(
+        "--sim-reaches",
+        type=int,
+        default=100,
+        metavar="N",
+        help="simulated reaches with the fitted person (default 100)",
+    )
+    adapt.add_argument(
+        "--updates", type=int, default=1000, metavar="N", help="gradient steps (default 1000)"
+    )
+    adapt.add_argument(
+        "--conservative",
+        type=float,
+        default=1.0,
+        metavar="ALPHA",
+        help="weight of the conservative (CQL) term; 0: plain DQN (default 1)",
+    )
+    adapt.add_argument("--seed", type=int, default=0, help="seed of the refinement (default 0)")
+    adapt.add_argument("--json", action="store_true", help="one JSON object on stdout")
+    adapt.set_defaults(handler=_adapt)
+
+
+def _adapt(args: argparse.Namespace) -> int:
+    from dammrl.adapt import RefineSettings, describe, refine
+    from dammrl.session import Participant
+    from dammrl_core.errors import ConfigurationError
+
+    recordings, out = args.recordings, args.out
+    if args.participant is not None:
+        participant = Participant(args.root, args.participant)
+        recordings = sorted(participant.folder.glob("ses-*/recordings/*.mcap"))
+        out = out or participant.policy_folder
+        if not recordings:
+            raise ConfigurationError(f"no recording of {participant.id} under {args.root}")
+    if out is None:
+        raise ConfigurationError("--out is needed with --recordings")
+    settings = RefineSettings(sim_reaches=args.sim_reaches, updates=args.updates,
+                              conservative=args.conservative, seed=args.seed)  # fmt: skip
+    update, close = progress_bar(settings.sim_reaches + settings.updates, "refinement", "step")
+    try:
+        refined = refine(list(recordings), args.start, out, settings, update)
+    finally:
+        close()
+    summary = describe(refined)
+    if args.json:
+        print(json.dumps(summary))
+    else:
+        fit = refined.fit
+        print(f"{len(recordings)} recording(s): {fit.decisions} decisions of the person, "
+              f"{fit.accuracy:.0%} toward the goal, decision times x{fit.decision_time_factor:.2f} "
+              f"the sub-models'; {refined.recorded} recorded and {refined.simulated} simulated "
+              f"transitions")  # fmt: skip
+        print(
+            f"refined policy: {refined.out} (load it with "
+            f"DAMMRL_POLICY_CHECKPOINT={refined.out}, or let the participant's next session)"
+        )
+    return 0

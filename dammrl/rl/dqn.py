@@ -92,7 +92,9 @@ class DualAgentDQN:
             return human, int(rng.integers(self.actions[1]))
         return self.online.greedy(obs, human)
 
-    def update(self, batch: tuple[np.ndarray, ...]) -> UpdateStats:
+    def update(self, batch: tuple[np.ndarray, ...], conservative: float = 0.0) -> UpdateStats:
+        """One double-DQN step; ``conservative`` > 0 adds CQL(H)'s term for each agent,
+        alpha * (logsumexp_a Q(s, a) - Q(s, a_data)) (per-person refinement, dammrl.adapt)."""
         obs, actions, rewards, next_obs, dones = (
             torch.as_tensor(b, device=self.device) for b in batch
         )
@@ -103,12 +105,15 @@ class DualAgentDQN:
             target_r = self.target_robot(self.robot_input(next_obs, next_human)).max(1).values
             y_h = rewards + gamma * (1 - dones) * target_h
             y_r = rewards + gamma * (1 - dones) * target_r
-        q_h = self.q_human(obs).gather(1, actions[:, :1]).squeeze(1)
-        q_r = (
-            self.q_robot(self.robot_input(obs, actions[:, 0])).gather(1, actions[:, 1:]).squeeze(1)
-        )
+        all_h = self.q_human(obs)
+        all_r = self.q_robot(self.robot_input(obs, actions[:, 0]))
+        q_h = all_h.gather(1, actions[:, :1]).squeeze(1)
+        q_r = all_r.gather(1, actions[:, 1:]).squeeze(1)
         loss_h = nn.functional.smooth_l1_loss(q_h, y_h)
         loss_r = nn.functional.smooth_l1_loss(q_r, y_r)
+        if conservative > 0:
+            loss_h = loss_h + conservative * (torch.logsumexp(all_h, 1) - q_h).mean()
+            loss_r = loss_r + conservative * (torch.logsumexp(all_r, 1) - q_r).mean()
         self.optimizer.zero_grad()
         (loss_h + loss_r).backward()  # type: ignore[no-untyped-call]
         nn.utils.clip_grad_norm_(self.parameters, self.settings.grad_clip)

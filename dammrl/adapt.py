@@ -1,0 +1,347 @@
+"""Per-person refinement: fine-tune the dual-agent DQN on a person's recorded sessions.
+
+Two sources of transitions, one update:
+
+* **the person's own reaches**, read back from their recordings: at each decision the
+  observation the policy had (end-effector, goal, model in force), the M_ij it chose, and
+  the composite reward of the stretch until the next decision, computed from the recorded
+  robot states and steps with the training's own reward terms;
+* **simulated reaches with a simulated person fitted to them**: their share of commands
+  toward the goal and their decision times against the sub-models' (the lognormal
+  sub-model with that accuracy and time factor), explored epsilon-greedily from the
+  current policy.
+
+The update is the training's double DQN with a conservative term (CQL(H), Kumar et al.
+2020): ``alpha * (logsumexp_a Q(s, a) - Q(s, a_data))`` for each agent. A person's
+recordings are few reaches of one policy's choices; plain off-policy Q-learning on such
+narrow data overrates the actions it never saw (bootstrapping error), and the refined
+policy would wander to them on the strength of nothing. The conservative term keeps each
+Q-network's unseen actions below the ones in the data unless the rewards say otherwise.
+Everything is seeded and runs in one thread: the same recordings and settings give the
+same checkpoint, byte for byte.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from pydantic import BaseModel, ConfigDict, Field
+
+from dammrl.recording import read_recording
+from dammrl.rl.config import RewardWeights, TrainSettings
+from dammrl.rl.dqn import DualAgentDQN, ReplayBuffer
+from dammrl.rl.env import ReachEnv, RewardTerms, accuracy_term
+from dammrl.rl.train import EpisodeLog, save
+from dammrl.runner import ReachRunner, ReachSettings
+from dammrl_core.errors import ConfigurationError
+from dammrl_core.human import HumanModel, direction_to_goal
+from dammrl_core.metrics import n_oscillations
+from dammrl_core.person import SimulatedPerson
+from dammrl_core.policy.learned import ACTIONS, OBSERVATION_SIZE, load_checkpoint, observe
+from schemas import (
+    DecisionRequest,
+    EpisodeResult,
+    Intent,
+    ModelChoice,
+    RobotState,
+    StepEvent,
+    TaskGoal,
+)
+from schemas.messages import OPERATOR
+
+SIM_SEEDS_START = 6_950_000
+"""The simulated reaches' task seeds: below the held-out range, apart from training's and
+the model table's."""
+
+
+class RefineSettings(BaseModel):
+    """How hard to refine (defaults: about two minutes on two cores)."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    sim_reaches: int = Field(100, ge=0, le=100_000)
+    """Simulated reaches with the fitted person."""
+    updates: int = Field(1000, ge=1, le=1_000_000)
+    """Gradient steps."""
+    conservative: float = Field(1.0, ge=0, le=100)
+    """alpha of the conservative term (0: plain double DQN)."""
+    epsilon: float = Field(0.2, ge=0, le=1)
+    """Exploration of the simulated reaches."""
+    learning_rate: float = Field(1e-4, gt=0, le=1)
+    seed: int = Field(0, ge=0)
+
+
+@dataclass(frozen=True)
+class Transition:
+    obs: np.ndarray
+    action: tuple[int, int]  # 0-based (i, j)
+    reward: float
+    next_obs: np.ndarray
+    done: bool
+
+
+@dataclass(frozen=True)
+class PersonFit:
+    """What the person's recorded decisions say, as a simulated person."""
+
+    decisions: int
+    accuracy: float  # share toward the goal
+    decision_time_factor: float  # median of decision time / the sub-model's median
+
+    def person(self) -> SimulatedPerson:
+        return SimulatedPerson(
+            accuracy=self.accuracy, decision_time_factor=self.decision_time_factor
+        )
+
+
+# ---- the recordings ------------------------------------------------------------------
+def recorded_reaches(
+    paths: list[Path], weights: RewardWeights, human: HumanModel
+) -> tuple[list[Transition], PersonFit]:
+    """The transitions of every recorded reach and the person's fit."""
+    transitions: list[Transition] = []
+    correct: list[bool] = []
+    ratios: list[float] = []
+    for path in paths:
+        episodes = _episodes(path)
+        for episode in episodes.values():
+            transitions += _transitions(episode, weights)
+            for ok, ratio in _decisions(episode, human):
+                correct.append(ok)
+                ratios.append(ratio)
+    if not correct:
+        raise ConfigurationError("no decision of a person in the recordings: nothing to adapt to")
+    accuracy = min(0.99, max(0.51, float(np.mean(correct))))
+    factor = min(10.0, max(0.1, float(np.median(ratios)))) if ratios else 1.0
+    return transitions, PersonFit(len(correct), accuracy, factor)
+
+
+@dataclass
+class _Episode:
+    requests: dict[int, DecisionRequest]
+    choices: dict[int, ModelChoice]
+    intents: dict[int, Intent]
+    steps: list[StepEvent]
+    states: list[RobotState]
+    result: EpisodeResult | None
+
+
+def _episodes(path: Path) -> dict[int, _Episode]:
+    """Each recorded episode's messages (robot states by the log time between its goal and
+    its result, up to its end on the robot clock)."""
+    recording = read_recording(path)
+    episodes: dict[int, _Episode] = {}
+    states: list[tuple[int, RobotState]] = []
+    starts: dict[int, int] = {}
+    ends: dict[int, int] = {}
+    for log_ns, message in recording.decoded(
+        TaskGoal, DecisionRequest, ModelChoice, Intent, StepEvent, RobotState, EpisodeResult
+    ):
+        if isinstance(message, RobotState):
+            states.append((log_ns, message))
+            continue
+        number = getattr(message, "episode", 0)
+        if number < 1:
+            continue
+        episode = episodes.setdefault(number, _Episode({}, {}, {}, [], [], None))
+        if isinstance(message, TaskGoal):
+            starts.setdefault(number, log_ns)
+        elif isinstance(message, DecisionRequest):
+            episode.requests.setdefault(message.request, message)
+        elif isinstance(message, ModelChoice) and message.request > 0:
+            episode.choices.setdefault(message.request, message)
+        elif isinstance(message, Intent):
+            episode.intents.setdefault(message.request, message)
+        elif isinstance(message, StepEvent):
+            episode.steps.append(message)
+        elif isinstance(message, EpisodeResult):
+            episode.result = message
+            ends[number] = log_ns
+    complete = {}
+    for number, episode in episodes.items():
+        if episode.result is None or not episode.requests or number not in starts:
+            continue  # cut by the end of the recording, or begun before it
+        end_s = episode.result.t_total_s + 1e-9
+        episode.states = [s for t, s in states
+                          if starts[number] < t <= ends[number] and s.t_s <= end_s]  # fmt: skip
+        complete[number] = episode
+    return complete
+
+
+def _transitions(episode: _Episode, weights: RewardWeights) -> list[Transition]:
+    """One transition per answered request, rewarded over the stretch to the next."""
+    assert episode.result is not None
+    answered = [r for r in sorted(episode.requests) if r in episode.choices]
+    states = sorted(episode.states, key=lambda s: s.t_s)
+    if not answered or len(states) < 2:
+        return []
+    goal = np.array(episode.requests[answered[0]].goal_m)
+    t = np.array([s.t_s for s in states])
+    x = np.array([s.ee_pos_m for s in states])
+    out: list[Transition] = []
+    model: tuple[int, int] | None = None
+    for k, request in enumerate(answered):
+        asked = episode.requests[request]
+        choice = episode.choices[request]
+        obs = observe(np.array(asked.ee_pos_m), goal, model)
+        model = (choice.human_model, choice.robot_model)
+        last = k == len(answered) - 1
+        end_s = episode.requests[answered[k + 1]].t_s if not last else float(t[-1])
+        next_x = np.array(episode.requests[answered[k + 1]].ee_pos_m) if not last else x[-1]
+        since = asked.t_s if k > 0 else -math.inf  # the first: every state from the reset
+        terms = _terms(states, t, x, since, end_s, next_x, goal, episode, last)
+        out.append(Transition(obs, (model[0] - 1, model[1] - 1), terms.total(weights),
+                              observe(next_x, goal, model), last))  # fmt: skip
+    return out
+
+
+def _terms(states: list[RobotState], t: np.ndarray, x: np.ndarray, start_s: float,
+           end_s: float, next_x: np.ndarray, goal: np.ndarray, episode: _Episode,
+           last: bool) -> RewardTerms:  # fmt: skip
+    """The training's reward terms over the recorded stretch (start_s, end_s], as the
+    environment's segment: the states after the decision's up to the next one's."""
+    inside = (t > start_s + 1e-9) & (t <= end_s + 1e-9)
+    effort, oscillations = 0.0, 0
+    if inside.sum() > 2:
+        segment = [s for s, keep in zip(states, inside, strict=True) if keep]
+        dt = float(np.median(np.diff(t[inside])))
+        q = np.array([s.q_rad for s in segment])
+        tau = np.array([s.tau_nm for s in segment])
+        dq = np.gradient(q, dt, axis=0)
+        effort = float(np.sum(np.abs(np.sum(tau * dq, axis=1))) * dt)
+        steps = [s for s in episode.steps if s.start_s <= end_s + 1e-9]
+        oscillations = n_oscillations(
+            x[inside], np.array([s.subgoal_m for s in steps]).reshape(-1, 3),
+            np.array([s.radius_m for s in steps]), 1.0 / dt,
+        )  # fmt: skip
+    assert episode.result is not None
+    times = t[inside]
+    return RewardTerms(
+        accuracy=accuracy_term(float(np.linalg.norm(next_x - goal))),
+        time_s=float(times[-1] - times[0]) if times.size else 0.0,
+        effort_j=effort,
+        oscillations=oscillations,
+        success=last and episode.result.success,
+    )  # fmt: skip
+
+
+def _decisions(episode: _Episode, human: HumanModel) -> list[tuple[bool, float]]:
+    """(toward the goal, decision time / the sub-model's median) of each of the person's
+    decisions (a therapist's are left out)."""
+    out = []
+    for request, intent in sorted(episode.intents.items()):
+        asked = episode.requests.get(request)
+        if asked is None or intent.source == OPERATOR:
+            continue
+        toward = direction_to_goal(asked.ee_pos_m, asked.goal_m, asked.primary_axis)
+        median = human.decision_median_s(intent.human_model)
+        out.append((intent.u_h == toward, intent.decision_s / median))
+    return out
+
+
+# ---- the refinement ------------------------------------------------------------------
+@dataclass(frozen=True)
+class Refined:
+    out: Path
+    fit: PersonFit
+    recorded: int  # transitions from the recordings
+    simulated: int  # transitions from the simulated reaches
+    sim_success: float  # the refined policy's exploring reaches' success share
+
+
+def refine(recordings: list[Path], start: Path, out: Path, settings: RefineSettings,
+           progress: Callable[[int], None] | None = None) -> Refined:  # fmt: skip
+    """Fine-tune the checkpoint ``start`` on ``recordings``; write the refined run to
+    ``out`` (a run directory any policy setting can load)."""
+    torch.manual_seed(settings.seed)
+    checkpoint = load_checkpoint(start)
+    weights = RewardWeights(**checkpoint["weights"])
+    train = TrainSettings(**checkpoint["settings"]).model_copy(
+        update={"learning_rate": settings.learning_rate}
+    )
+    agent = DualAgentDQN(OBSERVATION_SIZE, ACTIONS, train, torch.device("cpu"))
+    agent.online.human.load_state_dict(checkpoint["agent"]["q_human"])
+    agent.online.robot.load_state_dict(checkpoint["agent"]["q_robot"])
+    agent.sync_targets()
+    human = HumanModel()
+    recorded, fit = recorded_reaches(recordings, weights, human)
+    if not recorded:
+        raise ConfigurationError("the recordings hold no complete reach with its decisions")
+    own = _buffer(recorded, settings.seed)
+    simulated, success = _simulate(agent, fit, weights, train, settings, progress)
+    sim = _buffer(simulated, settings.seed + 1) if simulated else None
+    for _ in range(settings.updates):
+        stats = agent.update(_batch(own, sim, train.batch_size), settings.conservative)
+        if progress is not None:
+            progress(1)
+    out.mkdir(parents=True, exist_ok=True)
+    log = EpisodeLog(episode=0, ret=0.0, success=bool(success >= 0.5), decisions=len(simulated),
+                     epsilon=settings.epsilon, t_total_s=0.0, loss_human=stats.loss_human,
+                     loss_robot=stats.loss_robot, q_human=stats.q_human, q_robot=stats.q_robot,
+                     small_steps=math.nan)  # fmt: skip
+    save(out, agent, checkpoint["reward"], weights, train, [log], len(simulated))
+    (out / "refined.json").write_text(json.dumps({
+        "from": str(start), "recordings": {str(p): _sha256(p) for p in recordings},
+        "fit": asdict(fit), "settings": settings.model_dump(),
+        "recorded_transitions": len(recorded), "simulated_transitions": len(simulated),
+    }, indent=1) + "\n")  # fmt: skip
+    return Refined(out, fit, len(recorded), len(simulated), success)
+
+
+def _simulate(agent: DualAgentDQN, fit: PersonFit, weights: RewardWeights, train: TrainSettings,
+              settings: RefineSettings, progress: Callable[[int], None] | None
+              ) -> tuple[list[Transition], float]:  # fmt: skip
+    if settings.sim_reaches == 0:
+        return [], math.nan
+    runner = ReachRunner(ReachSettings(human=HumanModel(person=fit.person())))
+    env = ReachEnv(runner, weights, train.max_decisions)
+    rng = np.random.default_rng(settings.seed)
+    out, successes = [], 0
+    for n in range(settings.sim_reaches):
+        obs, _ = env.reset(seed=SIM_SEEDS_START + settings.seed * 10_000 + n)
+        while True:
+            action = agent.act(obs, settings.epsilon, rng)
+            next_obs, reward, terminated, truncated, info = env.step(action)
+            out.append(Transition(obs, action, reward, next_obs, terminated or truncated))
+            obs = next_obs
+            if terminated or truncated:
+                successes += bool(info["metrics"].success)
+                break
+        if progress is not None:
+            progress(1)
+    return out, successes / settings.sim_reaches
+
+
+def _buffer(transitions: list[Transition], seed: int) -> ReplayBuffer:
+    buffer = ReplayBuffer(len(transitions), OBSERVATION_SIZE, seed)
+    for t in transitions:
+        buffer.add(t.obs, t.action, t.reward, t.next_obs, t.done)
+    return buffer
+
+
+def _batch(own: ReplayBuffer, sim: ReplayBuffer | None, size: int) -> tuple[np.ndarray, ...]:
+    """Half the batch from the person's own reaches (all of it without simulation)."""
+    if sim is None:
+        return own.sample(size)
+    mine, simulated = own.sample(size // 2), sim.sample(size - size // 2)
+    return tuple(np.concatenate(pair) for pair in zip(mine, simulated, strict=True))
+
+
+def _sha256(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def describe(refined: Refined) -> dict[str, Any]:
+    return {
+        "out": str(refined.out), **{f"person_{k}": v for k, v in asdict(refined.fit).items()},
+        "recorded_transitions": refined.recorded, "simulated_transitions": refined.simulated,
+        "simulated_success": refined.sim_success,
+    }  # fmt: skip
