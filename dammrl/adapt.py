@@ -108,20 +108,22 @@ def recorded_reaches(
 ) -> tuple[list[Transition], PersonFit]:
     """The transitions of every recorded reach and the person's fit."""
     transitions: list[Transition] = []
-    correct: list[bool] = []
-    ratios: list[float] = []
+    decisions: list[tuple[bool, float]] = []
     for path in paths:
-        episodes = _episodes(path)
-        for episode in episodes.values():
+        for episode in _episodes(path).values():
             transitions += _transitions(episode, weights)
-            for ok, ratio in _decisions(episode, human):
-                correct.append(ok)
-                ratios.append(ratio)
-    if not correct:
+            decisions += _decisions(episode, human)
+    return transitions, fit_person(decisions)
+
+
+def fit_person(decisions: list[tuple[bool, float]]) -> PersonFit:
+    """The simulated person of (toward the goal, decision time / the sub-model's median)
+    decisions: their share toward the goal (within [0.51, 0.99]) and median time ratio."""
+    if not decisions:
         raise ConfigurationError("no decision of a person in the recordings: nothing to adapt to")
-    accuracy = min(0.99, max(0.51, float(np.mean(correct))))
-    factor = min(10.0, max(0.1, float(np.median(ratios)))) if ratios else 1.0
-    return transitions, PersonFit(len(correct), accuracy, factor)
+    accuracy = min(0.99, max(0.51, float(np.mean([ok for ok, _ in decisions]))))
+    factor = min(10.0, max(0.1, float(np.median([ratio for _, ratio in decisions]))))
+    return PersonFit(len(decisions), accuracy, factor)
 
 
 @dataclass
@@ -261,6 +263,20 @@ def refine(recordings: list[Path], start: Path, out: Path, settings: RefineSetti
            progress: Callable[[int], None] | None = None) -> Refined:  # fmt: skip
     """Fine-tune the checkpoint ``start`` on ``recordings``; write the refined run to
     ``out`` (a run directory any policy setting can load)."""
+    weights = RewardWeights(**load_checkpoint(start)["weights"])
+    recorded, fit = recorded_reaches(recordings, weights, HumanModel())
+    refined = refine_transitions(recorded, fit, start, out, settings, progress)
+    meta = json.loads((out / "refined.json").read_text())
+    meta["recordings"] = {str(p): _sha256(p) for p in recordings}
+    (out / "refined.json").write_text(json.dumps(meta, indent=1) + "\n")
+    return refined
+
+
+def refine_transitions(recorded: list[Transition], fit: PersonFit, start: Path, out: Path,
+                       settings: RefineSettings,
+                       progress: Callable[[int], None] | None = None) -> Refined:  # fmt: skip
+    """The refinement of ``start`` on a person's transitions (from recordings, or from
+    reaches run in-process: the same numbers) and simulated reaches of their fit."""
     torch.manual_seed(settings.seed)
     checkpoint = load_checkpoint(start)
     weights = RewardWeights(**checkpoint["weights"])
@@ -271,8 +287,6 @@ def refine(recordings: list[Path], start: Path, out: Path, settings: RefineSetti
     agent.online.human.load_state_dict(checkpoint["agent"]["q_human"])
     agent.online.robot.load_state_dict(checkpoint["agent"]["q_robot"])
     agent.sync_targets()
-    human = HumanModel()
-    recorded, fit = recorded_reaches(recordings, weights, human)
     if not recorded:
         raise ConfigurationError("the recordings hold no complete reach with its decisions")
     own = _buffer(recorded, settings.seed)
@@ -289,8 +303,7 @@ def refine(recordings: list[Path], start: Path, out: Path, settings: RefineSetti
                      small_steps=math.nan)  # fmt: skip
     save(out, agent, checkpoint["reward"], weights, train, [log], len(simulated))
     (out / "refined.json").write_text(json.dumps({
-        "from": str(start), "recordings": {str(p): _sha256(p) for p in recordings},
-        "fit": asdict(fit), "settings": settings.model_dump(),
+        "from": str(start), "fit": asdict(fit), "settings": settings.model_dump(),
         "recorded_transitions": len(recorded), "simulated_transitions": len(simulated),
     }, indent=1) + "\n")  # fmt: skip
     return Refined(out, fit, len(recorded), len(simulated), success)

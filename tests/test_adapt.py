@@ -90,8 +90,8 @@ def test_refinement_is_deterministic_and_loads_as_a_policy(recording: Path, tmp_
     assert any(not torch.equal(t, shipped[n]) for n, t in a["agent"]["q_robot"].items())
     meta = json.loads((tmp_path / "a" / "refined.json").read_text())
     assert meta["recorded_transitions"] == first.recorded and str(recording) in meta["recordings"]
-    from dammrl_core.policy.learned import LearnedPolicy
     from dammrl_core.models import ModelSet
+    from dammrl_core.policy.learned import LearnedPolicy
 
     LearnedPolicy(ModelSet(), tmp_path / "a").decide(np.zeros(3), np.ones(3))
 

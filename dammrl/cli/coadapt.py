@@ -100,10 +100,10 @@ def _compare(args: argparse.Namespace) -> int:
     oracle = range(ORACLE_SEEDS.start, ORACLE_SEEDS.start + args.oracle_seeds)
     test = range(TEST_SEEDS.start, TEST_SEEDS.start + args.test_seeds)
     targets = PolicySettings().targets
-    total = len(persons) * (len(MODELS) * len(oracle) + 2 * len(test) + 1)
+    total = len(persons) * (len(MODELS) * len(oracle) + 2 * len(test) + 2)
     update, close = progress_bar(total, "co-adaptation")
     try:
-        results = compare(persons, targets, args.jobs, oracle, test, update)
+        results = compare(persons, targets, args.out, args.jobs, oracle, test, progress=update)
     finally:
         close()
     report = write_report(results, targets, args.out)

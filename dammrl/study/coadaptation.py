@@ -10,6 +10,9 @@ from training's). ``dammrl coadapt compare`` runs, for each kind of person:
 * the **shipped** policy (the Reward 2 DQN) on the test seeds;
 * the **adaptive** mode around the shipped policy: the test seeds as one session, in
   order, the posterior carried from reach to reach;
+* the **refined** policy: the shipped one refined (``dammrl adapt``'s update) on a first
+  session of that person with the shipped policy (seeds of its own), then run on the
+  test seeds;
 
 and reports success, time and error with paired 95 % intervals (by seed) against the
 shipped policy, regret against the oracle, every switch, and the reaches until the
@@ -27,6 +30,9 @@ from typing import Any
 
 import numpy as np
 
+from dammrl.adapt import PersonFit, RefineSettings, Transition, fit_person, refine_transitions
+from dammrl.rl.config import RewardWeights, TrainSettings
+from dammrl.rl.env import ReachEnv
 from dammrl.runner import ReachResult, ReachRunner, ReachSettings, evidence_of
 from dammrl.study.run import map_jobs
 from dammrl.study.stats import Estimate, bootstrap_mean, paired_difference, wilson
@@ -42,7 +48,7 @@ from dammrl_core.human import HumanModel
 from dammrl_core.person import SimulatedPerson
 from dammrl_core.policy import FixedPolicy, Policy
 from dammrl_core.policy.adaptive import AdaptivePolicy
-from dammrl_core.policy.learned import LearnedPolicy
+from dammrl_core.policy.learned import LearnedPolicy, load_checkpoint
 
 TABLE_SEEDS = range(6_900_000, 6_900_030)
 """The model table's seeds: below the held-out range, above every training run's."""
@@ -50,6 +56,8 @@ ORACLE_SEEDS = range(7_600_000, 7_600_020)
 TEST_SEEDS = range(7_700_000, 7_700_040)
 """The comparison's held-out seeds: the oracle searches on its own, all policies are
 measured on the test seeds (neither used by any study or training)."""
+SESSION_SEEDS = range(7_650_000, 7_650_020)
+"""The person's first session, with the shipped policy: the refinement's data."""
 SHIPPED = Path("reward2")
 
 PERSONS: dict[str, SimulatedPerson] = {
@@ -195,6 +203,50 @@ def _adaptive_job(job: tuple[str, range, Targets]) -> Session:
     return adaptive_session(*job)
 
 
+# ---- the refined policy --------------------------------------------------------------
+@dataclass(frozen=True)
+class RefinedRun:
+    rows: list[Row]
+    fit: PersonFit
+
+
+def refined_run(person: str, session_seeds: range, test_seeds: range, out: Path,
+                settings: RefineSettings) -> RefinedRun:  # fmt: skip
+    """A first session with the shipped policy, the refinement on it, the test seeds."""
+    runner = _runner(person)
+    checkpoint = load_checkpoint(SHIPPED)
+    env = ReachEnv(runner, RewardWeights(**checkpoint["weights"]),
+                   TrainSettings(**checkpoint["settings"]).max_decisions)  # fmt: skip
+    policy = LearnedPolicy(runner.settings.models, SHIPPED)
+    human = runner.settings.human
+    transitions: list[Transition] = []
+    decisions: list[tuple[bool, float]] = []
+    for seed in session_seeds:
+        obs, _ = env.reset(seed=seed)
+        policy.reset()
+        done = False
+        while not done:
+            state = env.episode.last_state
+            choice = policy.decide(state.ee_pos, env.episode.task.goal)
+            action = (choice.human_model - 1, choice.robot_model - 1)
+            next_obs, reward, terminated, truncated, _ = env.step(action)
+            done = terminated or truncated
+            transitions.append(Transition(obs, action, reward, next_obs, done))
+            obs = next_obs
+        episode = env.episode
+        for d, c in zip(episode.decisions, episode.choices, strict=True):
+            decisions.append((d.correct, d.decision_s / human.decision_median_s(c.human_model)))
+    fit = fit_person(decisions)
+    refined = refine_transitions(transitions, fit, SHIPPED, out, settings)
+    mine = LearnedPolicy(runner.settings.models, refined.out)
+    rows = [_row(person, "refined", runner.run(seed, policy=mine)) for seed in test_seeds]
+    return RefinedRun(rows, fit)
+
+
+def _refined_job(job: tuple[str, range, range, Path, RefineSettings]) -> RefinedRun:
+    return refined_run(*job)
+
+
 def settled_after(history: list[Any]) -> int:
     """Reaches until the last change of ``history`` (1: never changed; 0: empty)."""
     for k in range(len(history) - 1, 0, -1):
@@ -208,16 +260,19 @@ def settled_after(history: list[Any]) -> int:
 class PersonResult:
     person: str
     oracle: tuple[int, int]
-    arms: dict[str, list[Row]]  # 'oracle', 'shipped', 'adaptive' on the test seeds
+    arms: dict[str, list[Row]]  # 'oracle', 'shipped', 'adaptive', 'refined' on the test seeds
     session: Session
+    fit: PersonFit  # the simulated person fitted to the first session (the refinement's)
 
 
 def compare(
     persons: list[str],
     targets: Targets,
+    out: Path,
     workers: int = 1,
     oracle_seeds: range = ORACLE_SEEDS,
     test_seeds: range = TEST_SEEDS,
+    refine: RefineSettings | None = None,
     progress: Callable[[int], None] | None = None,
 ) -> list[PersonResult]:
     """The oracle search, the shipped and the adaptive policy for each person."""
@@ -236,6 +291,9 @@ def compare(
             _adaptive_job, [(p, test_seeds, targets) for p in persons], workers, progress=progress
         )
     )
+    refine_jobs = [(p, SESSION_SEEDS, test_seeds, out / "refined" / _slug(p),
+                    refine or RefineSettings()) for p in persons]  # fmt: skip
+    refined = list(map_jobs(_refined_job, refine_jobs, workers, progress=progress))
     return [
         PersonResult(
             p,
@@ -244,11 +302,17 @@ def compare(
                 "oracle": [r for r in oracle_rows if r.person == p],
                 "shipped": [r for r in fixed if r.person == p and r.arm == "shipped"],
                 "adaptive": session.rows,
+                "refined": run.rows,
             },
             session,
+            run.fit,
         )
-        for p, session in zip(persons, sessions, strict=True)
+        for p, session, run in zip(persons, sessions, refined, strict=True)
     ]
+
+
+def _slug(person: str) -> str:
+    return "".join(c if c.isalnum() else "-" for c in person).strip("-")
 
 
 def _best(rows: list[Row]) -> tuple[int, int]:

@@ -8,10 +8,10 @@ from pathlib import Path
 
 import numpy as np
 
-from dammrl.study.coadaptation import PersonResult, figures, settled_after
+from dammrl.study.coadaptation import SESSION_SEEDS, PersonResult, figures, settled_after
 from dammrl_core.coadaptation import Targets
 
-ARMS = ("oracle", "shipped", "adaptive")
+ARMS = ("oracle", "shipped", "adaptive", "refined")
 
 
 def write_report(results: list[PersonResult], targets: Targets, out: Path) -> Path:
@@ -56,11 +56,15 @@ def _person(result: PersonResult) -> list[str]:
         scale, digits = (100.0, 0) if measure.startswith("success") else (1.0, 2)
         lines.append(f"| {arm} | {measure} | {estimate.text(scale, digits)} |")
     regret = _regret(result)
+    fit = result.fit
     lines += [
         "",
-        f"Regret against the oracle (success pp, mean time s): shipped "
-        f"{regret['shipped'][0]:+.0f} pp, {regret['shipped'][1]:+.2f} s; adaptive "
-        f"{regret['adaptive'][0]:+.0f} pp, {regret['adaptive'][1]:+.2f} s.",
+        f"Refined on a first session of {len(SESSION_SEEDS)} reaches: the person fitted as "
+        f"{fit.accuracy:.0%} toward the goal, decision times x{fit.decision_time_factor:.2f}.",
+        "",
+        "Regret against the oracle (success pp, mean time s): "
+        + "; ".join(f"{arm} {pp:+.0f} pp, {s:+.2f} s" for arm, (pp, s) in regret.items())
+        + ".",
         "",
     ]
     lines += ["Switches:", ""] + [f"- {s}" for s in session.switches or ["none"]] + [""]
@@ -88,6 +92,7 @@ def _json(result: PersonResult) -> dict[str, object]:
         "figures": [{"policy": a, "measure": m, **asdict(e)} for a, m, e in figures(result)],
         "regret": _regret(result),
         "switches": result.session.switches,
+        "refined_fit": asdict(result.fit),
         "map_settled_after": settled_after(result.session.map_models),
         "posterior": {
             k: (v if not isinstance(v, dict) else {str(kk): vv for kk, vv in v.items()})
@@ -103,13 +108,15 @@ def _figure(results: list[PersonResult], path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 2, figsize=(12, 0.55 * len(results) + 2), constrained_layout=True)
+    fig, axes = plt.subplots(1, 2, figsize=(12, 0.7 * len(results) + 2), constrained_layout=True)
     y = np.arange(len(results))
+    height = 0.8 / len(ARMS)
     for k, arm in enumerate(ARMS):
         success = [np.mean([r.success for r in res.arms[arm]]) * 100 for res in results]
         times = [np.mean([r.t_total_s for r in res.arms[arm]]) for res in results]
-        axes[0].barh(y + (k - 1) * 0.27, success, height=0.27, label=arm)
-        axes[1].barh(y + (k - 1) * 0.27, times, height=0.27, label=arm)
+        offset = (k - (len(ARMS) - 1) / 2) * height
+        axes[0].barh(y + offset, success, height=height, label=arm)
+        axes[1].barh(y + offset, times, height=height, label=arm)
     for ax, title in zip(axes, ("success [%]", "mean reach time [s]"), strict=True):
         ax.set_yticks(y, [r.person for r in results])
         ax.invert_yaxis()
