@@ -177,6 +177,14 @@ def test_missed_targets_switch_to_the_alternative_most_likely_to_meet_them() -> 
     assert policy.recent == []  # judged afresh after a switch
 
 
+def test_targets_no_model_can_meet_leave_the_policy_as_it_is() -> None:
+    posterior = ModelPosterior(table({(1, 1): 0.99}), HUMAN, MODEL_SET)
+    policy = AdaptivePolicy(FixedPolicy(MODEL_SET, 1, 1), MODEL_SET, posterior,
+                            Targets(window=2, success_min=None, time_max_s=1.0))  # fmt: skip
+    assert [policy.observe(reach((1, 1), True, 5.0)) for _ in range(4)] == [None] * 4
+    assert policy.selected is None  # every model's time is 10 s: none likelier than M_1,1
+
+
 def test_a_learned_base_chooses_only_among_the_allowed_step_vectors() -> None:
     learned = LearnedPolicy(MODEL_SET, PolicySettings().checkpoint)
     rng = np.random.default_rng(1)

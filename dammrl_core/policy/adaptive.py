@@ -8,6 +8,9 @@ target, the policy switches to the alternative model most likely to meet every t
 (S3), and from then on chooses only among the matched models: the selected radius i and
 the step vectors j whose chance of meeting the targets is within ``KEEP_WITHIN`` of the
 best one's (a learned base still picks among them per state; another base takes the best).
+An alternative must be at least ``SWITCH_GAIN`` likelier to meet the targets than the
+model in force: targets no model can meet leave the policy as it is instead of churning
+through models no better.
 Every switch is kept with its reason.
 """
 
@@ -25,6 +28,11 @@ from dammrl_core.policy import ModelChoice, Policy, model_choice
 KEEP_WITHIN = 0.05
 """A step vector stays allowed when its P(meets every target) is within this of the
 selected model's (the learned base then chooses among near-equals per state)."""
+
+
+SWITCH_GAIN = 0.05
+"""How much likelier to meet every target an alternative must be than the model in force
+(a design choice: below it a switch is a coin toss between near-equals)."""
 
 
 class Restrictable(Protocol):
@@ -85,7 +93,8 @@ class AdaptivePolicy:
         return model_choice(self.models, i, j)
 
     def observe(self, reach: ReachEvidence) -> Switch | None:
-        """Fold in a finished reach; switch when the targets are missed (the switch)."""
+        """Fold in a finished reach; switch when the targets are missed and an alternative
+        is more likely to meet them (the switch, else None)."""
         self.posterior.observe(reach)
         self.recent.append(reach)
         if len(self.recent) < self.targets.window:
@@ -99,11 +108,13 @@ class AdaptivePolicy:
             self.posterior.rating(self.recent[-1].model, rating)
         self.ratings.append(float(rating))
 
-    def _switch(self, current: tuple[int, int], reasons: list[str]) -> Switch:
+    def _switch(self, current: tuple[int, int], reasons: list[str]) -> Switch | None:
         meets = self.posterior.meets(self.targets)
         best = self.posterior.probabilities(self.targets)
         ranked = sorted(range(len(MODELS)), key=lambda k: (-meets[k], -best[k], k))
         chosen = next(k for k in ranked if MODELS[k] != current)
+        if meets[chosen] < meets[MODELS.index(current)] + SWITCH_GAIN:
+            return None  # no alternative is likelier to meet the targets
         i, j = MODELS[chosen]
         allowed = {
             jj
