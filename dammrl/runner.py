@@ -96,8 +96,8 @@ def evidence_of(result: ReachResult, models: ModelSet) -> ReachEvidence:
         decisions=[DecisionEvidence(c.human_model, d.correct, d.decision_s)
                    for d, c in zip(result.decisions, result.choices, strict=True)],
         asked_s=[d.intent.t_s - d.decision_s for d in result.decisions],
-        steps=[(robot_model_of(models, s.steps_m), float(np.linalg.norm(s.dx)), s.start_s)
-               for s in result.steps],
+        steps=[(robot_model_of(models, s.steps_m), float(np.linalg.norm(s.dx)), s.radius_m,
+                s.start_s) for s in result.steps],
     )  # fmt: skip
     m = result.metrics
     return record.evidence(m.success, m.t_total_s, m.final_error_m, m.sparc, result.model)

@@ -16,8 +16,9 @@ of evidence, each with a stated likelihood (docs/guide/coadaptation.md):
   decision time is lognormal around the person's median under i, with a normal prior at
   the sub-model's (sd ``decision_scale_sd``) and known log-sd ``decision_sigma``;
 * **the robot**: each step's execution time (its reference starting to the trigger that
-  admits it) is lognormal around ``s * tau(L)``, the nominal arm's time for a step of
-  that length scaled by this arm's unknown factor s (log s normal, prior sd 0.3);
+  admits it) is lognormal around ``s * tau(L, eps)``, the nominal arm's time for a step
+  of that length and admission radius, scaled by this arm's unknown factor s (log s
+  normal, prior sd 0.3);
 * **the task**: each reach's success is Bernoulli(p_ij) (Beta prior at the table's rate,
   ``PRIOR_REACHES`` pseudo-reaches), its log time and log final error normal around the
   model's prediction with a per-model offset (normal prior);
@@ -83,6 +84,7 @@ class DecisionEvidence:
 class StepEvidence:
     robot_model: int  # j whose step vector the step used
     length_m: float  # ||dx|| [m]
+    radius_m: float  # the admission radius that ended it [m]
     execution_s: float  # reference start to the trigger that admitted it [s]
 
 
@@ -109,7 +111,8 @@ class ReachRecord:
     choices: list[tuple[int, int]] = field(default_factory=list)  # one per decision
     decisions: list[DecisionEvidence] = field(default_factory=list)
     asked_s: list[float] = field(default_factory=list)  # robot clock of each request
-    steps: list[tuple[int, float, float]] = field(default_factory=list)  # (j, ||dx||, start)
+    steps: list[tuple[int, float, float, float]] = field(default_factory=list)
+    """(j, ||dx|| [m], admission radius [m], reference start [s]) of each step."""
 
     def evidence(
         self,
@@ -120,10 +123,10 @@ class ReachRecord:
         model: tuple[int, int],
     ) -> ReachEvidence:
         """The reach's evidence, ``model`` being the one in force when no decision was."""
-        starts = [start for _, _, start in self.steps]
+        starts = [start for _, _, _, start in self.steps]
         steps = tuple(
-            StepEvidence(j, length, t)
-            for (j, length, _), t in zip(
+            StepEvidence(j, length, radius, t)
+            for (j, length, radius, _), t in zip(
                 self.steps, execution_times(starts, self.asked_s), strict=True
             )
             if t is not None
@@ -185,13 +188,15 @@ class ModelRow(BaseModel):
 
 class ModelTable(BaseModel):
     """Per M_ij, what a reach gave the nominal simulated person on the nominal arm, and
-    the nominal arm's step time tau(L) = a + b L with its log-sd."""
+    the nominal arm's step time, log tau = c + b_L log L + b_eps log eps (a step of length
+    L to within an admission radius eps), with its log-sd."""
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
     seeds: str
-    step_time_intercept_s: float = Field(ge=0)
-    step_time_per_m_s: float = Field(ge=0)
+    step_time_log_intercept: float
+    step_time_log_length: float
+    step_time_log_radius: float
     step_time_log_sd: float = Field(gt=0)
     rows: tuple[ModelRow, ...]
 
@@ -201,8 +206,12 @@ class ModelTable(BaseModel):
                 return row
         raise ConfigurationError(f"the model table has no row for M_{model[0]},{model[1]}")
 
-    def step_time_s(self, length_m: float) -> float:
-        return self.step_time_intercept_s + self.step_time_per_m_s * length_m
+    def step_time_s(self, length_m: float, radius_m: float) -> float:
+        """The nominal arm's execution time of a step [s]."""
+        log_tau = (self.step_time_log_intercept
+                   + self.step_time_log_length * math.log(max(length_m, 1e-4))
+                   + self.step_time_log_radius * math.log(max(radius_m, 1e-4)))  # fmt: skip
+        return math.exp(log_tau)
 
     @classmethod
     def load(cls, path: Path = TABLE) -> ModelTable:
@@ -351,7 +360,7 @@ class ModelPosterior:
             self.log_decision[d.human_model].add(math.log(d.decision_s), confidence)
 
     def step(self, s: StepEvidence) -> None:
-        predicted = self.table.step_time_s(s.length_m)
+        predicted = self.table.step_time_s(s.length_m, s.radius_m)
         if s.execution_s > 0 and predicted > 0:
             self.arm.add(math.log(s.execution_s / predicted))
 

@@ -55,8 +55,9 @@ def table(success: dict[tuple[int, int], float] | None = None) -> ModelTable:
     )
     return ModelTable(
         seeds="0:10",
-        step_time_intercept_s=0.0,
-        step_time_per_m_s=10.0,
+        step_time_log_intercept=math.log(10.0),  # tau = 10 s/m x L
+        step_time_log_length=1.0,
+        step_time_log_radius=0.0,
         step_time_log_sd=0.2,
         rows=rows,
     )
@@ -99,7 +100,7 @@ def test_decision_times_give_the_conjugate_normal_estimate_of_the_persons_speed(
 def test_step_times_estimate_the_arms_factor_against_the_nominal_arm() -> None:
     posterior = ModelPosterior(table(), HUMAN, MODEL_SET)
     for _ in range(40):  # predicted 10 s/m x 0.02 m = 0.2 s; observed 0.3 s
-        posterior.step(StepEvidence(1, 0.02, 0.3))
+        posterior.step(StepEvidence(1, 0.02, 0.01, 0.3))
     tau, sigma = 0.3, 0.2  # ARM_SCALE_PRIOR_SD, the table's step_time_log_sd
     shift = (40 / sigma**2) * math.log(1.5) / (1 / tau**2 + 40 / sigma**2)
     assert posterior.arm_scale == pytest.approx(math.exp(shift))
@@ -222,4 +223,14 @@ def test_a_reach_in_process_gives_the_evidence_of_its_decisions_and_steps() -> N
 def test_the_packaged_table_has_every_model() -> None:
     shipped = ModelTable.load()
     assert {(r.human_model, r.robot_model) for r in shipped.rows} == set(MODELS)
-    assert shipped.step_time_s(0.01) > 0
+    assert 0 < shipped.step_time_s(0.02, 0.004) < 1
+
+
+def test_evaluate_in_the_adaptive_mode_is_the_policy_itself_until_a_switch() -> None:
+    from dammrl.rl.train import evaluate
+
+    seeds = range(7_000_000, 7_000_003)
+    plain = evaluate(PolicySettings().checkpoint, seeds)
+    adaptive = evaluate(PolicySettings().checkpoint, seeds, adaptive=True)
+    assert adaptive.pop("adaptive") is True and adaptive.pop("switches") == []
+    assert adaptive == plain

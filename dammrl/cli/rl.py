@@ -58,6 +58,9 @@ def register(commands: Commands) -> None:
                           help=SEEDS_HELP)  # fmt: skip
     evaluate.add_argument("--randomize", action="store_true", help="on randomised arms")
     evaluate.add_argument("--json", action="store_true", help="one JSON object")
+    evaluate.add_argument("--adaptive", action="store_true",
+                          help="inside the adaptive mode: the seeds in order as one session, "
+                          "re-selecting when DAMMRL_POLICY_TARGETS__* are missed")  # fmt: skip
     evaluate.set_defaults(handler=_evaluate)
 
 
@@ -169,7 +172,8 @@ def _evaluate(args: argparse.Namespace) -> int:
 
     update, close = progress_bar(len(args.seeds), "greedy reaches")
     try:
-        result = evaluate(args.checkpoint, args.seeds, args.randomize, lambda: update(1))
+        result = evaluate(args.checkpoint, args.seeds, args.randomize, lambda: update(1),
+                          args.adaptive)  # fmt: skip
     finally:
         close()
     if args.json:
@@ -197,4 +201,7 @@ def evaluation_table(result: dict[str, Any]) -> str:
              f"{'randomised' if result['randomize'] else 'nominal'} arm)"]  # fmt: skip
     for key, (label, scale, spec, unit) in EVALUATION_ROWS.items():
         lines.append(f"{label:32s} {result[key] * scale:{spec}} {unit}")
+    if result.get("adaptive"):
+        lines.append(f"{'switches (adaptive mode)':32s} {len(result['switches'])}")
+        lines += [f"  {switch}" for switch in result["switches"]]
     return "\n".join(lines)

@@ -22,7 +22,7 @@ from torch.utils.tensorboard import SummaryWriter
 from dammrl.rl.config import RewardWeights, TrainSettings
 from dammrl.rl.dqn import DualAgentDQN, ReplayBuffer, UpdateStats
 from dammrl.rl.env import ACTIONS, OBSERVATION_SIZE, ReachEnv
-from dammrl.runner import ReachRunner, ReachSettings
+from dammrl.runner import ReachResult, ReachRunner, ReachSettings
 from dammrl_core.errors import DammrlError
 from dammrl_core.policy.learned import (
     CHECKPOINT,
@@ -224,10 +224,57 @@ def greedy_rollouts(run: Path, seeds: range, randomize: bool = False,
     return rollouts
 
 
-def evaluate(run: Path, seeds: range, randomize: bool = False,
-             done: Callable[[], None] | None = None) -> dict[str, Any]:  # fmt: skip
-    """Summary of :func:`greedy_rollouts` (the ``dammrl evaluate`` JSON)."""
-    rollouts = greedy_rollouts(run, seeds, randomize, done)
+def adaptive_rollouts(run: Path, seeds: range, randomize: bool = False,
+                      done: Callable[[], None] | None = None
+                      ) -> tuple[list[Rollout], list[str]]:  # fmt: skip
+    """The run's greedy policy inside the adaptive mode (``DAMMRL_POLICY_TARGETS__*``):
+    ``seeds`` in order as one session of one simulated person, the posterior over M_ij
+    carried from reach to reach; the rollouts and every switch."""
+    from dammrl.runner import evidence_of
+    from dammrl_core.coadaptation import ModelPosterior, ModelTable
+    from dammrl_core.policy.adaptive import AdaptivePolicy
+    from dammrl_core.policy.settings import PolicySettings
+
+    runner = ReachRunner(ReachSettings().randomized(randomize))
+    models = runner.settings.models
+    posterior = ModelPosterior(ModelTable.load(), runner.settings.human, models)
+    policy = AdaptivePolicy(LearnedPolicy(models, run), models, posterior,
+                            PolicySettings().targets)  # fmt: skip
+    rollouts = []
+    for seed in seeds:
+        result = runner.run(seed, policy=policy)
+        policy.observe(evidence_of(result, models))
+        rollouts.append(Rollout(result.metrics, _decisions(result)))
+        if done is not None:
+            done()
+    return rollouts, [s.line for s in policy.switches]
+
+
+def _decisions(result: ReachResult) -> list[tuple[float, int, int]]:
+    """(distance to the goal when asked [m], i, j) of each decision of a reach."""
+    traj = result.trajectory
+    out = []
+    for d, c in zip(result.decisions, result.choices, strict=True):
+        row = min(int(np.searchsorted(traj.t, d.intent.t_s - d.decision_s - 1e-9)), len(traj.t) - 1)
+        distance = float(np.linalg.norm(traj.x[row] - result.task.goal))
+        out.append((distance, c.human_model, c.robot_model))
+    return out
+
+
+def evaluate(
+    run: Path,
+    seeds: range,
+    randomize: bool = False,
+    done: Callable[[], None] | None = None,
+    adaptive: bool = False,
+) -> dict[str, Any]:
+    """Summary of :func:`greedy_rollouts` (the ``dammrl evaluate`` JSON); ``adaptive``: of
+    :func:`adaptive_rollouts`, with its switches."""
+    switches: list[str] = []
+    if adaptive:
+        rollouts, switches = adaptive_rollouts(run, seeds, randomize, done)
+    else:
+        rollouts = greedy_rollouts(run, seeds, randomize, done)
     metrics = [r.metrics for r in rollouts]
     choices = [d for r in rollouts for d in r.decisions]
     return {
@@ -239,6 +286,7 @@ def evaluate(run: Path, seeds: range, randomize: bool = False,
         "n_osc": float(np.mean([m.n_osc for m in metrics])),
         "share_e_small": float(np.mean([i == 2 for _, i, _ in choices])),
         "share_all_small_steps": float(np.mean([j == 1 for _, _, j in choices])),
+        **({"adaptive": True, "switches": switches} if adaptive else {}),
     }  # fmt: skip
 
 

@@ -131,18 +131,20 @@ def build_table(
     jobs = [(m, s) for m in MODELS for s in seeds]
     done = list(map_jobs(_table_job, jobs, workers, progress=progress))
     steps = [s for evidence, _ in done for s in evidence.steps]
-    lengths = np.array([s.length_m for s in steps])
-    times = np.array([s.execution_s for s in steps])
-    slope, intercept = np.polyfit(lengths, times, 1)
-    predicted = np.maximum(intercept + slope * lengths, 1e-3)
-    log_sd = float(np.std(np.log(np.maximum(times, 1e-3) / predicted)))
+    timed = [s for s in steps if s.execution_s > 0 and s.length_m > 0]
+    design = np.column_stack([np.ones(len(timed)), np.log([s.length_m for s in timed]),
+                              np.log([s.radius_m for s in timed])])  # fmt: skip
+    log_times = np.log([s.execution_s for s in timed])
+    coefficients, *_ = np.linalg.lstsq(design, log_times, rcond=None)
+    log_sd = float(np.std(log_times - design @ coefficients))
     rows = [
         _table_row(m, [d for (mm, _), d in zip(jobs, done, strict=True) if mm == m]) for m in MODELS
     ]
     return ModelTable(
         seeds=f"{seeds.start}:{seeds.stop}",
-        step_time_intercept_s=max(0.0, intercept),
-        step_time_per_m_s=max(0.0, slope),
+        step_time_log_intercept=float(coefficients[0]),
+        step_time_log_length=float(coefficients[1]),
+        step_time_log_radius=float(coefficients[2]),
         step_time_log_sd=max(log_sd, 0.05),
         rows=tuple(rows),
     )

@@ -29,6 +29,7 @@ def write_report(results: list[PersonResult], targets: Targets, out: Path) -> Pa
         "'- shipped': paired by seed (bootstrap over seeds).",
         "",
     ]
+    lines += [*summary_table(results), ""]
     for result in results:
         lines += _person(result)
     report = out / "report.md"
@@ -36,6 +37,25 @@ def write_report(results: list[PersonResult], targets: Targets, out: Path) -> Pa
     (out / "results.json").write_text(json.dumps([_json(r) for r in results], indent=1) + "\n")
     _figure(results, out / "coadaptation.png")
     return report
+
+
+def summary_table(results: list[PersonResult]) -> list[str]:
+    """One row per person: the shipped policy's level, the others' paired differences."""
+    lines = ["| person | oracle M_ij | shipped: success, time [s] | adaptive - shipped: "
+             "success [pp], time [s] | refined - shipped: success [pp], time [s] | switches |",
+             "|---|---|---|---|---|---|"]  # fmt: skip
+    for result in results:
+        got = {(arm, measure): e for arm, measure, e in figures(result)}
+        cells = []
+        for arm in ("adaptive", "refined"):
+            success = got[(arm, "success - shipped")].text(100, 0)
+            cells.append(f"{success}, {got[(arm, 'time [s] - shipped')].text(1, 2)}")
+        level, time = got[("shipped", "success")], got[("shipped", "time [s]")]
+        shipped = f"{level.text(100, 0)} %, {time.text(1, 2)}"
+        i, j = result.oracle
+        lines.append(f"| {result.person} | M_{i},{j} | {shipped} | {cells[0]} | {cells[1]} | "
+                     f"{len(result.session.switches)} |")  # fmt: skip
+    return lines
 
 
 def _person(result: PersonResult) -> list[str]:

@@ -128,7 +128,8 @@ class PolicyNode:
         assert self.adaptive is not None
         if isinstance(message, StepEvent) and message.episode == self.episode:
             j = robot_model_of(self.models, np.array(message.steps_m))
-            self.record.steps.append((j, float(np.linalg.norm(message.dx_m)), message.start_s))
+            length = float(np.linalg.norm(message.dx_m))
+            self.record.steps.append((j, length, message.radius_m, message.start_s))
         elif isinstance(message, ComfortRating):
             self.adaptive.rating(message.rating)
         elif isinstance(message, EpisodeResult) and message.episode == self.episode:
