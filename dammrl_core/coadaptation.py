@@ -57,6 +57,13 @@ from dammrl_core.models import HUMAN_MODELS, ROBOT_MODELS, ModelSet
 
 MODELS: tuple[tuple[int, int], ...] = tuple((i, j) for i in HUMAN_MODELS for j in ROBOT_MODELS)
 """Every M_ij, in the posterior's order (i major)."""
+BASE = (0, 0)
+"""The base policy itself (the learned DQN, choosing M_ij per state): an option of the
+re-selection beside the 16 models, with beliefs of its own. Its reaches are credited to
+it, not to the M_ij it chose most: a policy that changes j along a reach is faster than
+any fixed M_ij, and crediting its reaches to one would make that model look better than
+it is."""
+OPTIONS: tuple[tuple[int, int], ...] = (BASE, *MODELS)
 PRIOR_REACHES = 4.0
 """Pseudo-reaches behind a model's table success rate: four real reaches weigh as much."""
 ARM_SCALE_PRIOR_SD = 0.3
@@ -172,9 +179,10 @@ def execution_times(step_starts_s: list[float], asked_s: list[float]) -> list[fl
 class ModelRow(BaseModel):
     model_config = ConfigDict(frozen=True, extra="forbid")
 
-    human_model: int = Field(ge=1, le=2)
-    robot_model: int = Field(ge=1, le=8)
+    human_model: int = Field(ge=0, le=2)  # (0, 0): the base policy
+    robot_model: int = Field(ge=0, le=8)
     reaches: int = Field(ge=1)
+    big_share: float = Field(ge=0, le=1)  # of decisions under E_big (i = 1)
     success_rate: float = Field(ge=0, le=1)
     log_time_mean: float  # mean log t_total [log s]
     log_time_sd: float = Field(gt=0)
@@ -198,7 +206,7 @@ class ModelTable(BaseModel):
     step_time_log_length: float
     step_time_log_radius: float
     step_time_log_sd: float = Field(gt=0)
-    rows: tuple[ModelRow, ...]
+    rows: tuple[ModelRow, ...]  # one per M_ij, and the base policy's (0, 0)
 
     def row(self, model: tuple[int, int]) -> ModelRow:
         for row in self.rows:
@@ -219,8 +227,10 @@ class ModelTable(BaseModel):
             table = cls.model_validate(json.loads(path.read_text()))
         except (OSError, ValueError) as exc:
             raise ConfigurationError(f"model table {path}: {exc}") from exc
-        if {(r.human_model, r.robot_model) for r in table.rows} != set(MODELS):
-            raise ConfigurationError(f"model table {path} must have one row per M_ij")
+        if sorted((r.human_model, r.robot_model) for r in table.rows) != sorted(OPTIONS):
+            raise ConfigurationError(
+                f"model table {path} must have one row per M_ij and the base policy's"
+            )
         return table
 
 
@@ -332,17 +342,18 @@ class ModelPosterior:
             for i in HUMAN_MODELS
         }
         self.arm = NormalMean(0.0, ARM_SCALE_PRIOR_SD, table.step_time_log_sd)
-        self.beliefs = {m: ModelBelief() for m in MODELS}
+        self.beliefs = {m: ModelBelief() for m in OPTIONS}
         self.reaches = 0
 
     # ---- evidence -------------------------------------------------------------------
-    def observe(self, reach: ReachEvidence) -> None:
-        """Fold in one finished reach."""
+    def observe(self, reach: ReachEvidence, option: tuple[int, int] | None = None) -> None:
+        """Fold in one finished reach, run under ``option`` (default: its model in force;
+        ``BASE``: the base policy)."""
         for d in reach.decisions:
             self.decision(d)
         for s in reach.steps:
             self.step(s)
-        belief = self.beliefs[reach.model]
+        belief = self.beliefs[reach.model if option is None else option]
         if reach.success:
             belief.successes += 1
         else:
@@ -385,15 +396,20 @@ class ModelPosterior:
 
     def predicted_log_time(self, model: tuple[int, int]) -> float:
         """The model's table log time, its decision share scaled by the person's speed,
-        its execution share by the arm's, and its step count by the person's accuracy."""
-        i, _ = model
+        its execution share by the arm's, and its step count by the person's accuracy
+        (each radius weighted by its share of the model's decisions)."""
         row = self.table.row(model)
-        nominal = 2 * self.human.accuracy(i) - 1
-        person = max(2 * self.person_accuracy(i) - 1, MIN_NET_PROGRESS)
-        steps = nominal / person
+        weights = {1: row.big_share, 2: 1.0 - row.big_share}
+        steps = sum(
+            w
+            * (2 * self.human.accuracy(i) - 1)
+            / max(2 * self.person_accuracy(i) - 1, MIN_NET_PROGRESS)
+            for i, w in weights.items()
+        )
+        deciding = sum(w * self.decision_ratio(i) for i, w in weights.items())
         other = max(0.0, 1.0 - row.decision_share - row.execution_share)
         factor = other + steps * (
-            row.decision_share * self.decision_ratio(i) + row.execution_share * self.arm_scale
+            row.decision_share * deciding + row.execution_share * self.arm_scale
         )
         return row.log_time_mean + math.log(max(factor, 1e-3))
 
@@ -429,7 +445,7 @@ class ModelPosterior:
         return errors.posterior()
 
     def comfort_belief(self, model: tuple[int, int]) -> tuple[float, float] | None:
-        """(mean, sd) of the model's mean rating; None before any rating of any model."""
+        """(mean, sd) of the option's mean rating; None before any rating of any option."""
         if not any(b.ratings for b in self.beliefs.values()):
             return None
         ratings = self.beliefs[model].ratings
@@ -446,10 +462,10 @@ class ModelPosterior:
         )
         return sparcs.posterior()
 
-    def meets(self, targets: Targets) -> np.ndarray:
-        """Each model's probability of meeting every target (per M_ij, MODELS order),
-        the terms taken as independent."""
-        return np.array([math.prod(self._meets_each(m, targets)) for m in MODELS])
+    def meets(self, targets: Targets, options: tuple[tuple[int, int], ...] = MODELS) -> np.ndarray:
+        """Each option's probability of meeting every target (default: per M_ij, MODELS
+        order), the terms taken as independent."""
+        return np.array([math.prod(self._meets_each(m, targets)) for m in options])
 
     def _meets_each(self, model: tuple[int, int], targets: Targets) -> list[float]:
         p = []
@@ -508,5 +524,6 @@ class ModelPosterior:
             "decision_ratio": {i: round(self.decision_ratio(i), 4) for i in HUMAN_MODELS},
             "arm_scale": round(self.arm_scale, 4),
             "meets": dict(zip(MODELS, np.round(self.meets(targets), 4).tolist(), strict=True)),
+            "meets_base": round(float(self.meets(targets, (BASE,))[0]), 4),
             "posterior": dict(zip(MODELS, self.probabilities(targets).tolist(), strict=True)),
         }

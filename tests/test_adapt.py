@@ -36,7 +36,8 @@ def recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
     path = tmp_path_factory.mktemp("rec") / "P1.mcap"
     command = [sys.executable, "-m", "dammrl", "up", "--episodes", "3", "--seed", str(SEED),
                "--lockstep", "--record", str(path), "--bus-port", str(free_port())]  # fmt: skip
-    subprocess.run(command, check=True, timeout=240, capture_output=True)
+    done = subprocess.run(command, timeout=240, capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-2000:]
     return path
 
 

@@ -9,7 +9,9 @@ import pytest
 
 from dammrl.runner import ReachRunner, evidence_of
 from dammrl_core.coadaptation import (
+    BASE,
     MODELS,
+    OPTIONS,
     PRIOR_REACHES,
     DecisionEvidence,
     ModelPosterior,
@@ -41,6 +43,7 @@ def table(success: dict[tuple[int, int], float] | None = None) -> ModelTable:
             human_model=i,
             robot_model=j,
             reaches=10,
+            big_share=1.0 if i == 1 else 0.0,
             success_rate=(success or {}).get((i, j), 0.9),
             log_time_mean=math.log(10.0),
             log_time_sd=0.2,
@@ -51,7 +54,7 @@ def table(success: dict[tuple[int, int], float] | None = None) -> ModelTable:
             decision_share=0.5,
             execution_share=0.25,
         )
-        for i, j in MODELS
+        for i, j in OPTIONS
     )
     return ModelTable(
         seeds="0:10",
@@ -170,12 +173,23 @@ def test_missed_targets_switch_to_the_alternative_most_likely_to_meet_them() -> 
     assert [policy.observe(reach((1, 1), True)) for _ in range(3)] == [None] * 3  # met
     switch = policy.observe(reach((1, 1), False, 30.0))  # the last 3: one failure
     assert switch is not None and policy.switches == [switch]
-    assert (switch.from_model, switch.to_model, switch.reach) == ((1, 1), (2, 3), 4)
+    assert (switch.from_model, switch.to_model, switch.reach) == (BASE, (2, 3), 4)
     assert switch.reasons == ("success 67% < 80%",)
-    assert "M_1,1 -> M_2,3" in switch.line
+    assert "the base policy -> M_2,3" in switch.line
+    assert posterior.beliefs[BASE].failures == 1 and posterior.beliefs[(1, 1)].failures == 0
     choice = policy.decide(np.zeros(3), np.ones(3))
     assert (choice.human_model, choice.robot_model) == (2, 3)
     assert policy.recent == []  # judged afresh after a switch
+
+
+def test_a_selected_model_that_fails_hands_back_to_the_base_policy() -> None:
+    posterior = ModelPosterior(table({BASE: 0.95, (2, 3): 0.9}), HUMAN, MODEL_SET)
+    policy = AdaptivePolicy(FixedPolicy(MODEL_SET, 1, 1), MODEL_SET, posterior, Targets(window=2))
+    policy.selected, policy.allowed = (2, 3), frozenset({3})
+    policy.observe(reach((2, 3), False))
+    switch = policy.observe(reach((2, 3), False))
+    assert switch is not None and (switch.from_model, switch.to_model) == ((2, 3), BASE)
+    assert policy.selected is None and "-> the base policy (P(meets" in switch.line
 
 
 def test_targets_no_model_can_meet_leave_the_policy_as_it_is() -> None:
@@ -222,7 +236,7 @@ def test_a_reach_in_process_gives_the_evidence_of_its_decisions_and_steps() -> N
 
 def test_the_packaged_table_has_every_model() -> None:
     shipped = ModelTable.load()
-    assert {(r.human_model, r.robot_model) for r in shipped.rows} == set(MODELS)
+    assert {(r.human_model, r.robot_model) for r in shipped.rows} == set(OPTIONS)
     assert 0 < shipped.step_time_s(0.02, 0.004) < 1
 
 

@@ -74,16 +74,17 @@ def register(commands: Commands) -> None:
 
 def _table(args: argparse.Namespace) -> int:
     from dammrl.study.coadaptation import TABLE_SEEDS, build_table
-    from dammrl_core.coadaptation import MODELS, TABLE
+    from dammrl_core.coadaptation import OPTIONS, TABLE
 
-    update, close = progress_bar(len(MODELS) * len(TABLE_SEEDS), "model table")
+    update, close = progress_bar(len(OPTIONS) * len(TABLE_SEEDS), "model table")
     try:
         table = build_table(workers=args.jobs, progress=update)
     finally:
         close()
     out = args.out or TABLE
     out.write_text(table.model_dump_json(indent=1) + "\n")
-    print(f"model table of {len(MODELS)} models x {len(TABLE_SEEDS)} seeds: {out}")
+    models, seeds = len(OPTIONS) - 1, len(TABLE_SEEDS)
+    print(f"model table, {models} models and the base policy x {seeds} seeds: {out}")
     return 0
 
 

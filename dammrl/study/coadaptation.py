@@ -37,7 +37,9 @@ from dammrl.runner import ReachResult, ReachRunner, ReachSettings, evidence_of
 from dammrl.study.run import map_jobs
 from dammrl.study.stats import Estimate, bootstrap_mean, paired_difference, wilson
 from dammrl_core.coadaptation import (
+    BASE,
     MODELS,
+    OPTIONS,
     ModelPosterior,
     ModelRow,
     ModelTable,
@@ -112,9 +114,12 @@ def _fixed_job(job: FixedJob) -> Row:
 
 
 def _table_job(job: tuple[tuple[int, int], int]) -> tuple[ReachEvidence, float]:
-    model, seed = job
+    option, seed = job
     runner = _runner("nominal")
-    result = runner.run(seed, model)
+    if option == BASE:
+        result = runner.run(seed, policy=_policy(runner, None))
+    else:
+        result = runner.run(seed, option)
     return evidence_of(result, runner.settings.models), _decision_time(result)
 
 
@@ -127,8 +132,9 @@ def _decision_time(result: ReachResult) -> float:
 def build_table(
     seeds: range = TABLE_SEEDS, workers: int = 1, progress: Callable[[int], None] | None = None
 ) -> ModelTable:
-    """Every M_ij on ``seeds`` with the nominal person on the nominal arm."""
-    jobs = [(m, s) for m in MODELS for s in seeds]
+    """Every M_ij, and the shipped policy (the adaptive policy's base), on ``seeds`` with
+    the nominal person on the nominal arm."""
+    jobs = [(m, s) for m in OPTIONS for s in seeds]
     done = list(map_jobs(_table_job, jobs, workers, progress=progress))
     steps = [s for evidence, _ in done for s in evidence.steps]
     timed = [s for s in steps if s.execution_s > 0 and s.length_m > 0]
@@ -138,7 +144,8 @@ def build_table(
     coefficients, *_ = np.linalg.lstsq(design, log_times, rcond=None)
     log_sd = float(np.std(log_times - design @ coefficients))
     rows = [
-        _table_row(m, [d for (mm, _), d in zip(jobs, done, strict=True) if mm == m]) for m in MODELS
+        _table_row(m, [d for (mm, _), d in zip(jobs, done, strict=True) if mm == m])
+        for m in OPTIONS
     ]
     return ModelTable(
         seeds=f"{seeds.start}:{seeds.stop}",
@@ -158,10 +165,12 @@ def _table_row(model: tuple[int, int], done: list[tuple[ReachEvidence, float]]) 
     total = sum(r.t_total_s for r in reaches)
     executing = sum(s.execution_s for r in reaches for s in r.steps)
     deciding = sum(d for _, d in done)
+    decisions = [d for r in reaches for d in r.decisions]
     return ModelRow(
         human_model=model[0],
         robot_model=model[1],
         reaches=len(reaches),
+        big_share=float(np.mean([d.human_model == 1 for d in decisions])) if decisions else 0.0,
         success_rate=float(np.mean([r.success for r in reaches])),
         log_time_mean=float(log_t.mean()),
         log_time_sd=max(float(log_t.std()), 0.05),

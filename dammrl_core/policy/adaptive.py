@@ -3,11 +3,13 @@
 Until a target is missed the base policy (the shipped DQN) chooses, with the person's
 estimated radius when one is given (S2: the posterior over the human sub-model narrows i).
 After every reach the posterior over M_ij (:mod:`dammrl_core.coadaptation`) takes in what
-the reach said; when the last ``targets.window`` reaches since the last switch miss a
-target, the policy switches to the alternative model most likely to meet every target
-(S3), and from then on chooses only among the matched models: the selected radius i and
-the step vectors j whose chance of meeting the targets is within ``KEEP_WITHIN`` of the
-best one's (a learned base still picks among them per state; another base takes the best).
+the reach said, credited to what was in force (the base policy, or the selected model);
+when the last ``targets.window`` reaches since the last switch miss a target, the policy
+switches to the option most likely to meet every target (S3): a model M_ij, or the base
+policy again. Under a model it chooses only among the matched models: the selected
+radius i and the step vectors j whose chance of meeting the targets is within
+``KEEP_WITHIN`` of the best one's (a learned base still picks among them per state;
+another base takes the best).
 An alternative must be at least ``SWITCH_GAIN`` likelier to meet the targets than the
 model in force: targets no model can meet leave the policy as it is instead of churning
 through models no better.
@@ -21,7 +23,13 @@ from typing import Protocol
 
 import numpy as np
 
-from dammrl_core.coadaptation import MODELS, ModelPosterior, ReachEvidence, Targets
+from dammrl_core.coadaptation import (
+    BASE,
+    OPTIONS,
+    ModelPosterior,
+    ReachEvidence,
+    Targets,
+)
 from dammrl_core.models import ModelSet
 from dammrl_core.policy import ModelChoice, Policy, model_choice
 
@@ -54,12 +62,15 @@ class Switch:
 
     @property
     def line(self) -> str:
-        (a, b), (c, d) = self.from_model, self.to_model
+        allowed = f"j in {list(self.allowed)}; " if self.to_model != BASE else ""
         return (
-            f"after reach {self.reach}: M_{a},{b} -> M_{c},{d} "
-            f"(j in {list(self.allowed)}; P(meets targets) {self.p_meets:.2f}): "
-            + "; ".join(self.reasons)
+            f"after reach {self.reach}: {_name(self.from_model)} -> {_name(self.to_model)} "
+            f"({allowed}P(meets targets) {self.p_meets:.2f}): " + "; ".join(self.reasons)
         )
+
+
+def _name(option: tuple[int, int]) -> str:
+    return "the base policy" if option == BASE else f"M_{option[0]},{option[1]}"
 
 
 class AdaptivePolicy:
@@ -95,37 +106,40 @@ class AdaptivePolicy:
     def observe(self, reach: ReachEvidence) -> Switch | None:
         """Fold in a finished reach; switch when the targets are missed and an alternative
         is more likely to meet them (the switch, else None)."""
-        self.posterior.observe(reach)
+        current = self.selected or BASE
+        self.posterior.observe(reach, current)
         self.recent.append(reach)
         if len(self.recent) < self.targets.window:
             return None
         reasons = self.targets.unmet(self.recent[-self.targets.window :], self.ratings)
-        return self._switch(reach.model, reasons) if reasons else None
+        return self._switch(current, reasons) if reasons else None
 
     def rating(self, rating: float) -> None:
         """The participant's comfort rating (1-5) of the reaches since the last one."""
         if self.recent:
-            self.posterior.rating(self.recent[-1].model, rating)
+            self.posterior.rating(self.selected or BASE, rating)
         self.ratings.append(float(rating))
 
     def _switch(self, current: tuple[int, int], reasons: list[str]) -> Switch | None:
-        meets = self.posterior.meets(self.targets)
-        best = self.posterior.probabilities(self.targets)
-        ranked = sorted(range(len(MODELS)), key=lambda k: (-meets[k], -best[k], k))
-        chosen = next(k for k in ranked if MODELS[k] != current)
-        if meets[chosen] < meets[MODELS.index(current)] + SWITCH_GAIN:
+        meets = self.posterior.meets(self.targets, OPTIONS)
+        ranked = sorted(range(len(OPTIONS)), key=lambda k: (-meets[k], k))
+        chosen = next(k for k in ranked if OPTIONS[k] != current)
+        if meets[chosen] < meets[OPTIONS.index(current)] + SWITCH_GAIN:
             return None  # no alternative is likelier to meet the targets
-        i, j = MODELS[chosen]
-        allowed = {
-            jj
-            for (ii, jj), p in zip(MODELS, meets, strict=True)
-            if ii == i and p >= meets[chosen] - KEEP_WITHIN
-        }
-        self.selected, self.allowed = (i, j), frozenset(allowed | {j})
+        if OPTIONS[chosen] == BASE:
+            self.selected, self.allowed = None, frozenset()
+        else:
+            i, j = OPTIONS[chosen]
+            allowed = {
+                jj
+                for (ii, jj), p in zip(OPTIONS, meets, strict=True)
+                if ii == i and p >= meets[chosen] - KEEP_WITHIN
+            }
+            self.selected, self.allowed = (i, j), frozenset(allowed | {j})
         switch = Switch(
             self.posterior.reaches,
             current,
-            (i, j),
+            OPTIONS[chosen],
             tuple(sorted(self.allowed)),
             tuple(reasons),
             float(meets[chosen]),
