@@ -17,8 +17,8 @@ recordings are few reaches of one policy's choices; plain off-policy Q-learning 
 narrow data overrates the actions it never saw (bootstrapping error), and the refined
 policy would wander to them on the strength of nothing. The conservative term keeps each
 Q-network's unseen actions below the ones in the data unless the rewards say otherwise.
-Everything is seeded and runs in one thread: the same recordings and settings give the
-same checkpoint, byte for byte.
+Everything is seeded: on a CPU the same recordings and settings give the same checkpoint,
+tensor for tensor.
 """
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ import math
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 import torch
@@ -39,7 +39,7 @@ from dammrl.recording import read_recording
 from dammrl.rl.config import RewardWeights, TrainSettings
 from dammrl.rl.dqn import DualAgentDQN, ReplayBuffer
 from dammrl.rl.env import ReachEnv, RewardTerms, accuracy_term
-from dammrl.rl.train import EpisodeLog, save
+from dammrl.rl.train import EpisodeLog, pick_device, save
 from dammrl.runner import ReachRunner, ReachSettings
 from dammrl_core.errors import ConfigurationError
 from dammrl_core.human import HumanModel, direction_to_goal
@@ -77,6 +77,8 @@ class RefineSettings(BaseModel):
     """Exploration of the simulated reaches."""
     learning_rate: float = Field(1e-4, gt=0, le=1)
     seed: int = Field(0, ge=0)
+    device: Literal["auto", "cpu", "cuda"] = "auto"
+    """auto: a GPU when one is present (then without the byte-identical rerun)."""
 
 
 @dataclass(frozen=True)
@@ -283,7 +285,7 @@ def refine_transitions(recorded: list[Transition], fit: PersonFit, start: Path, 
     train = TrainSettings(**checkpoint["settings"]).model_copy(
         update={"learning_rate": settings.learning_rate}
     )
-    agent = DualAgentDQN(OBSERVATION_SIZE, ACTIONS, train, torch.device("cpu"))
+    agent = DualAgentDQN(OBSERVATION_SIZE, ACTIONS, train, pick_device(settings.device))
     agent.online.human.load_state_dict(checkpoint["agent"]["q_human"])
     agent.online.robot.load_state_dict(checkpoint["agent"]["q_robot"])
     agent.sync_targets()
