@@ -65,7 +65,7 @@ the model table's."""
 class RefineSettings(BaseModel):
     """How hard to refine (defaults: about two minutes on two cores)."""
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
 
     sim_reaches: int = Field(100, ge=0, le=100_000)
     """Simulated reaches with the fitted person."""

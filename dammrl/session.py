@@ -512,6 +512,8 @@ class StackRun:
         self.session.events.add(runner.event("run", block=group[0].block,
                                              recording=self.part.name,
                                              trials=[t.number for t in group]))  # fmt: skip
+        if options.checkpoint is not None:  # what chose the models: kept with the session
+            self.session.events.add(runner.event("policy", refined=str(options.checkpoint)))
         self.stack = Stack(options, out=lambda _: None, info=runner.say, on_result=self.keep,
                            on_up=self.attach)  # fmt: skip
         try:

@@ -177,7 +177,7 @@ def execution_times(step_starts_s: list[float], asked_s: list[float]) -> list[fl
 
 # ---- the model table: what each M_ij gave the nominal person ----------------------------
 class ModelRow(BaseModel):
-    model_config = ConfigDict(frozen=True, extra="forbid")
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
 
     human_model: int = Field(ge=0, le=2)  # (0, 0): the base policy
     robot_model: int = Field(ge=0, le=8)
@@ -199,7 +199,7 @@ class ModelTable(BaseModel):
     the nominal arm's step time, log tau = c + b_L log L + b_eps log eps (a step of length
     L to within an admission radius eps), with its log-sd."""
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
 
     seeds: str
     step_time_log_intercept: float
@@ -239,7 +239,7 @@ class Targets(BaseModel):
     """What the protocol asks of the last ``window`` reaches (S3's "task targets");
     a target left None is not asked."""
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
 
     window: int = Field(5, ge=1, le=100)
     """Reaches the targets are judged over (and the fewest between two switches)."""

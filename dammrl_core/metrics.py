@@ -12,6 +12,9 @@ from dataclasses import asdict, dataclass
 from typing import Any
 
 import numpy as np
+from scipy.signal import butter, find_peaks, sosfiltfilt  # at import: a service's first
+
+# episode must not pause its loop for SciPy's import (0.5 s: the arm held at the first end)
 
 
 @dataclass(frozen=True)
@@ -160,7 +163,6 @@ def kinematics(t: np.ndarray, x: np.ndarray, v: np.ndarray) -> Kinematics:
 
 def n_speed_peaks(speed: np.ndarray, prominence: float = PEAK_FRACTION) -> int:
     """Local maxima of a speed profile (N,) standing out by ``prominence`` of its peak."""
-    from scipy.signal import find_peaks
 
     top = float(np.max(speed)) if len(speed) else 0.0
     if top <= 0.0:
@@ -226,7 +228,6 @@ def motion_estimate(
     Butterworth low-pass at ``cutoff_hz``. White sensor noise keeps about
     sqrt(cutoff / Nyquist) of its amplitude (0.45 at 100 Hz); motion below the cutoff
     passes unchanged and undelayed. Paths too short to filter are returned as they are."""
-    from scipy.signal import sosfiltfilt
 
     if cutoff_hz >= rate_hz / 2 or len(x) < 16:
         return x
@@ -238,7 +239,6 @@ def motion_estimate(
 def _low_pass(cutoff_hz: float, rate_hz: float) -> np.ndarray:
     """The filter's sections, designed once per rate (the design costs as much as the
     filtering: the RL reward counts oscillations at every decision)."""
-    from scipy.signal import butter
 
     return np.asarray(butter(4, cutoff_hz, fs=rate_hz, output="sos"))
 

@@ -222,9 +222,12 @@ class SimNode:
             stale = time.monotonic() - self.command_wall_s > self.settings.command_stale_s
         if self.holding or not stale:
             return
-        who = "alive but silent" if "controller" in self.bus.alive_peers() else "gone"
-        log.warning("no valid command from the controller (%s) for %.2f s: holding position",
-                    who, self.settings.command_stale_s)  # fmt: skip
+        if self.settling:  # the episode ended and the next one waits for the arm to rest
+            log.info("between episodes: holding position until the arm rests")
+        else:
+            who = "alive but silent" if "controller" in self.bus.alive_peers() else "gone"
+            log.warning("no valid command from the controller (%s) for %.2f s: holding "
+                        "position", who, self.settings.command_stale_s)  # fmt: skip
         self._hold(self.state.q)
 
     def _hold(self, q: np.ndarray) -> None:
@@ -260,8 +263,12 @@ class SimNode:
         )
         speed = float(np.max(np.abs(self.state.dq)))
         if reason is None and speed > self.settings.rest_speed_rad_s:
-            reason = f"the arm is moving ({speed:.2f} rad/s): a reset waits until it rests"
+            # the last reach just ended: expected, not bad input (the controller announces
+            # the goal again until the arm rests and the reset takes it)
+            if not self.settling:
+                log.info("episode %d waits until the arm rests (%.2f rad/s)", goal.episode, speed)
             self.settling = True  # lockstep: step on without waiting, so it comes to rest
+            return
         if reason is not None:
             self.bus.reject(self.bus.key(TaskGoal), reason)
             return
