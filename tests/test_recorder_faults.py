@@ -39,6 +39,7 @@ from dammrl.replay import ReplayOptions, selected
 from schemas import Header as BusHeader
 from schemas import Health, encode, key
 from schemas import Message as BusMessage
+from schemas.keys import LIMITS
 from services.recorder.core import McapRecorder
 from tests.busutil import Observer, endpoint, free_port, wait_for
 from tests.test_schemas import EXAMPLES
@@ -330,7 +331,9 @@ def test_a_full_disk_degrades_the_recorder_which_resumes_when_space_comes_back(
     recorder = _recorder(port, small_disk, log, **fast)
     try:
         wait_for(lambda: bool(_recorder_health(observer)), 30, "the recorder")
-        noise = (observer.session, 200.0, stop, lambda seq: os.urandom(4000))  # incompressible
+        # incompressible, within the key's size limit (a larger payload is not recorded)
+        size = LIMITS["robot/state"].max_bytes // 2
+        noise = (observer.session, 800_000 / size, stop, lambda seq: os.urandom(size))
         threading.Thread(target=_publish, args=noise, daemon=True).start()  # full in ~0.2 s
         wait_for(lambda: _recorder_health(observer)[-1].state == "degraded", 15, "degraded")
         time.sleep(1.5)  # several retries on the full disk

@@ -62,6 +62,12 @@ def register(commands: Commands) -> None:
         metavar="PAGE",
         help="also regenerate this page's results section (docs/results.md)",
     )
+    study.add_argument(
+        "--adaptive",
+        action="store_true",
+        help="also configuration 4 inside the adaptive mode: the seeds as one "
+        "session, re-selecting when DAMMRL_POLICY_TARGETS__* are missed",
+    )
     study.set_defaults(handler=_study)
 
 
@@ -103,6 +109,7 @@ def _study(args: argparse.Namespace) -> int:
         workers=args.jobs,
         ray=args.ray,
         recording=args.recording,
+        adaptive=args.adaptive,
     )
     closers = []
 

@@ -18,7 +18,7 @@ def write_report(results: list[PersonResult], targets: Targets, out: Path) -> Pa
     """report.md, results.json and coadaptation.png in ``out``; the report's path."""
     out.mkdir(parents=True, exist_ok=True)
     lines = [
-        "# Co-adaptation: oracle, shipped and adaptive policy per kind of person",
+        "# Co-adaptation: oracle, shipped, adaptive and refined policy per kind of person",
         "",
         f"Targets over the last {targets.window} reaches: "
         + ", ".join(

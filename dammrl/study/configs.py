@@ -43,7 +43,7 @@ class PolicySpec:
     """Who chooses M_ij: a fixed model, trained checkpoints (several runs aggregate:
     reach k of a run set uses run k mod n), or a uniformly random choice."""
 
-    kind: Literal["fixed", "learned", "random"]
+    kind: Literal["fixed", "learned", "random", "adaptive"]
     model: tuple[int, int] = PAPER_MODEL
     checkpoints: tuple[Path, ...] = ()
 
@@ -52,6 +52,8 @@ class PolicySpec:
             return f"M_{self.model[0]},{self.model[1]}"
         if self.kind == "random":
             return "uniform random (i, j)"
+        if self.kind == "adaptive":
+            return "adaptive around " + ", ".join(_short(p) for p in self.checkpoints[:1])
         return ", ".join(_short(p) for p in self.checkpoints)
 
 
@@ -118,6 +120,17 @@ def variant_configurations() -> list[Configuration]:
         Configuration("1c-fixed-fresh", "1c fixed-frequency, fair timing + fresh decision/step",
                       "variant", "fixed", fixed, FAIR_ALL),
     ]  # fmt: skip
+
+
+def adaptive_configuration(reward2: tuple[Path, ...] = ()) -> Configuration:
+    """Configuration 4 inside the adaptive mode (``dammrl study --adaptive``): the seeds as
+    one session per randomisation setting, in order, the posterior over M_ij carried
+    from reach to reach and the targets of ``DAMMRL_POLICY_TARGETS__*``."""
+    runs = tuple(c for p in reward2 for c in checkpoint_files(p))
+    r2 = runs or (checkpoint_file(SHIPPED[2]),)
+    label = "4a DAMMRL, Reward 2, adaptive (S3 re-selection)"
+    policy = PolicySpec("adaptive", checkpoints=r2[:1])
+    return Configuration("4a-adaptive-r2", label, "variant", "event", policy)
 
 
 def reviewer_configurations() -> list[Configuration]:

@@ -88,6 +88,30 @@ def _policy(runner: ReachRunner, job: Job) -> Policy:
     return _POLICIES[str(checkpoint)]
 
 
+def run_session(job: tuple[Configuration, tuple[int, ...], bool]) -> list[Record]:
+    """An adaptive configuration's reaches: its seeds in order as one session, the
+    posterior over M_ij carried from reach to reach (one job: the order matters)."""
+    from dammrl.runner import evidence_of
+    from dammrl_core.coadaptation import ModelPosterior, ModelTable
+    from dammrl_core.policy.adaptive import AdaptivePolicy
+    from dammrl_core.policy.learned import LearnedPolicy
+    from dammrl_core.policy.settings import PolicySettings
+
+    configuration, seeds, randomize = job
+    runner = _runner(randomize, configuration)
+    models = runner.settings.models
+    base = LearnedPolicy(models, configuration.policy.checkpoints[0])
+    posterior = ModelPosterior(ModelTable.load(), runner.settings.human, models)
+    policy = AdaptivePolicy(base, models, posterior, PolicySettings().targets)
+    records = []
+    for index, seed in enumerate(seeds):
+        result = runner.run(seed, trigger=configuration.trigger, policy=policy)
+        policy.observe(evidence_of(result, models))
+        reach_job = Job(configuration, seed, randomize, index)
+        records.append(Record(_row(reach_job, result), _steps(result)))
+    return records
+
+
 def _row(job: Job, result: ReachResult) -> dict[str, Any]:
     metrics = result.metrics.as_dict()
     human = [c.human_model for c in result.choices]

@@ -14,12 +14,22 @@ import numpy as np
 from dammrl.study.claims import Claim, judge
 from dammrl.study.configs import (
     Configuration,
+    adaptive_configuration,
     best_fixed_candidates,
     paper_configurations,
     reviewer_configurations,
     variant_configurations,
 )
-from dammrl.study.run import Job, Progress, Record, ordered, run_local, run_ray
+from dammrl.study.run import (
+    Job,
+    Progress,
+    Record,
+    map_jobs,
+    ordered,
+    run_local,
+    run_ray,
+    run_session,
+)
 from dammrl_core.errors import ConfigurationError
 
 TUNING_START = 7_900_000  # the best-fixed search's seeds start here: never evaluated on
@@ -36,6 +46,7 @@ class StudyOptions:
     workers: int = 1
     ray: str | None = None  # a Ray address ("local": a local instance); None: this machine
     recording: Path | None = None  # a semi-virtual session (MCAP): its figure in the report
+    adaptive: bool = False  # also configuration 4 inside the adaptive mode (sessions)
 
     def check(self) -> None:
         overlap = set(self.seeds) & set(self.tuning_seeds)
@@ -89,6 +100,13 @@ def run_study(options: StudyOptions, progress: Callable[[int, str], Progress]) -
     ]
     start = time.perf_counter()
     records = execute(jobs, "study")
+    if options.adaptive:  # sessions: each in one process, its seeds in order
+        adaptive = adaptive_configuration(options.reward2)
+        configurations.append(adaptive)
+        sessions = [(adaptive, tuple(options.seeds), r) for r in options.randomize]
+        tick = progress(len(sessions), "adaptive sessions")
+        for session in map_jobs(run_session, sessions, options.workers, progress=tick):
+            records += session
     wall["evaluation"] = time.perf_counter() - start
     rng = np.random.default_rng(0)
     claims = {
