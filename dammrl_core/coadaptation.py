@@ -298,6 +298,12 @@ class NormalMean:
             self.values.append(value)
             self.weights.append(weight)
 
+    @classmethod
+    def of(cls, prior_mean: float, prior_sd: float, noise_sd: float,
+           values: list[float]) -> NormalMean:  # fmt: skip
+        """The belief after ``values``, each a whole observation."""
+        return cls(prior_mean, prior_sd, noise_sd, list(values), [1.0] * len(values))
+
     @property
     def n(self) -> float:
         return float(sum(self.weights))
@@ -422,25 +428,15 @@ class ModelPosterior:
     def time_belief(self, model: tuple[int, int]) -> tuple[float, float]:
         """(mean, sd) of the model's mean log reach time for this person."""
         row, belief = self.table.row(model), self.beliefs[model]
-        offset = NormalMean(
-            0.0,
-            OFFSET_PRIOR_SD,
-            row.log_time_sd,
-            list(belief.log_times),
-            [1.0] * len(belief.log_times),
-        )
+        offset = NormalMean.of(0.0, OFFSET_PRIOR_SD, row.log_time_sd, belief.log_times)
         predicted = self.predicted_log_time(model)
         mean, sd = offset.posterior(shift=predicted)
         return predicted + mean, sd
 
     def error_belief(self, model: tuple[int, int]) -> tuple[float, float]:
         row, belief = self.table.row(model), self.beliefs[model]
-        errors = NormalMean(
-            row.log_error_mean,
-            OFFSET_PRIOR_SD,
-            row.log_error_sd,
-            list(belief.log_errors),
-            [1.0] * len(belief.log_errors),
+        errors = NormalMean.of(
+            row.log_error_mean, OFFSET_PRIOR_SD, row.log_error_sd, belief.log_errors
         )
         return errors.posterior()
 
@@ -449,17 +445,11 @@ class ModelPosterior:
         if not any(b.ratings for b in self.beliefs.values()):
             return None
         ratings = self.beliefs[model].ratings
-        return NormalMean(3.0, 1.0, 1.0, list(ratings), [1.0] * len(ratings)).posterior()
+        return NormalMean.of(3.0, 1.0, 1.0, ratings).posterior()
 
     def sparc_belief(self, model: tuple[int, int]) -> tuple[float, float]:
         row, belief = self.table.row(model), self.beliefs[model]
-        sparcs = NormalMean(
-            row.sparc_mean,
-            row.sparc_sd,
-            row.sparc_sd,
-            list(belief.sparcs),
-            [1.0] * len(belief.sparcs),
-        )
+        sparcs = NormalMean.of(row.sparc_mean, row.sparc_sd, row.sparc_sd, belief.sparcs)
         return sparcs.posterior()
 
     def meets(self, targets: Targets, options: tuple[tuple[int, int], ...] = MODELS) -> np.ndarray:
