@@ -113,9 +113,16 @@ def recorded_reaches(
     decisions: list[tuple[bool, float]] = []
     for path in paths:
         for episode in _episodes(path).values():
-            transitions += _transitions(episode, weights)
+            transitions += [t for t in _transitions(episode, weights) if _finite(t)]
             decisions += _decisions(episode, human)
     return transitions, fit_person(decisions)
+
+
+def _finite(t: Transition) -> bool:
+    """A transition a crafted recording cannot poison the Q-networks with."""
+    return bool(
+        math.isfinite(t.reward) and np.isfinite(t.obs).all() and np.isfinite(t.next_obs).all()
+    )
 
 
 def fit_person(decisions: list[tuple[bool, float]]) -> PersonFit:
@@ -184,7 +191,9 @@ def _transitions(episode: _Episode, weights: RewardWeights) -> list[Transition]:
     """One transition per answered request, rewarded over the stretch to the next."""
     assert episode.result is not None
     answered = [r for r in sorted(episode.requests) if r in episode.choices]
-    states = sorted(episode.states, key=lambda s: s.t_s)
+    # one state per robot time: a state recorded twice (or forged with an old time) would
+    # make a zero time step and an infinite effort
+    states = list({s.t_s: s for s in sorted(episode.states, key=lambda s: s.t_s)}.values())
     if not answered or len(states) < 2:
         return []
     goal = np.array(episode.requests[answered[0]].goal_m)
@@ -214,9 +223,9 @@ def _terms(states: list[RobotState], t: np.ndarray, x: np.ndarray, start_s: floa
     environment's segment: the states after the decision's up to the next one's."""
     inside = (t > start_s + 1e-9) & (t <= end_s + 1e-9)
     effort, oscillations = 0.0, 0
-    if inside.sum() > 2:
+    dt = float(np.median(np.diff(t[inside]))) if inside.sum() > 2 else 0.0
+    if dt > 0:
         segment = [s for s, keep in zip(states, inside, strict=True) if keep]
-        dt = float(np.median(np.diff(t[inside])))
         q = np.array([s.q_rad for s in segment])
         tau = np.array([s.tau_nm for s in segment])
         dq = np.gradient(q, dt, axis=0)

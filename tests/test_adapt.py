@@ -123,3 +123,15 @@ def test_a_protocol_block_can_ask_for_the_adaptive_policy_and_its_targets() -> N
     assert json.loads(env["DAMMRL_POLICY_TARGETS"])["time_max_s"] == 12.0
     with pytest.raises(ValueError, match="targets are for an adaptive policy"):
         Condition(policy="learned", targets=Targets())
+
+
+@pytest.mark.slow
+def test_a_state_recorded_twice_changes_no_transition(recording: Path) -> None:
+    """Duplicated (or replayed) states would make a zero time step: no infinite effort, no
+    NaN reward reaches the Q-networks."""
+    episode = _episodes(recording)[1]
+    clean = _transitions(episode, weights())
+    episode.states = episode.states + episode.states[::7]
+    doubled = _transitions(episode, weights())
+    assert [t.reward for t in doubled] == [t.reward for t in clean]
+    assert all(np.isfinite(t.reward) for t in doubled)
