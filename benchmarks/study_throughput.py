@@ -23,7 +23,9 @@ def main() -> None:
     parser.add_argument("--seeds", type=held_out_seeds, default=held_out_seeds(20))
     args = parser.parse_args()
     cores = os.cpu_count() or 1
-    jobs = [Job(c, s, False, k) for c in paper_configurations() for k, s in enumerate(args.seeds)]
+    jobs = [
+        Job(c, s, "nominal", k) for c in paper_configurations() for k, s in enumerate(args.seeds)
+    ]
     executors = {
         "1 process": lambda: run_local(jobs, 1),
         f"{cores} processes": lambda: run_local(jobs, cores),

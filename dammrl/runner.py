@@ -13,7 +13,7 @@ latched and the physics advances one control period inside MuJoCo.
 from __future__ import annotations
 
 import math
-from collections.abc import Generator
+from collections.abc import Generator, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -25,7 +25,7 @@ from dammrl_core.coadaptation import (
     ReachRecord,
     robot_model_of,
 )
-from dammrl_core.control.controller import Controller
+from dammrl_core.control.controller import Controller, latency_model
 from dammrl_core.control.reach import HOLD_OBSERVATION_S, Answer, Reach, Trajectory
 from dammrl_core.control.settings import ControllerSettings
 from dammrl_core.dynamics import ArmModel
@@ -82,6 +82,7 @@ class ReachResult:
     steps: list[StepEvent] = field(default_factory=list)
     decisions: list[Decision] = field(default_factory=list)
     choices: list[ModelChoice] = field(default_factory=list)
+    ik_latencies_s: list[float] = field(default_factory=list)  # every solve's, in order
 
     def summary(self) -> dict[str, object]:
         """The metrics plus what identifies the run (the ``--json`` object)."""
@@ -142,11 +143,13 @@ class ReachRunner:
         trigger: str | None = None,
         task: ReachTask | None = None,
         policy: Policy | None = None,
+        ik_latencies: Sequence[float] | None = None,
     ) -> ReachResult:
         """One reach. ``trigger`` overrides the controller setting ('event' or 'fixed');
-        ``policy`` (default: the fixed ``model``) chooses M_ij at every decision."""
+        ``policy`` (default: the fixed ``model``) chooses M_ij at every decision;
+        ``ik_latencies``: a measured run's (its ``ik_latencies_s``), replayed exactly."""
         policy = policy or FixedPolicy(self.settings.models, *model)
-        episode = self.episode(seed, trigger, task)
+        episode = self.episode(seed, trigger, task, ik_latencies)
         metrics, trajectory = episode.run(policy)
         if episode.choices:  # the model in force at the end
             model = (episode.choices[-1].human_model, episode.choices[-1].robot_model)
@@ -160,10 +163,15 @@ class ReachRunner:
             steps=episode.reach.steps,
             decisions=episode.decisions,
             choices=episode.choices,
+            ik_latencies_s=list(episode.controller.latency.spent_s),
         )
 
     def episode(
-        self, seed: int, trigger: str | None = None, task: ReachTask | None = None
+        self,
+        seed: int,
+        trigger: str | None = None,
+        task: ReachTask | None = None,
+        ik_latencies: Sequence[float] | None = None,
     ) -> Episode:
         """A fresh episode of ``seed``, ready to run (or to be stepped, see Episode.loop)."""
         settings = self.settings.controller
@@ -171,8 +179,9 @@ class ReachRunner:
             settings = settings.model_copy(update={"trigger": trigger})
         streams = seed_streams(seed)
         task = task or self.sample(seed)
+        latency = latency_model(settings, streams.ik_latency, ik_latencies)
         controller = Controller(
-            self.robot, settings, streams.ik_latency, self.arm, self.solver(settings)
+            self.robot, settings, streams.ik_latency, self.arm, self.solver(settings), latency
         )
         reach = Reach(controller, task, self.settings.task, self.control_dt_s)
         human = SimulatedHuman(self.settings.human, self.settings.models, streams.human)

@@ -4,21 +4,27 @@ Both solvers take a Cartesian target [m] (3,) and a seed [rad] (6,) and return j
 positions inside the joint limits. The controller accepts a solution only if it lands
 within ``ik_accept_error_m`` of its target and does not jump away from the seed.
 
-The latency model turns the solvers' compute time into simulated time: a lognormal whose
-defaults were fitted to solves timed by ``benchmarks/bench_core.py`` on the 2-core
-development machine (re-fit there and pass ``ik_latency_median_s`` / ``ik_latency_sigma``).
+The latency model turns the solvers' compute time into simulated time: the processor time
+of each solve actually run ('measured', the paper's mechanism produced rather than
+injected; processor time, not wall time, so other work on a shared machine leaves it be),
+or a lognormal draw independent of the solve ('model', defaults fitted to solves timed by
+``benchmarks/bench_core.py`` on the 2-core development machine), or none. Every latency
+that entered simulated time is kept (``IKLatency.spent_s``), and a list of them replays a
+measured run exactly (``replay``): same solves, same latencies, byte-identical reach.
 """
 
 from __future__ import annotations
 
 import time
 import warnings
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Literal, Protocol
 
 import numpy as np
 
 from dammrl_core.dynamics import ArmModel
+from dammrl_core.errors import ConfigurationError
 
 IKSolverName = Literal["ikpy", "pinocchio"]
 LatencyMode = Literal["model", "measured", "zero"]
@@ -35,6 +41,8 @@ class IKResult:
     q: np.ndarray  # joint positions [rad] (6,)
     error_m: float  # ||FK(q) - target|| [m]
     compute_s: float  # wall time spent solving [s]
+    cpu_s: float  # processor time this thread spent solving [s]: what another process's
+    # load on the machine leaves unchanged (the 'measured' latency)
 
 
 class IKSolver(Protocol):
@@ -104,7 +112,7 @@ class DampedLeastSquaresIK:
         self.q_mid = (arm.robot.q_min + arm.robot.q_max) / 2
 
     def solve(self, target: np.ndarray, q_seed: np.ndarray) -> IKResult:
-        start = time.perf_counter()
+        start, start_cpu = time.perf_counter(), time.thread_time()
         lo, hi = _search_box(q_seed, self.q_lo, self.q_hi, self.max_step_rad)
         q = np.minimum(np.maximum(q_seed, lo), hi)
         for _ in range(self.max_iterations):
@@ -120,7 +128,7 @@ class DampedLeastSquaresIK:
                 dq[blocked] = 0.0
             q = np.minimum(np.maximum(q + dq, lo), hi)
         error_m = float(np.linalg.norm(target - self.arm.ee_position(q)))
-        return IKResult(q, error_m, time.perf_counter() - start)
+        return _result(q, error_m, start, start_cpu)
 
     def _step(self, J: np.ndarray, error: np.ndarray, q: np.ndarray) -> np.ndarray:
         J_pinv = J.T @ _inverse3(J @ J.T + self.damping**2 * np.eye(3))  # (6, 3)
@@ -146,7 +154,7 @@ class IkpyIK:
         self.max_step_rad = max_step_rad
 
     def solve(self, target: np.ndarray, q_seed: np.ndarray) -> IKResult:
-        start = time.perf_counter()
+        start, start_cpu = time.perf_counter(), time.thread_time()
         lo, hi = _search_box(q_seed, self.q_lo, self.q_hi, self.max_step_rad)
         for link, low, high in zip(self.active_links, lo, hi, strict=True):
             link.bounds = (float(low), float(high))
@@ -157,7 +165,11 @@ class IkpyIK:
             solution = self.chain.inverse_kinematics(target_position=target, initial_position=full)
         q = np.asarray(solution)[self.active]
         error_m = float(np.linalg.norm(target - self.arm.ee_position(q)))
-        return IKResult(q, error_m, time.perf_counter() - start)
+        return _result(q, error_m, start, start_cpu)
+
+
+def _result(q: np.ndarray, error_m: float, start: float, start_cpu: float) -> IKResult:
+    return IKResult(q, error_m, time.perf_counter() - start, time.thread_time() - start_cpu)
 
 
 def make_ik_solver(
@@ -169,7 +181,8 @@ def make_ik_solver(
 
 
 class IKLatency:
-    """Simulated-time cost of one IK solve [s]."""
+    """Simulated-time cost of one IK solve [s]; every cost handed out is kept in
+    ``spent_s``, in order, so a run's latencies can be saved and replayed."""
 
     def __init__(
         self,
@@ -178,16 +191,40 @@ class IKLatency:
         rng: np.random.Generator,
         median_s: float | None = None,
         sigma: float | None = None,
+        replay: Sequence[float] | None = None,
     ) -> None:
+        """``replay``: the latencies [s] a run spent (its ``spent_s``), handed out again in
+        order instead of the mode's; the solves still run (their joint solutions)."""
         fitted_median, fitted_sigma = FITTED_LATENCY[solver]
         self.mode = mode
         self.median_s = fitted_median if median_s is None else median_s
         self.sigma = fitted_sigma if sigma is None else sigma
         self.rng = rng
+        self.replay = None if replay is None else [_latency(v) for v in replay]
+        self.spent_s: list[float] = []
 
     def __call__(self, measured_s: float) -> float:
+        latency = self._next(measured_s)
+        self.spent_s.append(latency)
+        return latency
+
+    def _next(self, measured_s: float) -> float:
+        if self.replay is not None:
+            if len(self.spent_s) >= len(self.replay):
+                raise ConfigurationError(
+                    f"the replayed IK latencies ran out at solve {len(self.spent_s) + 1} "
+                    f"(recorded: {len(self.replay)}): they are not this reach's"
+                )
+            return self.replay[len(self.spent_s)]
         if self.mode == "zero":
             return 0.0
         if self.mode == "measured":
             return measured_s
         return float(self.median_s * np.exp(self.sigma * self.rng.standard_normal()))
+
+
+def _latency(value: float) -> float:
+    latency = float(value)
+    if not 0.0 <= latency < 60.0:  # NaN fails too
+        raise ConfigurationError(f"a replayed IK latency must be 0-60 s, got {value!r}")
+    return latency

@@ -251,12 +251,12 @@ def test_evaluate_in_the_adaptive_mode_is_the_policy_itself_until_a_switch() -> 
 
 
 def test_the_studys_adaptive_row_runs_its_seeds_as_one_session() -> None:
-    from dammrl.study.configs import adaptive_configuration, paper_configurations
+    from dammrl.study.configs import adaptive_configuration, variant_configurations
     from dammrl.study.run import Job, run_job, run_session
 
     seeds = (7_000_000, 7_000_001)
-    records = run_session((adaptive_configuration(), seeds, False))
+    records = run_session((adaptive_configuration(), seeds, "nominal"))
     assert [r.row["configuration"] for r in records] == ["4a-adaptive-r2"] * 2
-    learned = paper_configurations()[3]
-    plain = [run_job(Job(learned, s, False, k)).row for k, s in enumerate(seeds)]
+    learned = next(c for c in variant_configurations() if c.key == "4s-dammrl-r2")  # shipped
+    plain = [run_job(Job(learned, s, "nominal", k)).row for k, s in enumerate(seeds)]
     assert [r.row["t_total_s"] for r in records] == [p["t_total_s"] for p in plain]  # no switch

@@ -65,6 +65,20 @@ def test_reach_with_ikpy_succeeds() -> None:
     assert all(s.ik_compute_s > 0 for s in result.steps)
 
 
+def test_a_reach_with_measured_ik_latency_replays_byte_for_byte() -> None:
+    """ikpy in the loop, each solve's own processor time in simulated time: a rerun would
+    differ, a replay of the latencies it spent does not."""
+    settings = ControllerSettings(ik_solver="ikpy", ik_latency="measured", trigger="fixed")
+    runner = ReachRunner(ReachSettings(controller=settings))
+    measured = runner.run(seed=3, model=(2, 1))
+    spent = measured.ik_latencies_s
+    assert len(spent) >= len(measured.steps) > 0 and len(set(spent)) > 1
+    assert [s.ik_latency_s for s in measured.steps] == spent[: len(measured.steps)]
+    replayed = runner.run(seed=3, model=(2, 1), ik_latencies=spent)
+    assert replayed.summary() == measured.summary() and replayed.ik_latencies_s == spent
+    np.testing.assert_array_equal(replayed.trajectory.x, measured.trajectory.x)
+
+
 def test_fast_forward_reproduces_the_tick_by_tick_loop_exactly(runner: ReachRunner) -> None:
     ticking = ReachRunner(ReachSettings(fast_forward=False))
     for seed, model in ((3, (2, 1)), (4, (1, 6))):

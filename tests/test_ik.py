@@ -53,3 +53,31 @@ def test_model_latency_is_seeded_and_lognormal() -> None:
 def test_measured_latency_is_the_solve_time() -> None:
     assert IKLatency("measured", "pinocchio", np.random.default_rng(0))(0.123) == 0.123
     assert IKLatency("zero", "pinocchio", np.random.default_rng(0))(0.123) == 0.0
+
+
+def test_every_latency_spent_is_kept_and_a_replay_hands_them_out_again() -> None:
+    measured = IKLatency("measured", "ikpy", np.random.default_rng(0))
+    spent = [measured(t) for t in (0.031, 0.052, 0.044)]
+    assert measured.spent_s == spent == [0.031, 0.052, 0.044]
+    replay = IKLatency("measured", "ikpy", np.random.default_rng(0), replay=measured.spent_s)
+    assert [replay(9.9) for _ in range(3)] == spent  # the solve's own time is not used
+    assert replay.spent_s == spent
+
+
+def test_a_replay_that_runs_out_or_holds_a_bad_latency_fails_in_words() -> None:
+    from dammrl_core.errors import ConfigurationError
+
+    short = IKLatency("measured", "ikpy", np.random.default_rng(0), replay=[0.01])
+    short(0.0)
+    with pytest.raises(ConfigurationError, match="ran out at solve 2"):
+        short(0.0)
+    for bad in (-0.1, float("nan"), 120.0):
+        with pytest.raises(ConfigurationError, match="must be 0-60 s"):
+            IKLatency("measured", "ikpy", np.random.default_rng(0), replay=[bad])
+
+
+def test_solves_report_their_processor_time_beside_their_wall_time(arm: ArmModel) -> None:
+    target = arm.ee_position(HOME_Q) + np.array([0.01, 0.0, 0.0])
+    for solver in (DampedLeastSquaresIK(arm), IkpyIK(arm)):
+        result = solver.solve(target, HOME_Q)
+        assert 0.0 < result.cpu_s <= result.compute_s + 1e-3, solver.name

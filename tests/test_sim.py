@@ -102,6 +102,22 @@ def test_domain_randomization_is_seeded_and_off_by_default() -> None:
     assert not np.array_equal(a.read().q, HOME_Q)  # sensor noise
 
 
+def test_the_end_effector_velocity_is_as_noisy_as_its_setting_says() -> None:
+    """At rest the true velocity is zero: what the sensor reads is the noise alone, with
+    the set standard deviation on every axis (the event trigger's dV/dt reads it)."""
+    quiet = DomainRandomization(enabled=True, ee_vel_noise_m_per_s=0.0)
+    noisy = DomainRandomization(enabled=True, ee_vel_noise_m_per_s=1e-3)
+    readings = {}
+    for name, randomization in (("quiet", quiet), ("noisy", noisy)):
+        sim = _sim(SimSettings(randomization=randomization), seed=2)
+        sim.reset(HOME_Q, (0.5, 0.0))
+        readings[name] = np.array([sim.read().ee_vel for _ in range(4000)])
+    true_velocity = readings["quiet"].mean(axis=0)
+    np.testing.assert_allclose(readings["quiet"], np.tile(true_velocity, (4000, 1)))
+    spread = (readings["noisy"] - true_velocity).std(axis=0)
+    np.testing.assert_allclose(spread, 1e-3, rtol=0.05)
+
+
 def test_reset_restores_the_nominal_model() -> None:
     sim = _sim(SimSettings(randomization=DomainRandomization(enabled=True)), seed=1)
     nominal = _sim(SimSettings())
@@ -118,7 +134,7 @@ def test_kinematic_randomisation_moves_the_true_arm_not_the_reported_angles() ->
     commanded posture while its fingertip is millimetres from where the nominal model
     (the controller's IK) puts it; the servo holds the reported angle."""
     noise_free = DomainRandomization(enabled=True, q_noise_rad=0, dq_noise_rad_per_s=0,
-                                     ee_noise_m=0)  # fmt: skip
+                                     ee_noise_m=0, ee_vel_noise_m_per_s=0)  # fmt: skip
     sim, nominal = _sim(SimSettings(randomization=noise_free), seed=3), _sim(SimSettings())
     state, reference = sim.reset(HOME_Q, (0.5, 0.0)), nominal.reset(HOME_Q, (0.5, 0.0))
     np.testing.assert_allclose(state.q, HOME_Q, atol=1e-12)  # the encoders read q

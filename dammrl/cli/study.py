@@ -8,9 +8,10 @@ import shlex
 import sys
 from pathlib import Path
 
-from dammrl.cli.common import SEEDS_HELP, Commands, output_dir, print_err, progress_bar, seeds_arg
+from dammrl.cli.common import Commands, output_dir, print_err, progress_bar, seeds_arg
+from dammrl.study.configs import CONDITIONS, DEFAULT_CONDITIONS
 
-RANDOMIZE = {"both": (False, True), "off": (False,), "on": (True,)}
+DEFAULT_SEEDS, DEFAULT_SETS = "150", 3  # 3 x 50 seeds: the default study in < 15 min on 2 cores
 
 
 def register(commands: Commands) -> None:
@@ -18,18 +19,28 @@ def register(commands: Commands) -> None:
     study = commands.add_parser(
         "study",
         help="the paper's comparison: every configuration, claims C1-C6, report",
-        description="Run the paper's four configurations and the reviewer's rows on held-out "
-        "seeds; write report.md, reaches.csv and the figures into --out.",
+        description="Run the paper's configurations, our variants and the reviewer's rows on "
+        "disjoint sets of held-out seeds under each condition; judge claims C1-C6 on every set "
+        "under both success criteria; write report.md, reaches.csv, the measured IK latencies "
+        "and the figures into --out.",
     )
     study.add_argument("--out", type=output_dir, default=Path("study"), help="report directory")
-    study.add_argument("--seeds", default="100", metavar="N|A:B", type=seeds_arg,
-                       help=SEEDS_HELP)  # fmt: skip
+    study.add_argument("--seeds", default=DEFAULT_SEEDS, metavar="N|A:B", type=seeds_arg,
+                       help="every evaluation seed, split into --sets in order: N (the first N "
+                       "from 7,000,000) or A:B (seeds A to B-1, all >= 7,000,000: training "
+                       f"never uses them); default {DEFAULT_SEEDS}")  # fmt: skip
+    study.add_argument("--sets", type=int, default=DEFAULT_SETS, metavar="K",
+                       help="disjoint seed sets: every verdict is judged on each, and called "
+                       f"unstable when they differ (default {DEFAULT_SETS})")  # fmt: skip
     study.add_argument("--tuning-seeds", type=int, default=20, metavar="N",
                        help="seeds of the best-fixed search (from 7,900,000; never evaluated "
                        "on; default 20)")  # fmt: skip
-    study.add_argument("--randomize", choices=sorted(RANDOMIZE), default="both",
-                       help="domain randomisation (arm and sensor noise): both (default), "
-                       "off or on")  # fmt: skip
+    study.add_argument("--conditions", type=_conditions, default=None, metavar="A,B",
+                       help="arm and IK timing, comma-separated from: " + ", ".join(CONDITIONS)
+                       + " (default: " + ",".join(DEFAULT_CONDITIONS) + ")")  # fmt: skip
+    study.add_argument("--ik-latencies", type=Path, metavar="FILE",
+                       help="replay a study's measured IK latencies (its ik_latencies.json.gz) "
+                       "instead of measuring: the same reaches, byte for byte")  # fmt: skip
     study.add_argument("--reward1", type=Path, nargs="+", default=[], metavar="RUN",
                        help="Reward 1 runs or checkpoints (default: the shipped policy reward1); "
                        "several runs aggregate")  # fmt: skip
@@ -59,8 +70,11 @@ def register(commands: Commands) -> None:
     study.add_argument(
         "--results",
         type=Path,
+        action="append",
+        default=[],
         metavar="PAGE",
-        help="also regenerate this page's results section (docs/results.md)",
+        help="also regenerate this page's generated sections (docs/results.md, README.md; "
+        "may be given more than once)",
     )
     study.add_argument(
         "--adaptive",
@@ -71,18 +85,27 @@ def register(commands: Commands) -> None:
     study.set_defaults(handler=_study)
 
 
+def _conditions(text: str) -> tuple[str, ...]:
+    chosen = tuple(c.strip() for c in text.split(",") if c.strip())
+    unknown = [c for c in chosen if c not in CONDITIONS]
+    if unknown or not chosen:
+        raise argparse.ArgumentTypeError(
+            f"unknown condition {', '.join(unknown) or '(none)'}: choose from "
+            + ", ".join(CONDITIONS)
+        )
+    return chosen
+
+
 def _study(args: argparse.Namespace) -> int:
-    from dammrl.study.report import (
-        check_results_page,
-        results_section,
-        update_results,
-        write_report,
-    )
-    from dammrl.study.study import TUNING_START, StudyOptions, run_study
+    from dammrl.study.report import check_page, update_page, write_report
+    from dammrl.study.study import TUNING_START, StudyOptions, load_latencies, run_study
     from dammrl_core.errors import UsageError
 
     if args.jobs < 1:
         raise UsageError(f"--jobs must be at least 1, got {args.jobs}")
+    if not 1 <= args.sets <= len(args.seeds):
+        raise UsageError(f"--sets must be 1 to the number of seeds ({len(args.seeds)}), "
+                         f"got {args.sets}")  # fmt: skip
     if not 1 <= args.tuning_seeds <= 10_000:
         raise UsageError(f"--tuning-seeds must be 1 to 10000, got {args.tuning_seeds}")
     from dammrl_core.policy.learned import resolve_run
@@ -98,11 +121,14 @@ def _study(args: argparse.Namespace) -> int:
         if not args.recording.is_file():
             raise UsageError(f"no such recording: {args.recording}")
         session_traces(args.recording)
-    if args.results is not None:
-        check_results_page(args.results)  # before hours of reaches, not after
+    for page in args.results:
+        check_page(page)  # before hours of reaches, not after
+    latencies = None if args.ik_latencies is None else load_latencies(args.ik_latencies)
     options = StudyOptions(
         seeds=args.seeds,
-        randomize=RANDOMIZE[args.randomize],
+        sets=args.sets,
+        conditions=args.conditions or DEFAULT_CONDITIONS,
+        ik_latencies=latencies,
         tuning_seeds=range(TUNING_START, TUNING_START + args.tuning_seeds),
         reward1=tuple(args.reward1),
         reward2=tuple(args.reward2),
@@ -125,11 +151,17 @@ def _study(args: argparse.Namespace) -> int:
             close()
     command = "dammrl " + shlex.join(sys.argv[1:])
     report = write_report(result, args.out, command, say=print_err)
-    if args.results is not None:
-        update_results(args.results, results_section(result, heading="##"))
-        print_err(f"results section of {args.results} regenerated")
-    for randomize, claims in result.claims.items():
-        condition = "randomised" if randomize else "nominal"
-        print(f"{condition}: " + ", ".join(f"{c.key} {c.verdict}" for c in claims))
+    for page in args.results:
+        kinds = update_page(page, result)
+        print_err(f"{' and '.join(kinds)} section of {page} regenerated")
+    for condition in options.conditions:
+        for criterion in ("press", "eps_g"):
+            claims = result.claims(condition, criterion)
+            verdicts = [
+                f"{c.key} {c.verdict}" + ("" if result.stable(condition, criterion, k)
+                                          else " (unstable)")
+                for k, c in enumerate(claims)
+            ]  # fmt: skip
+            print(f"{condition} ({criterion}): " + ", ".join(verdicts))
     print(f"report: {report}")
     return 0

@@ -1,20 +1,28 @@
-"""The configurations a study compares: the paper's four and the rows a reviewer asks for.
+"""What a study runs: the configurations (the rows) and the conditions (arm and IK timing).
 
 The paper's comparison (section "Comparison Study"):
 
-1. fixed-frequency micro-steps with a fixed model, by the paper's mechanism: every timer
-   tick plans a step from the previous subgoal, even while the last IK solve is still
-   running (the "premature IK update" the paper blames for chatter), with the human's
-   latest decision;
+1. fixed-frequency micro-steps with a fixed model, as the paper's text defines them: every
+   timer tick plans x_{k+1} = x_k + dx from the current (measured) end-effector position
+   x_k with the human's latest decision and solves its IK (one solve at a time: the text
+   does not say that ticks overlap running solves);
 2. event-triggered progression with the same fixed model;
 3. event-triggered DAMMRL trained with Reward 1 (accuracy);
-4. event-triggered DAMMRL trained with Reward 2 (speed and accuracy).
+4. event-triggered DAMMRL trained with Reward 2 (speed and accuracy), and the same with the
+   paper's dynamic layer (the resolved-acceleration feed-forward with its null-space term).
 
-Beside them: the fixed-frequency baseline made fair one choice at a time (a tick waits
-for a pending solve and steps from the measured position; a fresh human decision per
-step), the best fixed model under each progression (searched over all 16 M_ij on tuning
-seeds disjoint from the evaluation seeds), and a uniformly random choice of (i, j) at
-every decision. Which rows differ shows which modelling choice decides each claim.
+Configurations 3 and 4 use every training seed of their reward (reach k of the study runs
+seed k mod n), so training-seed variation is inside the intervals. Beside them, each
+labelled as ours: configuration 1 built other ways one choice at a time (chained from the
+last subgoal, solves that overlap, a fresh decision per step), the shipped run of each
+reward (the best seed on validation seeds), the best fixed model under each progression
+(searched over all 16 M_ij on tuning seeds disjoint from the evaluation seeds) and a
+uniformly random choice of (i, j). Which rows differ shows which modelling choice decides
+each claim.
+
+A condition is the arm and the IK timing every configuration runs on: the nominal or the
+randomised arm with IK latency drawn from the ikpy-fitted lognormal (the default), or the
+paper's solver in the loop with each solve's measured compute time entering simulated time.
 """
 
 from __future__ import annotations
@@ -27,15 +35,21 @@ from dammrl_core.policy.settings import SHIPPED_POLICY
 
 PAPER_MODEL = (2, 1)  # the fixed model of configurations 1 and 2: E_small, all-small steps
 SHIPPED = {1: SHIPPED_POLICY.parent.parent / "reward1", 2: SHIPPED_POLICY.parent}
+SEED_RUNS = {k: path / "seeds" for k, path in SHIPPED.items()}  # every training seed shipped
 
-# the paper's fixed-frequency mechanism, and each choice that makes it fair
-PAPER_FIXED = {"fixed_step_from": "subgoal", "fixed_replan_while_pending": True,
+# configuration 1 by the paper's text, and each choice of ours that builds it another way
+PAPER_FIXED = {"fixed_step_from": "measured", "fixed_replan_while_pending": False,
                "fixed_decisions": "latest"}  # fmt: skip
-FAIR_TIMING = {"fixed_step_from": "measured", "fixed_replan_while_pending": False,
-               "fixed_decisions": "latest"}  # fmt: skip
-FAIR_ALL = {**FAIR_TIMING, "fixed_decisions": "fresh"}
+CHAINED = {**PAPER_FIXED, "fixed_step_from": "subgoal"}
+OVERLAPPING = {**PAPER_FIXED, "fixed_replan_while_pending": True}
+CHAINED_OVERLAPPING = {**CHAINED, "fixed_replan_while_pending": True}
+FRESH = {**PAPER_FIXED, "fixed_decisions": "fresh"}
+RESOLVED_ACCELERATION = {"feedforward": "resolved_acceleration"}
 
-Role = Literal["paper", "variant", "reviewer"]
+Role = Literal["paper", "ours", "reviewer"]
+ROLE_TEXT = {"paper": "paper's", "ours": "ours", "reviewer": "reviewer's"}
+FIXED, EVENT, R1, R2 = "1-fixed", "2-event", "3-dammrl-r1", "4-dammrl-r2"
+PAPER_KEYS = (FIXED, EVENT, R1, R2)
 
 
 @dataclass(frozen=True)
@@ -54,11 +68,15 @@ class PolicySpec:
             return "uniform random (i, j)"
         if self.kind == "adaptive":
             return "adaptive around " + ", ".join(_short(p) for p in self.checkpoints[:1])
+        if len(self.checkpoints) > 2:
+            return f"{len(self.checkpoints)} training seeds of {_short(self.checkpoints[0], 2)}"
         return ", ".join(_short(p) for p in self.checkpoints)
 
 
-def _short(path: Path) -> str:
-    return path.parent.name if path.name == "checkpoint.pt" else path.name
+def _short(path: Path, up: int = 1) -> str:
+    """A checkpoint's run name (``up`` = 2: the folder of its seeds)."""
+    run = path.parent if path.name == "checkpoint.pt" else path
+    return run.parent.name if up == 2 and run.name.startswith("seed-") else run.name
 
 
 @dataclass(frozen=True)
@@ -77,6 +95,45 @@ class Configuration:
         )  # fmt: skip
 
 
+@dataclass(frozen=True)
+class Condition:
+    """The arm and the IK timing of a set of reaches."""
+
+    key: str
+    label: str
+    randomize: bool  # domain randomisation: arm dynamics, kinematics, sensor noise
+    controller: dict[str, Any] = field(default_factory=dict)  # ControllerSettings overrides
+    randomization: dict[str, Any] = field(default_factory=dict)  # DomainRandomization overrides
+    configurations: tuple[str, ...] | None = None  # the keys it runs (None: every row)
+
+    @property
+    def measured(self) -> bool:
+        """Its IK latencies are measured (saved with the study, to be replayed)."""
+        return self.controller.get("ik_latency") == "measured"
+
+    def runs(self, configuration: Configuration) -> bool:
+        return self.configurations is None or configuration.key in self.configurations
+
+
+IKPY_REAL = {"ik_solver": "ikpy", "ik_latency": "measured"}
+CONDITIONS = {
+    c.key: c
+    for c in (
+        Condition("nominal", "nominal arm; IK latency drawn from the ikpy-fitted lognormal", False),
+        Condition("randomised", "randomised arm and sensor noise; IK latency drawn", True),
+        Condition("ikpy-real", "nominal arm; ikpy solves in the loop, each one's measured "
+                  "compute time in simulated time", False, IKPY_REAL, {}, PAPER_KEYS),
+        Condition("ikpy-drawn", "nominal arm; ikpy solves, latency drawn (not measured)", False,
+                  {"ik_solver": "ikpy"}, {}, PAPER_KEYS),
+        Condition("dls-real", "nominal arm; damped-least-squares solves, each one's measured "
+                  "compute time (~0.2 ms)", False, {"ik_latency": "measured"}, {}, PAPER_KEYS),
+        Condition("randomised-quiet-velocity", "randomised arm without end-effector velocity "
+                  "noise", True, {}, {"ee_vel_noise_m_per_s": 0.0}, PAPER_KEYS),
+    )
+}  # fmt: skip
+DEFAULT_CONDITIONS = ("nominal", "randomised", "ikpy-real")
+
+
 def checkpoint_file(path: Path) -> Path:
     """A run directory or a checkpoint file: the checkpoint file."""
     return path / "checkpoint.pt" if path.is_dir() else path
@@ -93,32 +150,46 @@ def checkpoint_files(path: Path) -> list[Path]:
     )
 
 
+def _runs(given: tuple[Path, ...], reward: int) -> tuple[Path, ...]:
+    """The checkpoints given, or every shipped training seed of ``reward``."""
+    return tuple(c for p in given or (SEED_RUNS[reward],) for c in checkpoint_files(p))
+
+
 def paper_configurations(
     reward1: tuple[Path, ...] = (), reward2: tuple[Path, ...] = ()
 ) -> list[Configuration]:
-    """The four configurations of the paper (shipped policies unless runs are given)."""
-    r1 = tuple(c for p in reward1 for c in checkpoint_files(p)) or (checkpoint_file(SHIPPED[1]),)
-    r2 = tuple(c for p in reward2 for c in checkpoint_files(p)) or (checkpoint_file(SHIPPED[2]),)
+    """The paper's configurations (every shipped training seed unless runs are given)."""
     fixed = PolicySpec("fixed", PAPER_MODEL)
+    r1, r2 = PolicySpec("learned", checkpoints=_runs(reward1, 1)), PolicySpec(
+        "learned", checkpoints=_runs(reward2, 2))  # fmt: skip
     return [
-        Configuration("1-fixed", "1 fixed-frequency (paper's mechanism)", "paper", "fixed",
-                      fixed, PAPER_FIXED),
-        Configuration("2-event", "2 event-triggered, fixed model", "paper", "event", fixed),
-        Configuration("3-dammrl-r1", "3 DAMMRL, Reward 1", "paper", "event",
-                      PolicySpec("learned", checkpoints=r1)),
-        Configuration("4-dammrl-r2", "4 DAMMRL, Reward 2", "paper", "event",
-                      PolicySpec("learned", checkpoints=r2)),
+        Configuration(FIXED, "1 fixed-frequency, x_k measured, one solve at a time", "paper",
+                      "fixed", fixed, PAPER_FIXED),
+        Configuration(EVENT, "2 event-triggered, fixed model", "paper", "event", fixed),
+        Configuration(R1, "3 DAMMRL, Reward 1", "paper", "event", r1),
+        Configuration(R2, "4 DAMMRL, Reward 2", "paper", "event", r2),
+        Configuration("4ra-dammrl-r2", "4 with the resolved-acceleration feed-forward", "paper",
+                      "event", r2, RESOLVED_ACCELERATION),
     ]  # fmt: skip
 
 
 def variant_configurations() -> list[Configuration]:
-    """The fixed-frequency baseline made fair, one modelling choice at a time."""
+    """Configuration 1 built other ways, one choice of ours at a time, and the shipped runs."""
     fixed = PolicySpec("fixed", PAPER_MODEL)
+    shipped = {k: PolicySpec("learned", checkpoints=(checkpoint_file(SHIPPED[k]),))
+               for k in SHIPPED}  # fmt: skip
     return [
-        Configuration("1b-fixed-timing", "1b fixed-frequency, waits for IK, steps from measured",
-                      "variant", "fixed", fixed, FAIR_TIMING),
-        Configuration("1c-fixed-fresh", "1c fixed-frequency, fair timing + fresh decision/step",
-                      "variant", "fixed", fixed, FAIR_ALL),
+        Configuration("1v-chained", "1, chained from the last subgoal", "ours", "fixed", fixed,
+                      CHAINED),
+        Configuration("1v-overlapping", "1, ticks plan while a solve runs (solves overlap)",
+                      "ours", "fixed", fixed, OVERLAPPING),
+        Configuration("1v-chained-overlapping", "1, chained and overlapping (claims v1's "
+                      "configuration 1)", "ours", "fixed", fixed, CHAINED_OVERLAPPING),
+        Configuration("1v-fresh", "1, a fresh decision per step", "ours", "fixed", fixed, FRESH),
+        Configuration("3s-dammrl-r1", "3, the shipped run (best seed on validation)", "ours",
+                      "event", shipped[1]),
+        Configuration("4s-dammrl-r2", "4, the shipped run (best seed on validation)", "ours",
+                      "event", shipped[2]),
     ]  # fmt: skip
 
 
@@ -130,7 +201,7 @@ def adaptive_configuration(reward2: tuple[Path, ...] = ()) -> Configuration:
     r2 = runs or (checkpoint_file(SHIPPED[2]),)
     label = "4a DAMMRL, Reward 2, adaptive (S3 re-selection)"
     policy = PolicySpec("adaptive", checkpoints=r2[:1])
-    return Configuration("4a-adaptive-r2", label, "variant", "event", policy)
+    return Configuration("4a-adaptive-r2", label, "ours", "event", policy)
 
 
 def reviewer_configurations() -> list[Configuration]:
@@ -142,7 +213,7 @@ def reviewer_configurations() -> list[Configuration]:
 
 
 def best_fixed_candidates() -> list[Configuration]:
-    """Every M_ij under each progression (fixed-frequency by the paper's mechanism)."""
+    """Every M_ij under each progression (fixed-frequency as configuration 1)."""
     bases = (
         Configuration("best-fixed", "best fixed model, fixed-frequency", "reviewer", "fixed",
                       PolicySpec("fixed"), PAPER_FIXED),

@@ -15,8 +15,7 @@ from matplotlib.axes import Axes
 from matplotlib.patches import Rectangle
 from matplotlib.ticker import MaxNLocator
 
-from dammrl.study.claims import FIXED, R1, R2
-from dammrl.study.configs import Configuration, checkpoint_file
+from dammrl.study.configs import FIXED, R1, R2, Configuration, checkpoint_file
 from dammrl.study.run import Job, Record, reach
 from dammrl.study.stats import bootstrap_mean, wilson
 from dammrl_core.robot.scene import SceneLayout
@@ -36,18 +35,20 @@ SUMMARY_METRICS = (
 DISTANCE_BINS_M = np.array([0.0, 0.01, 0.02, 0.04, 0.08, 0.16, 0.5])
 
 
-def summary_chart(records: list[Record], configurations: list[Configuration], path: Path) -> Path:
-    """Every metric per configuration with its 95 % interval, without and with
-    randomisation side by side."""
+def summary_chart(records: list[Record], configurations: list[Configuration],
+                  conditions: tuple[str, ...], path: Path) -> Path:  # fmt: skip
+    """Every metric per configuration with its 95 % interval, the conditions side by side."""
     rng = np.random.default_rng(0)
     keys = [c.key for c in configurations]
     fig, axes = plt.subplots(3, 3, figsize=(15, 12), constrained_layout=True)
+    width = 0.8 / len(conditions)
     for ax, (metric, title, scale, rate) in zip(axes.flat, SUMMARY_METRICS, strict=True):
-        for offset, randomize in ((-0.2, False), (0.2, True)):
+        for k, condition in enumerate(conditions):
+            offset = (k - (len(conditions) - 1) / 2) * width
             means, lows, highs = [], [], []
             for key in keys:
                 values = [r.row[metric] for r in records
-                          if r.row["configuration"] == key and r.row["randomize"] == randomize
+                          if r.row["configuration"] == key and r.row["condition"] == condition
                           and r.row[metric] is not None]  # fmt: skip
                 if rate:
                     e = wilson(int(sum(values)), len(values))
@@ -57,12 +58,12 @@ def summary_chart(records: list[Record], configurations: list[Configuration], pa
                 lows.append((e.value - e.low) * scale)
                 highs.append((e.high - e.value) * scale)
             if not np.all(np.isnan(means)):
-                ax.bar(np.arange(len(keys)) + offset, means, 0.4, yerr=[lows, highs], capsize=2,
-                       label="randomised" if randomize else "nominal arm")  # fmt: skip
+                ax.bar(np.arange(len(keys)) + offset, means, width, yerr=[lows, highs],
+                       capsize=2, label=condition)  # fmt: skip
         ax.set_title(title)
         ax.set_xticks(range(len(keys)), keys, rotation=60, ha="right", fontsize=8)
     handles, labels = axes.flat[0].get_legend_handles_labels()  # above the panels, on no bar
-    fig.legend(handles, labels, loc="upper right", ncols=2, fontsize=9)
+    fig.legend(handles, labels, loc="upper right", ncols=len(conditions), fontsize=9)
     fig.suptitle("Every configuration on the held-out seeds (95 % intervals)")
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -78,7 +79,7 @@ def trajectory_figure(configurations: list[Configuration], seed: int, path: Path
     for key, color in ((FIXED, "black"), (R2, "tab:red")):
         if key not in by_key:
             continue
-        result = reach(Job(by_key[key], seed, False))
+        result = reach(Job(by_key[key], seed, "nominal"))
         traj, goal = result.trajectory, result.task.goal
         error = np.linalg.norm(traj.x - goal, axis=1) * MM
         axes[0].plot(traj.t, error, color=color, lw=1.2, label=by_key[key].label)
@@ -120,7 +121,8 @@ def step_modulation_figure(records: list[Record], path: Path) -> Path:
     fig, (left, right) = plt.subplots(1, 2, figsize=(12, 4.5), constrained_layout=True)
     centres = (DISTANCE_BINS_M[:-1] + DISTANCE_BINS_M[1:]) / 2 * 100
     for key, label, color in ((R1, "Reward 1", "tab:blue"), (R2, "Reward 2", "tab:orange")):
-        mine = [r for r in records if r.row["configuration"] == key and not r.row["randomize"]]
+        mine = [r for r in records
+                if r.row["configuration"] == key and r.row["condition"] == "nominal"]  # fmt: skip
         if not mine:
             continue
         steps = np.concatenate([r.steps for r in mine])

@@ -1,8 +1,10 @@
 """Run a study's reaches: one process, every core, or a Ray cluster, with the same result.
 
-A reach is a pure function of (configuration, seed, randomisation): every random draw
-comes from the seed's named streams. So the reaches can run anywhere, in any order, and
-the records, sorted, are identical whichever executor ran them.
+A reach is a pure function of (configuration, condition, seed): every random draw comes
+from the seed's named streams. So the reaches can run anywhere, in any order, and the
+records, sorted, are identical whichever executor ran them. A condition whose IK latencies
+are measured is the exception until its latencies are saved: a job that carries them
+replays them, and is pure again.
 """
 
 from __future__ import annotations
@@ -17,7 +19,8 @@ from typing import Any, TypeVar
 import numpy as np
 
 from dammrl.runner import ReachResult, ReachRunner, ReachSettings
-from dammrl.study.configs import Configuration
+from dammrl.study.claims import step_windows
+from dammrl.study.configs import CONDITIONS, Condition, Configuration
 from dammrl_core.errors import JobFailedError
 from dammrl_core.metrics import decisions_until_stable, n_oscillations
 from dammrl_core.policy import FixedPolicy, Policy, RandomPolicy
@@ -34,43 +37,59 @@ class Job:
 
     configuration: Configuration
     seed: int
-    randomize: bool
+    condition: str = "nominal"  # a key of CONDITIONS
     index: int = 0  # the seed's position in the study: picks one of several checkpoints
+    seed_set: int = 0  # which of the study's disjoint seed sets the seed belongs to
+    ik_latencies: tuple[float, ...] | None = None  # a measured run's, replayed
+
+    @property
+    def latency_key(self) -> str:
+        """Names the job's IK latencies in a study's saved latencies."""
+        return f"{self.condition}/{self.configuration.key}/{self.seed}"
 
 
 @dataclass(frozen=True)
 class Record:
-    """What a study keeps of one reach: a flat row of numbers, and the decisions."""
+    """What a study keeps of one reach: a flat row of numbers, the decisions, and (a
+    measured condition) the IK latencies that entered its simulated time."""
 
     row: dict[str, Any]
     steps: np.ndarray  # (n, 2) per micro-step: distance to the goal [m], mean step [m]
+    ik_latencies: tuple[float, ...] | None = None
 
 
 def run_job(job: Job) -> Record:
     """One reach, in whatever process this is (cores and policies built once per process)."""
     result = reach(job)
-    return Record(_row(job, result), _steps(result))
+    tolerance = _runner(CONDITIONS[job.condition], job.configuration).settings.task.goal_tolerance_m
+    measured = CONDITIONS[job.condition].measured
+    latencies = tuple(result.ik_latencies_s) if measured else None
+    return Record(_row(job, result, tolerance), _steps(result), latencies)
 
 
 def reach(job: Job) -> ReachResult:
     """The reach of a job, whole (trajectory included)."""
-    runner = _runner(job.randomize, job.configuration)
+    runner = _runner(CONDITIONS[job.condition], job.configuration)
     configuration = job.configuration
     return runner.run(job.seed, configuration.policy.model, configuration.trigger,
-                      policy=_policy(runner, job))  # fmt: skip
+                      policy=_policy(runner, job), ik_latencies=job.ik_latencies)  # fmt: skip
 
 
-_RUNNERS: dict[tuple[bool, tuple[tuple[str, Any], ...]], ReachRunner] = {}
+_RUNNERS: dict[tuple[Any, ...], ReachRunner] = {}
 _POLICIES: dict[str, Policy] = {}
 
 
-def _runner(randomize: bool, configuration: Configuration) -> ReachRunner:
-    overrides = tuple(sorted(configuration.controller.items()))
-    key = (randomize, overrides)
+def _runner(condition: Condition, configuration: Configuration) -> ReachRunner:
+    controller_overrides = {**condition.controller, **configuration.controller}
+    key = (condition.randomize, tuple(sorted(condition.randomization.items())),
+           tuple(sorted(controller_overrides.items())))  # fmt: skip
     if key not in _RUNNERS:
-        base = ReachSettings().randomized(randomize)
-        controller = base.controller.model_copy(update=dict(overrides))
-        _RUNNERS[key] = ReachRunner(base.model_copy(update={"controller": controller}))
+        base = ReachSettings().randomized(condition.randomize)
+        randomization = base.sim.randomization.model_copy(update=condition.randomization)
+        sim = base.sim.model_copy(update={"randomization": randomization})
+        controller = base.controller.model_copy(update=controller_overrides)
+        settings = base.model_copy(update={"controller": controller, "sim": sim})
+        _RUNNERS[key] = ReachRunner(settings)
     return _RUNNERS[key]
 
 
@@ -88,7 +107,7 @@ def _policy(runner: ReachRunner, job: Job) -> Policy:
     return _POLICIES[str(checkpoint)]
 
 
-def run_session(job: tuple[Configuration, tuple[int, ...], bool]) -> list[Record]:
+def run_session(job: tuple[Configuration, tuple[int, ...], str]) -> list[Record]:
     """An adaptive configuration's reaches: its seeds in order as one session, the
     posterior over M_ij carried from reach to reach (one job: the order matters)."""
     from dammrl.runner import evidence_of
@@ -97,32 +116,39 @@ def run_session(job: tuple[Configuration, tuple[int, ...], bool]) -> list[Record
     from dammrl_core.policy.learned import LearnedPolicy
     from dammrl_core.policy.settings import PolicySettings
 
-    configuration, seeds, randomize = job
-    runner = _runner(randomize, configuration)
+    configuration, seeds, condition = job
+    runner = _runner(CONDITIONS[condition], configuration)
     models = runner.settings.models
     base = LearnedPolicy(models, configuration.policy.checkpoints[0])
     posterior = ModelPosterior(ModelTable.load(), runner.settings.human, models)
     policy = AdaptivePolicy(base, models, posterior, PolicySettings().targets)
-    records = []
+    records, tolerance = [], runner.settings.task.goal_tolerance_m
     for index, seed in enumerate(seeds):
         result = runner.run(seed, trigger=configuration.trigger, policy=policy)
         policy.observe(evidence_of(result, models))
-        reach_job = Job(configuration, seed, randomize, index)
-        records.append(Record(_row(reach_job, result), _steps(result)))
+        reach_job = Job(configuration, seed, condition, index)
+        records.append(Record(_row(reach_job, result, tolerance), _steps(result)))
     return records
 
 
-def _row(job: Job, result: ReachResult) -> dict[str, Any]:
+def _row(job: Job, result: ReachResult, tolerance_m: float) -> dict[str, Any]:
+    """The reach as a flat row; ``tolerance_m``: the paper's eps_g."""
     metrics = result.metrics.as_dict()
     human = [c.human_model for c in result.choices]
     robot = [c.robot_model for c in result.choices]
     n = len(result.choices)
+    windows = step_windows(tolerance_m, float(np.linalg.norm(result.task.goal - result.task.start)))
     return {
         "configuration": job.configuration.key,
+        "condition": job.condition,
+        "seed_set": job.seed_set,
         "seed": job.seed,
-        "randomize": job.randomize,
+        "randomize": CONDITIONS[job.condition].randomize,
+        "run": _run_index(job),
         "model": f"{result.model[0]},{result.model[1]}",  # in force at the end
         **metrics,
+        "t_success_s": metrics["t_total_s"] if metrics["success"] else None,
+        "t_reached_s": _first_within(result, tolerance_m),
         "n_osc_true": _n_osc_true(result),
         "human_stable_after": decisions_until_stable(human),
         "robot_stable_after": decisions_until_stable(robot),
@@ -130,9 +156,27 @@ def _row(job: Job, result: ReachResult) -> dict[str, Any]:
         if n
         else None,
         "step_mean_m": _mean_step(result, 0.0, np.inf),
-        "near_step_m": _mean_step(result, 0.0, NEAR_M),
-        "mid_step_m": _mean_step(result, NEAR_M, MID_M),
+        "near_step_m": _mean_step(result, *windows["near"]),
+        "mid_step_m": _mean_step(result, *windows["mid"]),
+        "ik_latency_median_s": float(np.median(result.ik_latencies_s))
+        if result.ik_latencies_s
+        else None,
     }
+
+
+def _run_index(job: Job) -> int:
+    """Which of a learned configuration's training runs chose (0 for any other)."""
+    checkpoints = job.configuration.policy.checkpoints
+    return job.index % len(checkpoints) if job.configuration.policy.kind == "learned" else 0
+
+
+def _first_within(result: ReachResult, tolerance_m: float) -> float | None:
+    """When the measured end-effector first came within ``tolerance_m`` of the goal (the
+    paper's success criterion), before the reach ended; None if it never did."""
+    traj = result.trajectory
+    kept = traj.t <= result.metrics.t_total_s + 1e-9
+    within = np.linalg.norm(traj.x[kept] - result.task.goal, axis=1) <= tolerance_m
+    return float(traj.t[kept][np.argmax(within)]) if within.any() else None
 
 
 def _n_osc_true(result: ReachResult) -> int | None:
@@ -147,9 +191,6 @@ def _n_osc_true(result: ReachResult) -> int | None:
     radii = np.array([s.radius_m for s in result.steps])
     rate = 1.0 / float(traj.t[1] - traj.t[0]) if len(traj.t) > 1 else 1.0
     return n_oscillations(x, subgoals, radii, rate)
-
-
-NEAR_M, MID_M = 0.04, 0.16  # "near the target" and "mid-to-late": distance to the goal [m]
 
 
 def _mean_step(result: ReachResult, nearest_m: float, farthest_m: float) -> float | None:
@@ -273,5 +314,5 @@ def ordered(records: Iterable[Record]) -> list[Record]:
     """Records in one canonical order, whichever executor produced them."""
     return sorted(
         records,
-        key=lambda r: (r.row["configuration"], r.row["randomize"], r.row["seed"], r.row["model"]),
+        key=lambda r: (r.row["configuration"], r.row["condition"], r.row["seed"], r.row["model"]),
     )

@@ -14,6 +14,7 @@ intent, wherever the arm is.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -42,6 +43,20 @@ class _PlannedStep:
     event: StepEvent
 
 
+def latency_model(
+    settings: ControllerSettings, rng: np.random.Generator, replay: Sequence[float] | None = None
+) -> IKLatency:
+    """The IK latency the settings ask for (``replay``: a measured run's, again)."""
+    return IKLatency(
+        settings.ik_latency,
+        settings.ik_latency_profile,
+        rng,
+        settings.ik_latency_median_s,
+        settings.ik_latency_sigma,
+        replay,
+    )
+
+
 class Controller:
     """Event-triggered (or fixed-rate) micro-step controller of one reach."""
 
@@ -52,7 +67,10 @@ class Controller:
         rng: np.random.Generator,
         arm: ArmModel | None = None,
         ik: IKSolver | None = None,
+        latency: IKLatency | None = None,
     ) -> None:
+        """``latency`` (default: the settings' model on ``rng``): a prepared one, such as a
+        replay of a measured run's latencies."""
         self.robot = robot
         self.settings = settings
         self.arm = arm or ArmModel(robot)
@@ -62,13 +80,7 @@ class Controller:
             settings.joint_limit_margin_rad,
             settings.max_joint_step_rad,
         )
-        self.latency = IKLatency(
-            settings.ik_latency,
-            settings.ik_latency_profile,
-            rng,
-            settings.ik_latency_median_s,
-            settings.ik_latency_sigma,
-        )
+        self.latency = latency or latency_model(settings, rng)
         self.kp = np.array(settings.kp, dtype=float)
         self.kd = np.array(settings.kd, dtype=float)
         self.weights = np.array(settings.lyapunov_weights, dtype=float)
@@ -229,7 +241,7 @@ class Controller:
         if reason is not None:
             self.hold(reason, t)
             return
-        latency = self.latency(result.compute_s)
+        latency = self.latency(result.cpu_s)
         self.index += 1
         event = StepEvent(
             index=self.index,

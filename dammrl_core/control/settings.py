@@ -46,7 +46,8 @@ class ControllerSettings(Settings):
     """'pinocchio' (damped least squares, fast) or 'ikpy' (bounded optimisation, the paper's)."""
     ik_latency: LatencyMode = "model"
     """How IK compute time enters simulated time: drawn from a fitted lognormal ('model'),
-    the wall time of each solve ('measured', not reproducible), or 0 ('zero')."""
+    the processor time of each solve ('measured': the paper's mechanism, reproduced by
+    replaying the latencies a run spent), or 0 ('zero')."""
     ik_latency_profile: IKSolverName = "ikpy"
     """Whose fitted compute-time distribution 'model' draws from. Default: the paper's solver,
     so results carry the paper's timing whichever solver computes the joint solution."""

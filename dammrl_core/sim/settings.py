@@ -36,6 +36,10 @@ class DomainRandomization(BaseModel):
     """Standard deviation of joint-velocity sensor noise [rad/s]."""
     ee_noise_m: float = Field(2e-4, ge=0)
     """Standard deviation of end-effector position noise [m]."""
+    ee_vel_noise_m_per_s: float = Field(1e-3, ge=0)
+    """Standard deviation of end-effector velocity noise [m/s]: the joint-velocity noise
+    through the arm's Jacobian (0.5-1.0 mm/s per axis at the start postures), as an arm
+    that reports J(q) dq would measure it. The trigger's dV/dt <= 0 test reads it."""
 
 
 class SimSettings(Settings):

@@ -215,6 +215,7 @@ class Simulation:
         std[SENSOR_LAYOUT["q"]] = r.q_noise_rad
         std[SENSOR_LAYOUT["dq"]] = r.dq_noise_rad_per_s
         std[SENSOR_LAYOUT["ee_pos"]] = r.ee_noise_m
+        std[SENSOR_LAYOUT["ee_vel"]] = r.ee_vel_noise_m_per_s
         return std
 
     def _randomize(self) -> None:
