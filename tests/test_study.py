@@ -209,6 +209,17 @@ def test_the_restricted_mean_of_a_study_is_the_mean_of_capped_times() -> None:
     assert time_to_success(np.full(3, 60.0), np.zeros(3, bool), 60.0).median_s == np.inf
 
 
+def test_the_seeds_split_into_disjoint_sets_in_order() -> None:
+    from dammrl.study.study import StudyOptions
+
+    options = StudyOptions(seeds=range(7_000_000, 7_000_150), sets=3)
+    assert [options.set_seeds(k) for k in range(3)] == [
+        range(7_000_000 + 50 * k, 7_000_050 + 50 * k) for k in range(3)
+    ]
+    uneven = StudyOptions(seeds=range(7_000_000, 7_000_007), sets=3)
+    assert [len(uneven.set_seeds(k)) for k in range(3)] == [3, 2, 2]
+
+
 REGISTERED_RULES = {
     2: "90ca596a5cf41b8cb2a7025f97648db857ad9153c45ed1abf9b21042741f6497",
 }

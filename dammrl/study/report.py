@@ -200,6 +200,7 @@ def _modified(path: Path) -> bool:
 
 
 def _rows(result: StudyResult, condition: str, key: str) -> list[dict[str, Any]]:
+    """The rows of one configuration under one condition."""
     return [r for r in result.rows if r["configuration"] == key and r["condition"] == condition]
 
 
@@ -358,41 +359,26 @@ def _verdict_changes(result: StudyResult, measured: list[str]) -> str:
     return "Verdicts that change: " + "; ".join(changes) + "."
 
 
+FEEDFORWARD_FIGURES = (("success", 100), ("time", 1), ("final_error_m", 1000), ("sparc", 1),
+                       ("n_osc", 1))  # fmt: skip
+TRIGGER_FIGURES = (("trigger_hold", 100), ("n_steps", 1), ("time", 1), ("n_osc", 1),
+                   ("final_error_m", 1000))  # fmt: skip
+
+
 def _feedforward(result: StudyResult) -> str:
     """Configuration 4 with the resolved-acceleration feed-forward against 4 (paired)."""
-    lines = [
-        "| condition | success pp | restricted time s | final error mm | SPARC | N_osc |",
-        "|---|---|---|---|---|---|",
-    ]
+    lines = ["| condition | success pp | restricted time s | final error mm | SPARC | N_osc |",
+             "|---|---|---|---|---|---|"]  # fmt: skip
     for condition in result.options.conditions:
-        a, b = _by_seed(result, condition, "4ra-dammrl-r2"), _by_seed(result, condition, R2)
-        seeds = sorted(set(a) & set(b))
-        if not seeds:
-            continue
-        cells = []
-        for metric, scale in (("success", 100), ("_time", 1), ("final_error_m", 1000),
-                              ("sparc", 1), ("n_osc", 1)):  # fmt: skip
-            x = np.array([_figure(a[s], metric) for s in seeds])
-            y = np.array([_figure(b[s], metric) for s in seeds])
-            rng = np.random.default_rng(zlib.crc32(f"ra/{condition}/{metric}".encode()))
-            cells.append(paired_difference(x, y, rng).text(scale, 2))
-        lines.append(f"| {condition} | " + " | ".join(cells) + " |")
+        cells = _paired_cells(result, (condition, "4ra-dammrl-r2"), (condition, R2),
+                              FEEDFORWARD_FIGURES)  # fmt: skip
+        if cells:
+            lines.append(f"| {condition} | " + " | ".join(cells) + " |")
     if len(lines) == 2:
         return "The resolved-acceleration row did not run."
     lines.append("\n4ra-dammrl-r2 - 4-dammrl-r2 on the same seeds (the same training seed "
-                 "per seed), mean [95 % bootstrap interval].")  # fmt: skip
+                 "per seed), mean [95 % interval].")  # fmt: skip
     return "\n".join(lines)
-
-
-def _by_seed(result: StudyResult, condition: str, key: str) -> dict[int, dict[str, Any]]:
-    return {r["seed"]: r for r in _rows(result, condition, key)}
-
-
-def _figure(row: dict[str, Any], metric: str) -> float:
-    if metric == "_time":
-        return claim_rules.restricted_time(row)
-    value = row.get(metric)
-    return float("nan") if value is None else float(value)
 
 
 def _velocity_noise(result: StudyResult) -> str:
@@ -401,31 +387,42 @@ def _velocity_noise(result: StudyResult) -> str:
     quiet = "randomised-quiet-velocity"
     if not {"randomised", quiet} <= set(result.options.conditions):
         return f"Not measured in this run (`--conditions randomised,{quiet}` measures it)."
-    lines = ["| configuration | trigger holds (with - without) | steps | restricted time s | "
-             "N_osc | final error mm |", "|---|---|---|---|---|---|"]  # fmt: skip
+    lines = ["| configuration | trigger holds pp | steps | restricted time s | N_osc | "
+             "final error mm |", "|---|---|---|---|---|---|"]  # fmt: skip
     for key in (EVENT, R2, FIXED):
-        a, b = _by_seed(result, "randomised", key), _by_seed(result, quiet, key)
-        seeds = sorted(set(a) & set(b))
-        if not seeds:
-            continue
-        cells = []
-        for metric, scale in (("_trigger_hold", 100), ("n_steps", 1), ("_time", 1),
-                              ("n_osc", 1), ("final_error_m", 1000)):  # fmt: skip
-            x = np.array([_trigger(a[s], metric) for s in seeds])
-            y = np.array([_trigger(b[s], metric) for s in seeds])
-            rng = np.random.default_rng(zlib.crc32(f"velocity/{key}/{metric}".encode()))
-            cells.append(paired_difference(x, y, rng).text(scale, 2))
-        lines.append(f"| {key} | " + " | ".join(cells) + " |")
+        cells = _paired_cells(result, ("randomised", key), (quiet, key), TRIGGER_FIGURES)
+        if cells:
+            lines.append(f"| {key} | " + " | ".join(cells) + " |")
     lines.append("\nWith - without velocity noise on the same randomised arms and seeds, "
-                 "mean [95 % bootstrap interval]; trigger holds in percentage points of "
-                 "reaches (a step whose trigger never fired within its timeout).")  # fmt: skip
+                 "mean [95 % interval]; trigger holds: reaches that ended because a step's "
+                 "trigger never fired within its timeout.")  # fmt: skip
     return "\n".join(lines)
 
 
-def _trigger(row: dict[str, Any], metric: str) -> float:
-    if metric == "_trigger_hold":
+def _paired_cells(result: StudyResult, a: tuple[str, str], b: tuple[str, str],
+                  figures: tuple[tuple[str, float], ...]) -> list[str]:  # fmt: skip
+    """Each figure's paired difference a - b over the seeds both (condition, configuration)
+    ran, with a bootstrap over training seeds then reaches; [] when they share no seed."""
+    rows_a = {r["seed"]: r for r in _rows(result, *a)}
+    rows_b = {r["seed"]: r for r in _rows(result, *b)}
+    seeds = sorted(set(rows_a) & set(rows_b))
+    clusters = [rows_a[s].get("run") or 0 for s in seeds]
+    return [
+        _interval([_figure(rows_a[s], name) - _figure(rows_b[s], name) for s in seeds],
+                  clusters, f"{a}/{b}/{name}").text(scale, 2)
+        for name, scale in figures
+    ] if seeds else []  # fmt: skip
+
+
+def _figure(row: dict[str, Any], name: str) -> float:
+    """A row's figure; ``time``: restricted time to success (pressed), ``trigger_hold``: 1
+    when the reach ended because a trigger never fired."""
+    if name == "time":
+        return claim_rules.restricted_time(row)
+    if name == "trigger_hold":
         return float(row["outcome"] == "hold" and str(row["reason"]).startswith("no trigger"))
-    return _figure(row, metric)
+    value = row.get(name)
+    return float("nan") if value is None else float(value)
 
 
 def _noise_check(result: StudyResult) -> str:
