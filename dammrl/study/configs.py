@@ -74,9 +74,12 @@ class PolicySpec:
 
 
 def _short(path: Path, up: int = 1) -> str:
-    """A checkpoint's run name (``up`` = 2: the folder of its seeds)."""
+    """A checkpoint's run name (``up`` = 2: the run its seed belongs to)."""
     run = path.parent if path.name == "checkpoint.pt" else path
-    return run.parent.name if up == 2 and run.name.startswith("seed-") else run.name
+    if up == 2 and run.name.startswith("seed-"):
+        group = run.parent  # runs/r2/seed-0, or a shipped policy's seeds/seed-0
+        return group.parent.name if group.name == "seeds" else group.name
+    return run.name
 
 
 @dataclass(frozen=True)

@@ -148,8 +148,9 @@ def verdict_table(result: StudyResult) -> str:
     options, seeds = result.options, result.options.seeds
     sets = ", ".join(f"{r.start:,}-{r.stop - 1:,}" for r in map(options.set_seeds,
                                                                range(options.sets)))  # fmt: skip
-    lines += ["", f"Each cell: the verdict with the button pressed as success, then with the "
-              f"paper's ||x - x_g|| <= eps_g, on all {len(seeds)} held-out seeds; **stable** "
+    lines += ["", f"Each cell: the verdict (checks passed) with the button pressed as success, "
+              f"then with the paper's ||x - x_g|| <= eps_g, on all {len(seeds)} held-out seeds; "
+              "**stable** "
               f"when each of the {options.sets} disjoint seed sets ({sets}) gives that verdict "
               "too, **unstable** (with each set's) when they differ. C6 is judged on the "
               "training runs, the same in every condition."]  # fmt: skip
@@ -157,14 +158,15 @@ def verdict_table(result: StudyResult) -> str:
 
 
 def _verdict_cell(result: StudyResult, condition: str, criterion: Criterion, k: int) -> str:
-    pooled = result.claims(condition, criterion)[k].verdict
+    claim = result.claims(condition, criterion)[k]
     label = "press" if criterion == "press" else "eps_g"
     sets = [result.claims(condition, criterion, s)[k].verdict for s in range(result.options.sets)]
-    if pooled == "not tested":
+    if claim.verdict == "not tested":
         return f"{label}: not tested"
-    if len(set(sets)) == 1 and sets[0] == pooled:
-        return f"{label}: **{pooled}**, stable"
-    return f"{label}: **{pooled}**, unstable ({' / '.join(sets)})"
+    passed = f"{sum(c.passed for c in claim.checks)}/{len(claim.checks)}"
+    if len(set(sets)) == 1 and sets[0] == claim.verdict:
+        return f"{label}: **{claim.verdict}** ({passed}), stable"
+    return f"{label}: **{claim.verdict}** ({passed}), unstable ({' / '.join(sets)})"
 
 
 def _claims_provenance() -> str:
@@ -342,21 +344,32 @@ def _latency_section(result: StudyResult) -> str:
 
 
 def _verdict_changes(result: StudyResult, measured: list[str]) -> str:
-    """Which claims' verdicts differ between the drawn-latency nominal arm and each
-    measured condition (both on the nominal arm)."""
-    if "nominal" not in result.options.conditions:
-        return "(The nominal condition did not run: nothing to compare the verdicts with.)"
+    """Which verdicts and checks differ between drawn and measured latency: the nominal
+    arm against each measured condition, and ikpy's solutions with drawn against measured
+    latency where both ran (that pair differs in the latency alone)."""
+    ran = result.options.conditions
+    pairs = [("nominal", m) for m in measured if "nominal" in ran]
+    pairs += [("ikpy-drawn", "ikpy-real")] if {"ikpy-drawn", "ikpy-real"} <= set(ran) else []
+    if not pairs:
+        return "(No drawn-latency condition on the nominal arm ran: nothing to compare with.)"
+    return "\n".join(_changes(result, a, b) for a, b in pairs)
+
+
+def _changes(result: StudyResult, drawn: str, measured: str) -> str:
     changes = []
-    for condition in measured:
-        for criterion in CRITERIA:
-            base, other = result.claims("nominal", criterion), result.claims(condition, criterion)
-            for a, b in zip(base, other, strict=True):
-                if a.verdict != b.verdict and b.verdict != "not tested":
-                    changes.append(f"{a.key} ({criterion}): {a.verdict} with drawn latency, "
-                                   f"{b.verdict} with {condition}")  # fmt: skip
-    if not changes:
-        return "Every verdict is the same with measured latency as with the drawn one."
-    return "Verdicts that change: " + "; ".join(changes) + "."
+    for criterion in CRITERIA:
+        for a, b in zip(result.claims(drawn, criterion), result.claims(measured, criterion),
+                        strict=True):  # fmt: skip
+            if b.verdict == "not tested":
+                continue
+            if a.verdict != b.verdict:
+                changes.append(f"{a.key} ({criterion}) {a.verdict} -> {b.verdict}")
+            changes += [f"{a.key} ({criterion}) {'passes' if y.passed else 'fails'} now: "
+                        f"{y.text}" for x, y in zip(a.checks, b.checks, strict=True)
+                        if x.passed != y.passed]  # fmt: skip
+    head = f"- {drawn} -> {measured}: "
+    return head + ("every verdict and every check the same." if not changes
+                   else "; ".join(changes) + ".")  # fmt: skip
 
 
 FEEDFORWARD_FIGURES = (("success", 100), ("time", 1), ("final_error_m", 1000), ("sparc", 1),
