@@ -20,7 +20,7 @@ from mcap.reader import make_reader
 from dammrl.recording import export_csv, export_json, human_statistics, info, read_recording, repair
 from dammrl.replay import ReplayOptions, replay, selected
 from dammrl_core.errors import DammrlError
-from schemas import StepEvent
+from schemas import RobotState, StepEvent
 from services.common.config import BusSettings
 from services.recorder.core import header_of
 from tests.busutil import Observer, client_settings, free_port, start_service, wait_for
@@ -200,7 +200,10 @@ def test_replay_in_real_time_keeps_the_inter_arrival_times(
     session_recording: tuple[Path, Seen],
 ) -> None:
     recording = read_recording(session_recording[0])
-    options = ReplayOptions(rate=1.0, topics=("robot/state",), end_s=3.0)
+    states = [m.log_time for m in recording.messages
+              if recording.channels[m.channel_id].topic.endswith("/robot/state")]  # fmt: skip
+    start_s = (states[0] - recording.messages[0].log_time) * 1e-9  # the sim starts late if busy
+    options = ReplayOptions(rate=1.0, topics=("robot/state",), start_s=start_s, end_s=start_s + 3)
     original = np.diff([t for _, t, _ in selected(recording, options)]) * 1e-9
     port = free_port()
     observer = Observer(port, namespace="replay")
@@ -283,9 +286,10 @@ def test_recordings_rotate_by_duration(tmp_path: Path) -> None:
     port = free_port()
     observer = Observer(port)
     out = tmp_path / "rotating.mcap"
+    sim = start_service("sim", port)
+    wait_for(lambda: len(observer.of(RobotState)) > 0, 30, "the sim")  # slow to start if busy
     recorder = start_service("recorder", port, DAMMRL_RECORDER_OUT=str(out),
                              DAMMRL_RECORDER_MAX_DURATION_S="1.5")  # fmt: skip
-    sim = start_service("sim", port)
     try:
         wait_for(lambda: len(list(tmp_path.glob("rotating*.mcap"))) >= 3, 30, "two rotations")
     finally:

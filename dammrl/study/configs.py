@@ -197,8 +197,8 @@ def variant_configurations() -> list[Configuration]:
 
 
 def adaptive_configuration(reward2: tuple[Path, ...] = ()) -> Configuration:
-    """Configuration 4 inside the adaptive mode (``dammrl study --adaptive``): the seeds as
-    one session per randomisation setting, in order, the posterior over M_ij carried
+    """Configuration 4 inside the adaptive mode (``dammrl study --adaptive``): each seed set
+    as one session per arm (nominal, randomised), in order, the posterior over M_ij carried
     from reach to reach and the targets of ``DAMMRL_POLICY_TARGETS__*``."""
     runs = tuple(c for p in reward2 for c in checkpoint_files(p))
     r2 = runs or (checkpoint_file(SHIPPED[2]),)
