@@ -260,3 +260,21 @@ def test_the_studys_adaptive_row_runs_its_seeds_as_one_session() -> None:
     learned = next(c for c in variant_configurations() if c.key == "4s-dammrl-r2")  # shipped
     plain = [run_job(Job(learned, s, "nominal", k)).row for k, s in enumerate(seeds)]
     assert [r.row["t_total_s"] for r in records] == [p["t_total_s"] for p in plain]  # no switch
+
+
+def test_the_studys_adaptive_sessions_are_one_per_seed_set_counted_in_reaches() -> None:
+    from dammrl.study.configs import adaptive_configuration
+    from dammrl.study.study import StudyOptions, adaptive_sessions
+
+    options = StudyOptions(seeds=range(7_000_000, 7_000_004), sets=2, conditions=("nominal",))
+    bars: list[tuple[int, str]] = []
+    ticks: list[int] = []
+
+    def progress(total: int, description: str):  # type: ignore[no-untyped-def]
+        bars.append((total, description))
+        return ticks.append
+
+    records = adaptive_sessions(options, adaptive_configuration(), progress)
+    assert bars == [(4, "adaptive sessions")] and ticks == [2, 2]
+    assert [(r.row["seed"], r.row["seed_set"]) for r in records] == [
+        (7_000_000, 0), (7_000_001, 0), (7_000_002, 1), (7_000_003, 1)]  # fmt: skip

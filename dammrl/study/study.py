@@ -141,7 +141,7 @@ def run_study(options: StudyOptions, progress: Callable[[int, str], Progress]) -
     if options.adaptive:
         adaptive = adaptive_configuration(options.reward2)
         configurations.append(adaptive)
-        records += _adaptive_sessions(options, adaptive, progress)
+        records += adaptive_sessions(options, adaptive, progress)
     wall["evaluation"] = time.perf_counter() - start
     training = training_curves(configurations)
     verdicts: Verdicts = {}
@@ -184,17 +184,18 @@ def _latency_key(row: dict[str, Any]) -> str:
     return f"{row['condition']}/{row['configuration']}/{row['seed']}"
 
 
-def _adaptive_sessions(options: StudyOptions, adaptive: Configuration,
+def adaptive_sessions(options: StudyOptions, adaptive: Configuration,
                        progress: Callable[[int, str], Progress]) -> list[Record]:  # fmt: skip
     """Configuration 4a: one session per seed set and randomisation, each in one process,
     its seeds in order (the posterior carried from reach to reach)."""
     conditions = [c for c in options.conditions if c in ("nominal", "randomised")]
     sessions = [(adaptive, tuple(options.set_seeds(k)), c)
                 for c in conditions for k in range(options.sets)]  # fmt: skip
-    tick = progress(len(sessions), "adaptive sessions")
+    tick = progress(sum(len(seeds) for _, seeds, _ in sessions), "adaptive sessions")
     records = []
-    for session in map_jobs(run_session, sessions, options.workers, progress=tick):
+    for session in map_jobs(run_session, sessions, options.workers):
         records += session
+        tick(len(session))  # in reaches, as every other bar, a session at a time
     first = {seed: i for i, seed in enumerate(options.seeds)}
     for record in records:
         record.row["seed_set"] = options.seed_set(first[record.row["seed"]])
