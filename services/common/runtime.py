@@ -38,16 +38,43 @@ def prioritise(critical: bool) -> str:
 
 
 class SignalStop(threading.Event):
-    """An event set by SIGINT or SIGTERM; ``signum`` is the one that arrived (0: none)."""
+    """An event set by SIGINT or SIGTERM; ``signum`` is the one that arrived (0: none).
+
+    The handler takes no lock: Python runs it in the main thread between any two
+    bytecodes, also inside this event's own ``wait`` while that holds the lock ``set``
+    needs, and setting it there deadlocks (Python's signal docs warn of locks in
+    handlers; a service once hung so, ignoring its launcher's death and every later
+    signal). The handler writes a byte to a pipe; a thread of its own sets the event."""
 
     def __init__(self) -> None:
         super().__init__()
         self.signum = 0
+        read_fd, self._write_fd = os.pipe()
+        os.set_blocking(self._write_fd, False)
+        threading.Thread(
+            target=self._set_when_signalled, args=(read_fd,), name="signal-stop", daemon=True
+        ).start()
 
     def handle(self, signum: int, frame: object) -> None:
-        """The signal handler: remember the signal and set the event."""
+        """The signal handler: remember the signal and wake the thread that sets the event
+        (os.write takes no Python lock)."""
         self.signum = signum
-        self.set()
+        if self._write_fd >= 0:
+            with contextlib.suppress(OSError):  # full: a byte is already waiting
+                os.write(self._write_fd, b"\0")
+
+    def _set_when_signalled(self, read_fd: int) -> None:
+        try:
+            while os.read(read_fd, 1):  # b"": closed, no signal will come
+                self.set()
+        finally:
+            os.close(read_fd)
+
+    def close(self) -> None:
+        """No more signals: the setting thread ends."""
+        write_fd, self._write_fd = self._write_fd, -1  # first: a late handler writes nothing
+        if write_fd >= 0:
+            os.close(write_fd)
 
 
 def stop_on_signals() -> SignalStop:
@@ -111,11 +138,13 @@ def _say_if_stderr_takes_it(line: str) -> None:
 def stopping_on_signals() -> Iterator[SignalStop]:
     """``stop_on_signals`` for a ``with`` block: the previous handlers return after it."""
     previous = {signum: signal.getsignal(signum) for signum in SIGNALS}
+    stop = stop_on_signals()
     try:
-        yield stop_on_signals()
+        yield stop
     finally:
         for signum, handler in previous.items():
             signal.signal(signum, handler)
+        stop.close()
 
 
 class Pacer:
