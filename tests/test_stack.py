@@ -84,7 +84,7 @@ def test_dammrl_up_stops_every_service_on_sigterm(port: int) -> None:
     launcher.send_signal(signal.SIGTERM)
     assert launcher.wait(30) == 0
     time.sleep(0.5)
-    assert not [pid for pid in children if os.path.exists(f"/proc/{pid}")]
+    assert not [pid for pid in children if _running(pid)]
 
 
 def test_killed_controller_leaves_the_arm_held_and_a_new_one_resumes(
