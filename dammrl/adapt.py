@@ -146,25 +146,26 @@ class _Episode:
 
 
 def _episodes(path: Path) -> dict[int, _Episode]:
-    """Each recorded episode's messages (robot states by the log time between its goal and
-    its result, up to its end on the robot clock)."""
+    """Each recorded episode's messages (the robot states it tagged with the episode, up to
+    its end on the robot clock)."""
     recording = read_recording(path)
     episodes: dict[int, _Episode] = {}
-    states: list[tuple[int, RobotState]] = []
-    starts: dict[int, int] = {}
-    ends: dict[int, int] = {}
-    for log_ns, message in recording.decoded(
+    # by the episode the arm tagged, not by log time: the recorder hears the goal and the
+    # arm's reset state on separate subscribers, in either order on a loaded machine
+    states: dict[int, list[RobotState]] = {}
+    announced: set[int] = set()
+    for _, message in recording.decoded(
         TaskGoal, DecisionRequest, ModelChoice, Intent, StepEvent, RobotState, EpisodeResult
     ):
-        if isinstance(message, RobotState):
-            states.append((log_ns, message))
-            continue
         number = getattr(message, "episode", 0)
         if number < 1:
             continue
+        if isinstance(message, RobotState):
+            states.setdefault(number, []).append(message)
+            continue
         episode = episodes.setdefault(number, _Episode({}, {}, {}, [], [], None))
         if isinstance(message, TaskGoal):
-            starts.setdefault(number, log_ns)
+            announced.add(number)
         elif isinstance(message, DecisionRequest):
             episode.requests.setdefault(message.request, message)
         elif isinstance(message, ModelChoice) and message.request > 0:
@@ -175,14 +176,12 @@ def _episodes(path: Path) -> dict[int, _Episode]:
             episode.steps.append(message)
         elif isinstance(message, EpisodeResult):
             episode.result = message
-            ends[number] = log_ns
     complete = {}
     for number, episode in episodes.items():
-        if episode.result is None or not episode.requests or number not in starts:
+        if episode.result is None or not episode.requests or number not in announced:
             continue  # cut by the end of the recording, or begun before it
         end_s = episode.result.t_total_s + 1e-9
-        episode.states = [s for t, s in states
-                          if starts[number] < t <= ends[number] and s.t_s <= end_s]  # fmt: skip
+        episode.states = [s for s in states.get(number, []) if s.t_s <= end_s]
         complete[number] = episode
     return complete
 

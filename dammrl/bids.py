@@ -136,11 +136,7 @@ def _label(session: str) -> str:
 def _write_run(
     out: Path, reach: Reach, run: int, recording: Recording, joints: tuple[str, ...]
 ) -> None:
-    messages = [
-        (t, m)
-        for t, m in recording.decoded(*KEPT)
-        if reach.start_ns <= t <= reach.end_ns and _episode(m) in (reach.episode, None)
-    ]
+    messages = [(t, m) for t, m in recording.decoded(*KEPT) if _in_reach(t, m, reach)]
     states = [(t, m) for t, m in messages if isinstance(m, RobotState)]
     if len(states) < 2:
         return
@@ -168,6 +164,17 @@ KEPT = (
 
 def _episode(message: Any) -> int | None:
     return getattr(message, "episode", None)
+
+
+def _in_reach(log_ns: int, message: Any, reach: Reach) -> bool:
+    """A message of the reach: tagged with its episode (a run numbers each once), or
+    untagged and logged between its goal and its result. Tagged messages are not bound by
+    the goal's log time: the recorder hears the goal and the arm's reset state on separate
+    subscribers, in either order on a loaded machine."""
+    episode = _episode(message)
+    if episode is not None:
+        return episode == reach.episode and log_ns <= reach.end_ns
+    return reach.start_ns <= log_ns <= reach.end_ns
 
 
 class RobotClock:

@@ -505,7 +505,8 @@ def session_traces(path: Path, episode: int | None = None) -> SessionTraces:
     t0 = decoded[0][0]
     goals: dict[int, np.ndarray] = {}
     pressure: list[tuple[float, float, bool]] = []
-    error: list[tuple[float, np.ndarray]] = []
+    # states by the episode they carry: the arm's reset state may be heard before its goal
+    states: list[tuple[float, RobotState]] = []
     traces = SessionTraces(*(np.empty(0),) * 2, True, np.empty(0), np.empty((0, 3)), [], [], [])
     current = 0  # the episode in progress
     for log_time, message in decoded:
@@ -513,13 +514,14 @@ def session_traces(path: Path, episode: int | None = None) -> SessionTraces:
         if isinstance(message, TaskGoal):
             goals[message.episode], current = np.array(message.goal_m), message.episode
             traces.episodes.append((t, message.episode))
+        elif isinstance(message, RobotState):
+            if episode in (None, message.episode):
+                states.append((t, message))
         elif episode is not None and current != episode:
             continue
         elif isinstance(message, SensorSample):
             level = message.level
             pressure.append((t, message.raw if level is None else level, level is not None))
-        elif isinstance(message, RobotState) and message.episode in goals:
-            error.append((t, np.array(message.ee_pos_m) - goals[message.episode]))
         elif isinstance(message, Intent):
             traces.decisions.append((t, message))
         elif isinstance(message, EpisodeResult):
@@ -532,6 +534,7 @@ def session_traces(path: Path, episode: int | None = None) -> SessionTraces:
         traces.pressure_t = np.array([p[0] for p in pressure])
         traces.pressure = np.array([p[1] for p in pressure])
         traces.pressure_normalised = all(p[2] for p in pressure)
+    error = [(t, np.array(s.ee_pos_m) - goals[s.episode]) for t, s in states if s.episode in goals]
     if error:
         traces.error_t = np.array([e[0] for e in error])
         traces.error_m = np.array([e[1] for e in error])

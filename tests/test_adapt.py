@@ -64,6 +64,38 @@ def test_a_recorded_reach_gives_the_transitions_training_would_have(recording: P
 
 
 @pytest.mark.slow
+def test_an_arms_state_heard_before_its_episodes_goal_still_belongs_to_it(
+    recording: Path, tmp_path: Path
+) -> None:
+    """The recorder hears the goal and the arm's reset state on separate subscribers: on a
+    loaded machine the reset state can be logged first (CI did). Its transitions stay."""
+    from dammrl.recording import read_recording
+    from schemas.codec import decode
+    from schemas.keys import type_of
+    from schemas.messages import RobotState, TaskGoal
+    from services.recorder.core import McapRecorder
+
+    original = read_recording(recording)
+    first_state_ns: dict[int, int] = {}
+    for log_ns, state in original.decoded(RobotState):
+        assert isinstance(state, RobotState)
+        first_state_ns.setdefault(state.episode, log_ns)
+    moved = tmp_path / "goal-late.mcap"
+    writer = McapRecorder(moved, original.namespace(), {}, 4096)
+    for record in original.messages:
+        topic, log_ns = original.topic(record), record.log_time
+        if type_of(original.namespace(), topic) is TaskGoal:
+            log_ns = first_state_ns[decode(TaskGoal, record.data).episode] + 1
+        writer.record(topic, record.data, log_ns)
+    writer.finish()
+    assert set(first_state_ns) >= {1, 2, 3}
+    for number, episode in _episodes(recording).items():
+        expected = _transitions(episode, weights())
+        got = _transitions(_episodes(moved)[number], weights())
+        assert [t.reward for t in got] == [t.reward for t in expected], number
+
+
+@pytest.mark.slow
 def test_the_fitted_person_is_what_the_recorded_decisions_say(recording: Path) -> None:
     human = HumanModel()
     toward, ratios = [], []

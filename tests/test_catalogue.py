@@ -62,16 +62,19 @@ def write_run(
     t0_ns: int,
     extra: Sequence[Any] = (),
     during: Sequence[Any] = (),
+    goal_heard_late_ns: int = 0,
 ) -> None:
     """A stack run's recording: for each (episode, time) a goal, 20 states on a straight
-    line (``during`` messages among them) and its result; then ``extra`` messages."""
+    line (``during`` messages among them) and its result; then ``extra`` messages. The goal
+    logged ``goal_heard_late_ns`` after the arm's reset state, if asked."""
     path.parent.mkdir(parents=True, exist_ok=True)
     recorder = McapRecorder(
         path, "dammrl", {"mode": "virtual", "study": json.dumps(study)}, chunk_bytes=4096
     )
     seq, now = 0, t0_ns
     for episode, t_total in reaches:
-        _put(recorder, GOAL.model_copy(update={"episode": episode}), now, seq := seq + 1)
+        goal = GOAL.model_copy(update={"episode": episode})
+        _put(recorder, goal, now + goal_heard_late_ns, seq := seq + 1)
         for k in range(20):
             state = STATE.model_copy(
                 update={
@@ -258,6 +261,17 @@ def test_the_bids_export_has_a_run_per_reach_and_never_deletes_a_folder_of_other
     with pytest.raises(CatalogueError, match="not empty"):
         export(root, other)
     assert (other / "chapter1.tex").read_text() == "precious"
+
+
+def test_an_arms_state_heard_before_its_reachs_goal_is_still_exported(tmp_path: Path) -> None:
+    """The recorder hears the goal and the arm's reset state on separate subscribers: on a
+    loaded machine the reset state (and the next) can be logged first. No row is lost."""
+    write_run(tmp_path / "P007" / "ses-01" / "recordings" / "part-01.mcap", _study("b", [1, 2]),
+              [(1, 5.0), (2, 6.0)], 10_000 * MS, goal_heard_late_ns=15 * MS)  # fmt: skip
+    build(tmp_path)
+    export(tmp_path, tmp_path / "bids")
+    motion = sorted((tmp_path / "bids" / "sub-P007" / "ses-01" / "motion").glob("*_motion.tsv"))
+    assert [len(m.read_text().splitlines()) for m in motion] == [20, 20]
 
 
 def test_the_persons_raw_input_is_exported_as_physio_beside_the_motion(tmp_path: Path) -> None:
