@@ -230,6 +230,27 @@ def test_bad_signal_drops_the_contraction_and_says_why(
     assert decoder.problem() is None  # clean signal again
 
 
+def test_a_busy_senders_jittered_stamps_still_decide_and_a_step_back_is_a_jump(
+    calibration: EmgCalibration,
+) -> None:
+    """A sender stamps each chunk when it pushes it, back-dating its samples at the nominal
+    rate (LSL's push_chunk): pushed late, a chunk's first stamps fall before the last
+    chunk's end. That jitter (here up to 30 ms) is no clock jump; a step back of 1 s is."""
+    synth = EmgSynth(model_named("medium"), seed=15)
+    decoder = WindowDecoder(calibration, EmgDecoderSettings())
+    rng = np.random.default_rng(0)
+    found = []
+    synth.contract(1, 0.9, delay_s=0.5)
+    for _ in range(100):  # 2 s in chunks of 20 samples
+        pushed_late_s = rng.uniform(0.0, 0.03)
+        times = synth.t_s + pushed_late_s + np.arange(-19, 1) / RATE + 19 / RATE
+        found += decoder.push(synth.generate(20), times)
+    assert decoder.problem() is None
+    assert [(c.u_h, c.accepted) for c in found] == [(1, True)], found
+    decoder.push(synth.generate(20), synth.t_s - 1.0 + np.arange(20) / RATE)
+    assert "jumped by -1.0" in str(decoder.problem())
+
+
 def test_a_contraction_held_too_long_is_a_stuck_signal(calibration: EmgCalibration) -> None:
     synth = EmgSynth(model_named("medium"), seed=14)
     decoder = WindowDecoder(calibration, EmgDecoderSettings(max_contraction_s=1.0))

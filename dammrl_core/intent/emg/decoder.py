@@ -16,6 +16,9 @@ voted commands between rests; it becomes one decision when it ends:
   linear classifier's classes are strength-invariant by design), and the same rule for
   the pad and the wearable means one instruction for the participant.
 
+Windows count samples, not timestamps, so jittered stamps (a step back of a few ms when
+the sender is busy) only blur a contraction's onset by that much.
+
 A decision below ``min_confidence``, or shorter than ``min_contraction_s`` (a twitch),
 is not acted on; one held longer than ``max_contraction_s`` is a stuck signal, not a
 decision. Bad signal (non-finite samples, a flat or clipping channel, a gap or a jump in
@@ -63,7 +66,11 @@ class EmgDecoderSettings(BaseModel):
     max_contraction_s: float = Field(4.0, ge=0.5, le=30.0)
     """A contraction longer than this is a stuck signal: no decision until rest [s]."""
     max_gap_s: float = Field(0.25, ge=0.01, le=5.0)
-    """A gap between timestamps longer than this (or a step back) resets the decoder [s]."""
+    """A gap between timestamps longer than this resets the decoder [s]."""
+    max_step_back_s: float = Field(0.05, ge=0.0, le=1.0)
+    """Timestamps stepping back by up to this are jitter, not a clock jump: an acquisition
+    PC stamps each chunk when it pushes it (LSL back-dates its samples at the nominal
+    rate), late when it is busy; a step back further resets the decoder [s]."""
 
 
 @dataclass(frozen=True)
@@ -139,7 +146,7 @@ class WindowDecoder:
     def _time_problem(self, times: np.ndarray) -> str | None:
         steps = np.diff(times, prepend=self.last_t if self.last_t is not None else times[0])
         worst = float(steps[np.argmax(np.abs(steps))]) if len(steps) else 0.0
-        if worst < -1.0 / self.rate_hz or worst > self.settings.max_gap_s:
+        if worst < -self.settings.max_step_back_s or worst > self.settings.max_gap_s:
             return f"the samples' clock jumped by {worst:+.3f} s"
         return None
 
