@@ -20,8 +20,15 @@ import zenoh
 from dammrl.recording import Recording
 from dammrl_core.errors import DammrlError, JobFailedError
 from dammrl_core.models import ModelSet
-from schemas import DecisionRequest, EmergencyStop, ModelChoice, SessionControl
-from schemas.keys import topic_of
+from schemas import (
+    DecisionRequest,
+    EmergencyStop,
+    Health,
+    ModelChoice,
+    RobotState,
+    SessionControl,
+)
+from schemas.keys import key, topic_of
 from services.common.bus import JOIN_S, linked, not_joined_line, zenoh_config
 from services.common.config import BusSettings
 from services.common.security import roles_publishing
@@ -92,6 +99,7 @@ def replay(
             for role in sorted(set(roles.values()))
         }
         session = next(iter(opened.values()))
+        arms = ArmWatch(session, settings.namespace)
         stop.wait(1.0)  # let the session connect (and learn who is alive) before publishing
         deadline = time.monotonic() + JOIN_S - 1.0
         while not linked(session) and time.monotonic() < deadline and not stop.is_set():
@@ -99,7 +107,8 @@ def replay(
         if not linked(session):  # a replay into the void would look like a success
             raise JobFailedError(not_joined_line(settings).removeprefix("dammrl: "))
         if commands and not options.force:
-            _refuse_if_an_arm_listens(session, settings.namespace, commands)
+            arms.wait(2 * settings.health_period_s + 0.5, stop)
+            _refuse_if_an_arm_listens(session, settings.namespace, commands, arms)
         publishers = {
             topic: opened[role].declare_publisher(
                 f"{settings.namespace}/{topic}",
@@ -160,15 +169,50 @@ def _play_once(
     return len(messages)
 
 
-def _refuse_if_an_arm_listens(session: zenoh.Session, namespace: str, commands: list[str]) -> None:
+class ArmWatch:
+    """Every sign of a sim or robot on the bus from the moment the replay's session opens:
+    its liveliness token, its Health, its states. One liveliness query alone once missed a
+    running sim on a loaded machine, and the replay drove it."""
+
+    def __init__(self, session: zenoh.Session, namespace: str) -> None:
+        self.seen: set[str] = set()  # "a sim", "a robot", or "an arm" (states of either)
+        self.started = time.monotonic()
+        alive = [f"{namespace}/alive/{s}" for s in ARM_SERVICES]
+        self._subscribers = [
+            *(session.liveliness().declare_subscriber(k, self._on_sign, history=True)
+              for k in alive),
+            *(session.declare_subscriber(key(namespace, Health, s), self._on_sign)
+              for s in ARM_SERVICES),
+            session.declare_subscriber(key(namespace, RobotState), self._on_sign),
+        ]  # fmt: skip
+
+    def _on_sign(self, sample: zenoh.Sample) -> None:  # Zenoh's thread
+        if sample.kind == zenoh.SampleKind.PUT:
+            name = str(sample.key_expr).rsplit("/", 1)[-1]
+            self.seen.add(f"a {name}" if name in ARM_SERVICES else "an arm")
+
+    def wait(self, seconds: float, stop: threading.Event) -> None:
+        """Until ``seconds`` after the session opened (an arm's Health comes every
+        period), or until a sign came."""
+        end = self.started + seconds
+        while not self.seen and not stop.is_set() and time.monotonic() < end:
+            stop.wait(0.05)
+
+
+def _refuse_if_an_arm_listens(
+    session: zenoh.Session, namespace: str, commands: list[str], arms: ArmWatch
+) -> None:
+    found = sorted(arms.seen)
     for service in ARM_SERVICES:
         replies = session.liveliness().get(f"{namespace}/alive/{service}", timeout=2.0)
         if any(r.ok is not None for r in replies):
-            raise DammrlError(
-                f"refusing to replay {', '.join(commands)} into namespace {namespace!r}: a "
-                f"{service} is alive there and would move. Use --namespace to replay elsewhere, "
-                "--topics to leave the commands out, or --force if you mean it."
-            )
+            found.append(f"a {service}")
+    if found:
+        raise DammrlError(
+            f"refusing to replay {', '.join(commands)} into namespace {namespace!r}: "
+            f"{found[0]} is alive there and would move. Use --namespace to replay elsewhere, "
+            "--topics to leave the commands out, or --force if you mean it."
+        )
 
 
 @dataclass(frozen=True)

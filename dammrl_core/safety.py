@@ -178,16 +178,25 @@ def guard_command(
     if reason is not None:
         return Guarded(None, reason)
     speed = caps.speed_fraction * robot.dq_max
-    q_ref = np.clip(
+    near = np.clip(
         command.q_ref, q - caps.max_relative_target_rad, q + caps.max_relative_target_rad
     )
+    q_ref = near
     if last_q_ref is not None:
         q_ref = np.clip(q_ref, last_q_ref - speed * dt_s, last_q_ref + speed * dt_s)
     dq_ref = np.clip(command.dq_ref, -speed, speed)
     if np.array_equal(q_ref, command.q_ref) and np.array_equal(dq_ref, command.dq_ref):
         return Guarded(command, None)
     i = int(np.argmax(np.abs(q_ref - command.q_ref) + np.abs(dq_ref - command.dq_ref)))
-    why = f"reference of {robot.joint_names[i]} clamped by the arm's caps"
+    if dq_ref[i] != command.dq_ref[i]:
+        cap = f"speed {command.dq_ref[i]:+.2f} rad/s beyond {speed[i]:.2f}"
+    elif last_q_ref is not None and q_ref[i] != near[i]:  # the tighter cap, when both bind
+        cap = (f"{abs(command.q_ref[i] - last_q_ref[i]):.3f} rad from the last reference in "
+               f"{dt_s * 1e3:.0f} ms, beyond {speed[i] * dt_s:.3f}")  # fmt: skip
+    else:
+        cap = (f"{abs(command.q_ref[i] - q[i]):.3f} rad from the measured posture, beyond "
+               f"{caps.max_relative_target_rad:.3f}")  # fmt: skip
+    why = f"reference of {robot.joint_names[i]} clamped by the arm's caps ({cap})"
     applied = JointCommand(q_ref, dq_ref, command.tau_ff, command.kp, command.kd)
     return Guarded(applied, why, clamped=True)
 
@@ -223,11 +232,22 @@ class CommandFreshness:
         """Robot time of a recent state [s] (None: not recent)."""
         return next((t for stamp, t in self.recent if stamp == state_stamp_ns), None)
 
+    def since_reference_s(self, state_stamp_ns: int) -> float:
+        """Robot time from the reference in force to this state (0: not recent) [s]."""
+        t = self.time_of(state_stamp_ns)
+        return 0.0 if t is None else max(t - self.reference_t_s, 0.0)
+
     def allowance_s(self, state_stamp_ns: int, cap_s: float) -> float:
         """Robot time over which the reference may move for a command answering this
         state: since the reference in force, at most ``cap_s`` [s]."""
-        t = self.time_of(state_stamp_ns)
-        return 0.0 if t is None else min(max(t - self.reference_t_s, 0.0), cap_s)
+        return min(self.since_reference_s(state_stamp_ns), cap_s)
+
+    def clamp_line(self, count: int, reason: str | None, state_stamp_ns: int) -> str:
+        """The log line of the ``count``-th clamped command (a rate cap after a stall of
+        the loop shows as a state long after the reference in force)."""
+        since_ms = self.since_reference_s(state_stamp_ns) * 1e3
+        return (f"command #{count} clamped: {reason}; it answers a state {since_ms:.0f} ms "
+                "after the reference in force")  # fmt: skip
 
     def applied(self, state_stamp_ns: int) -> None:
         self.last_answered_ns = state_stamp_ns

@@ -6,6 +6,7 @@ import json
 import signal
 import subprocess
 import sys
+import threading
 import time
 from collections import defaultdict
 from collections.abc import Iterator
@@ -262,6 +263,43 @@ def test_replaying_commands_to_a_live_sim_needs_force(
             )
     finally:
         _stop([sim])
+        observer.close()
+
+
+def test_an_arm_heard_only_by_its_states_still_refuses_a_replay_of_commands(
+    tmp_path: Path,
+) -> None:
+    """An arm whose liveliness token the replay's query misses (one query missed a running
+    sim on a loaded machine, and the replay drove it) is still an arm: its states alone
+    refuse a replay of commands."""
+    from schemas import JointCommand, encode, key
+    from services.common.bus import zenoh_config
+    from services.recorder.core import McapRecorder
+    from tests.test_schemas import EXAMPLES
+
+    path = tmp_path / "commands.mcap"
+    recorder = McapRecorder(path, "dammrl", {}, chunk_bytes=4096)
+    command = next(m for m in EXAMPLES if isinstance(m, JointCommand))
+    recorder.record(key("dammrl", JointCommand), encode(command), 1)
+    recorder.finish()
+    port = free_port()
+    observer = Observer(port)
+    arm = zenoh.open(zenoh_config(client_settings(port)))  # states, no token
+    done = threading.Event()
+
+    def publish_states() -> None:
+        while not done.wait(0.02):
+            arm.put("dammrl/robot/state", b"state")
+
+    publisher = threading.Thread(target=publish_states)
+    publisher.start()
+    try:
+        with pytest.raises(DammrlError, match="an arm is alive there"):
+            replay(read_recording(path), client_settings(port), ReplayOptions(rate=0))
+    finally:
+        done.set()
+        publisher.join()
+        arm.close()
         observer.close()
 
 

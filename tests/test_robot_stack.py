@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import multiprocessing
+import re
 import signal
 import subprocess
 import sys
@@ -74,7 +75,17 @@ def test_an_episode_on_the_emulated_chain_reaches_the_goal(tmp_path: Path) -> No
     results = [json.loads(line) for line in up.stdout.splitlines()]
     assert [r["success"] for r in results] == [True, True], up.stdout
     assert all(r["final_error_m"] < 0.04 for r in results)
-    assert "clamped" not in up.stderr, up.stderr[-3000:]
+    # a loaded machine may stall the loop: a command then answers a state several periods
+    # after the reference in force and the rate cap (2 periods) binds; nothing else may
+    clamps = [line for line in up.stderr.splitlines() if "clamped" in line]
+    assert all(_after_a_stall(line) for line in clamps), up.stderr[-3000:]
+
+
+def _after_a_stall(clamp: str) -> bool:
+    """The rate cap on a command answering a state 3 or more periods (10 ms) after the
+    reference in force (the genuine controller moves q_ref at most 0.68 of the cap)."""
+    found = re.search(r"from the last reference in .* (\d+) ms after the reference", clamp)
+    return found is not None and int(found.group(1)) >= 30
 
 
 def test_the_servos_stop_by_themselves_when_the_robot_service_is_killed(

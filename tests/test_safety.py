@@ -36,12 +36,15 @@ def test_a_far_target_is_clamped_to_the_relative_cap_and_the_joint_speed(
     far = np.clip(HOME_Q + 1.0, robot.q_min, robot.q_max)
     guarded = guard_command(_command(far, np.full(6, 10.0)), HOME_Q, HOME_Q, 0.01, robot, CAPS)
     assert guarded.clamped and guarded.command is not None
+    assert "rad/s beyond" in str(guarded.reason)  # which cap, by how much: the log says
     step = np.abs(guarded.command.q_ref - HOME_Q)
     assert np.all(step <= robot.dq_max * 0.01 + 1e-12)  # rate from the last reference
     assert np.all(np.abs(guarded.command.dq_ref) <= robot.dq_max)
-    without_rate = guard_command(_command(far), HOME_Q, None, 0.01, robot, CAPS).command
-    assert without_rate is not None
-    np.testing.assert_allclose(np.abs(without_rate.q_ref - HOME_Q).max(), 0.15)
+    fast = guard_command(_command(far), HOME_Q, HOME_Q, 0.01, robot, CAPS)
+    assert "from the last reference in 10 ms" in str(fast.reason)
+    unrated = guard_command(_command(far), HOME_Q, None, 0.01, robot, CAPS)
+    assert unrated.command is not None and "from the measured posture" in str(unrated.reason)
+    np.testing.assert_allclose(np.abs(unrated.command.q_ref - HOME_Q).max(), 0.15)
 
 
 def test_a_command_beyond_the_limits_or_the_gains_is_rejected(robot: RobotDescription) -> None:

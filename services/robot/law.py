@@ -145,7 +145,8 @@ class ArmLaw:
         if guarded.clamped:
             self.clamped += 1
             if self.clamped <= 5 or self.clamped % 100 == 0:
-                log.warning("command #%d clamped: %s", self.clamped, guarded.reason)
+                log.warning(self.freshness.clamp_line(self.clamped, guarded.reason,
+                                                      state_stamp_ns))  # fmt: skip
         if self.held is not None:
             log.info("commands resumed: leaving the hold")
         self.command, self.held = guarded.command, None

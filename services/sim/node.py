@@ -203,7 +203,8 @@ class SimNode:
         if guarded.clamped:
             self.clamped += 1
             if self.clamped <= 5 or self.clamped % 100 == 0:
-                log.warning("command #%d clamped: %s", self.clamped, guarded.reason)
+                log.warning(self.freshness.clamp_line(self.clamped, guarded.reason,
+                                                      message.state_stamp_ns))  # fmt: skip
         self.command = guarded.command
         self.freshness.applied(message.state_stamp_ns)
         self.in_force_answers_ns = message.state_stamp_ns
