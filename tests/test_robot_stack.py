@@ -82,7 +82,7 @@ def test_an_episode_on_the_emulated_chain_reaches_the_goal(tmp_path: Path) -> No
 
 
 def _after_a_stall(clamp: str) -> bool:
-    """The rate cap on a command answering a state 3 or more periods (10 ms) after the
+    """The rate cap on a command answering a state 3 or more 10 ms periods after the
     reference in force (the genuine controller moves q_ref at most 0.68 of the cap)."""
     found = re.search(r"from the last reference in .* (\d+) ms after the reference", clamp)
     return found is not None and int(found.group(1)) >= 30
