@@ -23,16 +23,19 @@ from dammrl.emulators.servo_chain import (
     TICKS_PER_RAD,
     XM430_W350,
 )
-from dammrl_core.arm.driver import DriveCommand
+from dammrl_core.arm.driver import DriveCommand, JointState
 from dammrl_core.arm.dynamixel.calibration import Calibration, load_calibration, save_calibration
 from dammrl_core.arm.dynamixel.driver import DynamixelDriver
 from dammrl_core.arm.dynamixel.tools import guided_calibration, scan
 from dammrl_core.arm.jog import jog
-from dammrl_core.arm.settings import ArmSettings
+from dammrl_core.arm.settings import ArmSettings, arm_limits
+from dammrl_core.dynamics import ArmModel
 from dammrl_core.errors import ConfigurationError
 from dammrl_core.robot import RobotSettings
-from dammrl_core.task import TaskSettings
+from dammrl_core.state import JointCommand as CoreCommand
+from dammrl_core.task import TaskSettings, scene_layout
 from schemas import EmergencyStop, Header, JointCommand, Message, RobotState, TaskGoal
+from services.robot.law import ArmLaw
 from services.robot.node import RobotNode
 
 CALIBRATION = Calibration(
@@ -428,3 +431,51 @@ def test_a_controller_starting_where_the_arm_rests_after_homing_meets_no_cap(rig
         rig.run(4.0, answer_measured)
         assert rig.node.law.episode == episode, rig.bus.rejected
     assert rig.node.law.clamped == 0
+
+
+# ---- the law alone, in robot time -----------------------------------------------------------
+def _moving_law(speed_share: float) -> tuple[ArmLaw, Callable[[float], np.ndarray]]:
+    """An arm law holding at a start posture at robot time 0, and a reference moving every
+    joint from there at ``speed_share`` of its capped speed (as a function of robot time)."""
+    settings = ArmSettings()
+    robot = RobotSettings().load()
+    limits = arm_limits(robot, (robot.q_min, robot.q_max), settings)
+    law = ArmLaw(settings, limits, scene_layout(TaskSettings()), ArmModel(robot), 0.01, 0.0)
+    q0 = np.array(_goal(1).q_start_rad)
+    law.law(JointState(q0, np.zeros(6), np.zeros(6)), 0.0, 1.0, lambda: "quiet")  # a hold
+    return law, lambda t: q0 + speed_share * limits.dq_max * t
+
+
+def _command(law: ArmLaw, q_ref: np.ndarray, stamp: int) -> str | None:
+    gains = np.array(law.settings.hold_kp_nm_per_rad), np.array(law.settings.hold_kd_nms_per_rad)
+    joint = JointState(q_ref, np.zeros(6), np.zeros(6))
+    return law.take_command(CoreCommand(q_ref, np.zeros(6), np.zeros(6), *gains), stamp, joint,
+                            stamp * 0.01)  # fmt: skip
+
+
+def test_commands_taken_in_one_cycle_are_capped_from_each_other() -> None:
+    """On a loaded machine the commands answering two consecutive states can reach the
+    robot in one cycle. The rate cap allows the robot time between the states each one
+    answers, so the second must move from the first, not from the last reference written
+    to the drives (that made a controller at 0.75 of the cap speed meet the cap: a clamp
+    in a CI run; the sim always moved from the reference in force)."""
+    law, reference = _moving_law(0.75)
+    for stamp in (1, 2, 3):
+        law.freshness.published(stamp, stamp * 0.01)  # states 10 ms apart
+    assert _command(law, reference(0.01), 1) is None
+    law.law(JointState(reference(0.01), np.zeros(6), np.zeros(6)), 0.015, 1.0, lambda: "")
+    assert _command(law, reference(0.02), 2) is None  # these two in one cycle
+    assert _command(law, reference(0.03), 3) is None
+    assert law.clamped == 0
+    np.testing.assert_array_equal(law.last_q_ref, reference(0.03))
+
+
+def test_commands_taken_together_move_the_reference_no_faster_than_the_cap() -> None:
+    law, reference = _moving_law(1.5)
+    for stamp in (1, 2):
+        law.freshness.published(stamp, stamp * 0.01)
+    _command(law, reference(0.01), 1)
+    _command(law, reference(0.02), 2)  # both before the next write
+    assert law.clamped == 2 and law.command is not None
+    moved = np.abs(law.command.q_ref - reference(0.0))
+    assert np.all(moved <= law.limits.dq_max * 0.02 + 1e-12)

@@ -99,7 +99,7 @@ class ArmLaw:
         self.in_force_answers_ns: int | None = None
         self.held: CoreCommand | None = None  # a hold or a stop's law, fixed when it began
         self.held_since_s = now_s
-        self.last_q_ref: np.ndarray | None = None
+        self.last_q_ref: np.ndarray | None = None  # the reference in force (the rate cap's origin)
         self.clamped = 0
         self.refused: list[str] = []  # episodes refused on the way (the node says so)
 
@@ -150,6 +150,8 @@ class ArmLaw:
         if self.held is not None:
             log.info("commands resumed: leaving the hold")
         self.command, self.held = guarded.command, None
+        if self.homing is None:  # in force now: a second command this cycle moves from it
+            self.last_q_ref = guarded.command.q_ref
         self.freshness.applied(state_stamp_ns)
         self.in_force_answers_ns = state_stamp_ns
         self.command_wall_s = now
