@@ -217,6 +217,7 @@ class CommandFreshness:
         self.recent: deque[tuple[int, float]] = deque(maxlen=max(1, answerable))
         self.last_answered_ns = -1
         self.reference_t_s = 0.0  # robot time of the reference in force
+        self.clamped = 0  # commands the arm's caps changed
 
     def published(self, stamp_ns: int, t_s: float) -> None:
         self.recent.append((stamp_ns, t_s))
@@ -242,12 +243,16 @@ class CommandFreshness:
         state: since the reference in force, at most ``cap_s`` [s]."""
         return min(self.since_reference_s(state_stamp_ns), cap_s)
 
-    def clamp_line(self, count: int, reason: str | None, state_stamp_ns: int) -> str:
-        """The log line of the ``count``-th clamped command (a rate cap after a stall of
-        the loop shows as a state long after the reference in force)."""
+    def clamp(self, reason: str | None, state_stamp_ns: int) -> str | None:
+        """Count a clamped command; its log line for the first five and every hundredth
+        (None: not logged). A rate cap after a stall of the loop shows as a state long
+        after the reference in force."""
+        self.clamped += 1
+        if self.clamped > 5 and self.clamped % 100 != 0:
+            return None
         since_ms = self.since_reference_s(state_stamp_ns) * 1e3
-        return (f"command #{count} clamped: {reason}; it answers a state {since_ms:.0f} ms "
-                "after the reference in force")  # fmt: skip
+        return (f"command #{self.clamped} clamped: {reason}; it answers a state "
+                f"{since_ms:.0f} ms after the reference in force")  # fmt: skip
 
     def applied(self, state_stamp_ns: int) -> None:
         self.last_answered_ns = state_stamp_ns

@@ -430,7 +430,7 @@ def test_a_controller_starting_where_the_arm_rests_after_homing_meets_no_cap(rig
         rig.bus.send(_goal(episode, start))
         rig.run(4.0, answer_measured)
         assert rig.node.law.episode == episode, rig.bus.rejected
-    assert rig.node.law.clamped == 0
+    assert rig.node.law.freshness.clamped == 0
 
 
 # ---- the law alone, in robot time -----------------------------------------------------------
@@ -466,7 +466,7 @@ def test_commands_taken_in_one_cycle_are_capped_from_each_other() -> None:
     law.law(JointState(reference(0.01), np.zeros(6), np.zeros(6)), 0.015, 1.0, lambda: "")
     assert _command(law, reference(0.02), 2) is None  # these two in one cycle
     assert _command(law, reference(0.03), 3) is None
-    assert law.clamped == 0
+    assert law.freshness.clamped == 0
     np.testing.assert_array_equal(law.last_q_ref, reference(0.03))
 
 
@@ -476,6 +476,6 @@ def test_commands_taken_together_move_the_reference_no_faster_than_the_cap() -> 
         law.freshness.published(stamp, stamp * 0.01)
     _command(law, reference(0.01), 1)
     _command(law, reference(0.02), 2)  # both before the next write
-    assert law.clamped == 2 and law.command is not None
+    assert law.freshness.clamped == 2 and law.command is not None
     moved = np.abs(law.command.q_ref - reference(0.0))
     assert np.all(moved <= law.limits.dq_max * 0.02 + 1e-12)

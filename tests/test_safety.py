@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from dammrl_core.robot import RobotDescription
-from dammrl_core.safety import ArmCaps, guard_command
+from dammrl_core.safety import ArmCaps, CommandFreshness, guard_command
 from dammrl_core.state import JointCommand
 from tests.conftest import HOME_Q
 
@@ -66,3 +66,14 @@ def test_run_credentials_refuse_a_folder_others_may_write(
     folder.parent.chmod(0o777)  # as if another user had prepared it
     with pytest.raises(CredentialsError, match="not private to you"):
         run_credentials(7447)
+
+
+def test_clamped_commands_are_all_counted_and_the_first_five_and_each_hundredth_logged() -> None:
+    freshness = CommandFreshness(answerable=4)
+    freshness.held(1.0)
+    freshness.published(7, 1.035)
+    lines = [freshness.clamp("the rate cap", 7) for _ in range(200)]
+    logged = [n for n, line in enumerate(lines, 1) if line is not None]
+    assert freshness.clamped == 200 and logged == [1, 2, 3, 4, 5, 100, 200]
+    assert lines[0] == ("command #1 clamped: the rate cap; it answers a state 35 ms after the "
+                        "reference in force")  # fmt: skip

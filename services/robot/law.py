@@ -100,7 +100,6 @@ class ArmLaw:
         self.held: CoreCommand | None = None  # a hold or a stop's law, fixed when it began
         self.held_since_s = now_s
         self.last_q_ref: np.ndarray | None = None  # the reference in force (the rate cap's origin)
-        self.clamped = 0
         self.refused: list[str] = []  # episodes refused on the way (the node says so)
 
     @property
@@ -142,11 +141,8 @@ class ArmLaw:
         reason = reason or (None if guarded.clamped else guarded.reason)
         if reason is not None or guarded.command is None:
             return reason or "rejected"
-        if guarded.clamped:
-            self.clamped += 1
-            if self.clamped <= 5 or self.clamped % 100 == 0:
-                log.warning(self.freshness.clamp_line(self.clamped, guarded.reason,
-                                                      state_stamp_ns))  # fmt: skip
+        if guarded.clamped and (line := self.freshness.clamp(guarded.reason, state_stamp_ns)):
+            log.warning("%s", line)
         if self.held is not None:
             log.info("commands resumed: leaving the hold")
         self.command, self.held = guarded.command, None

@@ -251,7 +251,7 @@ class RobotNode:
         if len(self.latencies_s) > 10:
             p50, p99 = np.percentile(self.latencies_s, [50, 99]) * 1000
             parts.append(f"command to servo p50 {p50:.2f} ms, p99 {p99:.2f} ms")
-        parts.append(f"{self.law.clamped} commands clamped")
+        parts.append(f"{self.law.freshness.clamped} commands clamped")
         return ", ".join(parts)
 
 

@@ -76,7 +76,6 @@ class SimNode:
         )
         self.reported_stopped = False
         self.in_force_answers_ns: int | None = None  # ... while that command is in force
-        self.clamped = 0  # commands the caps changed
         self.last_stamp_ns = -1
         bus.subscribe(JointCommand, TaskGoal, EmergencyStop)
         bus.expect(JointCommand, "controller")
@@ -126,7 +125,7 @@ class SimNode:
         self.answered = False
         detail = (
             f"missed {self.pacer.missed} of {self.pacer.ticks} deadlines, "
-            f"{self.clamped} commands clamped"
+            f"{self.freshness.clamped} commands clamped"
         )
         reason = self.stop_latch.reason or self.fault
         stopped = reason is not None
@@ -200,11 +199,10 @@ class SimNode:
         if reason is not None or guarded.command is None:
             self.bus.reject(self.bus.key(JointCommand), reason or "rejected")
             return
-        if guarded.clamped:
-            self.clamped += 1
-            if self.clamped <= 5 or self.clamped % 100 == 0:
-                log.warning(self.freshness.clamp_line(self.clamped, guarded.reason,
-                                                      message.state_stamp_ns))  # fmt: skip
+        if guarded.clamped and (
+            line := self.freshness.clamp(guarded.reason, message.state_stamp_ns)
+        ):
+            log.warning("%s", line)
         self.command = guarded.command
         self.freshness.applied(message.state_stamp_ns)
         self.in_force_answers_ns = message.state_stamp_ns
