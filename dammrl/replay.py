@@ -203,6 +203,7 @@ def _refuse_if_an_arm_listens(
     session: zenoh.Session, namespace: str, commands: list[str], arms: ArmWatch
 ) -> None:
     found = sorted(arms.seen)
+    # the watch's history came as the session opened, maybe before it was linked: ask again
     for service in ARM_SERVICES:
         replies = session.liveliness().get(f"{namespace}/alive/{service}", timeout=2.0)
         if any(r.ok is not None for r in replies):
