@@ -144,12 +144,15 @@ class ReachRunner:
         task: ReachTask | None = None,
         policy: Policy | None = None,
         ik_latencies: Sequence[float] | None = None,
+        human: HumanModel | None = None,
     ) -> ReachResult:
         """One reach. ``trigger`` overrides the controller setting ('event' or 'fixed');
         ``policy`` (default: the fixed ``model``) chooses M_ij at every decision;
-        ``ik_latencies``: a measured run's (its ``ik_latencies_s``), replayed exactly."""
+        ``ik_latencies``: a measured run's (its ``ik_latencies_s``), replayed exactly;
+        ``human``: the simulated person of this reach in place of the settings' (one who
+        has practised or tired, ``HumanModel.practised``)."""
         policy = policy or FixedPolicy(self.settings.models, *model)
-        episode = self.episode(seed, trigger, task, ik_latencies)
+        episode = self.episode(seed, trigger, task, ik_latencies, human)
         metrics, trajectory = episode.run(policy)
         if episode.choices:  # the model in force at the end
             model = (episode.choices[-1].human_model, episode.choices[-1].robot_model)
@@ -172,6 +175,7 @@ class ReachRunner:
         trigger: str | None = None,
         task: ReachTask | None = None,
         ik_latencies: Sequence[float] | None = None,
+        human: HumanModel | None = None,
     ) -> Episode:
         """A fresh episode of ``seed``, ready to run (or to be stepped, see Episode.loop)."""
         settings = self.settings.controller
@@ -184,8 +188,9 @@ class ReachRunner:
             self.robot, settings, streams.ik_latency, self.arm, self.solver(settings), latency
         )
         reach = Reach(controller, task, self.settings.task, self.control_dt_s)
-        human = SimulatedHuman(self.settings.human, self.settings.models, streams.human)
-        return Episode(self, reach, human, streams.sim)
+        person = SimulatedHuman(human or self.settings.human, self.settings.models,
+                                streams.human)  # fmt: skip
+        return Episode(self, reach, person, streams.sim)
 
 
 class Episode:

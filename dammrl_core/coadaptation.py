@@ -5,77 +5,87 @@ the human's effective error rate and decision frequency, alongside the observed 
 time of the robot"; S3 updates it "based on real-world task performance and user comfort"
 and, "if task targets are unmet, ... selects alternative matched models".
 
-Here each M_ij has a predictive belief about what a reach under it gives *this* person on
-*this* arm: its success probability, its (log) reach time, its (log) final error and its
-comfort. The beliefs start from the model table (what each M_ij gave the nominal
-simulated person on the nominal arm, ``dammrl adapt table``) and are moved by four kinds
-of evidence, each with a stated likelihood (docs/guide/coadaptation.md):
+Here each option (the 16 M_ij and the base policy) has a predictive belief about what a
+reach under it gives *this* person on *this* arm: its success probability, its mean log
+reach time, its log final error and its comfort. Two sources move them
+(docs/guide/coadaptation.md states each likelihood):
 
-* **the person** (per radius i): each command is Bernoulli(a_i) with a Beta prior at the
-  sub-model's accuracy, a wearable's confidence c counting as c of an observation; each
-  decision time is lognormal around the person's median under i, with a normal prior at
-  the sub-model's (sd ``decision_scale_sd``) and known log-sd ``decision_sigma``;
-* **the robot**: each step's execution time (its reference starting to the trigger that
-  admits it) is lognormal around ``s * tau(L, eps)``, the nominal arm's time for a step
-  of that length and admission radius, scaled by this arm's unknown factor s (log s
-  normal, prior sd 0.3);
-* **the task**: each reach's success is Bernoulli(p_ij) (Beta prior at the table's rate,
-  ``PRIOR_REACHES`` pseudo-reaches), its log time and log final error normal around the
-  model's prediction with a per-model offset (normal prior);
-* **comfort**: the participant's rating after a block (1-5, from the session display)
-  where present, else a smoothness proxy (SPARC of the reach: both a rating and a jerk
-  measure are what the paper calls comfort; the proxy is what a simulation has).
+* **the person and the arm**, estimated from every decision and step whatever the option
+  in force: per radius i the person's accuracy a_i (Beta, prior at the sub-model's
+  accuracy, ``PERSON_PRIOR_DECISIONS`` pseudo-decisions; a wearable's confidence c counts
+  as c of a decision) and their decision-time ratio r_i to the sub-model (lognormal times,
+  normal prior on log r_i, sd ``decision_scale_sd``); the arm's step-time factor s (each
+  step's execution time lognormal around s tau(L, eps), log s ~ N(0, 0.3^2)). Evidence is
+  discounted with a half-life of ``HALF_LIFE_DECISIONS`` decisions of the same radius, so
+  a person who tires or learns is followed.
+  Every option's prediction comes from these: persons drawn from this posterior are run
+  through the model table (:mod:`dammrl_core.model_table`: each option simulated on a grid
+  of persons), so an option never tried moves with what is learned about the person;
+* **the option's own reaches**: success is Bernoulli(p), with the prediction p as prior
+  worth ``PRIOR_REACHES`` reaches of this person, Beta(n0 p + 1/2, n0 (1 - p) + 1/2) (on
+  Jeffreys' Beta(1/2, 1/2): a 100 % prediction has prior mean 10.5 / 11 = 0.95); log time
+  and log error normal around the prediction with an offset of the option's own (prior
+  N(0, 0.3^2)); comfort: the participant's ratings (1-5), regressed on the options' step
+  sizes (so a rating of large steps says something of every option with large steps), or
+  the reach's SPARC (a smoothness proxy).
 
-The person's and the arm's estimates reach *every* model, not only the one in force: a
-model's predicted time is its table time with the decision share scaled by the person's
-decision-time ratio, the execution share by s, and the step count by how far the person's
-accuracy is from the sub-model's (net progress per decision is 2a - 1). The task and
-comfort evidence reach the model in force.
-
-``probabilities`` is the posterior probability that M_ij is the best model for the person
-(the one meeting most targets, fastest among ties), by a seeded Monte Carlo over the
-beliefs; ``meets`` is each model's probability of meeting every target.
+``draws`` samples all of it jointly (``DRAWS`` draws, seeded by the evidence seen): per
+option and draw its success probability, mean log time, ... and how many targets it
+meets. From them: ``meets`` (P(option meets every target)), ``success_lower`` (the 5 %
+quantile of its success probability, the selection's floor), ``probabilities`` (P(M_ij is
+the person's best model: most targets met, fastest among ties)) and ``thompson`` (one
+draw's best option: Thompson sampling).
 """
 
 from __future__ import annotations
 
-import json
 import math
 from collections import Counter
 from dataclasses import dataclass, field
-from importlib import resources
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
-from scipy import stats
 
-from dammrl_core.errors import ConfigurationError
 from dammrl_core.human import HumanModel
+from dammrl_core.model_table import (
+    BASE,
+    MODELS,
+    OPTIONS,
+    TABLE,
+    ModelTable,
+    Option,
+    Persons,
+    Prediction,
+    option_name,
+)
 from dammrl_core.models import HUMAN_MODELS, ROBOT_MODELS, ModelSet
 
-MODELS: tuple[tuple[int, int], ...] = tuple((i, j) for i in HUMAN_MODELS for j in ROBOT_MODELS)
-"""Every M_ij, in the posterior's order (i major)."""
-BASE = (0, 0)
-"""The base policy itself (the learned DQN, choosing M_ij per state): an option of the
-re-selection beside the 16 models, with beliefs of its own. Its reaches are credited to
-it, not to the M_ij it chose most: a policy that changes j along a reach is faster than
-any fixed M_ij, and crediting its reaches to one would make that model look better than
-it is."""
-OPTIONS: tuple[tuple[int, int], ...] = (BASE, *MODELS)
-PRIOR_REACHES = 4.0
-"""Pseudo-reaches behind a model's table success rate: four real reaches weigh as much."""
+__all__ = ["BASE", "MODELS", "OPTIONS", "TABLE", "ModelTable", "Option", "option_name"]
+
+PRIOR_REACHES = 10.0
+"""Reaches of this person the table's prediction for them weighs as (per option)."""
+PERSON_PRIOR_DECISIONS = 4.0
+"""Pseudo-decisions behind the sub-model's accuracy in the person's accuracy prior."""
+HALF_LIFE_DECISIONS = 300.0
+"""The person's evidence halves in weight after this many later decisions of the same
+radius (about 15 reaches): a person who tires within a session or learns across sessions
+is followed; a steady one is estimated from ~430 decisions' worth (accuracy sd ~0.02)."""
 ARM_SCALE_PRIOR_SD = 0.3
 """Prior sd of log s, this arm's step-time factor against the nominal arm (x1.8 at 2 sd)."""
 OFFSET_PRIOR_SD = 0.3
-"""Prior sd of a model's own log-time (and log-error, comfort) offset from its prediction."""
-DRAWS = 2000
-"""Monte Carlo draws behind ``probabilities`` (seeded: the same evidence, the same answer)."""
-MIN_NET_PROGRESS = 0.1
-"""2a - 1 is bounded below by this in the step-count scaling (a person at chance would
-need unboundedly many steps; the episode timeout bounds it in fact)."""
-TABLE = Path(str(resources.files("dammrl_core").joinpath("policies", "model_table.json")))
+"""Prior sd of an option's own log-time (and log-error) offset from its prediction."""
+DRAWS = 1000
+"""Joint draws behind every answer (seeded: the same evidence, the same answer)."""
+LOWER_QUANTILE = 0.05
+"""The success lower bound is this quantile of the success draws (one-sided 95 %)."""
+COMFORT_PRIOR_MEAN = (4.0, 0.0, 0.0, 0.0, 0.0)
+COMFORT_PRIOR_SD = (1.0, 2.0, 1.0, 1.0, 1.0)
+"""The comfort regression rating = b . (1, largest axis scale, x, y, z scales): a prior
+rating of 4 +- 1 for small steps, large steps anywhere (+- 2) or on an axis (+- 1) not
+known to matter until rated."""
+COMFORT_NOISE_SD = 0.8
+"""One rating's sd around the option's mean (1-5 ratings, rounded)."""
 
 
 # ---- what one reach tells --------------------------------------------------------------
@@ -175,65 +185,6 @@ def execution_times(step_starts_s: list[float], asked_s: list[float]) -> list[fl
     return times
 
 
-# ---- the model table: what each M_ij gave the nominal person ----------------------------
-class ModelRow(BaseModel):
-    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
-
-    human_model: int = Field(ge=0, le=2)  # (0, 0): the base policy
-    robot_model: int = Field(ge=0, le=8)
-    reaches: int = Field(ge=1)
-    big_share: float = Field(ge=0, le=1)  # of decisions under E_big (i = 1)
-    success_rate: float = Field(ge=0, le=1)
-    log_time_mean: float  # mean log t_total [log s]
-    log_time_sd: float = Field(gt=0)
-    log_error_mean: float  # mean log final error [log m]
-    log_error_sd: float = Field(gt=0)
-    sparc_mean: float
-    sparc_sd: float = Field(gt=0)
-    decision_share: float = Field(ge=0, le=1)  # of t_total spent waiting for decisions
-    execution_share: float = Field(ge=0, le=1)  # of t_total spent executing steps
-
-
-class ModelTable(BaseModel):
-    """Per M_ij, what a reach gave the nominal simulated person on the nominal arm, and
-    the nominal arm's step time, log tau = c + b_L log L + b_eps log eps (a step of length
-    L to within an admission radius eps), with its log-sd."""
-
-    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
-
-    seeds: str
-    step_time_log_intercept: float
-    step_time_log_length: float
-    step_time_log_radius: float
-    step_time_log_sd: float = Field(gt=0)
-    rows: tuple[ModelRow, ...]  # one per M_ij, and the base policy's (0, 0)
-
-    def row(self, model: tuple[int, int]) -> ModelRow:
-        for row in self.rows:
-            if (row.human_model, row.robot_model) == model:
-                return row
-        raise ConfigurationError(f"the model table has no row for M_{model[0]},{model[1]}")
-
-    def step_time_s(self, length_m: float, radius_m: float) -> float:
-        """The nominal arm's execution time of a step [s]."""
-        log_tau = (self.step_time_log_intercept
-                   + self.step_time_log_length * math.log(max(length_m, 1e-4))
-                   + self.step_time_log_radius * math.log(max(radius_m, 1e-4)))  # fmt: skip
-        return math.exp(log_tau)
-
-    @classmethod
-    def load(cls, path: Path = TABLE) -> ModelTable:
-        try:
-            table = cls.model_validate(json.loads(path.read_text()))
-        except (OSError, ValueError) as exc:
-            raise ConfigurationError(f"model table {path}: {exc}") from exc
-        if sorted((r.human_model, r.robot_model) for r in table.rows) != sorted(OPTIONS):
-            raise ConfigurationError(
-                f"model table {path} must have one row per M_ij and the base policy's"
-            )
-        return table
-
-
 # ---- targets ---------------------------------------------------------------------------
 class Targets(BaseModel):
     """What the protocol asks of the last ``window`` reaches (S3's "task targets");
@@ -282,63 +233,162 @@ class Targets(BaseModel):
         return reasons
 
 
+class Selection(BaseModel):
+    """How the adaptive policy chooses when targets are missed
+    (``DAMMRL_POLICY_SELECTION__*``)."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
+
+    success_floor: float = Field(0.5, ge=0, le=1)
+    """Never an option whose success lower bound (one-sided 95 %) is below this; the base
+    policy, what runs without adaptation, stays allowed."""
+    max_switches: int = Field(3, ge=0, le=50)
+    """Switches allowed per block of ``block_reaches`` reaches."""
+    block_reaches: int = Field(20, ge=1, le=1000)
+    """Reaches per block (counted from the policy's start; a protocol block restarts it)."""
+    interpolate: bool = False
+    """Also offer steps between neighbouring models' (bounded online interpolation)."""
+    seed: int = Field(0, ge=0, le=2**31 - 1)
+    """Seed of the Thompson draws (the same evidence and seed, the same choices)."""
+
+
 # ---- beliefs ---------------------------------------------------------------------------
 @dataclass
 class NormalMean:
-    """A normal belief about a mean with known observation sd (conjugate)."""
+    """A normal belief about a mean with known observation sd (conjugate), its evidence
+    kept as weighted sums (so older evidence can be discounted)."""
 
     prior_mean: float
     prior_sd: float
     noise_sd: float
-    values: list[float] = field(default_factory=list)
-    weights: list[float] = field(default_factory=list)
+    n: float = 0.0  # sum of weights
+    total: float = 0.0  # sum of weight x value
 
-    def add(self, value: float, weight: float = 1.0) -> None:
+    def add(self, value: float, weight: float = 1.0, discount: float = 1.0) -> None:
+        """One observation of ``weight``, the earlier ones first multiplied by ``discount``."""
         if math.isfinite(value) and weight > 0:
-            self.values.append(value)
-            self.weights.append(weight)
+            self.n = self.n * discount + weight
+            self.total = self.total * discount + weight * value
 
     @classmethod
     def of(cls, prior_mean: float, prior_sd: float, noise_sd: float,
            values: list[float]) -> NormalMean:  # fmt: skip
         """The belief after ``values``, each a whole observation."""
-        return cls(prior_mean, prior_sd, noise_sd, list(values), [1.0] * len(values))
-
-    @property
-    def n(self) -> float:
-        return float(sum(self.weights))
+        return cls(prior_mean, prior_sd, noise_sd, float(len(values)), float(sum(values)))
 
     def posterior(self, shift: float = 0.0) -> tuple[float, float]:
         """(mean, sd) of the mean, for observations each minus ``shift``."""
         precision = self.prior_sd**-2 + self.n * self.noise_sd**-2
-        total = sum(w * (v - shift) for v, w in zip(self.values, self.weights, strict=True))
+        total = self.total - shift * self.n
         mean = (self.prior_mean * self.prior_sd**-2 + total * self.noise_sd**-2) / precision
         return mean, precision**-0.5
 
 
 @dataclass
-class ModelBelief:
-    """What the reaches under one M_ij said (its offsets from the prediction)."""
+class Accuracy:
+    """A Beta belief about the share of correct commands, data discounted as they age."""
+
+    prior_good: float
+    prior_bad: float
+    good: float = 0.0
+    bad: float = 0.0
+
+    def add(self, correct: bool, weight: float, discount: float) -> None:
+        self.good, self.bad = self.good * discount, self.bad * discount
+        if correct:
+            self.good += weight
+        else:
+            self.bad += weight
+
+    @property
+    def alpha(self) -> float:
+        return self.prior_good + self.good
+
+    @property
+    def beta(self) -> float:
+        return self.prior_bad + self.bad
+
+    @property
+    def mean(self) -> float:
+        return self.alpha / (self.alpha + self.beta)
+
+
+@dataclass
+class OptionBelief:
+    """What the reaches under one option said."""
 
     successes: float = 0.0
     failures: float = 0.0
     log_times: list[float] = field(default_factory=list)
     log_errors: list[float] = field(default_factory=list)
     sparcs: list[float] = field(default_factory=list)
-    ratings: list[float] = field(default_factory=list)
+
+
+@dataclass(frozen=True)
+class Draws:
+    """Joint draws of every option's belief (arrays (options, DRAWS), ``options`` order)."""
+
+    options: tuple[Option, ...]
+    success: np.ndarray  # success probability
+    log_time: np.ndarray  # mean log reach time [log s]
+    met: np.ndarray  # targets met
+    shortfall: np.ndarray  # how far short of the targets missed, summed (see ``shortfalls``)
+    asked: int  # targets asked (those that can be judged)
+    predicted_success: np.ndarray  # (options,) the table's mean prediction for the person
+    predicted_time_s: np.ndarray  # (options,) its median reach time [s]
+
+    def row(self, option: Option) -> int:
+        return self.options.index(option)
+
+    @property
+    def score(self) -> np.ndarray:
+        """Most targets met; then the least short of the others; then the faster (each
+        term below the one before it)."""
+        short, slow = np.tanh(self.shortfall), np.tanh(self.log_time / 10.0)
+        return np.asarray(self.met - 0.5 * short - 1e-3 * slow)
+
+
+def shortfalls(targets: Targets, values: dict[str, np.ndarray]) -> list[np.ndarray]:
+    """Per target asked (and judged: ``values`` has its measure), how far short of it
+    ``values`` are, 0 where met, in comparable units: the success and comfort shortfall
+    as a share of the target, time and error in log units, SPARC as a share of |target|
+    (at least 1). ``values``: success, log_time, and optionally log_error, comfort, sparc."""
+    out = []
+    if targets.success_min is not None:
+        out.append(np.maximum(0.0, targets.success_min - values["success"])
+                   / max(targets.success_min, 0.01))  # fmt: skip
+    if targets.time_max_s is not None:
+        out.append(np.maximum(0.0, values["log_time"] - math.log(targets.time_max_s)))
+    if targets.final_error_max_m is not None and "log_error" in values:
+        out.append(np.maximum(0.0, values["log_error"] - math.log(targets.final_error_max_m)))
+    if targets.comfort_min is not None and "comfort" in values:
+        out.append(np.maximum(0.0, targets.comfort_min - values["comfort"]) / targets.comfort_min)
+    if targets.sparc_min is not None and "sparc" in values:
+        out.append(np.maximum(0.0, targets.sparc_min - values["sparc"])
+                   / max(abs(targets.sparc_min), 1.0))  # fmt: skip
+    return out
+
+
+def comfort_features(scale: np.ndarray) -> np.ndarray:
+    """(1, largest axis scale, x, y, z scales) of a step-scale vector (3,) (0 small, 1 large)."""
+    scale = np.asarray(scale, dtype=float)
+    return np.concatenate(([1.0, float(scale.max())], scale))
 
 
 class ModelPosterior:
-    """The posterior over M_ij for one person on one arm (see the module's docstring)."""
+    """The posterior over the options for one person on one arm (see the module)."""
 
-    def __init__(self, table: ModelTable, human: HumanModel, models: ModelSet) -> None:
+    def __init__(self, table: ModelTable, human: HumanModel, models: ModelSet,
+                 seed: int = 0) -> None:  # fmt: skip
         self.table = table
         self.human = human
         self.models = models
+        self.seed = seed
         self.accuracy = {
-            i: [human.accuracy(i) * PRIOR_REACHES, (1 - human.accuracy(i)) * PRIOR_REACHES]
+            i: Accuracy(human.accuracy(i) * PERSON_PRIOR_DECISIONS,
+                        (1 - human.accuracy(i)) * PERSON_PRIOR_DECISIONS)
             for i in HUMAN_MODELS
-        }
+        }  # fmt: skip
         self.log_decision = {
             i: NormalMean(
                 math.log(human.decision_median_s(i)),
@@ -348,11 +398,14 @@ class ModelPosterior:
             for i in HUMAN_MODELS
         }
         self.arm = NormalMean(0.0, ARM_SCALE_PRIOR_SD, table.step_time_log_sd)
-        self.beliefs = {m: ModelBelief() for m in OPTIONS}
+        self.beliefs = {m: OptionBelief() for m in OPTIONS}
+        self.ratings: list[tuple[Option, float]] = []
         self.reaches = 0
+        self._decisions = 0  # evidence seen: the draws' seed and cache key
+        self._cache: dict[Any, Draws] = {}
 
     # ---- evidence -------------------------------------------------------------------
-    def observe(self, reach: ReachEvidence, option: tuple[int, int] | None = None) -> None:
+    def observe(self, reach: ReachEvidence, option: Option | None = None) -> None:
         """Fold in one finished reach, run under ``option`` (default: its model in force;
         ``BASE``: the base policy)."""
         for d in reach.decisions:
@@ -369,26 +422,31 @@ class ModelPosterior:
         if reach.sparc is not None and math.isfinite(reach.sparc):
             belief.sparcs.append(reach.sparc)
         self.reaches += 1
+        self._cache.clear()
 
     def decision(self, d: DecisionEvidence) -> None:
         confidence = min(1.0, max(0.0, d.confidence))
-        self.accuracy[d.human_model][0 if d.correct else 1] += confidence
+        discount = 0.5 ** (1.0 / HALF_LIFE_DECISIONS)
+        self.accuracy[d.human_model].add(d.correct, confidence, discount)
         if d.decision_s is not None and d.decision_s > self.human.decision_min_s:
-            self.log_decision[d.human_model].add(math.log(d.decision_s), confidence)
+            self.log_decision[d.human_model].add(math.log(d.decision_s), confidence, discount)
+        self._decisions += 1
+        self._cache.clear()
 
     def step(self, s: StepEvidence) -> None:
         predicted = self.table.step_time_s(s.length_m, s.radius_m)
         if s.execution_s > 0 and predicted > 0:
             self.arm.add(math.log(s.execution_s / predicted))
+            self._cache.clear()
 
-    def rating(self, model: tuple[int, int], rating: float) -> None:
-        """The participant's comfort rating (1-5) for a block mostly under ``model``."""
-        self.beliefs[model].ratings.append(float(rating))
+    def rating(self, option: Option, rating: float) -> None:
+        """The participant's comfort rating (1-5) of reaches mostly under ``option``."""
+        self.ratings.append((option, float(rating)))
+        self._cache.clear()
 
-    # ---- what the evidence says -----------------------------------------------------
+    # ---- the person and the arm -----------------------------------------------------
     def person_accuracy(self, i: int) -> float:
-        good, bad = self.accuracy[i]
-        return good / (good + bad)
+        return self.accuracy[i].mean
 
     def decision_ratio(self, i: int) -> float:
         """The person's median decision time under i over the sub-model's."""
@@ -400,114 +458,142 @@ class ModelPosterior:
         """This arm's step-time factor s against the nominal arm."""
         return math.exp(self.arm.posterior()[0])
 
-    def predicted_log_time(self, model: tuple[int, int]) -> float:
-        """The model's table log time, its decision share scaled by the person's speed,
-        its execution share by the arm's, and its step count by the person's accuracy
-        (each radius weighted by its share of the model's decisions)."""
-        row = self.table.row(model)
-        weights = {1: row.big_share, 2: 1.0 - row.big_share}
-        steps = sum(
-            w
-            * (2 * self.human.accuracy(i) - 1)
-            / max(2 * self.person_accuracy(i) - 1, MIN_NET_PROGRESS)
-            for i, w in weights.items()
+    def persons(self, rng: np.random.Generator, n: int = DRAWS) -> Persons:
+        """``n`` draws of the person and the arm from their posterior."""
+        ratios = []
+        for i in HUMAN_MODELS:
+            mean, sd = self.log_decision[i].posterior()
+            ratios.append(np.exp(rng.normal(mean - math.log(self.human.decision_median_s(i)),
+                                            sd, n)))  # fmt: skip
+        arm_mean, arm_sd = self.arm.posterior()
+        return Persons(
+            accuracy_big=rng.beta(self.accuracy[1].alpha, self.accuracy[1].beta, n),
+            accuracy_small=rng.beta(self.accuracy[2].alpha, self.accuracy[2].beta, n),
+            time_ratio_big=ratios[0],
+            time_ratio_small=ratios[1],
+            arm_scale=np.exp(rng.normal(arm_mean, arm_sd, n)),
         )
-        deciding = sum(w * self.decision_ratio(i) for i, w in weights.items())
-        other = max(0.0, 1.0 - row.decision_share - row.execution_share)
-        factor = other + steps * (
-            row.decision_share * deciding + row.execution_share * self.arm_scale
+
+    # ---- every option, for this person ----------------------------------------------
+    def draws(self, targets: Targets, options: tuple[Option, ...] = OPTIONS) -> Draws:
+        """Joint draws of every option's belief (cached until new evidence)."""
+        key = (targets, options)
+        if key not in self._cache:
+            self._cache[key] = self._draw(targets, options)
+        return self._cache[key]
+
+    def _draw(self, targets: Targets, options: tuple[Option, ...]) -> Draws:
+        rng = np.random.default_rng([self.seed, self.reaches, self._decisions, len(self.ratings)])
+        persons = self.persons(rng)
+        predictions = [self.table.predict(o, persons) for o in options]
+        comfort = self._comfort_draws(predictions, rng) if targets.comfort_min else None
+        success, log_time, met, short = [], [], [], []
+        asked = 0
+        for k, (option, p) in enumerate(zip(options, predictions, strict=True)):
+            belief = self.beliefs[option]
+            s = rng.beta(PRIOR_REACHES * p.success + 0.5 + belief.successes,
+                         PRIOR_REACHES * (1 - p.success) + 0.5 + belief.failures)  # fmt: skip
+            t = self._time_draws(p, belief, rng)
+            checks = self._checks(targets, p, belief, s, t, rng,
+                                  None if comfort is None else comfort[k])  # fmt: skip
+            asked = len(checks)
+            success.append(s)
+            log_time.append(t)
+            met.append(np.sum([c <= 0 for c in checks], axis=0) if checks else np.zeros(DRAWS))
+            short.append(np.sum(checks, axis=0) if checks else np.zeros(DRAWS))
+        return Draws(
+            options=options,
+            success=np.array(success),
+            log_time=np.array(log_time),
+            met=np.array(met),
+            shortfall=np.array(short),
+            asked=asked,
+            predicted_success=np.array([float(p.success.mean()) for p in predictions]),
+            predicted_time_s=np.exp([float(np.median(p.log_time)) for p in predictions]),
         )
-        return row.log_time_mean + math.log(max(factor, 1e-3))
 
-    def success_belief(self, model: tuple[int, int]) -> tuple[float, float]:
-        """Beta(alpha, beta) of the model's success probability."""
-        row, belief = self.table.row(model), self.beliefs[model]
-        prior = row.success_rate * PRIOR_REACHES
-        return (prior + belief.successes + 0.5, PRIOR_REACHES - prior + belief.failures + 0.5)
+    def _time_draws(self, p: Prediction, belief: OptionBelief,
+                    rng: np.random.Generator) -> np.ndarray:  # fmt: skip
+        """The option's mean log time: prior N(prediction, OFFSET_PRIOR_SD^2) per person
+        draw, its own reaches' log times around it (sd: the table's spread)."""
+        n, total = len(belief.log_times), sum(belief.log_times)
+        precision = OFFSET_PRIOR_SD**-2 + n * p.log_time_sd**-2
+        mean = (p.log_time * OFFSET_PRIOR_SD**-2 + total * p.log_time_sd**-2) / precision
+        return np.asarray(rng.normal(mean, precision**-0.5))
 
-    def time_belief(self, model: tuple[int, int]) -> tuple[float, float]:
-        """(mean, sd) of the model's mean log reach time for this person."""
-        row, belief = self.table.row(model), self.beliefs[model]
-        offset = NormalMean.of(0.0, OFFSET_PRIOR_SD, row.log_time_sd, belief.log_times)
-        predicted = self.predicted_log_time(model)
-        mean, sd = offset.posterior(shift=predicted)
-        return predicted + mean, sd
-
-    def error_belief(self, model: tuple[int, int]) -> tuple[float, float]:
-        row, belief = self.table.row(model), self.beliefs[model]
-        errors = NormalMean.of(
-            row.log_error_mean, OFFSET_PRIOR_SD, row.log_error_sd, belief.log_errors
-        )
-        return errors.posterior()
-
-    def comfort_belief(self, model: tuple[int, int]) -> tuple[float, float] | None:
-        """(mean, sd) of the option's mean rating; None before any rating of any option."""
-        if not any(b.ratings for b in self.beliefs.values()):
-            return None
-        ratings = self.beliefs[model].ratings
-        return NormalMean.of(3.0, 1.0, 1.0, ratings).posterior()
-
-    def sparc_belief(self, model: tuple[int, int]) -> tuple[float, float]:
-        row, belief = self.table.row(model), self.beliefs[model]
-        sparcs = NormalMean.of(row.sparc_mean, row.sparc_sd, row.sparc_sd, belief.sparcs)
-        return sparcs.posterior()
-
-    def meets(self, targets: Targets, options: tuple[tuple[int, int], ...] = MODELS) -> np.ndarray:
-        """Each option's probability of meeting every target (default: per M_ij, MODELS
-        order), the terms taken as independent."""
-        return np.array([math.prod(self._meets_each(m, targets)) for m in options])
-
-    def _meets_each(self, model: tuple[int, int], targets: Targets) -> list[float]:
-        p = []
-        if targets.success_min is not None:
-            p.append(float(stats.beta.sf(targets.success_min, *self.success_belief(model))))
-        if targets.time_max_s is not None:
-            mean, sd = self.time_belief(model)
-            p.append(float(stats.norm.cdf(math.log(targets.time_max_s), mean, sd)))
+    def _checks(self, targets: Targets, p: Prediction, belief: OptionBelief, success: np.ndarray,
+                log_time: np.ndarray, rng: np.random.Generator,
+                comfort: np.ndarray | None) -> list[np.ndarray]:  # fmt: skip
+        """Per target asked, each draw's shortfall (0: met; see ``shortfalls``)."""
+        draws: dict[str, np.ndarray] = {"success": success, "log_time": log_time}
         if targets.final_error_max_m is not None:
-            mean, sd = self.error_belief(model)
-            p.append(float(stats.norm.cdf(math.log(targets.final_error_max_m), mean, sd)))
-        if targets.comfort_min is not None and (c := self.comfort_belief(model)) is not None:
-            p.append(float(stats.norm.sf(targets.comfort_min, *c)))
+            errors = NormalMean.of(p.log_error, OFFSET_PRIOR_SD, p.log_error_sd, belief.log_errors)
+            draws["log_error"] = rng.normal(*errors.posterior(), DRAWS)
+        if comfort is not None:
+            draws["comfort"] = comfort
         if targets.sparc_min is not None:
-            p.append(float(stats.norm.sf(targets.sparc_min, *self.sparc_belief(model))))
-        return p
+            sparcs = NormalMean.of(p.sparc, p.sparc_sd, p.sparc_sd, belief.sparcs)
+            draws["sparc"] = rng.normal(*sparcs.posterior(), DRAWS)
+        return shortfalls(targets, draws)
+
+    def _comfort_draws(self, predictions: list[Prediction],
+                       rng: np.random.Generator) -> np.ndarray | None:  # fmt: skip
+        """Each option's mean rating per draw (options, DRAWS); None before any rating."""
+        if not self.ratings:
+            return None
+        mean, cov = self.comfort_posterior()
+        coefficients = rng.multivariate_normal(mean, cov, DRAWS)  # (DRAWS, 5)
+        features = np.array([comfort_features(p.scale) for p in predictions])
+        return np.asarray(features @ coefficients.T)
+
+    def comfort_posterior(self) -> tuple[np.ndarray, np.ndarray]:
+        """(mean, covariance) of the comfort regression's coefficients (conjugate normal)."""
+        prior_precision = np.diag(np.asarray(COMFORT_PRIOR_SD) ** -2.0)
+        precision, weighted = prior_precision.copy(), prior_precision @ COMFORT_PRIOR_MEAN
+        for option, rating in self.ratings:
+            x = comfort_features(self._scale(option))
+            precision += np.outer(x, x) / COMFORT_NOISE_SD**2
+            weighted += x * rating / COMFORT_NOISE_SD**2
+        cov = np.linalg.inv(precision)
+        return cov @ weighted, cov
+
+    def _scale(self, option: Option) -> np.ndarray:
+        reaches = self.table.reaches(option)
+        return np.array([reaches.array(f"scale_{a}").mean() for a in "xyz"])
+
+    # ---- the answers ----------------------------------------------------------------
+    def meets(self, targets: Targets, options: tuple[Option, ...] = MODELS) -> np.ndarray:
+        """Each option's probability of meeting every target asked (``options`` order)."""
+        draws = self.draws(targets)
+        met = draws.met[[draws.row(o) for o in options]]
+        return np.asarray((met >= draws.asked).mean(axis=1))
+
+    def success_lower(self, targets: Targets, options: tuple[Option, ...] = OPTIONS
+                      ) -> np.ndarray:  # fmt: skip
+        """Each option's success lower bound (the LOWER_QUANTILE of its draws)."""
+        draws = self.draws(targets)
+        rows = [draws.row(o) for o in options]
+        return np.asarray(np.quantile(draws.success[rows], LOWER_QUANTILE, axis=1))
 
     def probabilities(self, targets: Targets) -> np.ndarray:
         """P(M_ij is the best model for this person): the one meeting most targets,
-        fastest among ties, by ``DRAWS`` seeded draws from the beliefs."""
-        rng = np.random.default_rng(self.reaches)
-        met = np.zeros((DRAWS, len(MODELS)))
-        times = np.zeros((DRAWS, len(MODELS)))
-        for k, model in enumerate(MODELS):
-            draws = self._draws(model, targets, rng)
-            met[:, k] = draws["met"]
-            times[:, k] = draws["log_time"]
-        score = met - 1e-3 * np.tanh(times / 10)  # most targets met; then the faster
-        best = np.argmax(score, axis=1)
+        fastest among ties (MODELS order)."""
+        draws = self.draws(targets)
+        rows = [draws.row(m) for m in MODELS]
+        best = np.argmax(draws.score[rows], axis=0)
         return np.bincount(best, minlength=len(MODELS)) / DRAWS
 
-    def _draws(
-        self, model: tuple[int, int], targets: Targets, rng: np.random.Generator
-    ) -> dict[str, np.ndarray]:
-        mean, sd = self.time_belief(model)
-        log_time = rng.normal(mean, sd, DRAWS)
-        met = np.zeros(DRAWS)
-        if targets.success_min is not None:
-            met += rng.beta(*self.success_belief(model), DRAWS) >= targets.success_min
-        if targets.time_max_s is not None:
-            met += log_time <= math.log(targets.time_max_s)
-        if targets.final_error_max_m is not None:
-            e_mean, e_sd = self.error_belief(model)
-            met += rng.normal(e_mean, e_sd, DRAWS) <= math.log(targets.final_error_max_m)
-        if targets.comfort_min is not None and (c := self.comfort_belief(model)) is not None:
-            met += rng.normal(*c, DRAWS) >= targets.comfort_min
-        if targets.sparc_min is not None:
-            met += rng.normal(*self.sparc_belief(model), DRAWS) >= targets.sparc_min
-        return {"met": met, "log_time": log_time}
+    def thompson(self, targets: Targets, allowed: tuple[Option, ...],
+                 rng: np.random.Generator) -> Option:  # fmt: skip
+        """Thompson sampling: the best of ``allowed`` in one draw of the posterior."""
+        draws = self.draws(targets)
+        k = int(rng.integers(DRAWS))
+        scores = [draws.score[draws.row(o), k] for o in allowed]
+        return allowed[int(np.argmax(scores))]
 
     def summary(self, targets: Targets) -> dict[str, Any]:
-        """The estimates and both per-model answers (for logs, reports and tests)."""
+        """The estimates and the per-option answers (for logs, reports and tests)."""
+        draws = self.draws(targets)
         return {
             "reaches": self.reaches,
             "accuracy": {i: round(self.person_accuracy(i), 4) for i in HUMAN_MODELS},
@@ -515,5 +601,12 @@ class ModelPosterior:
             "arm_scale": round(self.arm_scale, 4),
             "meets": dict(zip(MODELS, np.round(self.meets(targets), 4).tolist(), strict=True)),
             "meets_base": round(float(self.meets(targets, (BASE,))[0]), 4),
+            "success_lower": _by_option(OPTIONS, self.success_lower(targets), 4),
+            "predicted_success": _by_option(draws.options, draws.predicted_success, 4),
+            "predicted_time_s": _by_option(draws.options, draws.predicted_time_s, 2),
             "posterior": dict(zip(MODELS, self.probabilities(targets).tolist(), strict=True)),
         }
+
+
+def _by_option(options: tuple[Option, ...], values: np.ndarray, digits: int) -> dict[Option, float]:
+    return dict(zip(options, np.round(values, digits).tolist(), strict=True))

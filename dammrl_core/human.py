@@ -65,11 +65,20 @@ class HumanModel(Settings):
         person = self.person
         if person.behaviour == "ddm":
             return person.sample_ddm(rng, i)
-        accuracy = self.accuracy(i) if person.accuracy is None else person.accuracy
+        accuracy = person.accuracy_under(i, self.accuracy(i))
         correct = bool(rng.random() < accuracy)
         median = self.decision_median_s(i) * person.decision_time_factor  # x 1.0 is exact
         drawn = median * np.exp(self.decision_sigma * rng.standard_normal())
         return correct, float(max(self.decision_min_s, drawn))
+
+    def practised(self, session: int, reach: int) -> HumanModel:
+        """The simulated person in ``session`` (from 1) after ``reach`` of its reaches
+        (from 0): fatigue and learning folded in (the same model when they are unset)."""
+        if not self.person.changes_with_practice:
+            return self
+        accuracies = (self.accuracy(1), self.accuracy(2))
+        person = self.person.practised(session, reach, accuracies)
+        return self.model_copy(update={"person": person})
 
     def accuracy_log_likelihood(self, i: int, correct: bool, confidence: float = 1.0) -> float:
         """log p(correct | sub-model i) of a command the source decoded with ``confidence``:

@@ -12,18 +12,31 @@ differ, so the policy's posterior can be tried on people unlike its model:
   accuracy, ``1 / (1 + exp(-v a))``, and the decision time, a first passage plus a
   non-decision time, so speed and accuracy trade off as in people.
 
+Either behaviour can change with practice: fatigue within a session and learning across
+sessions scale the person's skill, the log-odds of a correct command (a DDM person's
+drift, which scales the same log-odds ``v a``), and fatigue can slow every decision. A
+person may find large steps uncomfortable: after a reach they rate it 1-5 from the share
+of steps longer than they like (``comfort_rating``).
+
+A kind of person can be written down in a YAML file (``load_person``): any field below,
+with a ``name`` and the ``source`` of its numbers.
+
 The defaults leave the person identical to the model (bit for bit: same draws).
 """
 
 from __future__ import annotations
 
+import difflib
 import functools
 import math
-from typing import Literal
+from pathlib import Path
+from typing import Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, Field, model_validator
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from dammrl_core.errors import ConfigurationError
 from dammrl_core.settings import FINITE
 
 _GRID_POINTS = 4096  # of the first-passage CDF that samples are drawn from
@@ -42,6 +55,11 @@ class SimulatedPerson(BaseModel):
     accuracy: float | None = Field(None, gt=0, lt=1)
     """Probability of a correct command under either radius, in place of the sub-model's
     (``model`` only; a DDM person's accuracy follows from its drift and boundaries)."""
+    accuracy_big: float | None = Field(None, gt=0, lt=1)
+    """Probability of a correct command under E_big (i = 1) only, in place of the
+    sub-model's (``model`` only; not with ``accuracy``)."""
+    accuracy_small: float | None = Field(None, gt=0, lt=1)
+    """Probability of a correct command under E_small (i = 2) only (as ``accuracy_big``)."""
     decision_time_factor: float = Field(1.0, gt=0, le=10)
     """Every decision time multiplied by this (1.5: a person 50 % slower than modelled)."""
     ddm_drift_per_s: float = Field(2.0, gt=0, le=10)
@@ -52,15 +70,82 @@ class SimulatedPerson(BaseModel):
     """Boundary separation a under E_small (i = 2): wide, so slow and accurate."""
     ddm_non_decision_s: float = Field(0.15, ge=0, le=10)
     """Perception and motor time added to every first passage [s]."""
+    fatigue_per_reach: float = Field(0.0, ge=0, le=0.1)
+    """Skill lost per reach within a session: after n reaches the log-odds of a correct
+    command (a DDM person's drift) are x(1 - f)^n (0.02: 0.85 falls to 0.74 in 25 reaches)."""
+    slowing_per_reach: float = Field(0.0, ge=0, le=0.1)
+    """Decision times grow by this share per reach within a session: x(1 + k n)."""
+    learning_per_session: float = Field(0.0, ge=0, le=1)
+    """Skill gained per session after the first: in session s the log-odds of a correct
+    command (a DDM person's drift) are x(1 + l)^(s - 1)."""
+    comfort_step_max_m: float | None = Field(None, gt=0, le=0.1)
+    """The longest step on any axis the person finds comfortable [m] (None: any step)."""
+    comfort_rating_sd: float = Field(0.5, ge=0, le=2)
+    """Noise of the person's comfort rating before it is rounded to 1-5."""
 
     @model_validator(mode="after")
     def _accuracy_only_for_the_model(self) -> SimulatedPerson:
-        if self.behaviour == "ddm" and self.accuracy is not None:
+        per_radius = self.accuracy_big is not None or self.accuracy_small is not None
+        if self.behaviour == "ddm" and (self.accuracy is not None or per_radius):
             raise ValueError(
                 "accuracy cannot be set for behaviour 'ddm': it follows from "
                 "ddm_drift_per_s and the boundaries"
             )
+        if self.accuracy is not None and per_radius:
+            raise ValueError("accuracy is for both radii: set it or accuracy_big/accuracy_small")
         return self
+
+    def accuracy_under(self, i: int, model_accuracy: float) -> float:
+        """The ``model`` person's probability of a correct command under radius ``i``, the
+        sub-model's being ``model_accuracy``."""
+        own = self.accuracy_big if i == 1 else self.accuracy_small
+        if own is not None:
+            return own
+        return model_accuracy if self.accuracy is None else self.accuracy
+
+    @property
+    def changes_with_practice(self) -> bool:
+        return bool(self.fatigue_per_reach or self.slowing_per_reach or self.learning_per_session)
+
+    def skill(self, session: int, reach: int) -> float:
+        """The factor on the log-odds of a correct command in ``session`` (from 1) after
+        ``reach`` reaches of it (from 0)."""
+        return (1.0 - self.fatigue_per_reach) ** reach * (1.0 + self.learning_per_session) ** (
+            session - 1
+        )
+
+    def practised(self, session: int, reach: int, model_accuracy: tuple[float, float]
+                  ) -> SimulatedPerson:  # fmt: skip
+        """This person in ``session`` after ``reach`` of its reaches, fatigue and learning
+        folded in (a person that no longer changes); ``model_accuracy``: the sub-models'
+        (E_big, E_small) accuracies the ``model`` person starts from."""
+        if session < 1 or reach < 0:
+            raise ValueError(f"session counts from 1 and reach from 0, got {session}, {reach}")
+        g = self.skill(session, reach)
+        update: dict[str, Any] = {"fatigue_per_reach": 0.0, "slowing_per_reach": 0.0,
+                                  "learning_per_session": 0.0,
+                                  "decision_time_factor": min(10.0, self.decision_time_factor
+                                                              * (1 + self.slowing_per_reach
+                                                                 * reach))}  # fmt: skip
+        if self.behaviour == "ddm":
+            update["ddm_drift_per_s"] = min(10.0, max(1e-6, g * self.ddm_drift_per_s))
+        else:
+            update["accuracy"] = None
+            for i, name in ((1, "accuracy_big"), (2, "accuracy_small")):
+                a = self.accuracy_under(i, model_accuracy[i - 1])
+                update[name] = _logistic(g * math.log(a / (1 - a)))
+        return self.model_copy(update=update)
+
+    def comfort_rating(self, steps_m: np.ndarray, rng: np.random.Generator) -> int:
+        """The person's rating (1-5) of a reach whose steps were ``steps_m`` (n, 3) [m]:
+        5 less 4 x the share of steps longer than ``comfort_step_max_m`` on any axis, with
+        noise, rounded (one normal draw)."""
+        steps = np.abs(np.asarray(steps_m, dtype=float)).reshape(-1, 3)
+        share = 0.0
+        if self.comfort_step_max_m is not None and len(steps):
+            share = float(np.mean(steps.max(axis=1) > self.comfort_step_max_m + 1e-9))
+        rating = 5.0 - 4.0 * share + self.comfort_rating_sd * rng.standard_normal()
+        return int(min(5, max(1, round(rating))))
 
     def boundary(self, i: int) -> float:
         return self.ddm_boundary_big if i == 1 else self.ddm_boundary_small
@@ -85,6 +170,67 @@ class SimulatedPerson(BaseModel):
         grid_s, cdf = _passage_cdf(v, a)
         passage = float(np.interp(rng.random(), cdf, grid_s))
         return correct, self.decision_time_factor * (self.ddm_non_decision_s + passage)
+
+
+def _logistic(log_odds: float) -> float:
+    """The probability of ``log_odds``, kept inside (0, 1) as a setting must be."""
+    return min(1 - 1e-6, max(1e-6, 1.0 / (1.0 + math.exp(-log_odds))))
+
+
+# ---- a kind of person, in a file ---------------------------------------------------
+class PersonFile(BaseModel):
+    """A kind of simulated person as written down: its name, where its numbers come from,
+    and the person."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    name: str
+    source: str
+    """Where the parameters come from (a published range, or the rationale)."""
+    person: SimulatedPerson
+
+
+def load_person(path: Path) -> PersonFile:
+    """A person file (YAML): any ``SimulatedPerson`` field, and optionally ``name``
+    (default: the file's stem) and ``source``; a ConfigurationError of one line naming
+    the file, the field, its value and what was expected."""
+    try:
+        raw = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
+        raise ConfigurationError(f"person {path}: cannot read it: {_one_line(exc)}") from exc
+    if not isinstance(raw, dict):
+        raise ConfigurationError(f"person {path}: not a mapping of SimulatedPerson fields")
+    name = raw.pop("name", path.stem)
+    source = raw.pop("source", "not stated")
+    fields = set(SimulatedPerson.model_fields)
+    for key in raw:
+        if key not in fields:
+            near = difflib.get_close_matches(str(key), fields, n=1)
+            hint = f"; did you mean {near[0]}?" if near else ""
+            raise ConfigurationError(f"person {path}: unknown field {key!r}{hint}")
+    if not isinstance(name, str) or not name.strip() or not isinstance(source, str):
+        raise ConfigurationError(f"person {path}: name and source must be text")
+    try:
+        person = SimulatedPerson.model_validate(raw)
+    except ValidationError as exc:
+        raise ConfigurationError(f"person {path}: {_field_errors(exc)}") from None
+    return PersonFile(name=name.strip(), source=" ".join(source.split()), person=person)
+
+
+def _field_errors(exc: ValidationError) -> str:
+    parts = []
+    for error in exc.errors(include_url=False):
+        message = str(error["msg"]).removeprefix("Value error, ")
+        if error["loc"]:
+            where = ".".join(map(str, error["loc"]))
+            parts.append(f"{where}={error.get('input')!r}: {message}")
+        else:
+            parts.append(message)
+    return "; ".join(parts)
+
+
+def _one_line(exc: Exception) -> str:
+    return " ".join(str(exc).split())[:300]
 
 
 def ddm_correct_probability(drift_per_s: float, boundary: float) -> float:

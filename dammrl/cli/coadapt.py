@@ -8,7 +8,7 @@ import json
 import os
 from pathlib import Path
 
-from dammrl.cli.common import Commands, output_dir, progress_bar
+from dammrl.cli.common import Commands, output_dir, output_file, progress_bar
 
 
 def register(commands: Commands) -> None:
@@ -22,10 +22,11 @@ def register(commands: Commands) -> None:
     sub = coadapt.add_subparsers(required=True, metavar="ACTION")
     table = sub.add_parser(
         "table",
-        help="run every M_ij on the nominal person; write the "
-        "model table the posterior starts from",
+        help="run every option on a grid of persons; write the model table the posterior "
+        "predicts every option from",
     )
-    table.add_argument("--out", type=Path, help="where (default: the packaged table)")
+    table.add_argument("--out", type=output_file(".gz"),
+                       help="where (a .json.gz; default: the packaged table)")  # fmt: skip
     table.add_argument(
         "--jobs",
         type=int,
@@ -73,18 +74,20 @@ def register(commands: Commands) -> None:
 
 
 def _table(args: argparse.Namespace) -> int:
-    from dammrl.study.coadaptation import TABLE_SEEDS, build_table
-    from dammrl_core.coadaptation import OPTIONS, TABLE
+    from dammrl.study.coadaptation_table import TABLE_SEEDS, build_table, table_jobs
+    from dammrl_core.model_table import OPTIONS, TABLE
 
-    update, close = progress_bar(len(OPTIONS) * len(TABLE_SEEDS), "model table")
+    jobs = len(table_jobs())
+    update, close = progress_bar(jobs, "model table")
     try:
         table = build_table(workers=args.jobs, progress=update)
     finally:
         close()
     out = args.out or TABLE
-    out.write_text(table.model_dump_json(indent=1) + "\n")
+    out.write_bytes(table.dumps())
     models, seeds = len(OPTIONS) - 1, len(TABLE_SEEDS)
-    print(f"model table, {models} models and the base policy x {seeds} seeds: {out}")
+    print(f"model table, {models} models and the base policy on a grid of persons, {seeds} "
+          f"seeds per person ({jobs} reaches): {out}")  # fmt: skip
     return 0
 
 

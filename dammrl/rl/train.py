@@ -231,15 +231,14 @@ def adaptive_rollouts(run: Path, seeds: range, randomize: bool = False,
     ``seeds`` in order as one session of one simulated person, the posterior over M_ij
     carried from reach to reach; the rollouts and every switch."""
     from dammrl.runner import evidence_of
-    from dammrl_core.coadaptation import ModelPosterior, ModelTable
     from dammrl_core.policy.adaptive import AdaptivePolicy
     from dammrl_core.policy.settings import PolicySettings
 
     runner = ReachRunner(ReachSettings().randomized(randomize))
     models = runner.settings.models
-    posterior = ModelPosterior(ModelTable.load(), runner.settings.human, models)
-    policy = AdaptivePolicy(LearnedPolicy(models, run), models, posterior,
-                            PolicySettings().targets)  # fmt: skip
+    settings = PolicySettings()
+    policy = AdaptivePolicy.around(LearnedPolicy(models, run), models, runner.settings.human,
+                                   settings.targets, settings.selection)  # fmt: skip
     rollouts = []
     for seed in seeds:
         result = runner.run(seed, policy=policy)

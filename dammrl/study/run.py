@@ -111,7 +111,6 @@ def run_session(job: tuple[Configuration, tuple[int, ...], str]) -> list[Record]
     """An adaptive configuration's reaches: its seeds in order as one session, the
     posterior over M_ij carried from reach to reach (one job: the order matters)."""
     from dammrl.runner import evidence_of
-    from dammrl_core.coadaptation import ModelPosterior, ModelTable
     from dammrl_core.policy.adaptive import AdaptivePolicy
     from dammrl_core.policy.learned import LearnedPolicy
     from dammrl_core.policy.settings import PolicySettings
@@ -120,8 +119,9 @@ def run_session(job: tuple[Configuration, tuple[int, ...], str]) -> list[Record]
     runner = _runner(CONDITIONS[condition], configuration)
     models = runner.settings.models
     base = LearnedPolicy(models, configuration.policy.checkpoints[0])
-    posterior = ModelPosterior(ModelTable.load(), runner.settings.human, models)
-    policy = AdaptivePolicy(base, models, posterior, PolicySettings().targets)
+    settings = PolicySettings()
+    policy = AdaptivePolicy.around(base, models, runner.settings.human, settings.targets,
+                                   settings.selection)  # fmt: skip
     records, tolerance = [], runner.settings.task.goal_tolerance_m
     for index, seed in enumerate(seeds):
         result = runner.run(seed, trigger=configuration.trigger, policy=policy)

@@ -67,12 +67,15 @@ class SimulatedSource:
     """The simulated human answering each request at once, with the decision time it
     took: the controller applies it when its robot clock reaches the request time plus
     that time, as the in-process runner does (timed by the robot clock, not the bus).
-    Reseeded with each episode's seed, so a seed draws the same decisions as in-process."""
+    Reseeded with each episode's seed, so a seed draws the same decisions as in-process.
+    A person who tires or learns (``DAMMRL_HUMAN_PERSON__FATIGUE_PER_REACH``, ...) is, in
+    episode n of a run, the person after n - 1 reaches of one session."""
 
     person = False
     waits_for_model_choice = True  # it decides with the policy's radius
 
     def __init__(self, context: SourceContext) -> None:
+        self.model = context.human
         self.human = SimulatedHuman(context.human, context.models)
         self.decided: Decided | None = None
 
@@ -82,6 +85,7 @@ class SimulatedSource:
 
     def new_episode(self, episode: int, seed: int) -> None:
         self.human.rng = seed_streams(seed).human
+        self.human.human = self.model.practised(1, max(0, episode - 1))
 
     def ask(self, ask: Ask, now_s: float) -> None:
         decision = self.human.decide(ask.t_s, ask.ee_pos_m, ask.goal_m, ask.primary_axis,

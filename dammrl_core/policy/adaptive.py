@@ -2,24 +2,30 @@
 
 Until a target is missed the base policy (the shipped DQN) chooses, with the person's
 estimated radius when one is given (S2: the posterior over the human sub-model narrows i).
-After every reach the posterior over M_ij (:mod:`dammrl_core.coadaptation`) takes in what
-the reach said, credited to what was in force (the base policy, or the selected model);
-when the last ``targets.window`` reaches since the last switch miss a target, the policy
-switches to the option most likely to meet every target (S3): a model M_ij, or the base
-policy again. Under a model it chooses only among the matched models: the selected
-radius i and the step vectors j whose chance of meeting the targets is within
-``KEEP_WITHIN`` of the best one's (a learned base still picks among them per state;
-another base takes the best).
-An alternative must be at least ``SWITCH_GAIN`` likelier to meet the targets than the
-model in force: targets no model can meet leave the policy as it is instead of churning
-through models no better.
-Every switch is kept with its reason.
+After every reach the posterior over the options (:mod:`dammrl_core.coadaptation`) takes
+in what the reach said: the person's decisions and the arm's steps move every option's
+prediction, the reach's outcome moves the option in force (the base policy, or the
+selected model). When the last ``targets.window`` reaches since the last switch miss a
+target, the policy chooses by **Thompson sampling**: one joint draw of the posterior, and
+the option that meets most targets in it (the least short of them, then the fastest). An
+option likely better is chosen often, one only possibly better now and then (exploration),
+one surely worse never. Safety bounds the exploration:
+
+* never an option whose success lower bound (one-sided 95 %) is below
+  ``selection.success_floor`` (the base policy, what runs without adaptation, stays
+  allowed);
+* at most ``selection.max_switches`` switches in a block of ``selection.block_reaches``
+  reaches, and at least ``targets.window`` reaches between two;
+* a selected model runs exactly as that M_ij (or as the interpolated step vector), so its
+  reaches say what it gives.
+
+Every switch is kept with its reason: the targets missed, the rule, and what the posterior
+predicted for the new option.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Protocol
 
 import numpy as np
 
@@ -28,66 +34,67 @@ from dammrl_core.coadaptation import (
     OPTIONS,
     ModelPosterior,
     ReachEvidence,
+    Selection,
     Targets,
 )
+from dammrl_core.human import HumanModel
+from dammrl_core.model_table import ModelTable, Option, option_name
 from dammrl_core.models import ModelSet
 from dammrl_core.policy import ModelChoice, Policy, model_choice
-
-KEEP_WITHIN = 0.05
-"""A step vector stays allowed when its P(meets every target) is within this of the
-selected model's (the learned base then chooses among near-equals per state)."""
-
-
-SWITCH_GAIN = 0.05
-"""How much likelier to meet every target an alternative must be than the model in force
-(a design choice: below it a switch is a coin toss between near-equals)."""
-
-
-class Restrictable(Protocol):
-    def decide_within(
-        self, ee_pos: np.ndarray, goal: np.ndarray, human_model: int, robot_models: frozenset[int]
-    ) -> ModelChoice: ...
 
 
 @dataclass(frozen=True)
 class Switch:
-    """One re-selection: after which reach, from and to which model, and why."""
+    """One re-selection: after which reach, from and to which option, and why."""
 
     reach: int  # reaches observed when it happened
-    from_model: tuple[int, int]
-    to_model: tuple[int, int]
-    allowed: tuple[int, ...]  # the step vectors j allowed with to_model's radius
+    from_model: Option
+    to_model: Option
     reasons: tuple[str, ...]  # the targets missed
-    p_meets: float  # the new model's probability of meeting every target
+    p_meets: float  # the new option's probability of meeting every target
+    success: float  # its predicted success for this person (the table's, mean over draws)
+    success_lower: float  # its success lower bound (with its own reaches)
+    time_s: float  # its predicted median reach time [s]
+    left_out: int  # options below the success floor
 
     @property
     def line(self) -> str:
-        allowed = f"j in {list(self.allowed)}; " if self.to_model != BASE else ""
         return (
-            f"after reach {self.reach}: {_name(self.from_model)} -> {_name(self.to_model)} "
-            f"({allowed}P(meets targets) {self.p_meets:.2f}): " + "; ".join(self.reasons)
+            f"after reach {self.reach}: {option_name(self.from_model)} -> "
+            f"{option_name(self.to_model)} (Thompson draw; P(meets targets) "
+            f"{self.p_meets:.2f}; predicted success {self.success:.2f}, lower bound "
+            f"{self.success_lower:.2f}; median {self.time_s:.1f} s; {self.left_out} options "
+            f"below the success floor left out): " + "; ".join(self.reasons)
         )
 
 
-def _name(option: tuple[int, int]) -> str:
-    return "the base policy" if option == BASE else f"M_{option[0]},{option[1]}"
-
-
 class AdaptivePolicy:
-    """A base policy with the posterior over M_ij and the target-driven re-selection."""
+    """A base policy with the posterior over the options and the target-driven,
+    safely exploring re-selection."""
 
-    def __init__(
-        self, base: Policy, models: ModelSet, posterior: ModelPosterior, targets: Targets
-    ) -> None:
+    def __init__(self, base: Policy, models: ModelSet, posterior: ModelPosterior,
+                 targets: Targets, selection: Selection | None = None) -> None:  # fmt: skip
         self.base = base
         self.models = models
         self.posterior = posterior
         self.targets = targets
-        self.selected: tuple[int, int] | None = None  # None: the base chooses freely
-        self.allowed: frozenset[int] = frozenset()
+        self.selection = selection or Selection()
+        self.rng = np.random.default_rng([self.selection.seed, 7])  # the Thompson picks
+        self.selected: Option = BASE
         self.switches: list[Switch] = []
+        self.held: list[str] = []  # switches the block's budget held back
         self.recent: list[ReachEvidence] = []  # since the last switch
         self.ratings: list[float] = []  # since the last switch
+
+    @classmethod
+    def around(cls, base: Policy, models: ModelSet, human: HumanModel, targets: Targets,
+               selection: Selection | None = None, table: ModelTable | None = None
+               ) -> AdaptivePolicy:  # fmt: skip
+        """The adaptive mode around ``base`` for a person scored with ``human``'s
+        sub-models, predicting from ``table`` (default: the packaged model table)."""
+        selection = selection or Selection()
+        posterior = ModelPosterior(table or ModelTable.load(), human, models, selection.seed)
+        return cls(base, models, posterior, targets, selection)
 
     def reset(self) -> None:
         self.base.reset()
@@ -95,55 +102,59 @@ class AdaptivePolicy:
     def decide(
         self, ee_pos: np.ndarray, goal: np.ndarray, human_model: int | None = None
     ) -> ModelChoice:
-        if self.selected is None:
+        if self.selected == BASE:
             return self.base.decide(ee_pos, goal, human_model)
-        i, j = self.selected
-        if len(self.allowed) > 1 and hasattr(self.base, "decide_within"):
-            restricted: Restrictable = self.base  # type: ignore[assignment]
-            return restricted.decide_within(ee_pos, goal, i, self.allowed)
-        return model_choice(self.models, i, j)
+        return model_choice(self.models, *self.selected)
 
     def observe(self, reach: ReachEvidence) -> Switch | None:
-        """Fold in a finished reach; switch when the targets are missed and an alternative
-        is more likely to meet them (the switch, else None)."""
-        current = self.selected or BASE
-        self.posterior.observe(reach, current)
+        """Fold in a finished reach; when the targets are missed, choose again (the
+        switch, else None)."""
+        self.posterior.observe(reach, self.selected)
         self.recent.append(reach)
         if len(self.recent) < self.targets.window:
             return None
         reasons = self.targets.unmet(self.recent[-self.targets.window :], self.ratings)
-        return self._switch(current, reasons) if reasons else None
+        return self._choose(reasons) if reasons else None
 
     def rating(self, rating: float) -> None:
         """The participant's comfort rating (1-5) of the reaches since the last one."""
         if self.recent:
-            self.posterior.rating(self.selected or BASE, rating)
+            self.posterior.rating(self.selected, rating)
         self.ratings.append(float(rating))
 
-    def _switch(self, current: tuple[int, int], reasons: list[str]) -> Switch | None:
-        meets = self.posterior.meets(self.targets, OPTIONS)
-        ranked = sorted(range(len(OPTIONS)), key=lambda k: (-meets[k], k))
-        chosen = next(k for k in ranked if OPTIONS[k] != current)
-        if meets[chosen] < meets[OPTIONS.index(current)] + SWITCH_GAIN:
-            return None  # no alternative is likelier to meet the targets
-        if OPTIONS[chosen] == BASE:
-            self.selected, self.allowed = None, frozenset()
-        else:
-            i, j = OPTIONS[chosen]
-            allowed = {
-                jj
-                for (ii, jj), p in zip(OPTIONS, meets, strict=True)
-                if ii == i and p >= meets[chosen] - KEEP_WITHIN
-            }
-            self.selected, self.allowed = (i, j), frozenset(allowed | {j})
+    def allowed(self) -> tuple[Option, ...]:
+        """The options the selection may take: the base policy, and every other whose
+        success lower bound reaches the floor."""
+        lower = self.posterior.success_lower(self.targets, OPTIONS)
+        floor = self.selection.success_floor
+        return tuple(o for o, b in zip(OPTIONS, lower, strict=True) if o == BASE or b >= floor)
+
+    def _choose(self, reasons: list[str]) -> Switch | None:
+        allowed = self.allowed()
+        chosen = self.posterior.thompson(self.targets, allowed, self.rng)
+        if chosen == self.selected:
+            return None
+        reach = self.posterior.reaches
+        block = (reach - 1) // self.selection.block_reaches
+        used = sum((s.reach - 1) // self.selection.block_reaches == block for s in self.switches)
+        if used >= self.selection.max_switches:
+            self.held.append(f"after reach {reach}: {option_name(chosen)} held back "
+                             f"({used} switches in this block): " + "; ".join(reasons))  # fmt: skip
+            return None
+        draws = self.posterior.draws(self.targets)
+        row = draws.row(chosen)
         switch = Switch(
-            self.posterior.reaches,
-            current,
-            OPTIONS[chosen],
-            tuple(sorted(self.allowed)),
-            tuple(reasons),
-            float(meets[chosen]),
+            reach=reach,
+            from_model=self.selected,
+            to_model=chosen,
+            reasons=tuple(reasons),
+            p_meets=float(self.posterior.meets(self.targets, (chosen,))[0]),
+            success=float(draws.predicted_success[row]),
+            success_lower=float(self.posterior.success_lower(self.targets, (chosen,))[0]),
+            time_s=float(draws.predicted_time_s[row]),
+            left_out=len(OPTIONS) - len(allowed),
         )
+        self.selected = chosen
         self.switches.append(switch)
         self.recent, self.ratings = [], []
         return switch

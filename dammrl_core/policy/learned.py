@@ -67,17 +67,11 @@ class DualQNetwork:
         return torch.cat([obs, one_hot], dim=1)
 
     @torch.no_grad()
-    def greedy(self, obs: np.ndarray, human: int | None = None,
-               robot: frozenset[int] | None = None) -> tuple[int, int]:  # fmt: skip
-        """Greedy 0-based (i, j); with ``human`` given, only j is chosen (for that i);
-        with ``robot`` (0-based j) given, j only among those."""
+    def greedy(self, obs: np.ndarray, human: int | None = None) -> tuple[int, int]:
+        """Greedy 0-based (i, j); with ``human`` given, only j is chosen (for that i)."""
         x = torch.as_tensor(obs, device=self.device).unsqueeze(0)
         i = int(self.human(x).argmax(1).item()) if human is None else human
         q = self.robot(self.robot_input(x, torch.tensor([i], device=self.device)))
-        if robot is not None:
-            allowed = torch.zeros(ACTIONS[1], dtype=torch.bool, device=self.device)
-            allowed[sorted(robot)] = True
-            q = q.masked_fill(~allowed, -torch.inf)
         return i, int(q.argmax(1).item())
 
 
@@ -147,15 +141,5 @@ class LearnedPolicy:
         chooses j for that i instead of Agent_0's choice."""
         obs = observe(ee_pos, goal, self.previous)
         i, j = self.network.greedy(obs, None if human_model is None else human_model - 1)
-        self.previous = (i + 1, j + 1)
-        return model_choice(self.models, i + 1, j + 1)
-
-    def decide_within(self, ee_pos: np.ndarray, goal: np.ndarray, human_model: int,
-                      robot_models: frozenset[int]) -> ModelChoice:  # fmt: skip
-        """Agent_1's greedy j among ``robot_models`` for radius ``human_model`` (the
-        adaptive policy's matched models)."""
-        obs = observe(ee_pos, goal, self.previous)
-        robot = frozenset(j - 1 for j in robot_models)
-        i, j = self.network.greedy(obs, human_model - 1, robot)
         self.previous = (i + 1, j + 1)
         return model_choice(self.models, i + 1, j + 1)

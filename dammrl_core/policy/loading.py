@@ -25,16 +25,14 @@ def load_policy(
     policy, health, description = _load_base(settings, models)
     if settings.kind != "adaptive":
         return policy, health, description
-    from dammrl_core.coadaptation import ModelPosterior, ModelTable
     from dammrl_core.policy.adaptive import AdaptivePolicy
 
     try:
-        table = ModelTable.load()
+        adaptive = AdaptivePolicy.around(policy, models, human or HumanModel(), settings.targets,
+                                         settings.selection)  # fmt: skip
     except DammrlError as exc:
         log.error("cannot adapt (%s); the base policy alone chooses", exc)
         return policy, "degraded", f"{description}; not adaptive: {exc}"
-    posterior = ModelPosterior(table, human or HumanModel(), models)
-    adaptive = AdaptivePolicy(policy, models, posterior, settings.targets)
     return adaptive, health, f"adaptive around the {description}"
 
 

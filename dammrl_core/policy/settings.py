@@ -9,7 +9,7 @@ from typing import Annotated, Literal
 from pydantic import Field
 from pydantic_settings import SettingsConfigDict
 
-from dammrl_core.coadaptation import Targets
+from dammrl_core.coadaptation import Selection, Targets
 from dammrl_core.settings import Settings
 
 SHIPPED_POLICY = Path(
@@ -32,6 +32,11 @@ class PolicySettings(Settings):
     targets: Targets = Field(default_factory=Targets)
     """What the adaptive policy asks of the last ``window`` reaches
     (``DAMMRL_POLICY_TARGETS__SUCCESS_MIN=0.9``, ``__TIME_MAX_S``, ``__COMFORT_MIN``, ...)."""
+    selection: Selection = Field(default_factory=Selection)
+    """How the adaptive policy chooses when a target is missed: Thompson sampling above a
+    success floor, a bounded number of switches per block
+    (``DAMMRL_POLICY_SELECTION__SUCCESS_FLOOR``, ``__MAX_SWITCHES``, ``__BLOCK_REACHES``,
+    ``__INTERPOLATE``, ``__SEED``)."""
     checkpoint: Path = SHIPPED_POLICY
     """Training run directory or checkpoint file (default: the shipped Reward 2 policy).
     The model set M_ij is the stack's one ``DAMMRL_MODELS_*`` setting."""
