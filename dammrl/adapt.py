@@ -19,6 +19,17 @@ policy would wander to them on the strength of nothing. The conservative term ke
 Q-network's unseen actions below the ones in the data unless the rewards say otherwise.
 Everything is seeded: on a CPU the same recordings and settings give the same checkpoint,
 tensor for tensor.
+
+A refined policy is a *candidate*: it is deployed only when it is better for this person
+than the policy in use. The **gate** runs both on the person's fitted simulator, paired
+by task seed (``gate_seeds`` reaches each, seeds of their own), and compares the time to
+success restricted at the task's horizon (a failed reach counts the full 60 s: one number
+for success and speed). It deploys when the lower end of the 95 % bootstrap interval of
+the gain (in use minus candidate, seconds) exceeds ``min_gain_s``; otherwise the policy
+in use stays, and the verdict says why. The recorded transitions give no usable
+off-policy estimate here: both policies are greedy (deterministic), so an importance
+weight is zero wherever they disagree; the verdict reports how often they agree on the
+recorded decisions instead.
 """
 
 from __future__ import annotations
@@ -34,18 +45,26 @@ from typing import Any, Literal
 import numpy as np
 import torch
 from pydantic import BaseModel, ConfigDict, Field
+from scipy.stats import bootstrap
 
 from dammrl.recording import read_recording
 from dammrl.rl.config import RewardWeights, TrainSettings
 from dammrl.rl.dqn import DualAgentDQN, ReplayBuffer
 from dammrl.rl.env import ReachEnv, RewardTerms, accuracy_term
 from dammrl.rl.train import EpisodeLog, pick_device, save
-from dammrl.runner import ReachRunner, ReachSettings
+from dammrl.runner import ReachResult, ReachRunner, ReachSettings
 from dammrl_core.errors import ConfigurationError
 from dammrl_core.human import HumanModel, direction_to_goal
 from dammrl_core.metrics import n_oscillations
+from dammrl_core.models import ModelSet
 from dammrl_core.person import SimulatedPerson
-from dammrl_core.policy.learned import ACTIONS, OBSERVATION_SIZE, load_checkpoint, observe
+from dammrl_core.policy.learned import (
+    ACTIONS,
+    OBSERVATION_SIZE,
+    LearnedPolicy,
+    load_checkpoint,
+    observe,
+)
 from schemas import (
     DecisionRequest,
     EpisodeResult,
@@ -60,6 +79,10 @@ from schemas.messages import OPERATOR
 SIM_SEEDS_START = 6_950_000
 """The simulated reaches' task seeds: below the held-out range, apart from training's and
 the model table's."""
+GATE_SEEDS_START = 6_980_000
+"""The gate's task seeds (apart from the simulated reaches' and the model table's)."""
+MIN_RADIUS_DECISIONS = 20
+"""Decisions under a radius before the fit gives that radius an accuracy of its own."""
 
 
 class RefineSettings(BaseModel):
@@ -79,6 +102,10 @@ class RefineSettings(BaseModel):
     seed: int = Field(0, ge=0)
     device: Literal["auto", "cpu", "cuda"] = "auto"
     """auto: a GPU when one is present (then without the byte-identical rerun)."""
+    gate_seeds: int = Field(60, ge=10, le=5000)
+    """Reaches of the fitted person per policy when the candidate is judged (paired)."""
+    min_gain_s: float = Field(0.0, ge=0, le=60)
+    """The gain's lower bound (seconds of time to success) must exceed this to deploy."""
 
 
 @dataclass(frozen=True)
@@ -97,11 +124,19 @@ class PersonFit:
     decisions: int
     accuracy: float  # share toward the goal
     decision_time_factor: float  # median of decision time / the sub-model's median
+    accuracy_big: float  # under E_big (the overall share with few decisions under it)
+    accuracy_small: float  # under E_small (likewise)
 
     def person(self) -> SimulatedPerson:
         return SimulatedPerson(
-            accuracy=self.accuracy, decision_time_factor=self.decision_time_factor
+            accuracy_big=self.accuracy_big,
+            accuracy_small=self.accuracy_small,
+            decision_time_factor=self.decision_time_factor,
         )
+
+
+Decision = tuple[int, bool, float]
+"""(radius i, toward the goal, decision time / the sub-model's median) of one decision."""
 
 
 # ---- the recordings ------------------------------------------------------------------
@@ -110,7 +145,7 @@ def recorded_reaches(
 ) -> tuple[list[Transition], PersonFit]:
     """The transitions of every recorded reach and the person's fit."""
     transitions: list[Transition] = []
-    decisions: list[tuple[bool, float]] = []
+    decisions: list[Decision] = []
     for path in paths:
         for episode in _episodes(path).values():
             transitions += [t for t in _transitions(episode, weights) if _finite(t)]
@@ -125,14 +160,21 @@ def _finite(t: Transition) -> bool:
     )
 
 
-def fit_person(decisions: list[tuple[bool, float]]) -> PersonFit:
-    """The simulated person of (toward the goal, decision time / the sub-model's median)
-    decisions: their share toward the goal (within [0.51, 0.99]) and median time ratio."""
+def fit_person(decisions: list[Decision]) -> PersonFit:
+    """The simulated person of a person's decisions: their share toward the goal (within
+    [0.51, 0.99]) overall and under each radius with ``MIN_RADIUS_DECISIONS`` or more, and
+    their median time ratio."""
     if not decisions:
         raise ConfigurationError("no decision of a person in the recordings: nothing to adapt to")
-    accuracy = min(0.99, max(0.51, float(np.mean([ok for ok, _ in decisions]))))
-    factor = min(10.0, max(0.1, float(np.median([ratio for _, ratio in decisions]))))
-    return PersonFit(len(decisions), accuracy, factor)
+    overall = _share([ok for _, ok, _ in decisions])
+    per_radius = [[ok for i, ok, _ in decisions if i == radius] for radius in (1, 2)]
+    big, small = (_share(d) if len(d) >= MIN_RADIUS_DECISIONS else overall for d in per_radius)
+    factor = min(10.0, max(0.1, float(np.median([ratio for _, _, ratio in decisions]))))
+    return PersonFit(len(decisions), overall, factor, big, small)
+
+
+def _share(correct: list[bool]) -> float:
+    return min(0.99, max(0.51, float(np.mean(correct))))
 
 
 @dataclass
@@ -245,9 +287,8 @@ def _terms(states: list[RobotState], t: np.ndarray, x: np.ndarray, start_s: floa
     )  # fmt: skip
 
 
-def _decisions(episode: _Episode, human: HumanModel) -> list[tuple[bool, float]]:
-    """(toward the goal, decision time / the sub-model's median) of each of the person's
-    decisions (a therapist's are left out)."""
+def _decisions(episode: _Episode, human: HumanModel) -> list[Decision]:
+    """Each of the person's decisions (a therapist's are left out)."""
     out = []
     for request, intent in sorted(episode.intents.items()):
         asked = episode.requests.get(request)
@@ -255,7 +296,7 @@ def _decisions(episode: _Episode, human: HumanModel) -> list[tuple[bool, float]]
             continue
         toward = direction_to_goal(asked.ee_pos_m, asked.goal_m, asked.primary_axis)
         median = human.decision_median_s(intent.human_model)
-        out.append((intent.u_h == toward, intent.decision_s / median))
+        out.append((intent.human_model, intent.u_h == toward, intent.decision_s / median))
     return out
 
 
@@ -270,16 +311,109 @@ class Refined:
 
 
 def refine(recordings: list[Path], start: Path, out: Path, settings: RefineSettings,
-           progress: Callable[[int], None] | None = None) -> Refined:  # fmt: skip
-    """Fine-tune the checkpoint ``start`` on ``recordings``; write the refined run to
-    ``out`` (a run directory any policy setting can load)."""
+           progress: Callable[[int], None] | None = None,
+           in_use: Path | None = None) -> tuple[Refined, Gate]:  # fmt: skip
+    """Fine-tune the checkpoint ``start`` on ``recordings``; write the candidate run to
+    ``out`` (a run directory any policy setting can load) and judge it against the policy
+    ``in_use`` (default: ``start``) on the person's fitted simulator."""
     weights = RewardWeights(**load_checkpoint(start)["weights"])
     recorded, fit = recorded_reaches(recordings, weights, HumanModel())
     refined = refine_transitions(recorded, fit, start, out, settings, progress)
+    verdict = gate(out, in_use or start, fit, settings, recorded, progress)
     meta = json.loads((out / "refined.json").read_text())
     meta["recordings"] = {str(p): _sha256(p) for p in recordings}
+    meta["gate"] = verdict.as_dict()
     (out / "refined.json").write_text(json.dumps(meta, indent=1) + "\n")
-    return refined
+    return refined, verdict
+
+
+# ---- the gate: deployed only when better --------------------------------------------
+@dataclass(frozen=True)
+class Interval:
+    """A mean with its 95 % percentile-bootstrap interval (paired differences, per seed)."""
+
+    value: float
+    low: float
+    high: float
+
+    @classmethod
+    def of(cls, differences: np.ndarray, seed: int) -> Interval:
+        rng = np.random.default_rng(seed)
+        result = bootstrap((differences,), np.mean, n_resamples=2000, method="percentile",
+                           random_state=rng)  # fmt: skip
+        mean = float(np.mean(differences))
+        interval = result.confidence_interval
+        return cls(mean, min(mean, float(interval.low)), max(mean, float(interval.high)))
+
+    def text(self, digits: int = 2) -> str:
+        return f"{self.value:+.{digits}f} [{self.low:+.{digits}f}, {self.high:+.{digits}f}]"
+
+
+@dataclass(frozen=True)
+class Gate:
+    """The candidate against the policy in use on the person's fitted simulator."""
+
+    deployed: bool
+    reason: str
+    gain: Interval  # in use minus candidate, mean time to success [s] (restricted)
+    candidate: tuple[float, float]  # success share, mean time to success [s]
+    in_use: tuple[float, float]
+    seeds: int
+    agreement: float | None  # share of recorded decisions the candidate would take alike
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"deployed": self.deployed, "reason": self.reason, "gain_s": asdict(self.gain),
+                "candidate": self.candidate, "in_use": self.in_use, "seeds": self.seeds,
+                "agreement": self.agreement}  # fmt: skip
+
+
+def gate(candidate: Path, in_use: Path, fit: PersonFit, settings: RefineSettings,
+         recorded: list[Transition] | None = None,
+         progress: Callable[[int], None] | None = None) -> Gate:  # fmt: skip
+    """Deploy ``candidate`` only when the lower 95 % bound of its gain over ``in_use``
+    exceeds ``settings.min_gain_s`` (see the module)."""
+    runner = ReachRunner(ReachSettings(human=HumanModel(person=fit.person())))
+    horizon = runner.settings.task.episode_timeout_s
+    seeds = range(GATE_SEEDS_START + settings.seed * 10_000,
+                  GATE_SEEDS_START + settings.seed * 10_000 + settings.gate_seeds)  # fmt: skip
+    runs = {}
+    for name, run in (("candidate", candidate), ("in_use", in_use)):
+        policy = LearnedPolicy(runner.settings.models, run)
+        runs[name] = [_restricted(runner.run(seed, policy=policy), horizon, progress)
+                      for seed in seeds]  # fmt: skip
+    mine, theirs = (np.array(runs[k]) for k in ("candidate", "in_use"))
+    gain = Interval.of(theirs[:, 1] - mine[:, 1], settings.seed)
+    deployed = bool(gain.low > settings.min_gain_s)
+    sign = "lower bound" if deployed else "its lower bound"
+    reason = (f"time to success {mine[:, 1].mean():.1f} s vs {theirs[:, 1].mean():.1f} s in use "
+              f"(success {mine[:, 0].mean():.0%} vs {theirs[:, 0].mean():.0%}) on "
+              f"{len(seeds)} reaches of the fitted person: gain {gain.value:+.2f} s, {sign} "
+              f"{gain.low:+.2f} s {'>' if deployed else '<='} "
+              f"{settings.min_gain_s:g} s")  # fmt: skip
+    return Gate(deployed, reason, gain, _summary(mine), _summary(theirs), len(seeds),
+                _agreement(candidate, in_use, recorded or []))  # fmt: skip
+
+
+def _restricted(result: ReachResult, horizon_s: float,
+                progress: Callable[[int], None] | None) -> tuple[float, float]:  # fmt: skip
+    """(success, time to success restricted at the horizon: a failure counts all of it)."""
+    if progress is not None:
+        progress(1)
+    m = result.metrics
+    return float(m.success), m.t_total_s if m.success else horizon_s
+
+
+def _summary(rows: np.ndarray) -> tuple[float, float]:
+    return float(rows[:, 0].mean()), float(rows[:, 1].mean())
+
+
+def _agreement(candidate: Path, in_use: Path, recorded: list[Transition]) -> float | None:
+    """The share of recorded decisions both policies would take alike (None: none)."""
+    if not recorded:
+        return None
+    a, b = (LearnedPolicy(ModelSet(), run).network for run in (candidate, in_use))
+    same = [a.greedy(t.obs) == b.greedy(t.obs) for t in recorded]
+    return float(np.mean(same))
 
 
 def refine_transitions(recorded: list[Transition], fit: PersonFit, start: Path, out: Path,
@@ -362,9 +496,9 @@ def _sha256(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
-def describe(refined: Refined) -> dict[str, Any]:
+def describe(refined: Refined, verdict: Gate) -> dict[str, Any]:
     return {
         "out": str(refined.out), **{f"person_{k}": v for k, v in asdict(refined.fit).items()},
         "recorded_transitions": refined.recorded, "simulated_transitions": refined.simulated,
-        "simulated_success": refined.sim_success,
+        "simulated_success": refined.sim_success, "gate": verdict.as_dict(),
     }  # fmt: skip

@@ -199,6 +199,26 @@ class Participant:
         folder = self.policy_folder
         return folder if (folder / "checkpoint.pt").is_file() else None
 
+    def next_candidate_folder(self) -> Path:
+        """Where ``dammrl adapt --participant`` writes its next candidate policy."""
+        candidates = self.folder / "policy-candidates"
+        taken = [int(p.name) for p in candidates.glob("[0-9][0-9][0-9]") if p.is_dir()]
+        return candidates / f"{max(taken, default=0) + 1:03d}"
+
+    def deploy_policy(self, candidate: Path) -> Path:
+        """Make ``candidate`` (a run directory) their policy; the one it replaces is kept
+        beside the candidates as ``<n>-replaced``. Returns the policy folder."""
+        staged = self.folder / "policy.new"
+        shutil.rmtree(staged, ignore_errors=True)
+        shutil.copytree(candidate, staged)
+        if self.policy_folder.exists():
+            retired = self.folder / "policy-candidates" / f"{candidate.name}-replaced"
+            retired.parent.mkdir(parents=True, exist_ok=True)
+            shutil.rmtree(retired, ignore_errors=True)
+            self.policy_folder.rename(retired)
+        staged.rename(self.policy_folder)
+        return self.policy_folder
+
     def sessions(self) -> list[Path]:
         return sorted(p for p in self.folder.glob("ses-*") if (p / "session.json").exists())
 

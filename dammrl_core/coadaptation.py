@@ -50,6 +50,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from dammrl_core.human import HumanModel
 from dammrl_core.model_table import (
     BASE,
+    MIDPOINTS,
     MODELS,
     OPTIONS,
     TABLE,
@@ -61,7 +62,8 @@ from dammrl_core.model_table import (
 )
 from dammrl_core.models import HUMAN_MODELS, ROBOT_MODELS, ModelSet
 
-__all__ = ["BASE", "MODELS", "OPTIONS", "TABLE", "ModelTable", "Option", "option_name"]
+__all__ = ["BASE", "MIDPOINTS", "MODELS", "OPTIONS", "TABLE", "ModelTable", "Option",
+           "option_name"]  # fmt: skip
 
 PRIOR_REACHES = 10.0
 """Reaches of this person the table's prediction for them weighs as (per option)."""
@@ -379,8 +381,9 @@ class ModelPosterior:
     """The posterior over the options for one person on one arm (see the module)."""
 
     def __init__(self, table: ModelTable, human: HumanModel, models: ModelSet,
-                 seed: int = 0) -> None:  # fmt: skip
+                 seed: int = 0, options: tuple[Option, ...] = OPTIONS) -> None:  # fmt: skip
         self.table = table
+        self.options = options  # those the posterior answers for (OPTIONS, and MIDPOINTS)
         self.human = human
         self.models = models
         self.seed = seed
@@ -398,11 +401,11 @@ class ModelPosterior:
             for i in HUMAN_MODELS
         }
         self.arm = NormalMean(0.0, ARM_SCALE_PRIOR_SD, table.step_time_log_sd)
-        self.beliefs = {m: OptionBelief() for m in OPTIONS}
+        self.beliefs = {m: OptionBelief() for m in options}
         self.ratings: list[tuple[Option, float]] = []
         self.reaches = 0
         self._decisions = 0  # evidence seen: the draws' seed and cache key
-        self._cache: dict[Any, Draws] = {}
+        self._cache: dict[Targets, Draws] = {}
 
     # ---- evidence -------------------------------------------------------------------
     def observe(self, reach: ReachEvidence, option: Option | None = None) -> None:
@@ -475,12 +478,11 @@ class ModelPosterior:
         )
 
     # ---- every option, for this person ----------------------------------------------
-    def draws(self, targets: Targets, options: tuple[Option, ...] = OPTIONS) -> Draws:
+    def draws(self, targets: Targets) -> Draws:
         """Joint draws of every option's belief (cached until new evidence)."""
-        key = (targets, options)
-        if key not in self._cache:
-            self._cache[key] = self._draw(targets, options)
-        return self._cache[key]
+        if targets not in self._cache:
+            self._cache[targets] = self._draw(targets, self.options)
+        return self._cache[targets]
 
     def _draw(self, targets: Targets, options: tuple[Option, ...]) -> Draws:
         rng = np.random.default_rng([self.seed, self.reaches, self._decisions, len(self.ratings)])
@@ -558,6 +560,9 @@ class ModelPosterior:
         return cov @ weighted, cov
 
     def _scale(self, option: Option) -> np.ndarray:
+        if len(option) == 3:
+            halves = self._scale(option[:2]) + self._scale((option[0], option[2]))
+            return np.asarray(halves / 2)
         reaches = self.table.reaches(option)
         return np.array([reaches.array(f"scale_{a}").mean() for a in "xyz"])
 
@@ -568,9 +573,11 @@ class ModelPosterior:
         met = draws.met[[draws.row(o) for o in options]]
         return np.asarray((met >= draws.asked).mean(axis=1))
 
-    def success_lower(self, targets: Targets, options: tuple[Option, ...] = OPTIONS
+    def success_lower(self, targets: Targets, options: tuple[Option, ...] | None = None
                       ) -> np.ndarray:  # fmt: skip
-        """Each option's success lower bound (the LOWER_QUANTILE of its draws)."""
+        """Each option's success lower bound (the LOWER_QUANTILE of its draws; default:
+        every option of the posterior, in its order)."""
+        options = self.options if options is None else options
         draws = self.draws(targets)
         rows = [draws.row(o) for o in options]
         return np.asarray(np.quantile(draws.success[rows], LOWER_QUANTILE, axis=1))
@@ -601,7 +608,7 @@ class ModelPosterior:
             "arm_scale": round(self.arm_scale, 4),
             "meets": dict(zip(MODELS, np.round(self.meets(targets), 4).tolist(), strict=True)),
             "meets_base": round(float(self.meets(targets, (BASE,))[0]), 4),
-            "success_lower": _by_option(OPTIONS, self.success_lower(targets), 4),
+            "success_lower": _by_option(self.options, self.success_lower(targets), 4),
             "predicted_success": _by_option(draws.options, draws.predicted_success, 4),
             "predicted_time_s": _by_option(draws.options, draws.predicted_time_s, 2),
             "posterior": dict(zip(MODELS, self.probabilities(targets).tolist(), strict=True)),

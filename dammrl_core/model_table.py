@@ -43,7 +43,9 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 from dammrl_core.errors import ConfigurationError
 from dammrl_core.models import HUMAN_MODELS, ROBOT_MODELS
 
-Option = tuple[int, int]
+Option = tuple[int, ...]
+"""(i, j): M_ij; (0, 0): the base policy; (i, j, k): the steps halfway between M_ij's and
+M_ik's, j and k neighbours (their step vectors differ on one axis)."""
 BASE: Option = (0, 0)
 """The base policy itself (the learned DQN, choosing M_ij per state): an option beside
 the 16 models, with beliefs of its own. Its reaches are credited to it, not to the M_ij
@@ -52,6 +54,15 @@ crediting its reaches to one would make that model look better than it is."""
 MODELS: tuple[Option, ...] = tuple((i, j) for i in HUMAN_MODELS for j in ROBOT_MODELS)
 """Every M_ij, in the posterior's order (i major)."""
 OPTIONS: tuple[Option, ...] = (BASE, *MODELS)
+MIDPOINTS: tuple[Option, ...] = tuple(
+    (i, j, k)
+    for i in HUMAN_MODELS
+    for j in ROBOT_MODELS
+    for k in ROBOT_MODELS
+    if j < k and bin((j - 1) ^ (k - 1)).count("1") == 1
+)
+"""The bounded online interpolation's options: each radius, halfway between two
+neighbouring step vectors (one axis halfway between its small and large step): 24."""
 TABLE = Path(str(resources.files("dammrl_core").joinpath("policies", "model_table.json.gz")))
 COLUMNS = ("success", "t_s", "decide_big_s", "decide_small_s", "execute_s", "log_error",
            "sparc", "scale_x", "scale_y", "scale_z")  # fmt: skip
@@ -161,7 +172,11 @@ class ModelTable(BaseModel):
         return math.exp(log_tau)
 
     def predict(self, option: Option, persons: Persons) -> Prediction:
-        """The option's success and mean log time for each person (see the module)."""
+        """The option's success and mean log time for each person (see the module); a
+        midpoint's, the mean of its two neighbours' (an assumption its own reaches correct)."""
+        if len(option) == 3:
+            i, j, k = option
+            return _halfway(self.predict((i, j), persons), self.predict((i, k), persons))
         reaches = self.reaches(option)
         nodes, weights = _corners(reaches, persons)  # (K, corners) each
 
@@ -209,6 +224,19 @@ class ModelTable(BaseModel):
         return table
 
 
+def _halfway(a: Prediction, b: Prediction) -> Prediction:
+    return Prediction(
+        success=(a.success + b.success) / 2,
+        log_time=(a.log_time + b.log_time) / 2,
+        log_time_sd=(a.log_time_sd + b.log_time_sd) / 2,
+        log_error=(a.log_error + b.log_error) / 2,
+        log_error_sd=(a.log_error_sd + b.log_error_sd) / 2,
+        sparc=(a.sparc + b.sparc) / 2,
+        sparc_sd=(a.sparc_sd + b.sparc_sd) / 2,
+        scale=(a.scale + b.scale) / 2,
+    )
+
+
 @functools.lru_cache(maxsize=4)
 def _load(path: Path) -> ModelTable:
     return ModelTable.read(path)
@@ -236,7 +264,11 @@ def _bracket(grid: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarr
 
 
 def option_name(option: Option) -> str:
-    return "the base policy" if option == BASE else f"M_{option[0]},{option[1]}"
+    if option == BASE:
+        return "the base policy"
+    if len(option) == 3:
+        return f"M_{option[0]},{option[1]}|{option[2]} (halfway)"
+    return f"M_{option[0]},{option[1]}"
 
 
 def grid_persons(axes: Sequence[Radius], grid: Sequence[Sequence[float]]

@@ -50,6 +50,15 @@ class ModelSet(Settings):
         _check_index("human model i", i, HUMAN_MODELS)
         return self.e_big_m if i == 1 else self.e_small_m
 
+    def within_step_range(self, steps_m: np.ndarray) -> bool:
+        """Whether every axis of a step vector (3,) [m] lies between that axis's small and
+        large step (an interpolated vector; anything else is no step of this set)."""
+        steps = np.asarray(steps_m, dtype=float)
+        low = np.minimum(self.step_small_m, self.step_large_m) - 1e-9
+        high = np.maximum(self.step_small_m, self.step_large_m) + 1e-9
+        return bool(steps.shape == (3,) and np.all(np.isfinite(steps))
+                    and np.all((steps >= low) & (steps <= high)))  # fmt: skip
+
     def steps_m(self, j: int) -> np.ndarray:
         """Step magnitudes (dx, dy, dz) of robot model ``j`` [m], shape (3,)."""
         _check_index("robot model j", j, ROBOT_MODELS)

@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+from collections.abc import Callable
 from pathlib import Path
 
 from dammrl.cli.common import Commands, output_dir, output_file, progress_bar
@@ -36,7 +37,11 @@ def register(commands: Commands) -> None:
     table.set_defaults(handler=_table)
     compare = sub.add_parser(
         "compare",
-        help="oracle, shipped and adaptive policy for each kind of person; report.md, results.json",
+        help="shipped, adaptive, refined and oracle policy for kinds of person; report.md, "
+        "results.json and figures",
+        description="The registered comparison (docs/coadaptation/registration.md): for each "
+        "kind of person, the oracle's search, the shipped policy, the adaptive mode, the "
+        "refined policy behind its gate, on held-out seeds; the verdict of every goal.",
     )
     compare.add_argument(
         "--out",
@@ -45,24 +50,43 @@ def register(commands: Commands) -> None:
         help="report directory (default: coadaptation)",
     )
     compare.add_argument(
-        "--persons",
+        "--person",
         nargs="+",
-        metavar="KIND",
-        help="kinds of person (default: all; see the report)",
+        type=Path,
+        metavar="FILE.yaml",
+        help="kinds of person, each a file of SimulatedPerson fields with a name and source "
+        "(default: the registered eight, dammrl/study/persons/)",
+    )
+    compare.add_argument("--test-seeds", type=_count(1, 1000), default=100, metavar="N",
+                         help="test seeds (from 7,700,000; default 100)")  # fmt: skip
+    compare.add_argument("--oracle-seeds", type=_count(1, 1000), default=40, metavar="N",
+                         help="seeds per M_ij of the oracle's search (from 7,600,000; default "
+                         "40; fewer than 30 and the report says it is no oracle)")  # fmt: skip
+    compare.add_argument(
+        "--replicates",
+        type=_count(1, 20),
+        default=3,
+        metavar="R",
+        help="adaptive sessions per person, Thompson seeds 0..R-1 (default 3)",
     )
     compare.add_argument(
-        "--test-seeds",
-        type=int,
-        default=40,
-        metavar="N",
-        help="test seeds (from 7,700,000; one adaptive session; default 40)",
+        "--no-interpolate",
+        action="store_true",
+        help="leave out the adaptive mode with interpolated steps",
     )
     compare.add_argument(
-        "--oracle-seeds",
-        type=int,
-        default=20,
+        "--sim-reaches",
+        type=_count(0, 100_000),
+        default=100,
         metavar="N",
-        help="seeds of the oracle's search (from 7,600,000; default 20)",
+        help="the refinement's simulated reaches (default 100)",
+    )
+    compare.add_argument(
+        "--gate-seeds",
+        type=_count(10, 5000),
+        default=60,
+        metavar="N",
+        help="the refinement gate's reaches per policy (default 60)",
     )
     compare.add_argument(
         "--jobs",
@@ -71,6 +95,22 @@ def register(commands: Commands) -> None:
         help="processes on this machine (default: every core)",
     )
     compare.set_defaults(handler=_compare)
+
+
+def _count(low: int, high: int) -> Callable[[str], int]:
+    """Argument type: a whole number within [low, high]."""
+
+    def convert(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            value = low - 1
+        if not low <= value <= high:
+            raise argparse.ArgumentTypeError(f"expected a whole number {low}-{high}, got {text!r}")
+        return value
+
+    convert.__name__ = "count"
+    return convert
 
 
 def _table(args: argparse.Namespace) -> int:
@@ -92,25 +132,42 @@ def _table(args: argparse.Namespace) -> int:
 
 
 def _compare(args: argparse.Namespace) -> int:
-    from dammrl.study.coadaptation import ORACLE_SEEDS, PERSONS, TEST_SEEDS, compare
+    from dammrl.adapt import RefineSettings
+    from dammrl.study.coadaptation import (
+        ORACLE_SEEDS,
+        TEST_SEEDS,
+        Kind,
+        Plan,
+        compare,
+        registered_kinds,
+    )
     from dammrl.study.coadaptation_report import write_report
-    from dammrl_core.coadaptation import MODELS
-    from dammrl_core.errors import ConfigurationError
-    from dammrl_core.policy.settings import PolicySettings
+    from dammrl.study.report import file_identity
 
-    persons = args.persons or list(PERSONS)
-    if unknown := [p for p in persons if p not in PERSONS]:
-        raise ConfigurationError(f"unknown person {unknown[0]!r}; one of: {', '.join(PERSONS)}")
-    oracle = range(ORACLE_SEEDS.start, ORACLE_SEEDS.start + args.oracle_seeds)
-    test = range(TEST_SEEDS.start, TEST_SEEDS.start + args.test_seeds)
-    targets = PolicySettings().targets
-    total = len(persons) * (len(MODELS) * len(oracle) + 2 * len(test) + 2)
-    update, close = progress_bar(total, "co-adaptation")
+    kinds = [Kind.of(path) for path in args.person] if args.person else registered_kinds()
+    if len({k.key for k in kinds}) != len(kinds):
+        from dammrl_core.errors import ConfigurationError
+
+        raise ConfigurationError("two person files share a name (their file stem): rename one")
+    plan = Plan(
+        kinds=kinds,
+        oracle_seeds=range(ORACLE_SEEDS.start, ORACLE_SEEDS.start + args.oracle_seeds),
+        test_seeds=range(TEST_SEEDS.start, TEST_SEEDS.start + args.test_seeds),
+        replicates=args.replicates,
+        interpolate=not args.no_interpolate,
+        refine=RefineSettings(sim_reaches=args.sim_reaches, gate_seeds=args.gate_seeds),
+    )
+    update, close = progress_bar(plan.reaches(), "co-adaptation")
     try:
-        results = compare(persons, targets, args.out, args.jobs, oracle, test, progress=update)
+        results = compare(plan, args.out, args.jobs, progress=update)
     finally:
         close()
-    report = write_report(results, targets, args.out)
+    rules = Path(__file__).parents[1] / "study" / "coadaptation.py"
+    sha, commit = file_identity(rules)
+    registration = (f"Rules and targets: `dammrl/study/coadaptation.py` (SHA-256 `{sha[:16]}`, "
+                    f"last changed in {commit}), registered in docs/coadaptation/registration.md "
+                    "before this run.")  # fmt: skip
+    report = write_report(results, plan, args.out, registration)
     print(report.read_text())
     print(json.dumps({"report": str(report)}))
     return 0
@@ -122,9 +179,11 @@ def register_adapt(commands: Commands) -> None:
         "adapt",
         help="refine the policy for one person from their recorded sessions",
         description="Fine-tune the dual-agent DQN on a person's recorded reaches (conservative "
-        "Q-learning) and on simulated reaches with a simulated person fitted to them. With "
-        "--participant the refined policy goes into their folder, and their next "
-        "`dammrl session run` loads it.",
+        "Q-learning) and on simulated reaches with a simulated person fitted to them, then "
+        "judge the candidate against the policy in use on that fitted person: it is deployed "
+        "only when the lower 95 % bound of its gain in time to success is above --min-gain-s. "
+        "With --participant a deployed policy goes into their folder (their next `dammrl "
+        "session run` loads it); a candidate not deployed stays in policy-candidates/.",
     )
     source = adapt.add_mutually_exclusive_group(required=True)
     source.add_argument("--recordings", type=Path, nargs="+", metavar="MCAP",
@@ -144,8 +203,8 @@ def register_adapt(commands: Commands) -> None:
                        help="the policy to refine: a run, a .pt or a shipped policy "
                        "(default: reward2)")  # fmt: skip
     adapt.add_argument("--out", type=Path,
-                       help="the refined run's directory (default with --participant: their "
-                       "policy folder)")  # fmt: skip
+                       help="the candidate run's directory (default with --participant: the "
+                       "next of their policy-candidates/)")  # fmt: skip
     adapt.add_argument(
         "--sim-reaches",
         type=int,
@@ -164,6 +223,22 @@ def register_adapt(commands: Commands) -> None:
         help="weight of the conservative (CQL) term; 0: plain DQN (default 1)",
     )
     adapt.add_argument("--seed", type=int, default=0, help="seed of the refinement (default 0)")
+    adapt.add_argument(
+        "--gate-seeds",
+        type=int,
+        default=60,
+        metavar="N",
+        help="reaches of the fitted person per policy when the candidate is judged against "
+        "the policy in use (10-5000; default 60)",
+    )
+    adapt.add_argument(
+        "--min-gain-s",
+        type=float,
+        default=0.0,
+        metavar="S",
+        help="deploy only when the gain's lower 95 %% bound in time to success exceeds this "
+        "(0-60 s; default 0)",
+    )
     adapt.add_argument("--json", action="store_true", help="one JSON object on stdout")
     adapt.set_defaults(handler=_adapt)
 
@@ -173,33 +248,44 @@ def _adapt(args: argparse.Namespace) -> int:
     from dammrl.session import Participant
     from dammrl_core.errors import ConfigurationError
 
-    recordings, out = args.recordings, args.out
+    recordings, out, in_use = args.recordings, args.out, args.start
+    participant = None
     if args.participant is not None:
         participant = Participant(args.root, args.participant)
         recordings = sorted(participant.folder.glob("ses-*/recordings/*.mcap"))
-        out = out or participant.policy_folder
         if not recordings:
             raise ConfigurationError(f"no recording of {participant.id} under {args.root}")
+        in_use = participant.refined_policy() or args.start
+        out = out or participant.next_candidate_folder()
     if out is None:
         raise ConfigurationError("--out is needed with --recordings")
     settings = RefineSettings(sim_reaches=args.sim_reaches, updates=args.updates,
-                              conservative=args.conservative, seed=args.seed)  # fmt: skip
-    update, close = progress_bar(settings.sim_reaches + settings.updates, "refinement", "step")
+                              conservative=args.conservative, seed=args.seed,
+                              gate_seeds=args.gate_seeds, min_gain_s=args.min_gain_s)  # fmt: skip
+    steps = settings.sim_reaches + settings.updates + 2 * settings.gate_seeds
+    update, close = progress_bar(steps, "refinement and its gate", "step")
     try:
-        refined = refine(list(recordings), args.start, out, settings, update)
+        refined, verdict = refine(list(recordings), in_use, out, settings, update)
     finally:
         close()
-    summary = describe(refined)
+    deployed_to = None
+    if participant is not None and verdict.deployed:
+        deployed_to = participant.deploy_policy(refined.out)
     if args.json:
-        print(json.dumps(summary))
+        print(json.dumps(describe(refined, verdict) | {"deployed_to": str(deployed_to or "")}))
+        return 0
+    fit = refined.fit
+    print(f"{len(recordings)} recording(s): {fit.decisions} decisions of the person, "
+          f"{fit.accuracy:.0%} toward the goal ({fit.accuracy_big:.0%} under E_big, "
+          f"{fit.accuracy_small:.0%} under E_small), decision times "
+          f"x{fit.decision_time_factor:.2f} the sub-models'; {refined.recorded} recorded and "
+          f"{refined.simulated} simulated transitions")  # fmt: skip
+    if not verdict.deployed:
+        print(f"not deployed: the candidate ({refined.out}) is not better than the policy in use "
+              f"({in_use}): {verdict.reason}; keep using {in_use}")  # fmt: skip
+    elif deployed_to is not None:
+        print(f"deployed to {deployed_to} (their next session loads it): {verdict.reason}")
     else:
-        fit = refined.fit
-        print(f"{len(recordings)} recording(s): {fit.decisions} decisions of the person, "
-              f"{fit.accuracy:.0%} toward the goal, decision times x{fit.decision_time_factor:.2f} "
-              f"the sub-models'; {refined.recorded} recorded and {refined.simulated} simulated "
-              f"transitions")  # fmt: skip
-        print(
-            f"refined policy: {refined.out} (load it with "
-            f"DAMMRL_POLICY_CHECKPOINT={refined.out}, or let the participant's next session)"
-        )
+        print(f"better than {in_use}: {verdict.reason}; load it with "
+              f"DAMMRL_POLICY_CHECKPOINT={refined.out}")  # fmt: skip
     return 0

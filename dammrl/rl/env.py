@@ -15,6 +15,7 @@ import numpy as np
 
 from dammrl.rl.config import RewardWeights
 from dammrl.runner import Episode, ReachRunner
+from dammrl_core.human import HumanModel
 from dammrl_core.metrics import n_oscillations
 from dammrl_core.policy import ModelChoice, model_choice
 from dammrl_core.policy.learned import ACTIONS, OBSERVATION_SIZE, observe
@@ -61,8 +62,11 @@ class ReachEnv:
         self._decisions = 0
         self._model: tuple[int, int] | None = None
 
-    def reset(self, seed: int) -> tuple[np.ndarray, dict[str, Any]]:
-        self.episode = self.runner.episode(seed)
+    def reset(
+        self, seed: int, human: HumanModel | None = None
+    ) -> tuple[np.ndarray, dict[str, Any]]:
+        """A new episode of ``seed`` (``human``: its simulated person, default the runner's)."""
+        self.episode = self.runner.episode(seed, human=human)
         self._loop = self.episode.loop()
         self._state = next(self._loop)
         self._mark, self._decisions, self._model = 0, 0, None

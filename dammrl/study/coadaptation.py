@@ -1,89 +1,124 @@
-"""Co-adaptation measured: the model table, and the oracle / shipped / adaptive comparison
-on simulated persons unlike the training human.
+"""Co-adaptation measured: shipped, adaptive, refined and oracle policy for kinds of
+simulated person whose needs differ (``dammrl coadapt compare``).
 
-``dammrl coadapt table`` runs every M_ij on the nominal simulated person and writes the
-model table the posterior starts from (its seeds lie below the held-out range and apart
-from training's). ``dammrl coadapt compare`` runs, for each kind of person:
+The rules below were committed before the run they judge (docs/coadaptation/registration.md
+states them in words, with the commit). For each kind of person (a person file):
 
-* the **oracle**: the best fixed M_ij for that person, found by brute force on seeds of
-  its own (most successes, then the shortest median time), then run on the test seeds;
+* the **oracle** is the best fixed M_ij for that person by the adaptive mode's own rule
+  (most targets met; then the least short of the others; then the shortest median time),
+  searched on ``ORACLE_SEEDS`` (every M_ij, ``len(ORACLE_SEEDS)`` seeds each), then run
+  on the test seeds; its search and its test-seed success are reported side by side;
 * the **shipped** policy (the Reward 2 DQN) on the test seeds;
-* the **adaptive** mode around the shipped policy: the test seeds as one session, in
-  order, the posterior carried from reach to reach;
-* the **refined** policy: the shipped one refined (``dammrl adapt``'s update) on a first
-  session of that person with the shipped policy (seeds of its own), then run on the
-  test seeds;
+* the **adaptive** mode around it: the test seeds in order as the person's sessions, the
+  posterior carried from reach to reach and session to session, ``replicates`` times with
+  different Thompson seeds;
+* the **refined** policy: ``dammrl adapt``'s update on the person's first session with the
+  shipped policy (``SESSION_SEEDS``), judged by its gate on the person fitted from that
+  session; the candidate runs on the test seeds, and the policy the person would use is the
+  candidate when the gate deployed it, else the shipped policy.
 
-and reports success, time and error with paired 95 % intervals (by seed) against the
-shipped policy, regret against the oracle, every switch, and the reaches until the
-posterior's MAP model settled.
+The test seeds are the person's sessions 2, 3, ... of ``SESSION_REACHES`` reaches each
+(session 1 is the refinement's): a person who tires does so within each, one who learns
+does so from one to the next, and every arm meets the same person at the same reach. Each
+reach's comfort is the simulated person's rating of its steps (its own noise per seed,
+the same in every arm).
+
+Judged (paired by seed, bootstrap 95 % intervals; a bound is the interval's end):
+
+* time to success restricted at the horizon (a failed reach counts 60 s: one measure for
+  success and speed), success, median time and comfort;
+* "an alternative is better" when, on the oracle's own seeds, the oracle ranks above the
+  shipped policy by the rule and its time to success is shorter by ``MARGIN_S`` or more, or
+  its mean comfort higher by ``MARGIN_COMFORT`` or more (the interval's bound past 0);
+  "the shipped policy is best" when the oracle does not rank above it;
+* goal 1 (an alternative better): after ``SETTLE_REACHES`` reaches, the adaptive mode's
+  time to success is within ``MARGIN_S`` of the oracle's (upper bound) and its comfort
+  within ``MARGIN_COMFORT`` (lower bound);
+* goal 2 (the shipped policy best): the adaptive mode is equivalent to it over every test
+  reach, time to success within +-``MARGIN_S`` (both bounds);
+* goal 3: a refined policy deployed by the gate is never measurably worse than the
+  shipped policy on the test seeds (the upper bound of its loss below ``MARGIN_S``).
 """
 
 from __future__ import annotations
 
 import functools
 import math
-from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from dammrl.adapt import PersonFit, RefineSettings, Transition, fit_person, refine_transitions
+from dammrl.adapt import (
+    Decision,
+    Gate,
+    PersonFit,
+    RefineSettings,
+    Transition,
+    fit_person,
+    gate,
+    refine_transitions,
+)
 from dammrl.rl.config import RewardWeights, TrainSettings
 from dammrl.rl.env import ReachEnv
-from dammrl.runner import ReachResult, ReachRunner, ReachSettings, evidence_of
+from dammrl.runner import ReachResult, ReachRunner, evidence_of
 from dammrl.study.run import map_jobs
-from dammrl.study.stats import Estimate, bootstrap_mean, paired_difference, wilson
-from dammrl_core.coadaptation import (
-    BASE,
-    MODELS,
-    OPTIONS,
-    ModelPosterior,
-    ModelRow,
-    ModelTable,
-    ReachEvidence,
-    Targets,
-)
+from dammrl.study.stats import Estimate, paired_difference
+from dammrl_core.coadaptation import Selection, Targets, shortfalls
 from dammrl_core.human import HumanModel
-from dammrl_core.person import SimulatedPerson
+from dammrl_core.model_table import BASE, MODELS, Option
+from dammrl_core.person import PersonFile, load_person
 from dammrl_core.policy import FixedPolicy, Policy
 from dammrl_core.policy.adaptive import AdaptivePolicy
 from dammrl_core.policy.learned import LearnedPolicy, load_checkpoint
 
-TABLE_SEEDS = range(6_900_000, 6_900_030)
-"""The model table's seeds: below the held-out range, above every training run's."""
-ORACLE_SEEDS = range(7_600_000, 7_600_020)
-TEST_SEEDS = range(7_700_000, 7_700_040)
-"""The comparison's held-out seeds: the oracle searches on its own, all policies are
-measured on the test seeds (neither used by any study or training)."""
-SESSION_SEEDS = range(7_650_000, 7_650_020)
-"""The person's first session, with the shipped policy: the refinement's data."""
+PERSONS_DIR = Path(__file__).parent / "persons"
+REGISTERED = ("nominal", "low-accuracy", "hurried-errors", "narrow-boundaries",
+              "slow-decisions", "fatigue", "learner", "small-steps")  # fmt: skip
+"""The registered kinds of person (files in ``PERSONS_DIR``), in the report's order."""
+TARGETS = Targets(window=5, success_min=0.9, time_max_s=20.0, comfort_min=3.0)
+"""The targets of every kind (the issue's positive control's, and comfort)."""
+ORACLE_SEEDS = range(7_600_000, 7_600_040)
+SESSION_SEEDS = range(7_650_000, 7_650_025)
+TEST_SEEDS = range(7_700_000, 7_700_100)
+"""Held-out seeds used by no training, study or table; disjoint."""
+SESSION_REACHES = 25
+REPLICATES = 3
+MARGIN_S = 2.5
+"""Time to success [s]: about 5 pp of success (a failure costs ~50 s more than a success)."""
+MARGIN_COMFORT = 0.5
+"""Mean comfort rating (1-5): half a step of the scale."""
+SETTLE_REACHES = 25
+"""Goal 1 is judged on the reaches after these (the first test session)."""
+HORIZON_S = 60.0
 SHIPPED = Path("reward2")
-
-PERSONS: dict[str, SimulatedPerson] = {
-    "nominal": SimulatedPerson(),
-    "slow (x1.6)": SimulatedPerson(decision_time_factor=1.6),
-    "quick (x0.6)": SimulatedPerson(decision_time_factor=0.6),
-    "error-prone (65 %)": SimulatedPerson(accuracy=0.65),
-    "accurate (97 %)": SimulatedPerson(accuracy=0.97),
-    "drift-diffusion": SimulatedPerson(behaviour="ddm"),
-    "drift-diffusion, weak drift": SimulatedPerson(behaviour="ddm", ddm_drift_per_s=1.0),
-}
-"""The kinds of person (``DAMMRL_HUMAN_PERSON__*``); the first is the training human."""
+RATING_STREAM = 2039
 
 
-# ---- one process's runners ----------------------------------------------------------
-@functools.lru_cache(maxsize=8)
-def _runner(person: str) -> ReachRunner:
-    return ReachRunner(ReachSettings(human=HumanModel(person=PERSONS[person])))
+@dataclass(frozen=True)
+class Kind:
+    """A kind of person: its file's name, the person and the source of its numbers."""
+
+    key: str
+    name: str
+    source: str
+    human: HumanModel
+
+    @classmethod
+    def of(cls, path: Path) -> Kind:
+        loaded: PersonFile = load_person(path)
+        return cls(path.stem, loaded.name, loaded.source, HumanModel(person=loaded.person))
 
 
-def _policy(runner: ReachRunner, spec: tuple[int, int] | None) -> Policy:
-    if spec is None:
-        return LearnedPolicy(runner.settings.models, SHIPPED)
-    return FixedPolicy(runner.settings.models, *spec)
+def registered_kinds() -> list[Kind]:
+    return [Kind.of(PERSONS_DIR / f"{key}.yaml") for key in REGISTERED]
+
+
+def practice(index: int) -> tuple[int, int]:
+    """(session, reach) of the person at test reach ``index`` (sessions from 2)."""
+    return index // SESSION_REACHES + 2, index % SESSION_REACHES
 
 
 @dataclass(frozen=True)
@@ -91,270 +126,401 @@ class Row:
     """One reach of the comparison."""
 
     person: str
-    arm: str  # 'oracle-search', 'oracle', 'shipped', 'adaptive'
+    arm: str  # 'search', 'oracle', 'shipped', 'adaptive', 'interpolated', 'refined'
+    replicate: int
     seed: int
-    model: tuple[int, int]
+    index: int  # its place in the test seeds (the person's practice)
+    option: Option  # the option in force (BASE: the shipped policy, or the adaptive base)
     success: bool
     t_total_s: float
     final_error_m: float
+    comfort: float
+
+    @property
+    def restricted_s(self) -> float:
+        """Time to success restricted at the horizon (a failure counts all of it)."""
+        return self.t_total_s if self.success else HORIZON_S
 
 
-def _row(person: str, arm: str, result: ReachResult) -> Row:
+# ---- one process's runner ----------------------------------------------------------------
+@functools.lru_cache(maxsize=1)
+def _runner() -> ReachRunner:
+    return ReachRunner()
+
+
+@functools.lru_cache(maxsize=2)
+def _shipped() -> LearnedPolicy:
+    return LearnedPolicy(_runner().settings.models, SHIPPED)
+
+
+def _reach(kind: Kind, arm: str, seed: int, index: int, policy: Policy, option: Option,
+           replicate: int = 0) -> tuple[Row, ReachResult]:  # fmt: skip
+    result = _runner().run(seed, policy=policy, human=kind.human.practised(*practice(index)))
+    steps = np.array([s.steps_m for s in result.steps]).reshape(-1, 3)
+    rating = kind.human.person.comfort_rating(steps, np.random.default_rng([seed, RATING_STREAM]))
     m = result.metrics
-    return Row(person, arm, result.seed, result.model, m.success, m.t_total_s, m.final_error_m)
+    row = Row(kind.key, arm, replicate, seed, index, option, m.success, m.t_total_s,
+              m.final_error_m, float(rating))  # fmt: skip
+    return row, result
 
 
-FixedJob = tuple[str, str, tuple[int, int] | None, int]  # person, arm, M_ij (None: shipped), seed
+FixedJob = tuple[Kind, str, Option, tuple[int, ...], tuple[int, ...]]
+"""kind, arm, option (BASE: the shipped policy), seeds, their indices."""
 
 
-def _fixed_job(job: FixedJob) -> Row:
-    person, arm, spec, seed = job
-    runner = _runner(person)
-    return _row(person, arm, runner.run(seed, policy=_policy(runner, spec)))
+def _fixed_job(job: FixedJob) -> list[Row]:
+    kind, arm, option, seeds, indices = job
+    runner = _runner()
+    policy: Policy = _shipped() if option == BASE else FixedPolicy(runner.settings.models, *option)
+    return [_reach(kind, arm, s, k, policy, option)[0] for s, k in zip(seeds, indices, strict=True)]
 
 
-def _table_job(job: tuple[tuple[int, int], int]) -> tuple[ReachEvidence, float]:
-    option, seed = job
-    runner = _runner("nominal")
-    if option == BASE:
-        result = runner.run(seed, policy=_policy(runner, None))
-    else:
-        result = runner.run(seed, option)
-    return evidence_of(result, runner.settings.models), _decision_time(result)
-
-
-def _decision_time(result: ReachResult) -> float:
-    end = result.metrics.t_total_s
-    return float(sum(d.decision_s for d in result.decisions if d.intent.t_s <= end + 1e-6))
-
-
-# ---- the model table ---------------------------------------------------------------
-def build_table(
-    seeds: range = TABLE_SEEDS, workers: int = 1, progress: Callable[[int], None] | None = None
-) -> ModelTable:
-    """Every M_ij, and the shipped policy (the adaptive policy's base), on ``seeds`` with
-    the nominal person on the nominal arm."""
-    jobs = [(m, s) for m in OPTIONS for s in seeds]
-    done = list(map_jobs(_table_job, jobs, workers, progress=progress))
-    steps = [s for evidence, _ in done for s in evidence.steps]
-    timed = [s for s in steps if s.execution_s > 0 and s.length_m > 0]
-    design = np.column_stack([np.ones(len(timed)), np.log([s.length_m for s in timed]),
-                              np.log([s.radius_m for s in timed])])  # fmt: skip
-    log_times = np.log([s.execution_s for s in timed])
-    coefficients, *_ = np.linalg.lstsq(design, log_times, rcond=None)
-    log_sd = float(np.std(log_times - design @ coefficients))
-    rows = [
-        _table_row(m, [d for (mm, _), d in zip(jobs, done, strict=True) if mm == m])
-        for m in OPTIONS
-    ]
-    return ModelTable(
-        seeds=f"{seeds.start}:{seeds.stop}",
-        step_time_log_intercept=float(coefficients[0]),
-        step_time_log_length=float(coefficients[1]),
-        step_time_log_radius=float(coefficients[2]),
-        step_time_log_sd=max(log_sd, 0.05),
-        rows=tuple(rows),
-    )
-
-
-def _table_row(model: tuple[int, int], done: list[tuple[ReachEvidence, float]]) -> ModelRow:
-    reaches = [evidence for evidence, _ in done]
-    log_t = np.log([max(r.t_total_s, 1e-3) for r in reaches])
-    log_e = np.log([max(r.final_error_m, 1e-4) for r in reaches])
-    sparc = np.array([r.sparc for r in reaches if r.sparc is not None and math.isfinite(r.sparc)])
-    total = sum(r.t_total_s for r in reaches)
-    executing = sum(s.execution_s for r in reaches for s in r.steps)
-    deciding = sum(d for _, d in done)
-    decisions = [d for r in reaches for d in r.decisions]
-    return ModelRow(
-        human_model=model[0],
-        robot_model=model[1],
-        reaches=len(reaches),
-        big_share=float(np.mean([d.human_model == 1 for d in decisions])) if decisions else 0.0,
-        success_rate=float(np.mean([r.success for r in reaches])),
-        log_time_mean=float(log_t.mean()),
-        log_time_sd=max(float(log_t.std()), 0.05),
-        log_error_mean=float(log_e.mean()),
-        log_error_sd=max(float(log_e.std()), 0.05),
-        sparc_mean=float(sparc.mean()) if sparc.size else -5.0,
-        sparc_sd=max(float(sparc.std()), 0.1) if sparc.size else 2.0,
-        decision_share=min(1.0, deciding / total),
-        execution_share=min(1.0, executing / total),
-    )
-
-
-# ---- the adaptive session ------------------------------------------------------------
+# ---- the adaptive session ----------------------------------------------------------------
 @dataclass(frozen=True)
 class Session:
-    """The adaptive mode over the test seeds as one session of one person."""
+    """The adaptive mode over the test seeds, the person's sessions in order."""
 
+    kind: str
+    replicate: int
+    interpolate: bool
     rows: list[Row]
     switches: list[str]
-    map_models: list[tuple[int, int]]  # the posterior's MAP model after each reach
+    held: list[str]
     summary: dict[str, Any]
 
 
-def adaptive_session(
-    person: str, seeds: range, targets: Targets, table: ModelTable | None = None
-) -> Session:
-    runner = _runner(person)
-    models = runner.settings.models
-    posterior = ModelPosterior(table or ModelTable.load(), HumanModel(), models)
-    policy = AdaptivePolicy(_policy(runner, None), models, posterior, targets)
-    rows, map_models = [], []
-    for seed in seeds:
-        result = runner.run(seed, policy=policy)
-        rows.append(_row(person, "adaptive", result))
-        policy.observe(evidence_of(result, models))
-        map_models.append(MODELS[int(np.argmax(posterior.probabilities(targets)))])
-    return Session(rows, [s.line for s in policy.switches], map_models, posterior.summary(targets))
+def adaptive_session(kind: Kind, seeds: Sequence[int], replicate: int,
+                     interpolate: bool = False) -> Session:  # fmt: skip
+    models = _runner().settings.models
+    selection = Selection(seed=replicate, interpolate=interpolate)
+    policy = AdaptivePolicy.around(_shipped(), models, HumanModel(), TARGETS, selection)
+    arm = "interpolated" if interpolate else "adaptive"
+    rows = []
+    for index, seed in enumerate(seeds):
+        row, result = _reach(kind, arm, seed, index, policy, policy.selected, replicate)
+        policy.observe(evidence_of(result, models), rating=row.comfort)
+        rows.append(row)
+    summary = policy.posterior.summary(TARGETS)
+    return Session(kind.key, replicate, interpolate, rows, [s.line for s in policy.switches],
+                   policy.held, summary)  # fmt: skip
 
 
-def _adaptive_job(job: tuple[str, range, Targets]) -> Session:
+def _adaptive_job(job: tuple[Kind, tuple[int, ...], int, bool]) -> Session:
     return adaptive_session(*job)
 
 
-# ---- the refined policy --------------------------------------------------------------
+# ---- the refined policy --------------------------------------------------------------------
 @dataclass(frozen=True)
 class RefinedRun:
-    rows: list[Row]
+    kind: str
+    rows: list[Row]  # the candidate on the test seeds
     fit: PersonFit
+    gate: Gate
 
 
-def refined_run(person: str, session_seeds: range, test_seeds: range, out: Path,
-                settings: RefineSettings) -> RefinedRun:  # fmt: skip
-    """A first session with the shipped policy, the refinement on it, the test seeds."""
-    runner = _runner(person)
+def refined_run(kind: Kind, session_seeds: Sequence[int], test_seeds: Sequence[int],
+                out: Path, settings: RefineSettings) -> RefinedRun:  # fmt: skip
+    """The person's first session with the shipped policy, the refinement on it, its gate
+    on the fitted person, and the candidate on the test seeds."""
+    runner = _runner()
     checkpoint = load_checkpoint(SHIPPED)
     env = ReachEnv(runner, RewardWeights(**checkpoint["weights"]),
                    TrainSettings(**checkpoint["settings"]).max_decisions)  # fmt: skip
-    policy = LearnedPolicy(runner.settings.models, SHIPPED)
-    human = runner.settings.human
     transitions: list[Transition] = []
-    decisions: list[tuple[bool, float]] = []
-    for seed in session_seeds:
-        obs, _ = env.reset(seed=seed)
-        policy.reset()
-        done = False
-        while not done:
-            state = env.episode.last_state
-            choice = policy.decide(state.ee_pos, env.episode.task.goal)
-            action = (choice.human_model - 1, choice.robot_model - 1)
-            next_obs, reward, terminated, truncated, _ = env.step(action)
-            done = terminated or truncated
-            transitions.append(Transition(obs, action, reward, next_obs, done))
-            obs = next_obs
+    decisions: list[Decision] = []
+    for reach, seed in enumerate(session_seeds):
+        transitions += _shipped_episode(env, seed, kind.human.practised(1, reach))
         episode = env.episode
-        for d, c in zip(episode.decisions, episode.choices, strict=True):
-            decisions.append((d.correct, d.decision_s / human.decision_median_s(c.human_model)))
+        median = kind.human.decision_median_s
+        decisions += [(c.human_model, d.correct, d.decision_s / median(c.human_model))
+                      for d, c in zip(episode.decisions, episode.choices, strict=True)]  # fmt: skip
     fit = fit_person(decisions)
-    refined = refine_transitions(transitions, fit, SHIPPED, out, settings)
-    mine = LearnedPolicy(runner.settings.models, refined.out)
-    rows = [_row(person, "refined", runner.run(seed, policy=mine)) for seed in test_seeds]
-    return RefinedRun(rows, fit)
+    candidate = refine_transitions(transitions, fit, SHIPPED, out, settings).out
+    verdict = gate(candidate, SHIPPED, fit, settings, transitions)
+    policy = LearnedPolicy(runner.settings.models, candidate)
+    rows = [_reach(kind, "refined", s, k, policy, BASE)[0] for k, s in enumerate(test_seeds)]
+    return RefinedRun(kind.key, rows, fit, verdict)
 
 
-def _refined_job(job: tuple[str, range, range, Path, RefineSettings]) -> RefinedRun:
+def _shipped_episode(env: ReachEnv, seed: int, human: HumanModel) -> list[Transition]:
+    policy = _shipped()
+    obs, _ = env.reset(seed=seed, human=human)
+    policy.reset()
+    out, done = [], False
+    while not done:
+        choice = policy.decide(env.episode.last_state.ee_pos, env.episode.task.goal)
+        action = (choice.human_model - 1, choice.robot_model - 1)
+        next_obs, reward, terminated, truncated, _ = env.step(action)
+        done = terminated or truncated
+        out.append(Transition(obs, action, reward, next_obs, done))
+        obs = next_obs
+    return out
+
+
+def _refined_job(job: tuple[Kind, tuple[int, ...], tuple[int, ...], Path, RefineSettings]
+                 ) -> RefinedRun:  # fmt: skip
     return refined_run(*job)
 
 
-def settled_after(history: list[Any]) -> int:
-    """Reaches until the last change of ``history`` (1: never changed; 0: empty)."""
-    for k in range(len(history) - 1, 0, -1):
-        if history[k] != history[k - 1]:
-            return k + 1
-    return 1 if history else 0
+# ---- the comparison -------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Plan:
+    """What ``compare`` runs."""
+
+    kinds: list[Kind]
+    oracle_seeds: range = ORACLE_SEEDS
+    test_seeds: range = TEST_SEEDS
+    session_seeds: range = SESSION_SEEDS
+    replicates: int = REPLICATES
+    interpolate: bool = True
+    refine: RefineSettings = field(default_factory=RefineSettings)
+
+    def reaches(self) -> int:
+        """Reaches ``compare`` runs (its progress unit; a refinement counts its simulated
+        reaches, its gate's and its session's)."""
+        per_kind = (len(MODELS) + 1) * len(self.oracle_seeds) + 2 * len(self.test_seeds)
+        per_kind += self.replicates * len(self.test_seeds) * (2 if self.interpolate else 1)
+        per_kind += self.refine_reaches()
+        return per_kind * len(self.kinds)
+
+    def refine_reaches(self) -> int:
+        return (len(self.session_seeds) + self.refine.sim_reaches + 2 * self.refine.gate_seeds
+                + len(self.test_seeds))  # fmt: skip
 
 
-# ---- the comparison ------------------------------------------------------------------
 @dataclass(frozen=True)
 class PersonResult:
-    person: str
-    oracle: tuple[int, int]
-    arms: dict[str, list[Row]]  # 'oracle', 'shipped', 'adaptive', 'refined' on the test seeds
-    session: Session
-    fit: PersonFit  # the simulated person fitted to the first session (the refinement's)
+    kind: Kind
+    oracle: Option
+    search: dict[Option, list[Row]]  # every option (and BASE) on the oracle's seeds
+    arms: dict[str, list[Row]]  # on the test seeds; adaptive arms: every replicate
+    sessions: list[Session]
+    refined: RefinedRun
+
+    @property
+    def deployed(self) -> list[Row]:
+        """What the person would run after the gate: the candidate, or the shipped policy."""
+        return self.arms["refined"] if self.refined.gate.deployed else self.arms["shipped"]
 
 
-def compare(
-    persons: list[str],
-    targets: Targets,
-    out: Path,
-    workers: int = 1,
-    oracle_seeds: range = ORACLE_SEEDS,
-    test_seeds: range = TEST_SEEDS,
-    refine: RefineSettings | None = None,
-    progress: Callable[[int], None] | None = None,
-) -> list[PersonResult]:
-    """The oracle search, the shipped and the adaptive policy for each person."""
-    jobs: list[FixedJob] = [
-        (p, "oracle-search", m, s) for p in persons for m in MODELS for s in oracle_seeds
+def compare(plan: Plan, out: Path, workers: int = 1,
+            progress: Callable[[int], None] | None = None) -> list[PersonResult]:  # fmt: skip
+    """Every arm for every kind of person (see the module)."""
+    tick = progress or (lambda n: None)
+    test = tuple(plan.test_seeds)
+    indices = tuple(range(len(test)))
+    oracle_seeds = tuple(plan.oracle_seeds)
+    search_jobs: list[FixedJob] = [
+        (kind, "search", option, oracle_seeds, tuple(range(len(oracle_seeds))))
+        for kind in plan.kinds
+        for option in (BASE, *MODELS)
     ]
-    jobs += [(p, "shipped", None, s) for p in persons for s in test_seeds]
-    fixed = list(map_jobs(_fixed_job, jobs, workers, progress=progress))
-    oracles = {
-        p: _best([r for r in fixed if r.person == p and r.arm == "oracle-search"]) for p in persons
-    }
-    oracle_jobs = [(p, "oracle", oracles[p], s) for p in persons for s in test_seeds]
-    oracle_rows = list(map_jobs(_fixed_job, oracle_jobs, workers, progress=progress))
-    sessions = list(
-        map_jobs(
-            _adaptive_job, [(p, test_seeds, targets) for p in persons], workers, progress=progress
-        )
+    search_jobs += [(kind, "shipped", BASE, test, indices) for kind in plan.kinds]
+    rows = _run(_fixed_job, search_jobs, workers, tick)
+    search = {k.key: _searched(rows, k.key) for k in plan.kinds}
+    oracles = {k.key: best_fixed(search[k.key]) for k in plan.kinds}
+    oracle_jobs: list[FixedJob] = [(k, "oracle", oracles[k.key], test, indices) for k in plan.kinds]
+    rows += _run(_fixed_job, oracle_jobs, workers, tick)
+    sessions = _run_sessions(plan, test, workers, tick)
+    refine_jobs = [(k, tuple(plan.session_seeds), test, out / "refined" / k.key, plan.refine)
+                   for k in plan.kinds]  # fmt: skip
+    refined: list[RefinedRun] = []
+    for run in map_jobs(_refined_job, refine_jobs, workers):
+        refined.append(run)
+        tick(plan.refine_reaches())
+    return [_result(k, oracles[k.key], search[k.key], rows, sessions, refined) for k in plan.kinds]
+
+
+def _searched(rows: list[Row], kind: str) -> dict[Option, list[Row]]:
+    mine = [r for r in rows if r.person == kind and r.arm == "search"]
+    return {o: [r for r in mine if r.option == o] for o in (BASE, *MODELS)}
+
+
+def _run(function: Callable[[FixedJob], list[Row]], jobs: list[FixedJob], workers: int,
+         tick: Callable[[int], None]) -> list[Row]:  # fmt: skip
+    rows: list[Row] = []
+    for done in map_jobs(function, jobs, workers):
+        rows += done
+        tick(len(done))
+    return rows
+
+
+def _run_sessions(plan: Plan, test: tuple[int, ...], workers: int,
+                  tick: Callable[[int], None]) -> list[Session]:  # fmt: skip
+    jobs = [(k, test, r, i) for k in plan.kinds for r in range(plan.replicates)
+            for i in ((False, True) if plan.interpolate else (False,))]  # fmt: skip
+    sessions = []
+    for session in map_jobs(_adaptive_job, jobs, workers):
+        sessions.append(session)
+        tick(len(session.rows))
+    return sessions
+
+
+def _result(kind: Kind, oracle: Option, search: dict[Option, list[Row]], rows: list[Row],
+            sessions: list[Session], refined: list[RefinedRun]) -> PersonResult:  # fmt: skip
+    mine = [s for s in sessions if s.kind == kind.key]
+    arms = {arm: sorted((r for r in rows if r.person == kind.key and r.arm == arm),
+                        key=lambda r: r.index) for arm in ("shipped", "oracle")}  # fmt: skip
+    arms["adaptive"] = [r for s in mine if not s.interpolate for r in s.rows]
+    arms["interpolated"] = [r for s in mine if s.interpolate for r in s.rows]
+    run = next(r for r in refined if r.kind == kind.key)
+    arms["refined"] = run.rows
+    return PersonResult(kind, oracle, search, arms, mine, run)
+
+
+# ---- the rule, the oracle and the goals ----------------------------------------------------
+@dataclass(frozen=True)
+class LongRun:
+    """An arm's long-run statistics, as the targets judge them."""
+
+    success: float
+    median_time_s: float
+    comfort: float
+
+    @classmethod
+    def of(cls, rows: Sequence[Row]) -> LongRun:
+        return cls(float(np.mean([r.success for r in rows])),
+                   float(np.median([r.t_total_s for r in rows])),
+                   float(np.mean([r.comfort for r in rows])))  # fmt: skip
+
+    def rank(self, targets: Targets = TARGETS) -> tuple[float, float, float]:
+        """The adaptive mode's rule as a sort key (smaller is better): most targets met,
+        then the least total shortfall, then the shortest median time."""
+        values = {"success": np.array([self.success]),
+                  "log_time": np.array([math.log(max(self.median_time_s, 1e-3))]),
+                  "comfort": np.array([self.comfort])}  # fmt: skip
+        short = [float(s[0]) for s in shortfalls(targets, values)]
+        return (-float(sum(s <= 0 for s in short)), float(sum(short)), self.median_time_s)
+
+    def targets_met(self, targets: Targets = TARGETS) -> int:
+        return int(-self.rank(targets)[0])
+
+
+def best_fixed(search: dict[Option, list[Row]]) -> Option:
+    """The oracle: the fixed M_ij that ranks first by the rule on its own seeds."""
+    return min(MODELS, key=lambda m: LongRun.of(search[m]).rank())
+
+
+def restricted(rows: Sequence[Row]) -> np.ndarray:
+    return np.array([r.restricted_s for r in rows])
+
+
+def per_seed(rows: Sequence[Row], value: Callable[[Row], float], seeds: Sequence[int],
+             after: int = 0) -> np.ndarray:  # fmt: skip
+    """Each seed's mean of ``value`` over its rows (replicates), reaches from ``after`` on."""
+    by_seed: dict[int, list[float]] = {}
+    for r in rows:
+        if r.index >= after:
+            by_seed.setdefault(r.seed, []).append(value(r))
+    return np.array([np.mean(by_seed[s]) if s in by_seed else np.nan for s in seeds])
+
+
+def difference(a: Sequence[Row], b: Sequence[Row], value: Callable[[Row], float],
+               seeds: Sequence[int], after: int = 0, stream: int = 0) -> Estimate:  # fmt: skip
+    """Mean of a - b paired by seed (replicates averaged within a seed), 95 % interval."""
+    rng = np.random.default_rng([stream, after])
+    return paired_difference(
+        per_seed(a, value, seeds, after), per_seed(b, value, seeds, after), rng
     )
-    refine_jobs = [(p, SESSION_SEEDS, test_seeds, out / "refined" / _slug(p),
-                    refine or RefineSettings()) for p in persons]  # fmt: skip
-    refined = list(map_jobs(_refined_job, refine_jobs, workers, progress=progress))
-    return [
-        PersonResult(
-            p,
-            oracles[p],
-            {
-                "oracle": [r for r in oracle_rows if r.person == p],
-                "shipped": [r for r in fixed if r.person == p and r.arm == "shipped"],
-                "adaptive": session.rows,
-                "refined": run.rows,
-            },
-            session,
-            run.fit,
-        )
-        for p, session, run in zip(persons, sessions, refined, strict=True)
-    ]
 
 
-def _slug(person: str) -> str:
-    return "".join(c if c.isalnum() else "-" for c in person).strip("-")
+@dataclass(frozen=True)
+class Verdict:
+    """What the registered rules say of one kind of person."""
+
+    case: str  # 'alternative better', 'shipped best', 'neither'
+    why: str
+    goal: str  # 'goal 1', 'goal 2' or 'none'
+    passed: bool | None  # None: no goal for this kind
+    detail: str
+    goal3: bool | None  # None: the gate deployed nothing
+    goal3_detail: str
 
 
-def _best(rows: list[Row]) -> tuple[int, int]:
-    """The model with most successes, then the shortest median time."""
+def verdict(result: PersonResult) -> Verdict:
+    search = result.search
+    oracle, shipped = LongRun.of(search[result.oracle]), LongRun.of(search[BASE])
+    seeds = sorted({r.seed for r in search[BASE]})
+    time_gain = difference(search[BASE], search[result.oracle], _restricted, seeds, stream=1)
+    comfort_gain = difference(search[result.oracle], search[BASE], _comfort, seeds, stream=2)
+    ranks_above = oracle.rank() < shipped.rank()
+    by_time = time_gain.value >= MARGIN_S and time_gain.low > 0
+    by_comfort = comfort_gain.value >= MARGIN_COMFORT and comfort_gain.low > 0
+    why = (f"on the oracle's seeds: rank {_rank(oracle)} vs the shipped policy's "
+           f"{_rank(shipped)}; time to success shorter by {time_gain.text(1, 2)} s, comfort "
+           f"higher by {comfort_gain.text(1, 2)}")  # fmt: skip
+    goal3, goal3_detail = _goal3(result)
+    if ranks_above and (by_time or by_comfort):
+        passed, detail = _goal1(result)
+        return Verdict("alternative better", why, "goal 1", passed, detail, goal3, goal3_detail)
+    if not ranks_above:
+        passed, detail = _goal2(result)
+        return Verdict("shipped best", why, "goal 2", passed, detail, goal3, goal3_detail)
+    return Verdict("neither", why, "none", None, "no goal: the oracle ranks above the shipped "
+                   "policy, but by less than a margin", goal3, goal3_detail)  # fmt: skip
 
-    def score(model: tuple[int, int]) -> tuple[float, float]:
-        mine = [r for r in rows if r.model == model]
-        return (-sum(r.success for r in mine), float(np.median([r.t_total_s for r in mine])))
 
-    return min(MODELS, key=score)
+def _restricted(r: Row) -> float:
+    return r.restricted_s
 
 
-def figures(result: PersonResult) -> Iterator[tuple[str, str, Estimate]]:
-    """(arm, measure, estimate): levels and paired differences against the shipped policy."""
-    rng = np.random.default_rng(0)
-    shipped = result.arms["shipped"]
-    for arm, rows in result.arms.items():
-        yield arm, "success", wilson(sum(r.success for r in rows), len(rows))
-        yield arm, "time [s]", bootstrap_mean(np.array([r.t_total_s for r in rows]), rng)
-        yield (
-            arm,
-            "error [mm]",
-            bootstrap_mean(np.array([r.final_error_m * 1e3 for r in rows]), rng),
-        )
-        if arm == "shipped":
-            continue
-        for measure, value in (
-            ("success", lambda r: float(r.success)),
-            ("time [s]", lambda r: r.t_total_s),
-            ("error [mm]", lambda r: r.final_error_m * 1e3),
-        ):
-            a = np.array([value(r) for r in rows])
-            b = np.array([value(r) for r in shipped])
-            yield arm, f"{measure} - shipped", paired_difference(a, b, rng)
+def _comfort(r: Row) -> float:
+    return r.comfort
+
+
+def _rank(run: LongRun) -> str:
+    return (f"{run.targets_met()} targets met (success {run.success:.0%}, median "
+            f"{run.median_time_s:.1f} s, comfort {run.comfort:.1f})")  # fmt: skip
+
+
+def _goal1(result: PersonResult) -> tuple[bool, str]:
+    seeds = [r.seed for r in result.arms["shipped"]]
+    arms = result.arms
+    time = difference(arms["adaptive"], arms["oracle"], _restricted, seeds, SETTLE_REACHES, 3)
+    comfort = difference(arms["adaptive"], arms["oracle"], _comfort, seeds, SETTLE_REACHES, 4)
+    passed = time.high < MARGIN_S and comfort.low > -MARGIN_COMFORT
+    return passed, (f"after {SETTLE_REACHES} reaches, adaptive - oracle: time to success "
+                    f"{time.text(1, 2)} s (margin < {MARGIN_S:g}), comfort {comfort.text(1, 2)} "
+                    f"(margin > -{MARGIN_COMFORT:g})")  # fmt: skip
+
+
+def _goal2(result: PersonResult) -> tuple[bool, str]:
+    seeds = [r.seed for r in result.arms["shipped"]]
+    time = difference(result.arms["adaptive"], result.arms["shipped"], _restricted, seeds,
+                      stream=5)  # fmt: skip
+    passed = time.low > -MARGIN_S and time.high < MARGIN_S
+    return passed, (f"adaptive - shipped over every test reach: time to success "
+                    f"{time.text(1, 2)} s (equivalence margin +-{MARGIN_S:g})")  # fmt: skip
+
+
+def _goal3(result: PersonResult) -> tuple[bool | None, str]:
+    seeds = [r.seed for r in result.arms["shipped"]]
+    loss = difference(result.arms["refined"], result.arms["shipped"], _restricted, seeds,
+                      stream=6)  # fmt: skip
+    gate_line = "deployed" if result.refined.gate.deployed else "kept the shipped policy"
+    detail = (f"the gate {gate_line} ({result.refined.gate.reason}); on the test seeds the "
+              f"candidate - shipped: time to success {loss.text(1, 2)} s")  # fmt: skip
+    if not result.refined.gate.deployed:
+        return None, detail
+    return bool(loss.high < MARGIN_S), detail
+
+
+def regret_curve(result: PersonResult, arm: str) -> np.ndarray:
+    """Cumulative restricted-time regret against the oracle over the test reaches, mean over
+    the arm's replicates (reaches,)."""
+    oracle = {r.index: r.restricted_s for r in result.arms["oracle"]}
+    rows = result.arms[arm]
+    curves = []
+    for replicate in sorted({r.replicate for r in rows}):
+        mine = sorted((r for r in rows if r.replicate == replicate), key=lambda r: r.index)
+        curves.append(np.cumsum([r.restricted_s - oracle[r.index] for r in mine]))
+    return np.asarray(np.mean(curves, axis=0))
+
+
+def arm_rows(result: PersonResult) -> Iterator[tuple[str, list[Row]]]:
+    """The arms in the report's order ('refined' is the candidate; 'as deployed' after
+    the gate)."""
+    for arm in ("shipped", "oracle", "adaptive", "interpolated", "refined"):
+        if result.arms.get(arm):
+            yield arm, result.arms[arm]
+    yield "as deployed", result.deployed

@@ -73,7 +73,8 @@ def _table_job(job: TableJob) -> tuple[list[float], ReachEvidence]:
     runner = _runner()
     human = HumanModel(person=SimulatedPerson(accuracy_big=big, accuracy_small=small))
     policy = _shipped(runner.settings.models) if option == BASE else None
-    result = runner.run(seed, option if option != BASE else (1, 1), policy=policy, human=human)
+    model = (1, 1) if option == BASE else (option[0], option[1])
+    result = runner.run(seed, model, policy=policy, human=human)
     evidence = evidence_of(result, runner.settings.models)
     return reach_columns(result, evidence, runner.settings.models), evidence
 

@@ -177,7 +177,11 @@ def _claims_provenance() -> str:
 
 def claims_identity() -> tuple[str, str]:
     """The rules file's SHA-256 and the commit that last changed it (with its date)."""
-    path = Path(claim_rules.__file__)
+    return file_identity(Path(claim_rules.__file__))
+
+
+def file_identity(path: Path) -> tuple[str, str]:
+    """A registered file's SHA-256 and the commit that last changed it (with its date)."""
     sha = hashlib.sha256(path.read_bytes()).hexdigest()
     try:
         done = subprocess.run(

@@ -19,6 +19,13 @@ one surely worse never. Safety bounds the exploration:
 * a selected model runs exactly as that M_ij (or as the interpolated step vector), so its
   reaches say what it gives.
 
+With ``selection.interpolate`` the options also include the paper's named extension,
+bounded online interpolation: for each radius, the step vector halfway between two
+neighbouring models' (one axis halfway between its small and large step; 24 more options,
+never outside the model set's range). Their prediction is the mean of their neighbours'
+until their own reaches say otherwise. The admission radius is not interpolated: it is the
+person's choice, carried by every intent source as the sub-model's index.
+
 Every switch is kept with its reason: the targets missed, the rule, and what the posterior
 predicted for the new option.
 """
@@ -31,6 +38,7 @@ import numpy as np
 
 from dammrl_core.coadaptation import (
     BASE,
+    MIDPOINTS,
     OPTIONS,
     ModelPosterior,
     ReachEvidence,
@@ -93,7 +101,9 @@ class AdaptivePolicy:
         """The adaptive mode around ``base`` for a person scored with ``human``'s
         sub-models, predicting from ``table`` (default: the packaged model table)."""
         selection = selection or Selection()
-        posterior = ModelPosterior(table or ModelTable.load(), human, models, selection.seed)
+        options = (*OPTIONS, *MIDPOINTS) if selection.interpolate else OPTIONS
+        posterior = ModelPosterior(table or ModelTable.load(), human, models, selection.seed,
+                                   options)  # fmt: skip
         return cls(base, models, posterior, targets, selection)
 
     def reset(self) -> None:
@@ -104,12 +114,15 @@ class AdaptivePolicy:
     ) -> ModelChoice:
         if self.selected == BASE:
             return self.base.decide(ee_pos, goal, human_model)
-        return model_choice(self.models, *self.selected)
+        return option_choice(self.models, self.selected)
 
-    def observe(self, reach: ReachEvidence) -> Switch | None:
-        """Fold in a finished reach; when the targets are missed, choose again (the
-        switch, else None)."""
+    def observe(self, reach: ReachEvidence, rating: float | None = None) -> Switch | None:
+        """Fold in a finished reach (and the person's comfort ``rating`` of it, 1-5, when
+        they gave one); when the targets are missed, choose again (the switch, else None)."""
         self.posterior.observe(reach, self.selected)
+        if rating is not None:
+            self.posterior.rating(self.selected, rating)
+            self.ratings.append(float(rating))
         self.recent.append(reach)
         if len(self.recent) < self.targets.window:
             return None
@@ -125,9 +138,10 @@ class AdaptivePolicy:
     def allowed(self) -> tuple[Option, ...]:
         """The options the selection may take: the base policy, and every other whose
         success lower bound reaches the floor."""
-        lower = self.posterior.success_lower(self.targets, OPTIONS)
+        options = self.posterior.options
+        lower = self.posterior.success_lower(self.targets)
         floor = self.selection.success_floor
-        return tuple(o for o, b in zip(OPTIONS, lower, strict=True) if o == BASE or b >= floor)
+        return tuple(o for o, b in zip(options, lower, strict=True) if o == BASE or b >= floor)
 
     def _choose(self, reasons: list[str]) -> Switch | None:
         allowed = self.allowed()
@@ -152,9 +166,19 @@ class AdaptivePolicy:
             success=float(draws.predicted_success[row]),
             success_lower=float(self.posterior.success_lower(self.targets, (chosen,))[0]),
             time_s=float(draws.predicted_time_s[row]),
-            left_out=len(OPTIONS) - len(allowed),
+            left_out=len(self.posterior.options) - len(allowed),
         )
         self.selected = chosen
         self.switches.append(switch)
         self.recent, self.ratings = [], []
         return switch
+
+
+def option_choice(models: ModelSet, option: Option) -> ModelChoice:
+    """What a selected option chooses: M_ij, or radius i with the steps halfway between
+    M_ij's and M_ik's (reported as j)."""
+    if len(option) == 2:
+        return model_choice(models, *option)
+    i, j, k = option
+    halfway = (models.steps_m(j) + models.steps_m(k)) / 2
+    return ModelChoice(i, j, models.radius_m(i), halfway)

@@ -89,14 +89,27 @@ class Requests:
         if choice is None and time.monotonic() - self.intent_wall_s <= self.timing.choice_wait_s:
             return None
         due_s = self.t_s + message.decision_s  # a late answer is due on arrival
-        # radius and steps come from the stack's model set by index, never as free numbers
-        # from a message (the schema alone would allow 0.1 m steps)
+        # the radius comes from the stack's model set by index, the steps too unless the
+        # policy chose steps between the set's small and large ones (its bounded
+        # interpolation): never free numbers from a message (the schema alone would allow
+        # 0.1 m steps)
         radius_m = self.models.radius_m(message.human_model)
         intent = CoreIntent(due_s, message.u_h, radius_m, message.human_model, message.confidence)
-        steps = None if choice is None else self.models.steps_m(choice.robot_model)
+        steps = None if choice is None else self._steps(choice)
         self.intent = None
         chosen = None if choice is None else (choice.human_model, choice.robot_model)
         return Answer(intent, steps, self._correct(message)), chosen
+
+    def _steps(self, choice: ModelChoice) -> np.ndarray:
+        """The choice's step vector when it lies within the model set's range, else its
+        model j's (and a log line)."""
+        steps = np.array(choice.steps_m, dtype=float)
+        if self.models.within_step_range(steps):
+            return steps
+        log.warning("request %d: steps %s m are outside the model set's range; using "
+                    "M_%d,%d's", choice.request, steps.round(4).tolist(), choice.human_model,
+                    choice.robot_model)  # fmt: skip
+        return self.models.steps_m(choice.robot_model)
 
     def _correct(self, message: Intent) -> bool | None:
         """Toward the goal from where the hand was when asked: a simulated human says so

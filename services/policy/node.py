@@ -137,9 +137,12 @@ class PolicyNode:
                                             message.final_error_m, message.sparc,
                                             message.model)  # fmt: skip
             self.record = ReachRecord()
+            held = len(self.adaptive.held)
             if (switch := self.adaptive.observe(evidence)) is not None:
                 log.warning("adaptive: %s", switch.line)
                 self.description = f"adaptive: {switch.line}"
+            for line in self.adaptive.held[held:]:
+                log.info("adaptive: %s", line)
 
     def _new_episode(self, episode: int) -> None:
         """A new episode starts with no model in force (as in training)."""
