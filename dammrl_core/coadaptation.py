@@ -58,6 +58,7 @@ from dammrl_core.model_table import (
     Option,
     Persons,
     Prediction,
+    halfway,
     option_name,
 )
 from dammrl_core.models import HUMAN_MODELS, ROBOT_MODELS, ModelSet
@@ -487,7 +488,7 @@ class ModelPosterior:
     def _draw(self, targets: Targets, options: tuple[Option, ...]) -> Draws:
         rng = np.random.default_rng([self.seed, self.reaches, self._decisions, len(self.ratings)])
         persons = self.persons(rng)
-        predictions = [self.table.predict(o, persons) for o in options]
+        predictions = self._predictions(options, persons)
         comfort = self._comfort_draws(predictions, rng) if targets.comfort_min else None
         success, log_time, met, short = [], [], [], []
         asked = 0
@@ -513,6 +514,21 @@ class ModelPosterior:
             predicted_success=np.array([float(p.success.mean()) for p in predictions]),
             predicted_time_s=np.exp([float(np.median(p.log_time)) for p in predictions]),
         )
+
+    def _predictions(self, options: tuple[Option, ...], persons: Persons) -> list[Prediction]:
+        """Each option's prediction; a midpoint's from its neighbours' (each made once)."""
+        made: dict[Option, Prediction] = {}
+
+        def of(option: Option) -> Prediction:
+            if option not in made:
+                if len(option) == 3:
+                    i, j, k = option
+                    made[option] = halfway(of((i, j)), of((i, k)))
+                else:
+                    made[option] = self.table.predict(option, persons)
+            return made[option]
+
+        return [of(o) for o in options]
 
     def _time_draws(self, p: Prediction, belief: OptionBelief,
                     rng: np.random.Generator) -> np.ndarray:  # fmt: skip

@@ -38,7 +38,7 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, model_validator
 
 from dammrl_core.errors import ConfigurationError
 from dammrl_core.models import HUMAN_MODELS, ROBOT_MODELS
@@ -87,6 +87,7 @@ class OptionReaches(BaseModel):
     """The accuracy nodes of each axis (increasing)."""
     columns: dict[str, list[list[float]]]
     """COLUMNS -> one list per node (row-major over ``axes``), one value per seed."""
+    _arrays: dict[str, np.ndarray] = PrivateAttr(default_factory=dict)
 
     @model_validator(mode="after")
     def _shape(self) -> OptionReaches:
@@ -105,8 +106,10 @@ class OptionReaches(BaseModel):
         return (self.human_model, self.robot_model)
 
     def array(self, column: str) -> np.ndarray:
-        """(nodes, seeds)."""
-        return np.asarray(self.columns[column], dtype=float)
+        """(nodes, seeds), made once (the model is frozen)."""
+        if column not in self._arrays:
+            self._arrays[column] = np.asarray(self.columns[column], dtype=float)
+        return self._arrays[column]
 
 
 @dataclass(frozen=True)
@@ -176,7 +179,7 @@ class ModelTable(BaseModel):
         midpoint's, the mean of its two neighbours' (an assumption its own reaches correct)."""
         if len(option) == 3:
             i, j, k = option
-            return _halfway(self.predict((i, j), persons), self.predict((i, k), persons))
+            return halfway(self.predict((i, j), persons), self.predict((i, k), persons))
         reaches = self.reaches(option)
         nodes, weights = _corners(reaches, persons)  # (K, corners) each
 
@@ -224,7 +227,8 @@ class ModelTable(BaseModel):
         return table
 
 
-def _halfway(a: Prediction, b: Prediction) -> Prediction:
+def halfway(a: Prediction, b: Prediction) -> Prediction:
+    """A midpoint option's prediction: the mean of its neighbours' (an assumption)."""
     return Prediction(
         success=(a.success + b.success) / 2,
         log_time=(a.log_time + b.log_time) / 2,

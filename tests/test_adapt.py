@@ -12,7 +12,16 @@ import numpy as np
 import pytest
 import torch
 
-from dammrl.adapt import RefineSettings, _episodes, _transitions, recorded_reaches, refine
+from dammrl.adapt import (
+    PersonFit,
+    RefineSettings,
+    _episodes,
+    _transitions,
+    fit_person,
+    gate,
+    recorded_reaches,
+    refine,
+)
 from dammrl.launch import Stack, StackOptions
 from dammrl.rl.config import RewardWeights
 from dammrl.rl.env import ReachEnv
@@ -27,7 +36,8 @@ from tests.busutil import free_port
 
 SEED = 7_800_000
 SHIPPED = Path("reward2")
-TINY = RefineSettings(sim_reaches=3, updates=40)
+TINY = RefineSettings(sim_reaches=3, updates=40, gate_seeds=10)
+NOMINAL_FIT = PersonFit(200, 0.85, 1.0, 0.8, 0.9)
 
 
 @pytest.fixture(scope="module")
@@ -113,7 +123,7 @@ def test_the_fitted_person_is_what_the_recorded_decisions_say(recording: Path) -
 
 @pytest.mark.slow
 def test_refinement_is_deterministic_and_loads_as_a_policy(recording: Path, tmp_path: Path) -> None:
-    first = refine([recording], SHIPPED, tmp_path / "a", TINY)
+    first, verdict = refine([recording], SHIPPED, tmp_path / "a", TINY)
     refine([recording], SHIPPED, tmp_path / "b", TINY)
     a, b = (torch.load(tmp_path / d / "checkpoint.pt", weights_only=True) for d in "ab")
     for net in ("q_human", "q_robot"):
@@ -123,6 +133,7 @@ def test_refinement_is_deterministic_and_loads_as_a_policy(recording: Path, tmp_
     assert any(not torch.equal(t, shipped[n]) for n, t in a["agent"]["q_robot"].items())
     meta = json.loads((tmp_path / "a" / "refined.json").read_text())
     assert meta["recorded_transitions"] == first.recorded and str(recording) in meta["recordings"]
+    assert meta["gate"]["deployed"] == verdict.deployed and meta["gate"]["seeds"] == 10
     from dammrl_core.models import ModelSet
     from dammrl_core.policy.learned import LearnedPolicy
 
@@ -167,3 +178,81 @@ def test_a_state_recorded_twice_changes_no_transition(recording: Path) -> None:
     doubled = _transitions(episode, weights())
     assert [t.reward for t in doubled] == [t.reward for t in clean]
     assert all(np.isfinite(t.reward) for t in doubled)
+
+
+# ---- the gate: a refined policy is deployed only when better ------------------------------
+def worse_policy(folder: Path) -> Path:
+    """The shipped policy with its robot agent pushed to M_i,2 (large z steps, which miss
+    the button most of the time)."""
+    checkpoint = load_checkpoint(SHIPPED)
+    bias = checkpoint["agent"]["q_robot"]["4.bias"]
+    bias[1] += 1e4
+    folder.mkdir(parents=True)
+    torch.save(checkpoint, folder / "checkpoint.pt")
+    return folder
+
+
+def test_the_gate_refuses_a_worse_candidate_and_says_why(tmp_path: Path) -> None:
+    worse = worse_policy(tmp_path / "worse")
+    verdict = gate(worse, SHIPPED, NOMINAL_FIT, RefineSettings(gate_seeds=12))
+    assert not verdict.deployed
+    assert verdict.gain.high < 0  # measurably worse for the fitted person
+    assert "on 12 reaches of the fitted person" in verdict.reason and "<= 0 s" in verdict.reason
+    assert verdict.candidate[0] < verdict.in_use[0]  # less success
+
+
+def test_the_gate_deploys_a_candidate_better_than_the_policy_in_use(tmp_path: Path) -> None:
+    worse = worse_policy(tmp_path / "worse")
+    verdict = gate(SHIPPED, worse, NOMINAL_FIT, RefineSettings(gate_seeds=12))
+    assert verdict.deployed and verdict.gain.low > 0 and "> 0 s" in verdict.reason
+
+
+def test_a_gain_below_the_stated_minimum_is_not_deployed(tmp_path: Path) -> None:
+    worse = worse_policy(tmp_path / "worse")
+    verdict = gate(SHIPPED, worse, NOMINAL_FIT, RefineSettings(gate_seeds=12, min_gain_s=60))
+    assert not verdict.deployed and "<= 60 s" in verdict.reason
+
+
+def test_the_fit_gives_each_radius_its_own_accuracy_when_it_has_enough_decisions() -> None:
+    decisions = [(1, k < 12, 1.0) for k in range(20)] + [(2, True, 2.0)] * 5
+    fit = fit_person(decisions)
+    assert fit.accuracy_big == pytest.approx(0.6)
+    assert fit.accuracy_small == fit.accuracy == pytest.approx(17 / 25)  # too few: overall
+    assert fit.decision_time_factor == 1.0
+    assert fit.person().accuracy_under(1, 0.8) == pytest.approx(0.6)
+
+
+@pytest.mark.slow
+def test_adapt_keeps_a_participants_policy_when_the_candidate_is_not_better(
+    recording: Path, tmp_path: Path
+) -> None:
+    """``dammrl adapt --participant``: the candidate goes to policy-candidates/; the policy
+    in use is left as it was and the command says why."""
+    participant = Participant(tmp_path, "P007")
+    folder = participant.folder / "ses-01" / "recordings"
+    folder.mkdir(parents=True)
+    (folder / "run-1.mcap").write_bytes(recording.read_bytes())
+    in_use = worse_policy(participant.policy_folder)
+    before = (in_use / "checkpoint.pt").read_bytes()
+    command = [sys.executable, "-m", "dammrl", "adapt", "--participant", "P007", "--root",
+               str(tmp_path), "--sim-reaches", "2", "--updates", "5", "--gate-seeds", "10",
+               "--min-gain-s", "60"]  # fmt: skip
+    done = subprocess.run(command, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert "not deployed: the candidate" in done.stdout and "<= 60 s" in done.stdout
+    assert (participant.policy_folder / "checkpoint.pt").read_bytes() == before
+    assert (participant.folder / "policy-candidates" / "001" / "checkpoint.pt").is_file()
+    assert participant.next_candidate_folder().name == "002"
+
+
+def test_deploying_keeps_the_replaced_policy_beside_the_candidates(tmp_path: Path) -> None:
+    participant = Participant(tmp_path, "P008")
+    old = worse_policy(participant.policy_folder)
+    old_bytes = (old / "checkpoint.pt").read_bytes()
+    candidate = participant.next_candidate_folder()
+    candidate.mkdir(parents=True)
+    (candidate / "checkpoint.pt").write_bytes(b"new")
+    assert participant.deploy_policy(candidate) == participant.policy_folder
+    assert (participant.policy_folder / "checkpoint.pt").read_bytes() == b"new"
+    retired = participant.folder / "policy-candidates" / "001-replaced" / "checkpoint.pt"
+    assert retired.read_bytes() == old_bytes

@@ -4,6 +4,7 @@ person from the model table, and S3's safely exploring re-selection."""
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -413,3 +414,37 @@ def test_the_studys_adaptive_sessions_are_one_per_seed_set_counted_in_reaches() 
     assert bars == [(4, "adaptive sessions")] and ticks == [2, 2]
     assert [(r.row["seed"], r.row["seed_set"]) for r in records] == [
         (7_000_000, 0), (7_000_001, 0), (7_000_002, 1), (7_000_003, 1)]  # fmt: skip
+
+
+# ---- the comparison, end to end -----------------------------------------------------------
+def test_the_comparison_runs_every_arm_counts_its_progress_and_reports_every_goal(
+    tmp_path: Path,
+) -> None:
+    """A tiny plan of the registered comparison: every arm on the test seeds, the progress
+    in reaches adding up to the plan's (the refinement counts its reaches, not one), the
+    report naming no oracle on 2 seeds, and the figures and JSON written."""
+    from dammrl.adapt import RefineSettings
+    from dammrl.study.coadaptation import PERSONS_DIR, Kind, Plan, compare
+    from dammrl.study.coadaptation_report import write_report
+
+    plan = Plan(
+        kinds=[Kind.of(PERSONS_DIR / "small-steps.yaml")],
+        oracle_seeds=range(7_600_000, 7_600_002),
+        test_seeds=range(7_700_000, 7_700_003),
+        session_seeds=range(7_650_000, 7_650_002),
+        replicates=1,
+        refine=RefineSettings(sim_reaches=1, updates=4, gate_seeds=10),
+    )
+    ticks: list[int] = []
+    results = compare(plan, tmp_path, progress=ticks.append)
+    assert sum(ticks) == plan.reaches()
+    (result,) = results
+    assert {a: len(r) for a, r in result.arms.items()} == {
+        "shipped": 3, "oracle": 3, "adaptive": 3, "interpolated": 3, "refined": 3}  # fmt: skip
+    assert [r.seed for r in result.arms["adaptive"]] == list(plan.test_seeds)
+    assert all(r.comfort in {1, 2, 3, 4, 5} for rows in result.arms.values() for r in rows)
+    report = write_report(results, plan, tmp_path, "registered: a test").read_text()
+    assert "best fixed on 2 seeds (too few to be an oracle)" in report
+    assert "goal 3" in report and "| comfortable only with small steps |" in report
+    for name in ("results.json", "regret.png", "coadaptation.png"):
+        assert (tmp_path / name).stat().st_size > 0

@@ -26,7 +26,7 @@ import numpy as np
 import pytest
 
 from dammrl.runner import ReachResult, ReachRunner, ReachSettings, evidence_of
-from dammrl_core.coadaptation import ModelPosterior, ModelTable, Targets
+from dammrl_core.coadaptation import Targets
 from dammrl_core.policy import Policy
 from dammrl_core.policy.adaptive import AdaptivePolicy
 from dammrl_core.policy.learned import LearnedPolicy
@@ -209,25 +209,22 @@ def test_lockstep_bus_stack_reproduces_the_in_process_runner(
 
 
 def test_the_adaptive_policy_adapts_alike_in_process_and_on_the_bus(runner: ReachRunner) -> None:
-    """The posterior over M_ij hears the same evidence from the bus as in-process and
-    switches after the same reach to the same matched models: the choices of every
-    episode agree, those after the switch included (the learned base restricted to two
-    step vectors). A median final error <= 15 mm over 2 reaches, which the shipped policy
-    misses, forces the switch."""
+    """The posterior over the options hears the same evidence from the bus as in-process
+    and its Thompson draws (seeded alike) switch after the same reach to the same option:
+    the choices of every episode agree, those after the switch included. A median final
+    error <= 15 mm over 2 reaches, which the shipped policy misses, forces the choice."""
     targets = Targets(window=2, final_error_max_m=0.015)
     seeds = SEEDS[:6]
     bus = _run_stack(seeds, DAMMRL_POLICY_KIND="adaptive", DAMMRL_POLICY_TARGETS__WINDOW="2",
                      DAMMRL_POLICY_TARGETS__FINAL_ERROR_MAX_M="0.015")  # fmt: skip
     models = runner.settings.models
     base = LearnedPolicy(models, SHIPPED_POLICY)
-    posterior = ModelPosterior(ModelTable.load(), runner.settings.human, models)
-    adaptive = AdaptivePolicy(base, models, posterior, targets)
+    adaptive = AdaptivePolicy.around(base, models, runner.settings.human, targets)
     for seed in seeds:
         local = runner.run(seed, trigger="event", policy=adaptive)
         adaptive.observe(evidence_of(local, models))
         assert _assert_same(bus[seed], local, runner) <= EXACT
-    assert [s.reach for s in adaptive.switches] == [2]
-    assert len(adaptive.switches[0].allowed) == 2
+    assert adaptive.switches and adaptive.switches[0].reach == 2
 
 
 def test_lockstep_parity_holds_with_domain_randomisation() -> None:
