@@ -335,41 +335,50 @@ class Draws:
     success: np.ndarray  # success probability
     log_time: np.ndarray  # mean log reach time [log s]
     met: np.ndarray  # targets met
-    shortfall: np.ndarray  # how far short of the targets missed, summed (see ``shortfalls``)
+    shortfall: np.ndarray  # how far short of the comfort, error and SPARC targets missed
+    to_success_s: np.ndarray  # mean time to success, a failure counting the horizon [s]
     asked: int  # targets asked (those that can be judged)
     predicted_success: np.ndarray  # (options,) the table's mean prediction for the person
     predicted_time_s: np.ndarray  # (options,) its median reach time [s]
+    predicted_to_success_s: np.ndarray  # (options,) its mean time to success [s]
 
     def row(self, option: Option) -> int:
         return self.options.index(option)
 
     @property
     def score(self) -> np.ndarray:
-        """Most targets met; then the least short of the others; then the faster (each
-        term below the one before it)."""
-        short, slow = np.tanh(self.shortfall), np.tanh(self.log_time / 10.0)
-        return np.asarray(self.met - 0.5 * short - 1e-3 * slow)
+        """The rule (each term below the one before it): most targets met; then the least
+        short of the comfort, error and SPARC targets; then the shortest time to success
+        (success and speed in one number: a failure counts the whole horizon)."""
+        short = 0.5 * np.tanh(self.shortfall)
+        return np.asarray(self.met - short - 0.01 * np.tanh(self.to_success_s / 60.0))
 
 
-def shortfalls(targets: Targets, values: dict[str, np.ndarray]) -> list[np.ndarray]:
+def shortfalls(targets: Targets, values: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     """Per target asked (and judged: ``values`` has its measure), how far short of it
     ``values`` are, 0 where met, in comparable units: the success and comfort shortfall
     as a share of the target, time and error in log units, SPARC as a share of |target|
     (at least 1). ``values``: success, log_time, and optionally log_error, comfort, sparc."""
-    out = []
+    out = {}
     if targets.success_min is not None:
-        out.append(np.maximum(0.0, targets.success_min - values["success"])
-                   / max(targets.success_min, 0.01))  # fmt: skip
+        out["success"] = (np.maximum(0.0, targets.success_min - values["success"])
+                          / max(targets.success_min, 0.01))  # fmt: skip
     if targets.time_max_s is not None:
-        out.append(np.maximum(0.0, values["log_time"] - math.log(targets.time_max_s)))
+        out["time"] = np.maximum(0.0, values["log_time"] - math.log(targets.time_max_s))
     if targets.final_error_max_m is not None and "log_error" in values:
-        out.append(np.maximum(0.0, values["log_error"] - math.log(targets.final_error_max_m)))
+        out["error"] = np.maximum(0.0, values["log_error"] - math.log(targets.final_error_max_m))
     if targets.comfort_min is not None and "comfort" in values:
-        out.append(np.maximum(0.0, targets.comfort_min - values["comfort"]) / targets.comfort_min)
+        out["comfort"] = (np.maximum(0.0, targets.comfort_min - values["comfort"])
+                          / targets.comfort_min)  # fmt: skip
     if targets.sparc_min is not None and "sparc" in values:
-        out.append(np.maximum(0.0, targets.sparc_min - values["sparc"])
-                   / max(abs(targets.sparc_min), 1.0))  # fmt: skip
+        out["sparc"] = (np.maximum(0.0, targets.sparc_min - values["sparc"])
+                        / max(abs(targets.sparc_min), 1.0))  # fmt: skip
     return out
+
+
+GRADED = ("comfort", "error", "sparc")
+"""The targets whose shortfall ranks options that meet as many targets (success and time
+are ranked by the time to success instead)."""
 
 
 def comfort_features(scale: np.ndarray) -> np.ndarray:
@@ -490,29 +499,36 @@ class ModelPosterior:
         persons = self.persons(rng)
         predictions = self._predictions(options, persons)
         comfort = self._comfort_draws(predictions, rng) if targets.comfort_min else None
-        success, log_time, met, short = [], [], [], []
+        success, log_time, to_success, met, short = [], [], [], [], []
         asked = 0
+        horizon = self.table.horizon_s
         for k, (option, p) in enumerate(zip(options, predictions, strict=True)):
             belief = self.beliefs[option]
             s = rng.beta(PRIOR_REACHES * p.success + 0.5 + belief.successes,
                          PRIOR_REACHES * (1 - p.success) + 0.5 + belief.failures)  # fmt: skip
             t = self._time_draws(p, belief, rng)
+            # a success takes the table's time of successes, moved by the option's own offset
+            took = np.minimum(np.exp(p.log_time_success + t - p.log_time), horizon)
             checks = self._checks(targets, p, belief, s, t, rng,
                                   None if comfort is None else comfort[k])  # fmt: skip
             asked = len(checks)
             success.append(s)
             log_time.append(t)
-            met.append(np.sum([c <= 0 for c in checks], axis=0) if checks else np.zeros(DRAWS))
-            short.append(np.sum(checks, axis=0) if checks else np.zeros(DRAWS))
+            to_success.append(s * took + (1 - s) * horizon)
+            met.append(np.sum([c <= 0 for c in checks.values()], axis=0))
+            graded = [checks[name] for name in GRADED if name in checks]
+            short.append(np.sum(graded, axis=0) if graded else np.zeros(DRAWS))
         return Draws(
             options=options,
             success=np.array(success),
             log_time=np.array(log_time),
             met=np.array(met),
             shortfall=np.array(short),
+            to_success_s=np.array(to_success),
             asked=asked,
             predicted_success=np.array([float(p.success.mean()) for p in predictions]),
             predicted_time_s=np.exp([float(np.median(p.log_time)) for p in predictions]),
+            predicted_to_success_s=np.array([float(p.to_success_s.mean()) for p in predictions]),
         )
 
     def _predictions(self, options: tuple[Option, ...], persons: Persons) -> list[Prediction]:
@@ -541,7 +557,7 @@ class ModelPosterior:
 
     def _checks(self, targets: Targets, p: Prediction, belief: OptionBelief, success: np.ndarray,
                 log_time: np.ndarray, rng: np.random.Generator,
-                comfort: np.ndarray | None) -> list[np.ndarray]:  # fmt: skip
+                comfort: np.ndarray | None) -> dict[str, np.ndarray]:  # fmt: skip
         """Per target asked, each draw's shortfall (0: met; see ``shortfalls``)."""
         draws: dict[str, np.ndarray] = {"success": success, "log_time": log_time}
         if targets.final_error_max_m is not None:
@@ -627,6 +643,7 @@ class ModelPosterior:
             "success_lower": _by_option(self.options, self.success_lower(targets), 4),
             "predicted_success": _by_option(draws.options, draws.predicted_success, 4),
             "predicted_time_s": _by_option(draws.options, draws.predicted_time_s, 2),
+            "predicted_to_success_s": _by_option(draws.options, draws.predicted_to_success_s, 2),
             "posterior": dict(zip(MODELS, self.probabilities(targets).tolist(), strict=True)),
         }
 

@@ -136,6 +136,8 @@ class Prediction:
     log_time: np.ndarray  # mean log reach time [log s] (a failed reach: its end, at most
     # the horizon)
     log_time_sd: float  # sd of one reach's log time around that mean
+    log_time_success: np.ndarray  # mean log time of the successes [log s] (none: the horizon)
+    to_success_s: np.ndarray  # mean time to success, a failure counting the horizon [s]
     log_error: float  # mean log final error [log m]
     log_error_sd: float
     sparc: float
@@ -192,12 +194,21 @@ class ModelTable(BaseModel):
         scaled = np.maximum(at("t_s") + extra, 1e-3)
         success = (at("success") > 0.5) & (scaled <= self.horizon_s)
         log_time = np.log(np.minimum(scaled, self.horizon_s))
+        to_success = np.where(success, scaled, self.horizon_s)
+        successes = success.sum(axis=2)
+        log_success = np.where(
+            successes > 0,
+            np.where(success, log_time, 0.0).sum(axis=2) / np.maximum(successes, 1),
+            math.log(self.horizon_s),
+        )
         log_error, sparc = reaches.array("log_error"), reaches.array("sparc")
         scale = np.array([reaches.array(f"scale_{a}").mean() for a in "xyz"])
         return Prediction(
             success=(weights * success.mean(axis=2)).sum(axis=1),
             log_time=(weights * log_time.mean(axis=2)).sum(axis=1),
             log_time_sd=max(float(np.sqrt(np.mean(log_time.var(axis=2)))), 0.05),
+            log_time_success=(weights * log_success).sum(axis=1),
+            to_success_s=(weights * to_success.mean(axis=2)).sum(axis=1),
             log_error=float(log_error.mean()),
             log_error_sd=max(float(log_error.std()), 0.05),
             sparc=float(np.nanmean(sparc)),
@@ -233,6 +244,8 @@ def halfway(a: Prediction, b: Prediction) -> Prediction:
         success=(a.success + b.success) / 2,
         log_time=(a.log_time + b.log_time) / 2,
         log_time_sd=(a.log_time_sd + b.log_time_sd) / 2,
+        log_time_success=(a.log_time_success + b.log_time_success) / 2,
+        to_success_s=(a.to_success_s + b.to_success_s) / 2,
         log_error=(a.log_error + b.log_error) / 2,
         log_error_sd=(a.log_error_sd + b.log_error_sd) / 2,
         sparc=(a.sparc + b.sparc) / 2,

@@ -433,6 +433,7 @@ def test_the_comparison_runs_every_arm_counts_its_progress_and_reports_every_goa
         test_seeds=range(7_700_000, 7_700_003),
         session_seeds=range(7_650_000, 7_650_002),
         replicates=1,
+        interpolated_replicates=1,
         refine=RefineSettings(sim_reaches=1, updates=4, gate_seeds=10),
     )
     ticks: list[int] = []

@@ -154,7 +154,7 @@ def _compare(args: argparse.Namespace) -> int:
         oracle_seeds=range(ORACLE_SEEDS.start, ORACLE_SEEDS.start + args.oracle_seeds),
         test_seeds=range(TEST_SEEDS.start, TEST_SEEDS.start + args.test_seeds),
         replicates=args.replicates,
-        interpolate=not args.no_interpolate,
+        interpolated_replicates=args.interpolated,
         refine=RefineSettings(sim_reaches=args.sim_reaches, gate_seeds=args.gate_seeds),
     )
     update, close = progress_bar(plan.reaches(), "co-adaptation")

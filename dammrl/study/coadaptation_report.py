@@ -59,7 +59,8 @@ def write_report(results: list[PersonResult], plan: Plan, out: Path,
         f"{1 + -(-len(plan.test_seeds) // SESSION_REACHES)} of {SESSION_REACHES} reaches; the "
         f"{oracle_label(seeds)} searched on {seeds} seeds per M_ij "
         f"({plan.oracle_seeds.start:,}+); the adaptive mode {plan.replicates} times (Thompson "
-        f"seeds 0-{plan.replicates - 1}); the refinement on a first session of "
+        f"seeds 0-{plan.replicates - 1}), with interpolation {plan.interpolated_replicates} "
+        f"times; the refinement on a first session of "
         f"{len(plan.session_seeds)} reaches.",
         "",
         "Time to success: a failed reach counts the 60 s horizon. Intervals are 95 % "

@@ -7,7 +7,8 @@ in what the reach said: the person's decisions and the arm's steps move every op
 prediction, the reach's outcome moves the option in force (the base policy, or the
 selected model). When the last ``targets.window`` reaches since the last switch miss a
 target, the policy chooses by **Thompson sampling**: one joint draw of the posterior, and
-the option that meets most targets in it (the least short of them, then the fastest). An
+the option that meets most targets in it (then the least short of the comfort target,
+then the shortest time to success, a failure counting the whole horizon). An
 option likely better is chosen often, one only possibly better now and then (exploration),
 one surely worse never. Safety bounds the exploration:
 
@@ -63,6 +64,7 @@ class Switch:
     success: float  # its predicted success for this person (the table's, mean over draws)
     success_lower: float  # its success lower bound (with its own reaches)
     time_s: float  # its predicted median reach time [s]
+    to_success_s: float  # its predicted mean time to success (a failure: the horizon) [s]
     left_out: int  # options below the success floor
 
     @property
@@ -71,7 +73,8 @@ class Switch:
             f"after reach {self.reach}: {option_name(self.from_model)} -> "
             f"{option_name(self.to_model)} (Thompson draw; P(meets targets) "
             f"{self.p_meets:.2f}; predicted success {self.success:.2f}, lower bound "
-            f"{self.success_lower:.2f}; median {self.time_s:.1f} s; {self.left_out} options "
+            f"{self.success_lower:.2f}; median {self.time_s:.1f} s, time to success "
+            f"{self.to_success_s:.1f} s; {self.left_out} options "
             f"below the success floor left out): " + "; ".join(self.reasons)
         )
 
@@ -166,6 +169,7 @@ class AdaptivePolicy:
             success=float(draws.predicted_success[row]),
             success_lower=float(self.posterior.success_lower(self.targets, (chosen,))[0]),
             time_s=float(draws.predicted_time_s[row]),
+            to_success_s=float(draws.predicted_to_success_s[row]),
             left_out=len(self.posterior.options) - len(allowed),
         )
         self.selected = chosen
