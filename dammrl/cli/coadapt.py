@@ -65,14 +65,16 @@ def register(commands: Commands) -> None:
     compare.add_argument(
         "--replicates",
         type=_count(1, 20),
-        default=3,
+        default=2,
         metavar="R",
-        help="adaptive sessions per person, Thompson seeds 0..R-1 (default 3)",
+        help="adaptive sessions per person, Thompson seeds 0..R-1 (default 2)",
     )
     compare.add_argument(
-        "--no-interpolate",
-        action="store_true",
-        help="leave out the adaptive mode with interpolated steps",
+        "--interpolated",
+        type=_count(0, 20),
+        default=1,
+        metavar="R",
+        help="adaptive sessions with the bounded interpolation on (default 1; 0: none)",
     )
     compare.add_argument(
         "--sim-reaches",
@@ -88,6 +90,9 @@ def register(commands: Commands) -> None:
         metavar="N",
         help="the refinement gate's reaches per policy (default 60)",
     )
+    compare.add_argument("--cache", type=output_dir, metavar="DIR",
+                         help="keep every finished job here and reuse those of an earlier run "
+                         "with the same job and code (resume a long comparison)")  # fmt: skip
     compare.add_argument(
         "--jobs",
         type=int,
@@ -159,7 +164,7 @@ def _compare(args: argparse.Namespace) -> int:
     )
     update, close = progress_bar(plan.reaches(), "co-adaptation")
     try:
-        results = compare(plan, args.out, args.jobs, progress=update)
+        results = compare(plan, args.out, args.jobs, progress=update, cache=args.cache)
     finally:
         close()
     rules = Path(__file__).parents[1] / "study" / "coadaptation.py"

@@ -44,49 +44,51 @@ Judged (paired by seed, bootstrap 95 % intervals; a bound is the interval's end)
 
 from __future__ import annotations
 
-import functools
 import math
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
-from dammrl.adapt import (
-    Decision,
-    Gate,
-    PersonFit,
-    RefineSettings,
-    Transition,
-    fit_person,
-    gate,
-    refine_transitions,
+from dammrl.adapt import RefineSettings
+from dammrl.study.coadaptation_jobs import (
+    HORIZON_S,
+    SESSION_REACHES,
+    FixedJob,
+    Jobs,
+    Kind,
+    RefinedRun,
+    Row,
+    Session,
+    adaptive_job,
+    fixed_job,
+    refined_job,
 )
-from dammrl.rl.config import RewardWeights, TrainSettings
-from dammrl.rl.env import ReachEnv
-from dammrl.runner import ReachResult, ReachRunner, evidence_of
-from dammrl.study.run import map_jobs
 from dammrl.study.stats import Estimate, paired_difference
-from dammrl_core.coadaptation import GRADED, Selection, Targets, shortfalls
-from dammrl_core.human import HumanModel
+from dammrl_core.coadaptation import GRADED, Targets, shortfalls
 from dammrl_core.model_table import BASE, MODELS, Option
-from dammrl_core.person import PersonFile, load_person
-from dammrl_core.policy import FixedPolicy, Policy
-from dammrl_core.policy.adaptive import AdaptivePolicy
-from dammrl_core.policy.learned import LearnedPolicy, load_checkpoint
+
+__all__ = ["HORIZON_S", "SESSION_REACHES", "Kind", "Row"]
 
 PERSONS_DIR = Path(__file__).parent / "persons"
-REGISTERED = ("nominal", "low-accuracy", "hurried-errors", "careful-errors",
-              "narrow-boundaries", "slow-decisions", "fatigue", "learner", "small-steps")  # fmt: skip
+REGISTERED = (
+    "nominal", "low-accuracy", "hurried-errors", "careful-errors", "narrow-boundaries",
+    "slow-decisions", "fatigue", "learner", "small-steps",
+)  # fmt: skip
 """The registered kinds of person (files in ``PERSONS_DIR``), in the report's order."""
+
+
+def registered_kinds() -> list[Kind]:
+    return [Kind.of(PERSONS_DIR / f"{key}.yaml") for key in REGISTERED]
+
+
 TARGETS = Targets(window=5, success_min=0.9, time_max_s=20.0, comfort_min=3.0)
 """The targets of every kind (the issue's positive control's, and comfort)."""
 ORACLE_SEEDS = range(7_600_000, 7_600_040)
 SESSION_SEEDS = range(7_650_000, 7_650_025)
 TEST_SEEDS = range(7_700_000, 7_700_100)
 """Held-out seeds used by no training, study or table; disjoint."""
-SESSION_REACHES = 25
 REPLICATES = 2
 INTERPOLATED_REPLICATES = 1
 MARGIN_S = 2.5
@@ -95,174 +97,6 @@ MARGIN_COMFORT = 0.5
 """Mean comfort rating (1-5): half a step of the scale."""
 SETTLE_REACHES = 25
 """Goal 1 is judged on the reaches after these (the first test session)."""
-HORIZON_S = 60.0
-SHIPPED = Path("reward2")
-RATING_STREAM = 2039
-
-
-@dataclass(frozen=True)
-class Kind:
-    """A kind of person: its file's name, the person and the source of its numbers."""
-
-    key: str
-    name: str
-    source: str
-    human: HumanModel
-
-    @classmethod
-    def of(cls, path: Path) -> Kind:
-        loaded: PersonFile = load_person(path)
-        return cls(path.stem, loaded.name, loaded.source, HumanModel(person=loaded.person))
-
-
-def registered_kinds() -> list[Kind]:
-    return [Kind.of(PERSONS_DIR / f"{key}.yaml") for key in REGISTERED]
-
-
-def practice(index: int) -> tuple[int, int]:
-    """(session, reach) of the person at test reach ``index`` (sessions from 2)."""
-    return index // SESSION_REACHES + 2, index % SESSION_REACHES
-
-
-@dataclass(frozen=True)
-class Row:
-    """One reach of the comparison."""
-
-    person: str
-    arm: str  # 'search', 'oracle', 'shipped', 'adaptive', 'interpolated', 'refined'
-    replicate: int
-    seed: int
-    index: int  # its place in the test seeds (the person's practice)
-    option: Option  # the option in force (BASE: the shipped policy, or the adaptive base)
-    success: bool
-    t_total_s: float
-    final_error_m: float
-    comfort: float
-
-    @property
-    def restricted_s(self) -> float:
-        """Time to success restricted at the horizon (a failure counts all of it)."""
-        return self.t_total_s if self.success else HORIZON_S
-
-
-# ---- one process's runner ----------------------------------------------------------------
-@functools.lru_cache(maxsize=1)
-def _runner() -> ReachRunner:
-    return ReachRunner()
-
-
-@functools.lru_cache(maxsize=2)
-def _shipped() -> LearnedPolicy:
-    return LearnedPolicy(_runner().settings.models, SHIPPED)
-
-
-def _reach(kind: Kind, arm: str, seed: int, index: int, policy: Policy, option: Option,
-           replicate: int = 0) -> tuple[Row, ReachResult]:  # fmt: skip
-    result = _runner().run(seed, policy=policy, human=kind.human.practised(*practice(index)))
-    steps = np.array([s.steps_m for s in result.steps]).reshape(-1, 3)
-    rating = kind.human.person.comfort_rating(steps, np.random.default_rng([seed, RATING_STREAM]))
-    m = result.metrics
-    row = Row(kind.key, arm, replicate, seed, index, option, m.success, m.t_total_s,
-              m.final_error_m, float(rating))  # fmt: skip
-    return row, result
-
-
-FixedJob = tuple[Kind, str, Option, tuple[int, ...], tuple[int, ...]]
-"""kind, arm, option (BASE: the shipped policy), seeds, their indices."""
-
-
-def _fixed_job(job: FixedJob) -> list[Row]:
-    kind, arm, option, seeds, indices = job
-    runner = _runner()
-    policy: Policy = _shipped() if option == BASE else FixedPolicy(runner.settings.models, *option)
-    return [_reach(kind, arm, s, k, policy, option)[0] for s, k in zip(seeds, indices, strict=True)]
-
-
-# ---- the adaptive session ----------------------------------------------------------------
-@dataclass(frozen=True)
-class Session:
-    """The adaptive mode over the test seeds, the person's sessions in order."""
-
-    kind: str
-    replicate: int
-    interpolate: bool
-    rows: list[Row]
-    switches: list[str]
-    held: list[str]
-    summary: dict[str, Any]
-
-
-def adaptive_session(kind: Kind, seeds: Sequence[int], replicate: int,
-                     interpolate: bool = False) -> Session:  # fmt: skip
-    models = _runner().settings.models
-    selection = Selection(seed=replicate, interpolate=interpolate)
-    policy = AdaptivePolicy.around(_shipped(), models, HumanModel(), TARGETS, selection)
-    arm = "interpolated" if interpolate else "adaptive"
-    rows = []
-    for index, seed in enumerate(seeds):
-        row, result = _reach(kind, arm, seed, index, policy, policy.selected, replicate)
-        policy.observe(evidence_of(result, models), rating=row.comfort)
-        rows.append(row)
-    summary = policy.posterior.summary(TARGETS)
-    return Session(kind.key, replicate, interpolate, rows, [s.line for s in policy.switches],
-                   policy.held, summary)  # fmt: skip
-
-
-def _adaptive_job(job: tuple[Kind, tuple[int, ...], int, bool]) -> Session:
-    return adaptive_session(*job)
-
-
-# ---- the refined policy --------------------------------------------------------------------
-@dataclass(frozen=True)
-class RefinedRun:
-    kind: str
-    rows: list[Row]  # the candidate on the test seeds
-    fit: PersonFit
-    gate: Gate
-
-
-def refined_run(kind: Kind, session_seeds: Sequence[int], test_seeds: Sequence[int],
-                out: Path, settings: RefineSettings) -> RefinedRun:  # fmt: skip
-    """The person's first session with the shipped policy, the refinement on it, its gate
-    on the fitted person, and the candidate on the test seeds."""
-    runner = _runner()
-    checkpoint = load_checkpoint(SHIPPED)
-    env = ReachEnv(runner, RewardWeights(**checkpoint["weights"]),
-                   TrainSettings(**checkpoint["settings"]).max_decisions)  # fmt: skip
-    transitions: list[Transition] = []
-    decisions: list[Decision] = []
-    for reach, seed in enumerate(session_seeds):
-        transitions += _shipped_episode(env, seed, kind.human.practised(1, reach))
-        episode = env.episode
-        median = kind.human.decision_median_s
-        decisions += [(c.human_model, d.correct, d.decision_s / median(c.human_model))
-                      for d, c in zip(episode.decisions, episode.choices, strict=True)]  # fmt: skip
-    fit = fit_person(decisions)
-    candidate = refine_transitions(transitions, fit, SHIPPED, out, settings).out
-    verdict = gate(candidate, SHIPPED, fit, settings, transitions)
-    policy = LearnedPolicy(runner.settings.models, candidate)
-    rows = [_reach(kind, "refined", s, k, policy, BASE)[0] for k, s in enumerate(test_seeds)]
-    return RefinedRun(kind.key, rows, fit, verdict)
-
-
-def _shipped_episode(env: ReachEnv, seed: int, human: HumanModel) -> list[Transition]:
-    policy = _shipped()
-    obs, _ = env.reset(seed=seed, human=human)
-    policy.reset()
-    out, done = [], False
-    while not done:
-        choice = policy.decide(env.episode.last_state.ee_pos, env.episode.task.goal)
-        action = (choice.human_model - 1, choice.robot_model - 1)
-        next_obs, reward, terminated, truncated, _ = env.step(action)
-        done = terminated or truncated
-        out.append(Transition(obs, action, reward, next_obs, done))
-        obs = next_obs
-    return out
-
-
-def _refined_job(job: tuple[Kind, tuple[int, ...], tuple[int, ...], Path, RefineSettings]
-                 ) -> RefinedRun:  # fmt: skip
-    return refined_run(*job)
 
 
 # ---- the comparison -------------------------------------------------------------------------
@@ -307,9 +141,13 @@ class PersonResult:
 
 
 def compare(plan: Plan, out: Path, workers: int = 1,
-            progress: Callable[[int], None] | None = None) -> list[PersonResult]:  # fmt: skip
-    """Every arm for every kind of person (see the module)."""
+            progress: Callable[[int], None] | None = None,
+            cache: Path | None = None) -> list[PersonResult]:  # fmt: skip
+    """Every arm for every kind of person (see the module). With ``cache``, every finished
+    job is kept there and a later run with the same job and the same code reuses it (a
+    long comparison resumes after an interruption)."""
     tick = progress or (lambda n: None)
+    runs = Jobs(workers, tick, cache)
     test = tuple(plan.test_seeds)
     indices = tuple(range(len(test)))
     oracle_seeds = tuple(plan.oracle_seeds)
@@ -319,44 +157,25 @@ def compare(plan: Plan, out: Path, workers: int = 1,
         for option in (BASE, *MODELS)
     ]
     search_jobs += [(kind, "shipped", BASE, test, indices) for kind in plan.kinds]
-    rows = _run(_fixed_job, search_jobs, workers, tick)
+    rows = [r for done in runs.map(fixed_job, search_jobs, len) for r in done]
     search = {k.key: _searched(rows, k.key) for k in plan.kinds}
     oracles = {k.key: best_fixed(search[k.key]) for k in plan.kinds}
     oracle_jobs: list[FixedJob] = [(k, "oracle", oracles[k.key], test, indices) for k in plan.kinds]
-    rows += _run(_fixed_job, oracle_jobs, workers, tick)
-    sessions = _run_sessions(plan, test, workers, tick)
+    rows += [r for done in runs.map(fixed_job, oracle_jobs, len) for r in done]
     refine_jobs = [(k, tuple(plan.session_seeds), test, out / "refined" / k.key, plan.refine)
                    for k in plan.kinds]  # fmt: skip
-    refined: list[RefinedRun] = []
-    for run in map_jobs(_refined_job, refine_jobs, workers):
-        refined.append(run)
-        tick(plan.refine_reaches())
+    refined = runs.map(refined_job, refine_jobs, lambda _: plan.refine_reaches())
+    session_jobs = [(k, test, TARGETS, r, False) for k in plan.kinds
+                    for r in range(plan.replicates)]  # fmt: skip
+    session_jobs += [(k, test, TARGETS, r, True) for k in plan.kinds
+                     for r in range(plan.interpolated_replicates)]  # fmt: skip
+    sessions = runs.map(adaptive_job, session_jobs, lambda s: len(s.rows))
     return [_result(k, oracles[k.key], search[k.key], rows, sessions, refined) for k in plan.kinds]
 
 
 def _searched(rows: list[Row], kind: str) -> dict[Option, list[Row]]:
     mine = [r for r in rows if r.person == kind and r.arm == "search"]
     return {o: [r for r in mine if r.option == o] for o in (BASE, *MODELS)}
-
-
-def _run(function: Callable[[FixedJob], list[Row]], jobs: list[FixedJob], workers: int,
-         tick: Callable[[int], None]) -> list[Row]:  # fmt: skip
-    rows: list[Row] = []
-    for done in map_jobs(function, jobs, workers):
-        rows += done
-        tick(len(done))
-    return rows
-
-
-def _run_sessions(plan: Plan, test: tuple[int, ...], workers: int,
-                  tick: Callable[[int], None]) -> list[Session]:  # fmt: skip
-    jobs = [(k, test, r, False) for k in plan.kinds for r in range(plan.replicates)]
-    jobs += [(k, test, r, True) for k in plan.kinds for r in range(plan.interpolated_replicates)]
-    sessions = []
-    for session in map_jobs(_adaptive_job, jobs, workers):
-        sessions.append(session)
-        tick(len(session.rows))
-    return sessions
 
 
 def _result(kind: Kind, oracle: Option, search: dict[Option, list[Row]], rows: list[Row],
