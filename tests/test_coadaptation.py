@@ -437,7 +437,7 @@ def test_the_comparison_runs_every_arm_counts_its_progress_and_reports_every_goa
         refine=RefineSettings(sim_reaches=1, updates=4, gate_seeds=10),
     )
     ticks: list[int] = []
-    results = compare(plan, tmp_path, progress=ticks.append)
+    results = compare(plan, progress=ticks.append, cache=tmp_path / "cache")
     assert sum(ticks) == plan.reaches()
     (result,) = results
     assert {a: len(r) for a, r in result.arms.items()} == {

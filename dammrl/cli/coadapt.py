@@ -164,7 +164,7 @@ def _compare(args: argparse.Namespace) -> int:
     )
     update, close = progress_bar(plan.reaches(), "co-adaptation")
     try:
-        results = compare(plan, args.out, args.jobs, progress=update, cache=args.cache)
+        results = compare(plan, args.jobs, progress=update, cache=args.cache)
     finally:
         close()
     rules = Path(__file__).parents[1] / "study" / "coadaptation.py"

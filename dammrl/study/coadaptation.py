@@ -45,6 +45,7 @@ Judged (paired by seed, bootstrap 95 % intervals; a bound is the interval's end)
 from __future__ import annotations
 
 import math
+import tempfile
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -140,8 +141,7 @@ class PersonResult:
         return self.arms["refined"] if self.refined.gate.deployed else self.arms["shipped"]
 
 
-def compare(plan: Plan, out: Path, workers: int = 1,
-            progress: Callable[[int], None] | None = None,
+def compare(plan: Plan, workers: int = 1, progress: Callable[[int], None] | None = None,
             cache: Path | None = None) -> list[PersonResult]:  # fmt: skip
     """Every arm for every kind of person (see the module). With ``cache``, every finished
     job is kept there and a later run with the same job and the same code reuses it (a
@@ -162,7 +162,10 @@ def compare(plan: Plan, out: Path, workers: int = 1,
     oracles = {k.key: best_fixed(search[k.key]) for k in plan.kinds}
     oracle_jobs: list[FixedJob] = [(k, "oracle", oracles[k.key], test, indices) for k in plan.kinds]
     rows += [r for done in runs.map(fixed_job, oracle_jobs, len) for r in done]
-    refine_jobs = [(k, tuple(plan.session_seeds), test, out / "refined" / k.key, plan.refine)
+    # the candidates' checkpoints: beside the cache, else in a folder of their own (never
+    # among the report's files)
+    candidates = cache / "refined" if cache is not None else Path(tempfile.mkdtemp("-refined"))
+    refine_jobs = [(k, tuple(plan.session_seeds), test, candidates / k.key, plan.refine)
                    for k in plan.kinds]  # fmt: skip
     refined = runs.map(refined_job, refine_jobs, lambda _: plan.refine_reaches())
     session_jobs = [(k, test, TARGETS, r, False) for k in plan.kinds

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import functools
 import hashlib
+import inspect
 import pickle
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -210,16 +211,18 @@ def refined_job(job: tuple[Kind, tuple[int, ...], tuple[int, ...], Path, RefineS
 
 J = TypeVar("J")
 R = TypeVar("R")
-REACHES = ("dammrl/runner.py", "dammrl/study/coadaptation_jobs.py", "dammrl_core/person.py",
-           "dammrl_core/human.py")  # fmt: skip
+REACHES = ("dammrl/runner.py", "dammrl_core/person.py", "dammrl_core/human.py", "Kind", "Row",
+           "practice", "_runner", "_shipped", "_reach")  # fmt: skip
 SOURCES = {
-    "fixed_job": REACHES,
-    "refined_job": (*REACHES, "dammrl/adapt.py"),
+    "fixed_job": (*REACHES, "fixed_job"),
+    "refined_job": (*REACHES, "dammrl/adapt.py", "refined_job", "refined_run", "RefinedRun",
+                    "_shipped_episode"),
     "adaptive_job": (*REACHES, "dammrl_core/coadaptation.py", "dammrl_core/model_table.py",
-                      "dammrl_core/policy/adaptive.py", "dammrl_core/policies/model_table.json.gz"),
+                     "dammrl_core/policy/adaptive.py", "dammrl_core/policies/model_table.json.gz",
+                     "adaptive_job", "adaptive_session", "Session"),
 }  # fmt: skip
-"""The files a cached job's result depends on beyond the simulation itself: a change to
-any of them makes the job run again."""
+"""What a cached job's result depends on beyond the simulation itself (files, and the
+functions and classes of this module): a change to any of them makes the job run again."""
 
 
 @dataclass
@@ -271,6 +274,9 @@ def _code_digest(function: str) -> str:
     root = Path(__file__).parents[2]
     digest = hashlib.sha256()
     for name in SOURCES[function]:
+        if "/" not in name:  # a function or class of this module
+            digest.update(inspect.getsource(globals()[name]).encode())
+            continue
         path = root / name
         digest.update(path.read_bytes() if path.is_file() else b"missing")
     return digest.hexdigest()
