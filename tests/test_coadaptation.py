@@ -29,6 +29,7 @@ from dammrl_core.coadaptation import (
     robot_model_of,
 )
 from dammrl_core.human import HumanModel
+from dammrl_core.metrics import ReachMetrics
 from dammrl_core.model_table import (
     COLUMNS,
     ModelTable,
@@ -39,6 +40,7 @@ from dammrl_core.model_table import (
     grid_persons,
 )
 from dammrl_core.models import ModelSet
+from dammrl_core.person import SimulatedPerson
 from dammrl_core.policy import FixedPolicy
 from dammrl_core.policy.adaptive import AdaptivePolicy
 from dammrl_core.policy.learned import LearnedPolicy
@@ -449,3 +451,46 @@ def test_the_comparison_runs_every_arm_counts_its_progress_and_reports_every_goa
     assert "goal 3" in report and "| comfortable only with small steps |" in report
     for name in ("results.json", "regret.png", "coadaptation.png"):
         assert (tmp_path / name).stat().st_size > 0
+
+
+# ---- with the shipped model table -------------------------------------------------------
+def test_with_the_shipped_table_an_untried_option_follows_the_persons_accuracy() -> None:
+    """No reach under M_1,7 at all: its predicted success falls and its predicted time
+    grows as the commands under E_big are seen to be 57 % correct instead of 80 %."""
+    posterior = ModelPosterior(ModelTable.load(), HUMAN, MODEL_SET)
+    before = predicted(posterior, (1, 7))
+    decisions(posterior, 1, 342, 600)  # 57 %
+    after = predicted(posterior, (1, 7))
+    assert after[0] < before[0] - 0.05 and after[1] > 1.1 * before[1]
+    assert posterior.beliefs[(1, 7)].successes == posterior.beliefs[(1, 7)].failures == 0
+
+
+POSITIVE_CONTROL_SEEDS = range(7_810_000, 7_810_030)  # used by no study or training
+
+
+def test_the_positive_control_switches_and_improves() -> None:
+    """The issue's positive control: a person 57 % correct under either radius, targets
+    success >= 0.9 and median time <= 20 s. The shipped policy misses the success target;
+    the adaptive mode leaves it and, over the same 30 seeds, its time to success (a failed
+    reach counting 60 s) is shorter than the shipped policy's."""
+    from dammrl.study.coadaptation_jobs import SHIPPED
+
+    runner = ReachRunner()
+    models = runner.settings.models
+    person = HumanModel(person=SimulatedPerson(accuracy=0.57))
+    targets = Targets(success_min=0.9, time_max_s=20.0)
+    shipped = LearnedPolicy(models, SHIPPED)
+    adaptive = AdaptivePolicy.around(LearnedPolicy(models, SHIPPED), models, HUMAN, targets)
+    plain, adapted = [], []
+    for seed in POSITIVE_CONTROL_SEEDS:
+        plain.append(runner.run(seed, policy=shipped, human=person).metrics)
+        result = runner.run(seed, policy=adaptive, human=person)
+        adaptive.observe(evidence_of(result, models))
+        adapted.append(result.metrics)
+    assert adaptive.switches and adaptive.switches[0].from_model == BASE
+    assert adaptive.switches[0].reach <= 10  # within two windows of reaches
+
+    def to_success(runs: list[ReachMetrics]) -> float:
+        return float(np.mean([m.t_total_s if m.success else 60.0 for m in runs]))
+
+    assert to_success(adapted) < to_success(plain)

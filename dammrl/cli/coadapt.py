@@ -28,6 +28,9 @@ def register(commands: Commands) -> None:
     )
     table.add_argument("--out", type=output_file(".gz"),
                        help="where (a .json.gz; default: the packaged table)")  # fmt: skip
+    table.add_argument("--cache", type=output_dir, metavar="DIR",
+                       help="keep every finished reach here and reuse those of an earlier "
+                       "run with the same code (resume a long build)")  # fmt: skip
     table.add_argument(
         "--jobs",
         type=int,
@@ -125,7 +128,7 @@ def _table(args: argparse.Namespace) -> int:
     jobs = len(table_jobs())
     update, close = progress_bar(jobs, "model table")
     try:
-        table = build_table(workers=args.jobs, progress=update)
+        table = build_table(workers=args.jobs, progress=update, cache=args.cache)
     finally:
         close()
     out = args.out or TABLE

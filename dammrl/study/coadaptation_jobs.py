@@ -220,6 +220,8 @@ SOURCES = {
     "adaptive_job": (*REACHES, "dammrl_core/coadaptation.py", "dammrl_core/model_table.py",
                      "dammrl_core/policy/adaptive.py", "dammrl_core/policies/model_table.json.gz",
                      "adaptive_job", "adaptive_session", "Session"),
+    "table_job": ("dammrl/runner.py", "dammrl_core/person.py", "dammrl_core/human.py",
+                  "dammrl/study/coadaptation_table.py"),
 }  # fmt: skip
 """What a cached job's result depends on beyond the simulation itself (files, and the
 functions and classes of this module): a change to any of them makes the job run again."""

@@ -5,8 +5,8 @@ Each M_ij runs with persons whose accuracy under its radius is each node of
 ``ACCURACY_NODES``; the base policy (the shipped DQN, which uses both radii) on the grid
 ``BASE_NODES`` x ``BASE_NODES`` of both accuracies. Every node runs the same task seeds
 (``TABLE_SEEDS``: below the held-out range, apart from training's and every study's), with
-the sub-models' decision times and a simulated timeout of ``SIMULATED_TIMEOUT_S`` (twice
-the task's: a person up to twice as quick as the sub-model still has their reach).
+the sub-models' decision times and a simulated timeout of ``SIMULATED_TIMEOUT_S`` (1.5 x
+the task's: a person up to 1.5 times as quick as the sub-model still has their reach).
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from dammrl.runner import ReachResult, ReachRunner, ReachSettings, evidence_of
-from dammrl.study.run import map_jobs
+from dammrl.study.coadaptation_jobs import Jobs
 from dammrl_core.coadaptation import ReachEvidence
 from dammrl_core.human import HumanModel
 from dammrl_core.model_table import (
@@ -38,11 +38,11 @@ from dammrl_core.policy import Policy
 from dammrl_core.policy.learned import LearnedPolicy
 from dammrl_core.task import TaskSettings
 
-TABLE_SEEDS = range(6_900_000, 6_900_024)
+TABLE_SEEDS = range(6_900_000, 6_900_012)
 ACCURACY_NODES = (0.5, 0.55, 0.6, 0.65, 0.7, 0.75, 0.8, 0.85, 0.9, 0.95, 0.99)
 BASE_NODES = (0.5, 0.6, 0.7, 0.8, 0.9, 0.99)
 HORIZON_S = float(TaskSettings.model_fields["episode_timeout_s"].default)
-SIMULATED_TIMEOUT_S = 2 * HORIZON_S
+SIMULATED_TIMEOUT_S = 1.5 * HORIZON_S
 SHIPPED = Path("reward2")
 
 
@@ -67,7 +67,7 @@ def _shipped(models: ModelSet) -> Policy:
     return LearnedPolicy(models, SHIPPED)
 
 
-def _table_job(job: TableJob) -> tuple[list[float], ReachEvidence]:
+def table_job(job: TableJob) -> tuple[list[float], ReachEvidence]:
     option, node, seed = job
     big, small = grid_persons(*option_grid(option))[node]
     runner = _runner()
@@ -77,6 +77,10 @@ def _table_job(job: TableJob) -> tuple[list[float], ReachEvidence]:
     result = runner.run(seed, model, policy=policy, human=human)
     evidence = evidence_of(result, runner.settings.models)
     return reach_columns(result, evidence, runner.settings.models), evidence
+
+
+def _one(_: object) -> int:
+    return 1
 
 
 def reach_columns(result: ReachResult, evidence: ReachEvidence, models: ModelSet) -> list[float]:
@@ -117,10 +121,13 @@ def table_jobs(seeds: range = TABLE_SEEDS) -> list[TableJob]:
 
 
 def build_table(seeds: range = TABLE_SEEDS, workers: int = 1,
-                progress: Callable[[int], None] | None = None) -> ModelTable:  # fmt: skip
-    """Every option on its grid of persons (see the module)."""
+                progress: Callable[[int], None] | None = None,
+                cache: Path | None = None) -> ModelTable:  # fmt: skip
+    """Every option on its grid of persons (see the module); with ``cache``, every
+    finished reach is kept there for a later run (a long build resumes)."""
     jobs = table_jobs(seeds)
-    done = dict(zip(jobs, map_jobs(_table_job, jobs, workers, progress=progress), strict=True))
+    results = Jobs(workers, progress or (lambda n: None), cache).map(table_job, jobs, _one)
+    done = dict(zip(jobs, results, strict=True))
     options = []
     for option in OPTIONS:
         axes, grid = option_grid(option)
