@@ -245,8 +245,9 @@ class Jobs:
                 done[k] = kept
                 self.tick(reaches(kept))
         todo = [k for k in range(len(jobs)) if k not in done]
-        for k, result in zip(todo, map_jobs(function, [jobs[k] for k in todo], self.workers),
-                             strict=True):  # fmt: skip
+        # one job at a time to a worker: each is kept as soon as it is done
+        results = map_jobs(function, [jobs[k] for k in todo], self.workers, batch=1)
+        for k, result in zip(todo, results, strict=True):
             done[k] = result
             self._keep(keys[k], result)
             self.tick(reaches(result))
