@@ -268,6 +268,19 @@ def test_missed_targets_switch_to_an_option_likely_to_meet_them() -> None:
     assert policy.recent == []  # judged afresh after a switch
 
 
+def test_a_blocks_rating_goes_to_the_option_of_most_of_its_reaches() -> None:
+    """A rating arrives after a block (the session display): reaches under the base policy,
+    then a switch; the rating is of those reaches, not of the option switched to."""
+    policy = adaptive({BASE: 0.5, **{m: 0.3 for m in MODELS}, (2, 3): 0.99},
+                      Targets(window=3, success_min=0.9))  # fmt: skip
+    for success in (True, True, True, False):
+        policy.observe(reach(BASE, success))
+    assert policy.selected == (2, 3)
+    policy.rating(2.0)
+    policy.observe(reach((2, 3), True), rating=5.0)  # a reach's own rating: its option's
+    assert policy.posterior.ratings == [(BASE, 2.0), ((2, 3), 5.0)]
+
+
 def posterior_failures(policy: AdaptivePolicy, option: Option) -> float:
     return policy.posterior.beliefs[option].failures
 

@@ -33,6 +33,7 @@ predicted for the new option.
 
 from __future__ import annotations
 
+from collections import Counter
 from dataclasses import dataclass
 
 import numpy as np
@@ -96,6 +97,7 @@ class AdaptivePolicy:
         self.held: list[str] = []  # switches the block's budget held back
         self.recent: list[ReachEvidence] = []  # since the last switch
         self.ratings: list[float] = []  # since the last switch
+        self.unrated: list[Option] = []  # the option of each reach since the last rating
 
     @classmethod
     def around(cls, base: Policy, models: ModelSet, human: HumanModel, targets: Targets,
@@ -123,7 +125,9 @@ class AdaptivePolicy:
         """Fold in a finished reach (and the person's comfort ``rating`` of it, 1-5, when
         they gave one); when the targets are missed, choose again (the switch, else None)."""
         self.posterior.observe(reach, self.selected)
+        self.unrated.append(self.selected)
         if rating is not None:
+            self.unrated = []
             self.posterior.rating(self.selected, rating)
             self.ratings.append(float(rating))
         self.recent.append(reach)
@@ -133,9 +137,12 @@ class AdaptivePolicy:
         return self._choose(reasons) if reasons else None
 
     def rating(self, rating: float) -> None:
-        """The participant's comfort rating (1-5) of the reaches since the last one."""
-        if self.recent:
-            self.posterior.rating(self.selected, rating)
+        """The participant's comfort rating (1-5) of the reaches since the last one (a
+        block's, from the session display), credited to the option in force for most of
+        them, even when the policy has switched since."""
+        if self.unrated:
+            self.posterior.rating(Counter(self.unrated).most_common(1)[0][0], rating)
+        self.unrated = []
         self.ratings.append(float(rating))
 
     def allowed(self) -> tuple[Option, ...]:
