@@ -62,9 +62,9 @@ def register(commands: Commands) -> None:
     )
     compare.add_argument("--test-seeds", type=_count(1, 1000), default=100, metavar="N",
                          help="test seeds (from 7,700,000; default 100)")  # fmt: skip
-    compare.add_argument("--oracle-seeds", type=_count(1, 1000), default=40, metavar="N",
+    compare.add_argument("--oracle-seeds", type=_count(1, 1000), default=30, metavar="N",
                          help="seeds per M_ij of the oracle's search (from 7,600,000; default "
-                         "40; fewer than 30 and the report says it is no oracle)")  # fmt: skip
+                         "30; fewer than 30 and the report says it is no oracle)")  # fmt: skip
     compare.add_argument(
         "--replicates",
         type=_count(1, 20),
@@ -82,16 +82,16 @@ def register(commands: Commands) -> None:
     compare.add_argument(
         "--sim-reaches",
         type=_count(0, 100_000),
-        default=100,
+        default=50,
         metavar="N",
-        help="the refinement's simulated reaches (default 100)",
+        help="the refinement's simulated reaches (default 50)",
     )
     compare.add_argument(
         "--gate-seeds",
         type=_count(10, 5000),
-        default=60,
+        default=40,
         metavar="N",
-        help="the refinement gate's reaches per policy (default 60)",
+        help="the refinement gate's reaches per policy (default 40)",
     )
     compare.add_argument("--cache", type=output_dir, metavar="DIR",
                          help="keep every finished job here and reuse those of an earlier run "
