@@ -431,7 +431,29 @@ def test_the_studys_adaptive_sessions_are_one_per_seed_set_counted_in_reaches() 
         (7_000_000, 0), (7_000_001, 0), (7_000_002, 1), (7_000_003, 1)]  # fmt: skip
 
 
-# ---- the comparison, end to end -----------------------------------------------------------
+# ---- the comparison, end to end -----
+def test_a_kept_job_is_reused_and_run_again_when_its_code_changes(tmp_path: Path) -> None:
+    from dammrl.study.coadaptation_jobs import Jobs
+
+    calls: list[int] = []
+    ticks: list[int] = []
+
+    def square(x: int) -> int:
+        calls.append(x)
+        return x * x
+
+    jobs = Jobs(1, ticks.append, tmp_path)
+    assert jobs.map(square, [2, 3], lambda r: r) == [4, 9]
+    assert jobs.map(square, [3, 2, 4], lambda r: r) == [9, 4, 16]  # 2 and 3 kept
+    assert calls == [2, 3, 4] and ticks == [4, 9, 9, 4, 16]
+
+    def square(x: int) -> int:  # the same job, other code
+        calls.append(-x)
+        return x * x
+
+    assert jobs.map(square, [2], lambda r: r) == [4] and calls[-1] == -2
+
+
 def test_the_comparison_runs_every_arm_counts_its_progress_and_reports_every_goal(
     tmp_path: Path,
 ) -> None:

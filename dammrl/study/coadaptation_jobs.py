@@ -255,7 +255,7 @@ class Jobs:
 
     def _key(self, function: Callable[..., Any], job: Any) -> str:
         digest = hashlib.sha256(function.__name__.encode())
-        digest.update(_code_digest(function.__name__).encode())
+        digest.update(_code_digest(function).encode())
         digest.update(repr(_plain_job(job)).encode())
         return digest.hexdigest()[:32]
 
@@ -273,10 +273,12 @@ class Jobs:
 
 
 @functools.lru_cache(maxsize=4)
-def _code_digest(function: str) -> str:
+def _code_digest(function: Callable[..., Any]) -> str:
+    """The digest of what ``function``'s results depend on (``SOURCES``; another
+    function: its own source)."""
     root = Path(__file__).parents[2]
-    digest = hashlib.sha256()
-    for name in SOURCES[function]:
+    digest = hashlib.sha256(inspect.getsource(function).encode())
+    for name in SOURCES.get(function.__name__, ()):
         if "/" not in name:  # a function or class of this module
             digest.update(inspect.getsource(globals()[name]).encode())
             continue
