@@ -277,8 +277,10 @@ def _code_digest(function: Callable[..., Any]) -> str:
     """The digest of what ``function``'s results depend on (``SOURCES``; another
     function: its own source)."""
     root = Path(__file__).parents[2]
-    digest = hashlib.sha256(inspect.getsource(function).encode())
-    for name in SOURCES.get(function.__name__, ()):
+    if function.__name__ not in SOURCES:
+        return hashlib.sha256(inspect.getsource(function).encode()).hexdigest()
+    digest = hashlib.sha256()
+    for name in SOURCES[function.__name__]:
         if "/" not in name:  # a function or class of this module
             digest.update(inspect.getsource(globals()[name]).encode())
             continue
