@@ -105,6 +105,22 @@ def register(commands: Commands) -> None:
     compare.set_defaults(handler=_compare)
 
 
+def _within(low: float, high: float) -> Callable[[str], float]:
+    """Argument type: a finite number within [low, high]."""
+
+    def convert(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            value = float("nan")
+        if not low <= value <= high:
+            raise argparse.ArgumentTypeError(f"expected a number {low:g}-{high:g}, got {text!r}")
+        return value
+
+    convert.__name__ = "number"
+    return convert
+
+
 def _count(low: int, high: int) -> Callable[[str], int]:
     """Argument type: a whole number within [low, high]."""
 
@@ -233,7 +249,7 @@ def register_adapt(commands: Commands) -> None:
     adapt.add_argument("--seed", type=int, default=0, help="seed of the refinement (default 0)")
     adapt.add_argument(
         "--gate-seeds",
-        type=int,
+        type=_count(10, 5000),
         default=60,
         metavar="N",
         help="reaches of the fitted person per policy when the candidate is judged against "
@@ -241,7 +257,7 @@ def register_adapt(commands: Commands) -> None:
     )
     adapt.add_argument(
         "--min-gain-s",
-        type=float,
+        type=_within(0.0, 60.0),
         default=0.0,
         metavar="S",
         help="deploy only when the gain's lower 95 %% bound in time to success exceeds this "
