@@ -55,13 +55,10 @@ from schemas import (
     key,
 )
 from services.common.bus import SESSION_CLOSE_WAIT_S, close_within, zenoh_config
+from services.common.certificates import create_credentials
 from services.common.config import BusSettings
 from services.common.runtime import SignalStop, stopping_on_signals
-from services.common.security import (
-    claim_run_credentials,
-    create_credentials,
-    run_credentials,
-)
+from services.common.security import OPERATOR, claim_run_credentials, run_credentials
 from services.intent.config import IntentSettings
 from services.recorder.config import RecorderSettings
 
@@ -279,8 +276,8 @@ class Stack:
     ) -> None:
         """``out`` receives the episode results, ``info`` the progress lines; ``on_result``
         each episode's result as it is counted (a session's trial log keeps it at once);
-        ``on_up`` the stack's hub session once every service is alive (a participant
-        display subscribes there)."""
+        ``on_up`` the stack's hub session once every service is alive: the operator's
+        (the launcher's role; a participant display joins with its own, :meth:`join`)."""
         check_options(options)
         self.options = options
         self.out = out
@@ -299,6 +296,7 @@ class Stack:
         self.prompts: PatientPrompts | None = None
         self.recorder_restarts = 0
         self.ignored = 0  # messages on task/result that were not an episode's result
+        self.joined: list[zenoh.Session] = []  # sessions of other roles (join), closed at the end
         check_settings(self.services(), self.environment())
         self.progress: Progress | None = None
 
@@ -385,7 +383,8 @@ class Stack:
             create_credentials(self.credentials)
             claim_run_credentials(self.credentials)  # its services remove it if we die
         with stopping_on_signals() as stop:
-            session = zenoh.open(zenoh_config(settings, rate_limits=True))  # the services' hub
+            # the services' hub, and the operator's session (a session's console, a stop)
+            session = zenoh.open(zenoh_config(settings, OPERATOR, rate_limits=True))
             try:
                 results = session.declare_subscriber(key(self.options.namespace, EpisodeResult))
                 if self.options.pad_port is not None and not self.options.json:
@@ -398,9 +397,20 @@ class Stack:
                 return self._watch(results, stop)
             finally:
                 self._stop_children()
+                for joined in self.joined:
+                    close_within(joined, SESSION_CLOSE_WAIT_S)
                 close_within(session, SESSION_CLOSE_WAIT_S)  # a vanished peer can hold it
                 if self.own_credentials and self.credentials is not None:
                     shutil.rmtree(self.credentials, ignore_errors=True)
+
+    def join(self, role: str) -> zenoh.Session:
+        """A session of this process on the run's bus with ``role``'s certificate (the
+        participant's display: its comfort rating and nothing else), closed with the run."""
+        settings = BusSettings(connect=[self.endpoint], namespace=self.options.namespace,
+                               credentials=self.credentials, role=role)  # fmt: skip
+        session = zenoh.open(zenoh_config(settings, role))
+        self.joined.append(session)
+        return session
 
     def finish(self) -> None:
         """End the run before its last episode (a session ends a block early)."""

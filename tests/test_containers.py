@@ -30,7 +30,7 @@ import pytest
 import yaml
 
 from dammrl.recording import info
-from services.common.security import create_credentials
+from services.common.certificates import create_credentials
 
 pytestmark = pytest.mark.slow  # builds an image and runs five containers
 

@@ -175,7 +175,7 @@ def test_replay_on_a_secured_bus_publishes_each_topic_as_its_role(
     sim, intent and, for intent/request, controller); a role
     that may not is refused before anything is sent (the ACL would drop it silently)."""
     from services.common.bus import zenoh_config
-    from services.common.security import create_credentials
+    from services.common.certificates import create_credentials
 
     credentials = tmp_path / "bus"
     create_credentials(credentials)
@@ -185,15 +185,15 @@ def test_replay_on_a_secured_bus_publishes_each_topic_as_its_role(
     listen = BusSettings(listen=[f"tls/127.0.0.1:{port}"], mode="router",
                          namespace="replay", credentials=credentials)  # fmt: skip
     got: list[str] = []
-    with zenoh.open(zenoh_config(listen, "tool")) as session:
+    with zenoh.open(zenoh_config(listen, "observer")) as session:
         session.declare_subscriber("replay/**", lambda s: got.append(str(s.key_expr)))
         settings = BusSettings(connect=[f"tls/127.0.0.1:{port}"], namespace="replay",
                                credentials=credentials)  # fmt: skip
         sent = replay(recording, settings, options)
         wait_for(lambda: len(got) >= sent, 10, "every replayed message")
-        as_tool = settings.model_copy(update={"role": "tool"})
-        with pytest.raises(DammrlError, match="role 'tool' may not publish"):
-            replay(recording, as_tool, options)
+        as_observer = settings.model_copy(update={"role": "observer"})
+        with pytest.raises(DammrlError, match="role 'observer' may not publish"):
+            replay(recording, as_observer, options)
     assert set(got) == {"replay/robot/state", "replay/intent", "replay/intent/request"}
 
 

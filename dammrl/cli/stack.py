@@ -124,12 +124,15 @@ def _up(args: argparse.Namespace) -> int:
         return Stack(options, out=print_out, info=print_err).run()
     from dammrl.cli.session import open_display
     from dammrl.display import BusFeed
+    from services.common.security import DISPLAY
 
     intent = args.intent or ("pad" if args.port else "lsl" if args.stream else "simulated")
     display = open_display("0.0.0.0", args.display, intent)
     try:
         feed = BusFeed(display, args.namespace)
-        return Stack(options, out=print_out, info=print_err, on_up=feed.attach).run()
+        stack = Stack(options, out=print_out, info=print_err,
+                      on_up=lambda hub: feed.attach(stack.join(DISPLAY)))  # fmt: skip
+        return stack.run()
     finally:
         display.close()
 

@@ -45,6 +45,7 @@ from schemas import (
 from services.common import convert
 from services.common.bus import Bus
 from services.common.entry import run_service
+from services.common.security import OPERATOR
 from services.controller.requests import Requests, Timing
 
 log = logging.getLogger("dammrl.controller")
@@ -100,7 +101,7 @@ class ControllerNode:
         bus.expect(RobotState, "sim", "robot")  # the simulated or the real arm
         bus.expect(Intent, "intent")
         bus.expect(ModelChoice, "policy")
-        bus.expect(SessionControl, "tool")  # the session's console
+        bus.expect(SessionControl, OPERATOR)  # the session's console
         self.pause = Pause()  # the therapist's pauses of the running reach
         self.last_command: core.JointCommand | None = None  # the last command sent
 
