@@ -31,7 +31,7 @@ from zenoh.handlers import RingChannel
 
 from dammrl_core.arm.settings import ArmSettings
 from dammrl_core.coadaptation import Targets
-from dammrl_core.control.settings import ControllerSettings
+from dammrl_core.control.settings import ControllerSettings, check_workspace
 from dammrl_core.errors import (
     ConfigurationError,
     DammrlError,
@@ -245,6 +245,8 @@ def check_settings(services: tuple[str, ...], env: dict[str, str]) -> None:
             source_plugin(IntentSettings().source).settings()
         if "robot" in services:
             driver_plugin(ArmSettings().driver).settings()
+        if "controller" in services:
+            check_workspace(ControllerSettings(), TaskSettings())
 
 
 @contextlib.contextmanager

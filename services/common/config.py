@@ -42,7 +42,7 @@ class BusSettings(Settings):
     control. None: plain tcp, anyone who reaches the endpoint is on the bus."""
     role: str | None = None
     """Certificate role of this session (default: the service's name; tools: 'tool')."""
-    launcher_pid: int | None = Field(None, ge=1)
+    launcher_pid: int | None = Field(None, ge=1, le=4_194_304)  # Linux's largest pid_max
     """The ``dammrl up`` process that started this service (set by it): when that
     process is gone, even killed with -9, the service stops, and removes the run's own
     credentials (those marked with the launcher's pid), which nothing else may use."""

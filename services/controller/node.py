@@ -23,7 +23,7 @@ from collections.abc import Sequence
 from dammrl_core import state as core
 from dammrl_core.control.pause import Pause, hold_command
 from dammrl_core.control.reach import Plan, Reach, plan_reach
-from dammrl_core.control.settings import ControllerSettings
+from dammrl_core.control.settings import ControllerSettings, check_workspace
 from dammrl_core.dynamics import ArmModel
 from dammrl_core.ik import make_ik_solver
 from dammrl_core.metrics import episode_summary
@@ -62,6 +62,7 @@ class ControllerNode:
         models: ModelSet,
         bus: Bus,
     ) -> None:
+        check_workspace(settings, task)
         self.settings = settings
         self.task_settings = task
         self.models = models
