@@ -297,7 +297,7 @@ def _named(settings: type[BaseSettings], message: str, model: type[BaseModel] | 
     model = settings if model is None else model
     for name in sorted(model.model_fields, key=len, reverse=True):
         named = variable(settings, (*location, name))
-        message = re.sub(rf"(?<![A-Z_])\b{name}\b", named, message)
+        message = re.sub(rf"(?<![A-Za-z_\-])\b{name}\b", named, message)
     return message
 
 

@@ -72,17 +72,24 @@ class CredentialsError(DammrlError):
 
 
 # ---- credentials ---------------------------------------------------------------------
-def run_credentials(port: int) -> Path:
-    """Where ``dammrl up`` keeps the credentials of the stack on loopback ``port``: in the
-    user's private runtime folder, so only this user's tools find and read them."""
+def private_folder(create: bool = True) -> Path:
+    """This user's private runtime folder of dammrl (``$XDG_RUNTIME_DIR/dammrl``), where
+    local runs keep their credentials and cards; checked private (``create``: made so)."""
     base = os.environ.get("XDG_RUNTIME_DIR") or os.path.join(
         tempfile.gettempdir(), f"dammrl-{os.getuid()}"
     )
     private = Path(base) / "dammrl"
-    for folder in (Path(base), private):
-        folder.mkdir(exist_ok=True, mode=0o700)
-        _check_private(folder)
-    return private / f"bus-{port}"
+    if create:
+        for folder in (Path(base), private):
+            folder.mkdir(exist_ok=True, mode=0o700)
+            _check_private(folder)
+    return private
+
+
+def run_credentials(port: int, create: bool = True) -> Path:
+    """Where ``dammrl up`` keeps the credentials of the stack on loopback ``port``: in the
+    user's private runtime folder, so only this user's tools find and read them."""
+    return private_folder(create) / f"bus-{port}"
 
 
 OWNER_FILE = "launcher.pid"
