@@ -782,6 +782,8 @@ def result_dict(result: EpisodeResult) -> dict[str, object]:
 
 def summary(results: list[EpisodeResult]) -> str:
     n = len(results)
+    if n == 0:
+        return "no episode ended"
     wins = sum(r.success for r in results)
     mean_t = sum(r.t_total_s for r in results) / n
     mean_osc = sum(r.n_osc for r in results) / n

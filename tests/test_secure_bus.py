@@ -299,3 +299,41 @@ def test_only_the_operators_certificate_stops_and_releases_the_arm(
         sub.undeclare()  # type: ignore[no-untyped-call]
         for session in sessions.values():
             session.close()  # type: ignore[no-untyped-call]
+
+
+def test_the_participant_display_joins_a_run_with_its_own_certificate() -> None:
+    """On a real run (its own credentials): the display's session of the run
+    (``Stack.join``) reaches the recorder's key of the comfort rating, and the operator's
+    keys not (a participant's page cannot release a stop or take over), while the
+    launcher's own session, the operator's, sends a stop."""
+    from dammrl.launch import Stack, StackOptions
+    from schemas import ComfortRating, EmergencyStop, SessionControl
+    from tests.test_schemas import EXAMPLES
+
+    examples = {type(e): e for e in EXAMPLES}
+    heard: list[str] = []
+
+    def on_up(hub: zenoh.Session) -> None:
+        listener = stack.join("recorder")  # a peer that hears whoever sends
+        listener.declare_subscriber("dammrl/session/**",
+                                    lambda s: heard.append(str(s.key_expr)))  # fmt: skip
+        listener.declare_subscriber("dammrl/safety/**",
+                                    lambda s: heard.append(str(s.key_expr)))  # fmt: skip
+        display = stack.join("display")
+        time.sleep(1.0)
+        for message_type in (ComfortRating, SessionControl, EmergencyStop):
+            payload = encode(examples[message_type])
+            display.put(key("dammrl", message_type), payload)
+        time.sleep(1.0)
+        heard.append("--")
+        hub.put(key("dammrl", EmergencyStop), encode(examples[EmergencyStop]))
+        time.sleep(1.0)
+        stack.finish()
+
+    stack = Stack(StackOptions(episodes=1, seed=7_000_000, model=(2, 1), port=free_port(),
+                               lockstep=True), out=lambda _: None, info=lambda _: None,
+                  on_up=on_up)  # fmt: skip
+    stack.run()
+    display_sent = heard[: heard.index("--")]
+    assert display_sent == ["dammrl/session/comfort"], heard
+    assert "dammrl/safety/stop" in heard[heard.index("--") :]
