@@ -286,6 +286,7 @@ def _run(*argv: str, **environment: str) -> subprocess.CompletedProcess[str]:
                           env=env, cwd=ROOT, stdin=subprocess.DEVNULL, check=False)  # fmt: skip
 
 
+@pytest.mark.slow
 def test_dammrl_up_refuses_a_switched_off_workspace_before_anything_starts() -> None:
     done = _run("-m", "dammrl", "up", "--episodes", "1", "--bus-port", "1",
                 DAMMRL_CONTROLLER_WORKSPACE_MIN_M="[-1e6, -1e6, -1e6]")  # fmt: skip
@@ -294,6 +295,7 @@ def test_dammrl_up_refuses_a_switched_off_workspace_before_anything_starts() -> 
     assert len(lines) == 1 and "outside its range [0.05, 0.8]" in lines[0], done.stderr
 
 
+@pytest.mark.slow
 def test_a_service_refuses_a_zero_stiffness_hold_in_one_line_with_exit_3() -> None:
     done = _run("-m", "services.sim", DAMMRL_SIM_HOLD_KP_NM_PER_RAD="0",
                 DAMMRL_LOG_LEVEL="ERROR")  # fmt: skip
