@@ -37,7 +37,7 @@ PUBLISHES: dict[str, tuple[str, ...]] = {
     ),
     "intent": ("intent", "intent/evidence", "sensor/sample", "sensor/chunk"),
     "policy": ("policy/model",),
-    "recorder": (),
+    "recorder": ("recorder/episode",),  # that an episode is on disk
     # status, echo, the launcher (a session's display and console), `dammrl stop`: read,
     # stop, the participant's comfort ratings and the therapist's pause, resume and skip
     "tool": ("safety/stop", "session/comfort", "session/control"),
