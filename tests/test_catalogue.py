@@ -249,8 +249,7 @@ def test_the_bids_export_has_a_run_per_reach_and_never_deletes_a_folder_of_other
 ) -> None:
     build(root)
     out = tmp_path / "bids"
-    counts = export(root, out)
-    assert counts == {"participants": 1, "sessions": 2, "runs": 6}
+    assert export(root, out).counts() == {"participants": 1, "sessions": 2, "runs": 6}
     motion = sorted((out / "sub-P007" / "ses-01" / "motion").glob("*_motion.tsv"))
     assert len(motion) == 4 and len(motion[0].read_text().splitlines()) == 20
     assert (out / "participants.tsv").read_text() == "participant_id\nsub-P007\n"
