@@ -134,26 +134,24 @@ def _why_missing(run: Run | None, part: str, episode: int, logged: Any,
         if recorded != trial:
             return f"{part} holds episode {episode} as trial {recorded}, the log as {trial}"
         return ""
-    return _what_is_there(run, part, episode, reach, logged) + _file_notes(run)
+    return _what_is_there(run, part, episode, reach, logged)
 
 
 def _what_is_there(run: Run, part: str, episode: int, reach: Reach | None, logged: Any) -> str:
+    cut = next((c for c in run.checks if c.used and c.cut), None)
+    where = f"{part}.mcap" if cut is None else cut.path.rsplit("/", 1)[-1]
+    lost = "the recorder never received the reach's tail" if cut is None else (
+        f"the file is {cut.cut}")  # fmt: skip
     if reach is None or not reach.begun:
-        return f"{part} holds nothing of its reach (episode {episode})"
+        return f"{where} holds nothing of its reach (episode {episode}): {lost}"
     logged_s = logged.get("t_total_s") if isinstance(logged, dict) else None
     of = f" of {logged_s:.2f} s" if isinstance(logged_s, int | float) else ""
     if reach.states and reach.first_t_s is not None and reach.last_t_s is not None:
         span = f"its states up to {reach.last_t_s - reach.first_t_s:.2f} s{of}"
     else:
         span = "its start but no state"
-    tail = " (its file was closed with the reach still open)" if reach.open_at_close else ""
-    return (f"{part} holds {span} and no result: the recorder never received the reach's "
-            f"tail{tail}")  # fmt: skip
-
-
-def _file_notes(run: Run) -> str:
-    notes = [f"{c.path.rsplit('/', 1)[-1]} {c.problem}" for c in run.checks if c.problem]
-    return "".join(f"; {note}" for note in notes)
+    closed = " (the recorder closed the file with the reach open)" if reach.open_at_close else ""
+    return f"{where} holds {span} and no result: {lost}{closed}"
 
 
 def _partly(reach: Reach) -> str:

@@ -71,6 +71,7 @@ class FileCheck:
     complete: bool = False
     messages: int = 0
     problem: str = ""
+    cut: str = ""  # where and how the file stops, when it has no footer
 
 
 @dataclass
@@ -127,11 +128,12 @@ def read_run(root: Path, run: Run, rows: Rows) -> None:
             run.checks.append(FileCheck(where, used=False, complete=recording.complete,
                                         problem=f"passed over: {why}"))  # fmt: skip
             continue
+        cut = "" if recording.complete else recording.truncated_reason or "cut: no footer"
         check = FileCheck(where, used=True, complete=recording.complete,
-                          messages=len(recording.messages))  # fmt: skip
+                          messages=len(recording.messages), cut=cut)  # fmt: skip
         run.checks.append(check)
         reader.read(recording, where)
-        check.problem = _damage(recording, run, where)
+        check.problem = _damage(recording, run, check)
 
 
 def _tag_problem(recording: Recording, run: Run) -> str:
@@ -157,16 +159,17 @@ def _tag_problem(recording: Recording, run: Run) -> str:
     return ""
 
 
-def _damage(recording: Recording, run: Run, where: str) -> str:
-    """What a person should know of a file used: cut, or records skipped."""
+def _damage(recording: Recording, run: Run, check: FileCheck) -> str:
+    """What a person should know of a file used: cut (what was kept), records skipped."""
     said = []
-    if not recording.complete:
-        kept = [n for n, r in sorted(run.reaches.items()) if r.result_file == where]
-        trials = [run.trial_of(n) for n in kept]
+    if check.cut:
+        kept = [n for n, r in sorted(run.reaches.items()) if r.result_file == check.path]
+        trials = [t for t in (run.trial_of(n) for n in kept) if t is not None]
         last = max((m.log_time for m in recording.messages), default=None)
         until = "" if last is None else f", its last message at {_utc(last)}"
-        said.append(f"cut ({recording.truncated_reason or 'no footer'}): kept "
-                    f"{_count(len(kept), 'reach')} (trials {_numbers(trials)}){until}")  # fmt: skip
+        which = f" (trial{'s' if len(trials) > 1 else ''} {', '.join(map(str, trials))})"
+        said.append(f"{check.cut}: kept {_count(len(kept), 'reach')}"
+                    f"{which if trials else ''}{until}")  # fmt: skip
     for kind, count in sorted(recording.skipped.items()):
         said.append(f"{count} unreadable {kind} skipped")
     return "; ".join(said)
@@ -352,8 +355,3 @@ def _utc(log_ns: int) -> str:
 
 def _count(n: int, noun: str) -> str:
     return f"{n} {noun}" + ("" if n == 1 else "es" if noun.endswith("ch") else "s")
-
-
-def _numbers(values: list[int | None]) -> str:
-    known = [v for v in values if v is not None]
-    return ", ".join(map(str, known)) if known else "none"

@@ -38,6 +38,7 @@ from dammrl.study.stats import icc
 def session_report(root: Path, participant: str, session: str, out: Path) -> Path:
     """``out/<participant>_<session>.md`` and ``.html`` with their figure; the Markdown's
     path."""
+    out.mkdir(parents=True, exist_ok=True)
     rows = trials(root, participant, session)
     info = next(s for s in session_info(root, participant) if s["session"] == session)
     missing = [g for g in gaps(root, participant) if g["session"] == session]
