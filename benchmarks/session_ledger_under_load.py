@@ -75,8 +75,9 @@ def _report(root: Path, codes: list[int], ran_s: float, incomplete: list[str],
     statuses = Counter(dict(rows))
     _, unlogged = query(root, "SELECT count(*) FROM completeness WHERE status = 'unlogged'")
     _, catalogued = query(root, "SELECT count(*) FROM trials")
-    _, unexplained = query(root, "SELECT count(*) FROM completeness WHERE status IN "
-                                 "('missing', 'partial') AND coalesce(reason, '') = ''")  # fmt: skip
+    unexplained_sql = ("SELECT count(*) FROM completeness WHERE status IN ('missing', "
+                       "'partial') AND coalesce(reason, '') = ''")  # fmt: skip
+    _, unexplained = query(root, unexplained_sql)
     mode = "lockstep" if args.lockstep else "real time"
     print(
         f"{len(codes)} sessions ({mode}) beside {args.hogs} CPU hogs in {ran_s:.0f} s; "
