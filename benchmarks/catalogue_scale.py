@@ -44,18 +44,16 @@ def main() -> None:
     for size in args.sizes:
         root = work / f"n{size}"
         megabytes = _clone(sessions, root, size)
-        rows.append((size, megabytes, *_timed(root, work, args.repeats)))
-        print(
-            f"{size} sessions ({megabytes:.0f} MB of recordings): catalogue {rows[-1][2]:.1f} s, "
-            f"report --all {rows[-1][3]:.1f} s, bids {rows[-1][4]:.1f} s",
-            flush=True,
-        )
+        cpu, wall = _timed(root, work, args.repeats)
+        rows.append((size, megabytes, cpu))
+        print(f"{size} sessions ({megabytes:.0f} MB of recordings), CPU (wall) s: catalogue "
+              f"{cpu[0]:.1f} ({wall[0]:.1f}), report --all {cpu[1]:.1f} ({wall[1]:.1f}), "
+              f"bids {cpu[2]:.1f} ({wall[2]:.1f})", flush=True)  # fmt: skip
     base = rows[0]
-    print(f"\nsessions  MB    catalogue        report --all     bids   (ratio to {base[0]})")
-    for size, mb, *times in rows:
-        cells = "  ".join(
-            f"{t:6.1f} s ({t / b:4.2f})" for t, b in zip(times, base[2:], strict=True)
-        )
+    print(f"\nCPU seconds (ratio to {base[0]} sessions)")
+    print("sessions    MB   catalogue        report --all     bids")
+    for size, mb, times in rows:
+        cells = "  ".join(f"{t:6.1f} s ({t / b:4.2f})" for t, b in zip(times, base[2], strict=True))
         print(f"{size:8d}  {mb:4.0f}  {cells}   sessions x{size / base[0]:.1f}")
     shutil.rmtree(work, ignore_errors=True)
 

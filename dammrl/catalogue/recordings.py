@@ -19,7 +19,6 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-import msgpack
 from pydantic import ValidationError
 
 from dammrl.catalogue.tables import METRICS
@@ -37,6 +36,7 @@ from schemas import (
     decode,
     type_of,
 )
+from services.recorder.core import message_map
 
 PART = re.compile(r"^(part-\d{2})(?:-\d{3})?\.mcap$")
 """A run's recording: ``part-NN.mcap`` or a continuation ``part-NN-NNN.mcap``."""
@@ -180,6 +180,7 @@ class _RunReader:
 
     def __init__(self, root: Path, run: Run, rows: Rows) -> None:
         self.run, self.rows = run, rows
+        self.who = (run.participant, run.session)
         self.starts: dict[int, int] = {}  # episode -> its TaskGoal's log time
         self.episode = 0  # the reach under way (for the therapist's acts)
         self.arm_seq: dict[str, int] = {}  # the arm's last sequence number, per source
@@ -187,7 +188,6 @@ class _RunReader:
     def read(self, recording: Recording, where: str) -> None:
         run, study = self.run, self.run.study
         assert study is not None
-        self.who = (run.participant, run.session)
         if recording.messages:
             times = [m.log_time for m in recording.messages]
             protocol = (study.protocol, study.version, study.sha256)
@@ -304,21 +304,16 @@ class _State:
 
 def _state_fields(payload: bytes) -> _State | None:
     """A robot state's fields, read without validating the rest (None when malformed)."""
-    try:
-        fields = msgpack.unpackb(payload, raw=False)
-    except (ValueError, TypeError, msgpack.ExtraData, msgpack.FormatError, msgpack.StackError):
+    fields = message_map(payload)
+    if fields is None:
         return None
-    if not isinstance(fields, dict) or not isinstance(header := fields.get("header"), dict):
-        return None
-    values = (header.get("seq"), header.get("stamp_ns"), fields.get("episode"))
-    t_s, source = fields.get("t_s"), header.get("source")
-    if not all(type(v) is int and v >= 0 for v in values) or not isinstance(source, str):
+    header, episode, t_s = fields["header"], fields.get("episode"), fields.get("t_s")
+    source, stamp_ns = header.get("source"), header["stamp_ns"]
+    if type(episode) is not int or episode < 0 or not isinstance(source, str) or stamp_ns < 0:
         return None
     if not isinstance(t_s, int | float) or isinstance(t_s, bool) or not t_s >= 0:
         return None
-    seq, stamp_ns, episode = values
-    assert isinstance(seq, int) and isinstance(stamp_ns, int) and isinstance(episode, int)
-    return _State(source, seq, stamp_ns, episode, float(t_s))
+    return _State(source, header["seq"], stamp_ns, episode, float(t_s))
 
 
 def _decision(control: SessionControl) -> str:

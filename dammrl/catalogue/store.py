@@ -52,6 +52,7 @@ READ_ONLY: dict[str, str | bool | int | float | list[str]] = {
     "lock_configuration": True,
 }
 """How every query's connection is opened (with ``read_only``)."""
+NO_CATALOGUE = "no catalogue yet"
 Say = Callable[[str], None]
 Table = tuple[list[str], list[tuple[Any, ...]]]
 """Column names and rows."""
@@ -93,7 +94,7 @@ def ensure(root: Path, say: Say) -> Built | None:
     why = stale(root)
     if why is None:
         return None
-    say(f"{why}: rebuilding it")
+    say(f"{why}: {'building' if why == NO_CATALOGUE else 'rebuilding'} it")
     with building(root, say):
         if stale(root) is None:
             return None  # built meanwhile by the process we waited for
@@ -223,11 +224,17 @@ def _create(db: Any, table: str, columns: Columns, rows: list[tuple[Any, ...]]) 
 
 
 def _swap(new: Path, live: Path, old: Path) -> None:
-    """The Parquet folder replaced (for tools that read it; two renames under the lock)."""
+    """The Parquet folder replaced (for tools that read it; two renames under the lock,
+    the old one put back if the second fails)."""
     if live.exists():
         live.rename(old)
-    if new.exists():
-        new.rename(live)
+    try:
+        if new.exists():
+            new.rename(live)
+    except OSError:
+        if old.exists() and not live.exists():
+            old.rename(live)
+        raise
 
 
 def _number_attempts(rows: list[tuple[Any, ...]]) -> list[tuple[Any, ...]]:
@@ -273,7 +280,7 @@ def stale(root: Path) -> str | None:
     unreadable, of another layout, or older than its sources; None when it is fresh."""
     path = catalogue_path(root)
     if not path.is_file():
-        return "no catalogue yet"
+        return NO_CATALOGUE
     try:
         with connect(root) as db:
             version = _ask(db, "SELECT version FROM about")
