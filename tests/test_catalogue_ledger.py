@@ -16,6 +16,7 @@ from dammrl.outcomes import session_report
 from dammrl.recording import read_recording
 from schemas import EpisodeResult, Header, RobotState, encode, key
 from services.recorder.core import McapRecorder
+from services.recorder.episodes import METADATA, EpisodeLedger
 from tests.test_catalogue import GOAL, MS, RESULT, STATE, _study, write_run
 
 SESSION = Path("P007") / "ses-01"
@@ -93,14 +94,16 @@ def _recorded_without_its_tail(path: Path, t0: int) -> None:
     6.88 s reach, then nothing (the bus dropped the rest); its file ends cleanly."""
     path.parent.mkdir(parents=True)
     recorder = McapRecorder(path, "dammrl", {"study": json.dumps(_study("b", [1, 2]))}, 4096)
-    seq = 0
+    ledger, seq = EpisodeLedger("dammrl"), 0
 
     def put(message: Any, log_ns: int, source: str) -> None:
         nonlocal seq
         seq += 1
         header = Header(stamp_ns=log_ns, seq=seq, source=source)
-        recorder.record(key("dammrl", type(message)),
-                        encode(message.model_copy(update={"header": header})), log_ns)  # fmt: skip
+        topic, payload = key("dammrl", type(message)), encode(message.model_copy(
+            update={"header": header}))  # fmt: skip
+        recorder.record(topic, payload, log_ns)
+        ledger.written(topic, payload, now_s=0.0)
 
     for episode, span_s in ((1, 5.0), (2, 4.23)):
         put(GOAL.model_copy(update={"episode": episode}), t0, "controller")
@@ -112,6 +115,7 @@ def _recorded_without_its_tail(path: Path, t0: int) -> None:
             put(RESULT.model_copy(update={"episode": 1, "last_state_stamp_ns": last}), last + 1,
                 "controller")  # fmt: skip
         t0 += 10_000 * MS
+    recorder.writer.add_metadata(METADATA, ledger.metadata())  # as the recorder node does
     recorder.finish()
 
 
@@ -125,7 +129,7 @@ def test_a_reach_the_recorder_never_heard_end_is_missing_with_what_it_holds(
         2,
         "missing",
         "part-01.mcap holds its states up to 4.23 s of 6.88 s and no result: the recorder "
-        "never received the reach's tail",
+        "never received the reach's tail (the recorder closed the file with the reach open)",
     )
     assert built.incomplete == [f"P007/ses-01 trial 2: missing from the recordings: "
                                 f"{_completeness(tmp_path)[1][2]}"]  # fmt: skip

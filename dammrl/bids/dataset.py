@@ -88,7 +88,9 @@ def write_top(out: Path, root: Path, authors: list[str], license_: str | None) -
         "One run per reach: the arm's kinematics (motion), the decisions, steps and the "
         "therapist's acts (events), the person's raw input where recorded (beh, physio).\n"
     )
-    _, rows = query(root, "SELECT participant FROM participants ORDER BY participant")
+    # the sessions with a reach recorded (a session known only from its trial log has none)
+    _, rows = query(root, "SELECT DISTINCT participant FROM sessions WHERE trials > 0 "
+                          "ORDER BY participant")  # fmt: skip
     write_tsv(out / "participants.tsv", ("participant_id",), [(f"sub-{r[0]}",) for r in rows])
     write_json(
         out / "participants.json",
@@ -102,7 +104,7 @@ def write_top(out: Path, root: Path, authors: list[str], license_: str | None) -
         root,
         "SELECT participant, session, strftime(started, "
         "'%Y-%m-%dT%H:%M:%S'), protocol, protocol_version, protocol_sha256 "
-        "FROM sessions ORDER BY participant, session",
+        "FROM sessions WHERE trials > 0 ORDER BY participant, session",
     )
     for participant, session, started, *protocol in sessions:
         write_tsv(
