@@ -34,7 +34,8 @@ def block_figure(rows: list[Row], path: Path, title: str) -> Path:
             values = [r[measure.column] for r in rows if r["block"] == block]
             _point(ax, float(x), estimate(measure, values), measure, colour[block])
         _axes(ax, measure, blocks)
-    fig.suptitle(f"{title}: each block (final attempts); {INTERVALS}; n trials", fontsize=12)
+    fig.suptitle(f"{title}: each block (final attempts); {INTERVALS}; n: trials per point",
+                 fontsize=12)  # fmt: skip
     fig.savefig(path, dpi=100)
     plt.close(fig)
     return path
@@ -54,21 +55,23 @@ def trend_figure(rows: list[Row], sessions: list[str], path: Path, title: str) -
                 e = estimate(measure, values)
                 if e.n:
                     at = x + 0.08 * (k - (len(blocks) - 1) / 2)
-                    _point(ax, at, e, measure, colour[block])
+                    _point(ax, at, e, measure, colour[block], row=k)
                     xs.append(at)
                     ys.append(e.value * measure.scale)
             ax.plot(xs, ys, "-", color=colour[block], label=block)
         _axes(ax, measure, sessions)
     fig.legend(*axes.flat[0].get_legend_handles_labels(), loc="outside right upper", fontsize=10)
-    fig.suptitle(f"{title}: each test block across sessions; {INTERVALS}; n trials", fontsize=12)
+    fig.suptitle(f"{title}: each test block across sessions; {INTERVALS}; n: trials per point",
+                 fontsize=12)  # fmt: skip
     fig.savefig(path, dpi=100)
     plt.close(fig)
     return path
 
 
-def _point(ax: Any, x: float, e: Estimate, measure: Measure, colour: str) -> None:
+def _point(ax: Any, x: float, e: Estimate, measure: Measure, colour: str, row: int = 0) -> None:
     """One estimate: its interval when it has one (a hollow marker when it has none),
-    and how many trials it stands on."""
+    and how many trials it stands on (``row``: the line's, so that labels of points at
+    one height stack instead of overlapping)."""
     if not e.n:
         return
     s = measure.scale
@@ -77,8 +80,8 @@ def _point(ax: Any, x: float, e: Estimate, measure: Measure, colour: str) -> Non
         ax.errorbar([x], [e.value * s], yerr=error, fmt="o", capsize=5, ms=8, color=colour)
     else:
         ax.plot([x], [e.value * s], "o", ms=8, mfc="white", color=colour)
-    ax.annotate(f"n={e.n}", (x, e.value * s), textcoords="offset points", xytext=(7, 4),
-                fontsize=8, color=colour)  # fmt: skip
+    ax.annotate(f"n={e.n}", (x, e.value * s), textcoords="offset points",
+                xytext=(7, 4 - 10 * row), fontsize=8, color=colour)  # fmt: skip
 
 
 def colours(rows: list[Row]) -> dict[str, str]:
