@@ -19,7 +19,6 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
-import os
 import socket
 import struct
 from collections import Counter
@@ -180,7 +179,7 @@ class McapRecorder:
         """Flush, and have the OS write the file to the disk (fsync): what an
         acknowledgement promises survives a power cut too."""
         self.flush()
-        os.fsync(self._stream.fileno())
+        self._stream.sync()
 
     def bytes_written(self) -> int:
         return self._stream.tell()
