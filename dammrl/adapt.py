@@ -78,9 +78,13 @@ from schemas.messages import OPERATOR
 
 SIM_SEEDS_START = 6_950_000
 """The simulated reaches' task seeds: below the held-out range, apart from training's and
-the model table's."""
+the model table's; seed s of the refinement has ``SIM_SEEDS_PER_SEED`` of its own."""
+SIM_SEEDS_PER_SEED = 7_500
 GATE_SEEDS_START = 6_980_000
-"""The gate's task seeds (apart from the simulated reaches' and the model table's)."""
+"""The gate's task seeds (apart from the simulated reaches' and the model table's); seed
+s of the refinement has ``GATE_SEEDS_PER_SEED`` of its own, all below 7,000,000 (held-out
+evaluation seeds start there)."""
+GATE_SEEDS_PER_SEED = 5_000
 MIN_RADIUS_DECISIONS = 20
 """Decisions under a radius before the fit gives that radius an accuracy of its own."""
 
@@ -90,8 +94,8 @@ class RefineSettings(BaseModel):
 
     model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
 
-    sim_reaches: int = Field(100, ge=0, le=100_000)
-    """Simulated reaches with the fitted person."""
+    sim_reaches: int = Field(100, ge=0, le=SIM_SEEDS_PER_SEED)
+    """Simulated reaches with the fitted person (each on a task seed of its own)."""
     updates: int = Field(1000, ge=1, le=1_000_000)
     """Gradient steps."""
     conservative: float = Field(1.0, ge=0, le=100)
@@ -99,10 +103,12 @@ class RefineSettings(BaseModel):
     epsilon: float = Field(0.2, ge=0, le=1)
     """Exploration of the simulated reaches."""
     learning_rate: float = Field(1e-4, gt=0, le=1)
-    seed: int = Field(0, ge=0)
+    seed: int = Field(0, ge=0, le=3)
+    """Seed of the refinement; it also picks the simulated reaches' and the gate's task seeds
+    (four disjoint sets, none among the model table's or any held-out evaluation's)."""
     device: Literal["auto", "cpu", "cuda"] = "auto"
     """auto: a GPU when one is present (then without the byte-identical rerun)."""
-    gate_seeds: int = Field(60, ge=10, le=5000)
+    gate_seeds: int = Field(60, ge=10, le=GATE_SEEDS_PER_SEED)
     """Reaches of the fitted person per policy when the candidate is judged (paired)."""
     min_gain_s: float = Field(0.0, ge=0, le=60)
     """The gain's lower bound (seconds of time to success) must exceed this to deploy."""
@@ -374,8 +380,8 @@ def gate(candidate: Path, in_use: Path, fit: PersonFit, settings: RefineSettings
     exceeds ``settings.min_gain_s`` (see the module)."""
     runner = ReachRunner(ReachSettings(human=HumanModel(person=fit.person())))
     horizon = runner.settings.task.episode_timeout_s
-    seeds = range(GATE_SEEDS_START + settings.seed * 10_000,
-                  GATE_SEEDS_START + settings.seed * 10_000 + settings.gate_seeds)  # fmt: skip
+    first = GATE_SEEDS_START + settings.seed * GATE_SEEDS_PER_SEED
+    seeds = range(first, first + settings.gate_seeds)
     runs = {}
     for name, run in (("candidate", candidate), ("in_use", in_use)):
         policy = LearnedPolicy(runner.settings.models, run)
@@ -383,7 +389,7 @@ def gate(candidate: Path, in_use: Path, fit: PersonFit, settings: RefineSettings
                       for seed in seeds]  # fmt: skip
     mine, theirs = (np.array(runs[k]) for k in ("candidate", "in_use"))
     gain = Interval.of(theirs[:, 1] - mine[:, 1], settings.seed)
-    deployed = bool(gain.low > settings.min_gain_s)
+    deployed = deploys(gain, settings.min_gain_s)
     sign = "lower bound" if deployed else "its lower bound"
     reason = (f"time to success {mine[:, 1].mean():.1f} s vs {theirs[:, 1].mean():.1f} s in use "
               f"(success {mine[:, 0].mean():.0%} vs {theirs[:, 0].mean():.0%}) on "
@@ -392,6 +398,28 @@ def gate(candidate: Path, in_use: Path, fit: PersonFit, settings: RefineSettings
               f"{settings.min_gain_s:g} s")  # fmt: skip
     return Gate(deployed, reason, gain, _summary(mine), _summary(theirs), len(seeds),
                 _agreement(candidate, in_use, recorded or []))  # fmt: skip
+
+
+def deploys(gain: Interval, min_gain_s: float) -> bool:
+    """The gate's rule: the lower 95 % bound of the gain is above the least gain asked for."""
+    return bool(gain.low > min_gain_s)
+
+
+def deployment_rate(gains: np.ndarray, true_gain_s: float, gate_seeds: int,
+                    min_gain_s: float = 0.0, gates: int = 1000,
+                    seed: int = 0) -> tuple[int, int]:  # fmt: skip
+    """How often the gate deploys for a person whose per-reach gains (in use minus
+    candidate, seconds) are distributed as ``gains`` shifted to mean ``true_gain_s``: each
+    of ``gates`` gates draws ``gate_seeds`` of them. At a true gain of 0 (the least
+    favourable of the candidates that are not better) this is the gate's false-positive
+    rate; at a true gain above 0, its power. Returns (deployed, gates)."""
+    rng = np.random.default_rng(seed)
+    shifted = np.asarray(gains, dtype=float) - float(np.mean(gains)) + true_gain_s
+    deployed = 0
+    for k in range(gates):
+        sample = rng.choice(shifted, size=gate_seeds)
+        deployed += deploys(Interval.of(sample, seed * gates + k), min_gain_s)
+    return deployed, gates
 
 
 def _restricted(result: ReachResult, horizon_s: float,
@@ -463,7 +491,7 @@ def _simulate(agent: DualAgentDQN, fit: PersonFit, weights: RewardWeights, train
     rng = np.random.default_rng(settings.seed)
     out, successes = [], 0
     for n in range(settings.sim_reaches):
-        obs, _ = env.reset(seed=SIM_SEEDS_START + settings.seed * 10_000 + n)
+        obs, _ = env.reset(seed=SIM_SEEDS_START + settings.seed * SIM_SEEDS_PER_SEED + n)
         while True:
             action = agent.act(obs, settings.epsilon, rng)
             next_obs, reward, terminated, truncated, info = env.step(action)

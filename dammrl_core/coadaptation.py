@@ -242,7 +242,9 @@ class Selection(BaseModel):
     """How the adaptive policy chooses when targets are missed
     (``DAMMRL_POLICY_SELECTION__*``)."""
 
-    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
+    model_config = ConfigDict(
+        frozen=True, extra="forbid", allow_inf_nan=False, use_attribute_docstrings=True
+    )
 
     success_floor: float = Field(0.5, ge=0, le=1)
     """Never an option whose success lower bound (one-sided 95 %) is below this; the base

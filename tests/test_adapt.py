@@ -13,15 +13,21 @@ import pytest
 import torch
 
 from dammrl.adapt import (
+    GATE_SEEDS_PER_SEED,
+    GATE_SEEDS_START,
+    SIM_SEEDS_PER_SEED,
+    SIM_SEEDS_START,
     PersonFit,
     RefineSettings,
     _episodes,
     _transitions,
+    deployment_rate,
     fit_person,
     gate,
     recorded_reaches,
     refine,
 )
+from dammrl.cli import main
 from dammrl.launch import Stack, StackOptions
 from dammrl.rl.config import RewardWeights
 from dammrl.rl.env import ReachEnv
@@ -211,6 +217,61 @@ def test_a_gain_below_the_stated_minimum_is_not_deployed(tmp_path: Path) -> None
     worse = worse_policy(tmp_path / "worse")
     verdict = gate(SHIPPED, worse, NOMINAL_FIT, RefineSettings(gate_seeds=12, min_gain_s=60))
     assert not verdict.deployed and "<= 60 s" in verdict.reason
+
+
+def test_the_gates_false_positive_rate_is_near_its_level_and_a_real_gain_is_deployed() -> None:
+    """The gate on per-reach gains spread as a person's are (sd 5 s): a candidate no better
+    (true gain 0) is deployed about 2.5 % of the time (a rule on the mean gain, not its
+    lower bound, would deploy half); one 5 s better nearly always, on 40 reaches."""
+    gains = np.random.default_rng(3).normal(0.0, 5.0, 500)
+    false_positives, gates = deployment_rate(gains, 0.0, 40, gates=400)
+    assert false_positives / gates <= 0.05
+    deployed, gates = deployment_rate(gains, 5.0, 40, gates=100)
+    assert deployed / gates >= 0.9
+    assert deployment_rate(gains, -5.0, 40, gates=100)[0] == 0  # a worse one: never
+
+
+def test_the_simulated_reaches_and_the_gate_of_every_seed_have_task_seeds_of_their_own() -> None:
+    """Four refinement seeds: their simulated reaches' and their gates' task seeds are
+    disjoint, and all lie between the model table's and the held-out evaluation's."""
+    top = RefineSettings.model_fields["seed"].metadata
+    seeds = range(0, next(m.le for m in top if hasattr(m, "le")) + 1)
+    used: list[range] = []
+    for s in seeds:
+        used.append(range(SIM_SEEDS_START + s * SIM_SEEDS_PER_SEED,
+                          SIM_SEEDS_START + (s + 1) * SIM_SEEDS_PER_SEED))  # fmt: skip
+        used.append(range(GATE_SEEDS_START + s * GATE_SEEDS_PER_SEED,
+                          GATE_SEEDS_START + (s + 1) * GATE_SEEDS_PER_SEED))  # fmt: skip
+    every = [seed for block in used for seed in block]
+    assert len(every) == len(set(every))
+    assert min(every) >= 6_900_012 and max(every) < 7_000_000
+    with pytest.raises(ValueError, match="less than or equal to 3"):
+        RefineSettings(seed=4)
+    with pytest.raises(ValueError, match="less than or equal to 7500"):
+        RefineSettings(sim_reaches=SIM_SEEDS_PER_SEED + 1)
+
+
+@pytest.mark.parametrize(
+    ("flag", "value", "says"),
+    [("--seed", "4", "0-3"), ("--sim-reaches", "7501", "0-7500"), ("--updates", "0", "1-1000000"),
+     ("--conservative", "-1", "0-100"), ("--gate-seeds", "9", "10-5000"),
+     ("--min-gain-s", "nan", "0-60")],
+)  # fmt: skip
+def test_adapts_settings_are_refused_at_the_command_line_in_one_line(
+    flag: str, value: str, says: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    with pytest.raises(SystemExit) as exit_info:
+        main(["adapt", "--recordings", "x.mcap", "--out", "y", flag, value])
+    assert exit_info.value.code == 2
+    last = capsys.readouterr().err.strip().splitlines()[-1]
+    assert flag in last and says in last and repr(value) in last
+
+
+def test_the_command_lines_ranges_are_the_settings() -> None:
+    from dammrl.cli import coadapt
+
+    assert coadapt.SIM_SEEDS_PER_SEED == SIM_SEEDS_PER_SEED
+    assert coadapt.GATE_SEEDS_PER_SEED == GATE_SEEDS_PER_SEED
 
 
 def test_the_fit_gives_each_radius_its_own_accuracy_when_it_has_enough_decisions() -> None:

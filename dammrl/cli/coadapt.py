@@ -11,6 +11,11 @@ from pathlib import Path
 
 from dammrl.cli.common import Commands, output_dir, output_file, progress_bar
 
+SIM_SEEDS_PER_SEED = 7_500
+GATE_SEEDS_PER_SEED = 5_000
+"""dammrl.adapt's (not imported here: the command line loads torch only when it runs; a
+test holds them equal)."""
+
 
 def register(commands: Commands) -> None:
     """Add ``coadapt``."""
@@ -81,14 +86,14 @@ def register(commands: Commands) -> None:
     )
     compare.add_argument(
         "--sim-reaches",
-        type=_count(0, 100_000),
+        type=_count(0, SIM_SEEDS_PER_SEED),
         default=50,
         metavar="N",
         help="the refinement's simulated reaches (default 50)",
     )
     compare.add_argument(
         "--gate-seeds",
-        type=_count(10, 5000),
+        type=_count(10, GATE_SEEDS_PER_SEED),
         default=40,
         metavar="N",
         help="the refinement gate's reaches per policy (default 40)",
@@ -231,25 +236,26 @@ def register_adapt(commands: Commands) -> None:
                        "next of their policy-candidates/)")  # fmt: skip
     adapt.add_argument(
         "--sim-reaches",
-        type=int,
+        type=_count(0, SIM_SEEDS_PER_SEED),
         default=100,
         metavar="N",
-        help="simulated reaches with the fitted person (default 100)",
+        help=f"simulated reaches with the fitted person (0-{SIM_SEEDS_PER_SEED}; default 100)",
     )
-    adapt.add_argument(
-        "--updates", type=int, default=1000, metavar="N", help="gradient steps (default 1000)"
-    )
+    adapt.add_argument("--updates", type=_count(1, 1_000_000), default=1000, metavar="N",
+                       help="gradient steps (1-1000000; default 1000)")  # fmt: skip
     adapt.add_argument(
         "--conservative",
-        type=float,
+        type=_within(0.0, 100.0),
         default=1.0,
         metavar="ALPHA",
-        help="weight of the conservative (CQL) term; 0: plain DQN (default 1)",
+        help="weight of the conservative (CQL) term, 0-100; 0: plain DQN (default 1)",
     )
-    adapt.add_argument("--seed", type=int, default=0, help="seed of the refinement (default 0)")
+    adapt.add_argument("--seed", type=_count(0, 3), default=0,
+                       help="seed of the refinement, 0-3; each has task seeds of its own for "
+                       "the simulated reaches and the gate (default 0)")  # fmt: skip
     adapt.add_argument(
         "--gate-seeds",
-        type=_count(10, 5000),
+        type=_count(10, GATE_SEEDS_PER_SEED),
         default=60,
         metavar="N",
         help="reaches of the fitted person per policy when the candidate is judged against "
