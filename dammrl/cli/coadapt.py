@@ -33,6 +33,9 @@ def register(commands: Commands) -> None:
     )
     table.add_argument("--out", type=output_file(".gz"),
                        help="where (a .json.gz; default: the packaged table)")  # fmt: skip
+    table.add_argument("--seeds", type=_count(1, 100), default=12, metavar="N",
+                       help="task seeds per person of the grid, from 6,900,000 (1-100; default "
+                       "12; the shipped table: 4)")  # fmt: skip
     table.add_argument("--cache", type=output_dir, metavar="DIR",
                        help="keep every finished reach here and reuse those of an earlier "
                        "run with the same code (resume a long build)")  # fmt: skip
@@ -108,6 +111,30 @@ def register(commands: Commands) -> None:
         help="processes on this machine (default: every core)",
     )
     compare.set_defaults(handler=_compare)
+    rates = sub.add_parser(
+        "gate-rates",
+        help="how often dammrl adapt's gate deploys a candidate no better (false positives) "
+        "or one better by a margin (power), for per-reach gains of a stated shape",
+        description="Per-reach gains (in use minus candidate, seconds of time to success): "
+        "normal with sd --sd, a share --identical exactly 0 (both policies reached alike), and "
+        "a share --swing each of +50 s and -50 s (one policy failed where the other "
+        "succeeded). Each of --gates gates draws --gate-seeds of them, shifted to a true mean "
+        "gain of 0 and of --margin-s.",
+    )
+    rates.add_argument("--gate-seeds", type=_count(10, GATE_SEEDS_PER_SEED), nargs="+",
+                       default=[40, 200], metavar="N",
+                       help="gate sizes (10-5000 each; default 40 200)")  # fmt: skip
+    rates.add_argument("--sd", type=_within(0.0, 60.0), default=2.0, metavar="S",
+                       help="sd of the gains when both succeed (0-60 s; default 2)")  # fmt: skip
+    rates.add_argument("--identical", type=_within(0.0, 1.0), default=0.5, metavar="P",
+                       help="share of reaches alike under both (0-1; default 0.5)")  # fmt: skip
+    rates.add_argument("--swing", type=_within(0.0, 0.5), default=0.03, metavar="P",
+                       help="share each of +50 s and -50 s (0-0.5; default 0.03)")  # fmt: skip
+    rates.add_argument("--margin-s", type=_within(0.0, 60.0), default=2.5, metavar="S",
+                       help="the true gain of the power (0-60 s; default 2.5)")  # fmt: skip
+    rates.add_argument("--gates", type=_count(10, 100_000), default=1000, metavar="N",
+                       help="gates per figure (10-100000; default 1000)")  # fmt: skip
+    rates.set_defaults(handler=_gate_rates)
 
 
 def _within(low: float, high: float) -> Callable[[str], float]:
@@ -146,16 +173,17 @@ def _table(args: argparse.Namespace) -> int:
     from dammrl.study.coadaptation_table import TABLE_SEEDS, build_table, table_jobs
     from dammrl_core.model_table import OPTIONS, TABLE
 
-    jobs = len(table_jobs())
+    seeds = range(TABLE_SEEDS.start, TABLE_SEEDS.start + args.seeds)
+    jobs = len(table_jobs(seeds))
     update, close = progress_bar(jobs, "model table")
     try:
-        table = build_table(workers=args.jobs, progress=update, cache=args.cache)
+        table = build_table(seeds, workers=args.jobs, progress=update, cache=args.cache)
     finally:
         close()
     out = args.out or TABLE
     out.write_bytes(table.dumps())
-    models, seeds = len(OPTIONS) - 1, len(TABLE_SEEDS)
-    print(f"model table, {models} models and the base policy on a grid of persons, {seeds} "
+    models = len(OPTIONS) - 1
+    print(f"model table, {models} models and the base policy on a grid of persons, {len(seeds)} "
           f"seeds per person ({jobs} reaches): {out}")  # fmt: skip
     return 0
 
@@ -199,6 +227,28 @@ def _compare(args: argparse.Namespace) -> int:
     report = write_report(results, plan, args.out, registration)
     print(report.read_text())
     print(json.dumps({"report": str(report)}))
+    return 0
+
+
+def _gate_rates(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from dammrl.adapt import deployment_rate
+    from dammrl.study.stats import wilson
+
+    rng = np.random.default_rng(0)
+    gains = rng.normal(0.0, args.sd, 10_000)
+    gains[rng.random(gains.size) < args.identical] = 0.0
+    swing = rng.random(gains.size)
+    gains[swing < args.swing] += 50.0
+    gains[(swing >= args.swing) & (swing < 2 * args.swing)] -= 50.0
+    print(f"gains: sd {args.sd:g} s, {args.identical:.0%} identical, {args.swing:.0%} each of "
+          f"+-50 s; {args.gates} gates per figure (95 % Wilson intervals)")  # fmt: skip
+    for seeds in args.gate_seeds:
+        false = wilson(*deployment_rate(gains, 0.0, seeds, gates=args.gates))
+        power = wilson(*deployment_rate(gains, args.margin_s, seeds, gates=args.gates, seed=1))
+        print(f"{seeds} reaches: false positives {false.text(100, 1)} % (nominal 2.5 %), "
+              f"power at {args.margin_s:g} s {power.text(100, 0)} %")  # fmt: skip
     return 0
 
 
@@ -256,10 +306,10 @@ def register_adapt(commands: Commands) -> None:
     adapt.add_argument(
         "--gate-seeds",
         type=_count(10, GATE_SEEDS_PER_SEED),
-        default=60,
+        default=200,
         metavar="N",
         help="reaches of the fitted person per policy when the candidate is judged against "
-        "the policy in use (10-5000; default 60)",
+        "the policy in use (10-5000; default 200: see `dammrl coadapt gate-rates`)",
     )
     adapt.add_argument(
         "--min-gain-s",
