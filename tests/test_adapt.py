@@ -317,3 +317,13 @@ def test_deploying_keeps_the_replaced_policy_beside_the_candidates(tmp_path: Pat
     assert (participant.policy_folder / "checkpoint.pt").read_bytes() == b"new"
     retired = participant.folder / "policy-candidates" / "001-replaced" / "checkpoint.pt"
     assert retired.read_bytes() == old_bytes
+
+
+def test_gate_rates_prints_the_false_positive_rate_and_power_of_each_gate_size(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    assert main(["coadapt", "gate-rates", "--gates", "20", "--gate-seeds", "40", "200"]) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert lines[0].startswith("gains: sd 2 s, 50% identical, 3% each of +-50 s")
+    assert [line.split(" reaches:")[0] for line in lines[1:]] == ["40", "200"]
+    assert all("false positives" in line and "power at 2.5 s" in line for line in lines[1:])
