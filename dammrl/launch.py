@@ -482,8 +482,10 @@ class Stack:
         credentials and namespace from the port; alone on this machine, they find it
         without one)."""
         at = f"--bus-port {self.options.port}"
-        return (f"inspect it: dammrl status {at} | dammrl echo robot/state {at} | dammrl view "
-                f"{at} | stop the arm: dammrl stop {at}")  # fmt: skip
+        commands = (f"status {at}", f"echo robot/state {at}", f"view {at}")
+        lines = [f"  dammrl {command}" for command in commands]
+        return "\n".join(["inspect it from another terminal:", *lines,
+                          f"stop the arm: dammrl stop {at}"])  # fmt: skip
 
     def _wait_alive(self, session: zenoh.Session, stop: SignalStop, quiet: bool = False) -> None:
         deadline = time.monotonic() + START_TIMEOUT_S

@@ -237,9 +237,10 @@ def _label_episodes(ax: Axes, episodes: list[tuple[float, int]], gap: float = 0.
     for t, number in episodes:
         if (t - last) / span < gap:
             continue
+        # inside the axes, under its top: above it the label would run into the title
         ax.annotate(f"ep. {number}", (t, 1.0), xycoords=("data", "axes fraction"),
-                    xytext=(2, 2), textcoords="offset points", fontsize=7, color="0.35",
-                    va="bottom", ha="left")  # fmt: skip
+                    xytext=(2, -2), textcoords="offset points", fontsize=7, color="0.35",
+                    va="top", ha="left")  # fmt: skip
         last = t
 
 
