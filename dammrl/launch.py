@@ -772,8 +772,10 @@ class PatientPrompts:
 
 
 def undecided(result: EpisodeResult) -> bool:
-    """An episode that ended (not skipped) without any decision: it could not be done."""
-    return result.n_decisions == 0 and result.outcome in ("hold", "timeout")
+    """An episode that timed out without any decision: the person's input could not do it.
+    A hold ends a reach for the arm's or the controller's reason (its own line says which),
+    however early: not the person's input, so not blamed on it."""
+    return result.n_decisions == 0 and result.outcome == "timeout"
 
 
 def result_dict(result: EpisodeResult) -> dict[str, object]:
