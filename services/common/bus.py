@@ -230,7 +230,11 @@ class Bus:
         message_type = type_of(self.namespace, key_expr.replace("*", "x"))
         self._rings.append((_priority(message_type), subscriber))
         self._rings.sort(key=lambda entry: entry[0])
-        # the doorbell: a waiting loop wakes when something arrives (one flag set, no copy)
+        self._declare_doorbell(key_expr)
+
+    def _declare_doorbell(self, key_expr: str) -> None:
+        """A waiting loop wakes when something arrives on ``key_expr`` (one flag set, no
+        copy)."""
         self._doorbells.append(self.session.declare_subscriber(key_expr, self._ring_doorbell))
 
     def _ring_doorbell(self, sample: zenoh.Sample) -> None:
@@ -260,8 +264,11 @@ class Bus:
             remaining = None if deadline is None else deadline - time.monotonic()
             if remaining is not None and remaining <= 0:
                 return None
-            self._doorbell.wait(remaining)
+            self._wait_for_doorbell(remaining)
         return self._next()
+
+    def _wait_for_doorbell(self, timeout_s: float | None) -> None:
+        self._doorbell.wait(timeout_s)
 
     def _next(self) -> Message:
         message, self.arrival_ns = self._taken.popleft()
