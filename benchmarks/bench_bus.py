@@ -146,7 +146,11 @@ def stack_round_trip(
         for child in children:
             child.terminate()
         for child in children:
-            child.wait(10)
+            try:
+                child.wait(20)  # a loaded machine: the services' own grace is 5 s
+            except subprocess.TimeoutExpired:
+                child.kill()
+                child.wait()
     figures = _stack_figures(sim, started)
     (t0, ticks0, missed0), (t1, ticks1, missed1) = window[0], window[-1]
     figures["real-time factor"] = (ticks1 - ticks0) * sim.pacer.period_s / (t1 - t0)

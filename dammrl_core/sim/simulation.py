@@ -9,7 +9,9 @@ The latest command is held between commands.
 
 from __future__ import annotations
 
-from dataclasses import replace
+from collections.abc import Mapping
+from dataclasses import dataclass, replace
+from typing import Any
 
 import mujoco
 import numpy as np
@@ -24,6 +26,18 @@ GOVERNOR_ENGAGES = 0.8
 """The speed governor looks at a joint from this share of its governed speed on."""
 GOVERNOR_SPAN = 0.05
 """The governor's full torque acts this far (a share of the governed speed) past it."""
+
+
+@dataclass(frozen=True)
+class Stretch:
+    """Control periods stepped in one go (``Simulation.coast``): at each period's end, the
+    time (m,), the sensor row as ``read`` returns it (m, nsensordata: encoder offsets and
+    noise added) and the noise-free end-effector position (m, 3)."""
+
+    times: np.ndarray
+    rows: np.ndarray
+    true_ee: np.ndarray
+    sensordata: np.ndarray  # MuJoCo's own rows (for a rewind)
 
 
 class Simulation:
@@ -61,6 +75,7 @@ class Simulation:
         self._govern_from = GOVERNOR_ENGAGES * self._govern_speed
         self._governor_gain = robot.tau_max / (GOVERNOR_SPAN * self._govern_speed)
         self._state = np.zeros(mujoco.mj_stateSize(self.model, mujoco.mjtState.mjSTATE_FULLPHYSICS))
+        self._coast_start: tuple[np.ndarray, Mapping[str, Any]] = (self._state, {})
 
     @property
     def timestep_s(self) -> float:
@@ -207,6 +222,115 @@ class Simulation:
         if self.settings.randomization.enabled:
             rows += self._noise_std * self.rng.standard_normal(rows.shape)
         return times, rows, true_ee
+
+    def inputs_of(
+        self, q_ref: np.ndarray, dq_ref: np.ndarray, tau_ff: np.ndarray, kp: np.ndarray,
+        kd: np.ndarray,
+    ) -> np.ndarray:  # fmt: skip
+        """The actuator inputs ``apply`` writes for commands with these rows (n, n_joints)
+        and gains (the same arithmetic, row by row)."""
+        return np.asarray(tau_ff + kp * (q_ref - self.joint_offset) + kd * dq_ref)
+
+    def coast(
+        self,
+        inputs: np.ndarray,
+        substeps: int,
+        near: tuple[np.ndarray, float] | None = None,
+    ) -> Stretch:
+        """Step up to ``len(inputs) + 1`` control periods of ``substeps`` steps: the first
+        under the latched command, period k under ``inputs[k - 1]`` (the commands' rows,
+        ``inputs_of``). With ``near`` (point, radius [m]): stop after the first period
+        that ends with the end-effector, as ``read`` reports it (noise included), within
+        the radius of the point (or a few ulps beyond): a hint only, where the caller
+        expects its next event. ``rewind`` takes the physics and
+        the noise back to the end of any period of the stretch: numbers bitwise those of
+        ``read`` and ``step`` period by period."""
+        periods = len(inputs) + 1
+        noisy = self.settings.randomization.enabled
+        self._coast_start = self._integration_state(), self.rng.bit_generator.state
+        shape = (periods, self.model.nsensordata)
+        noise = self._noise_std * self.rng.standard_normal(shape) if noisy else np.zeros(shape)
+        ee = self._sensor_slices[3]
+        raw = np.empty((periods, self.model.nsensordata))
+        times = np.empty(periods)
+        model, data, step = self.model, self.data, mujoco.mj_step
+        ctrl, sensors = data.ctrl[: self._n], data.sensordata
+        stepped = periods
+        if near is None:
+            times, raw = self._roll(inputs, substeps)
+        else:  # the end-effector as read (noise included) against the sphere, in floats
+            limit = near[1] ** 2 * (1 + 1e-9)  # a stop a tick early costs a tick, no more
+            point_noise = (near[0] - noise[:, ee]).tolist()
+            i = ee.start
+            for k in range(periods):
+                if k:
+                    ctrl[:] = inputs[k - 1]
+                step(model, data, nstep=substeps)
+                row = raw[k]
+                row[:] = sensors
+                times[k] = data.time
+                x, y, z = row[i : i + 3].tolist()
+                px, py, pz = point_noise[k]
+                if (px - x) ** 2 + (py - y) ** 2 + (pz - z) ** 2 <= limit:
+                    stepped = k + 1
+                    break
+        raw, times = raw[:stepped], times[:stepped]
+        if noisy and stepped < periods:
+            self._redraw_noise(stepped)
+        rows = raw.copy()
+        true_ee = rows[:, ee].copy()
+        rows[:, self._sensor_slices[0]] += self.joint_offset
+        if noisy:
+            rows += noise[:stepped]
+        return Stretch(times, rows, true_ee, raw)
+
+    def _roll(self, inputs: np.ndarray, substeps: int) -> tuple[np.ndarray, np.ndarray]:
+        """Step the periods in one MuJoCo rollout (each input held for its period): the
+        times and sensor rows at the periods' ends; the data left at the last one."""
+        spec = mujoco.mjtState.mjSTATE_FULLPHYSICS
+        mujoco.mj_getState(self.model, self.data, self._state, spec)
+        control = np.repeat(self.data.ctrl[None, :], (len(inputs) + 1) * substeps, axis=0)
+        control[substeps:, : self._n] = np.repeat(inputs, substeps, axis=0)
+        states, sensordata = rollout.rollout(
+            self.model, self.data, self._state, control[None],
+            control_spec=mujoco.mjtState.mjSTATE_CTRL,
+            initial_warmstart=self.data.qacc_warmstart[None, :].copy(),
+        )  # fmt: skip
+        ends = slice(substeps - 1, None, substeps)
+        return states[0, ends, 0].copy(), sensordata[0, ends].copy()
+
+    def rewind(self, stretch: Stretch, inputs: np.ndarray, substeps: int, periods: int) -> None:
+        """Put the physics and the noise stream back to the end of the stretch's period
+        ``periods - 1`` (``periods`` of its periods stepped), as if it had ended there."""
+        if periods == len(stretch.times):
+            return
+        state, _ = self._coast_start
+        mujoco.mj_setState(self.model, self.data, state, mujoco.mjtState.mjSTATE_INTEGRATION)
+        ctrl = self.data.ctrl[: self._n]
+        for k in range(periods):
+            if k:
+                ctrl[:] = inputs[k - 1]
+            mujoco.mj_step(self.model, self.data, nstep=substeps)
+        self.data.sensordata[:] = stretch.sensordata[periods - 1]
+        if self.settings.randomization.enabled:
+            self._redraw_noise(periods)
+
+    def latch(self, command: JointCommand) -> None:
+        """Note ``command`` as the one in force (its inputs already written by ``coast``)."""
+        self._last_command = command
+
+    def _integration_state(self) -> np.ndarray:
+        spec = mujoco.mjtState.mjSTATE_INTEGRATION
+        state = np.empty(mujoco.mj_stateSize(self.model, spec))
+        mujoco.mj_getState(self.model, self.data, state, spec)
+        return state
+
+    def _redraw_noise(self, periods: int) -> None:
+        """The noise stream as if only ``periods`` rows had been drawn since the stretch
+        began (the same numbers, fewer of them)."""
+        _, rng_state = self._coast_start
+        self.rng.bit_generator.state = rng_state
+        self.rng.standard_normal((periods, self.model.nsensordata))
 
     def _sensor_noise_std(self) -> np.ndarray:
         """Per-entry standard deviation of the sensordata noise (see SENSOR_LAYOUT)."""
