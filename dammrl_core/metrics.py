@@ -12,7 +12,7 @@ from dataclasses import asdict, dataclass
 from typing import Any
 
 import numpy as np
-from scipy.signal import butter, find_peaks, sosfiltfilt  # at import: a service's first
+from scipy.signal import butter, find_peaks, sosfilt, sosfilt_zi  # at import: a service's first
 
 # episode must not pause its loop for SciPy's import (0.5 s: the arm held at the first end)
 
@@ -231,16 +231,29 @@ def motion_estimate(
 
     if cutoff_hz >= rate_hz / 2 or len(x) < 16:
         return x
-    sos = _low_pass(cutoff_hz, rate_hz).copy()  # scipy wants a writable array
-    return np.asarray(sosfiltfilt(sos, x, axis=0, padlen=min(len(x) - 1, 27)))
+    sos, zi = _low_pass(cutoff_hz, rate_hz)
+    return _filtfilt(sos, zi, np.asarray(x, dtype=float), min(len(x) - 1, 27))
 
 
 @functools.lru_cache(maxsize=16)
-def _low_pass(cutoff_hz: float, rate_hz: float) -> np.ndarray:
-    """The filter's sections, designed once per rate (the design costs as much as the
-    filtering: the RL reward counts oscillations at every decision)."""
+def _low_pass(cutoff_hz: float, rate_hz: float) -> tuple[np.ndarray, np.ndarray]:
+    """The filter's sections and their steady-state initial conditions (n_sections, 2),
+    computed once per rate: designing them costs more than filtering a decision's path, and
+    the RL reward counts oscillations at every decision."""
+    sos = np.asarray(butter(4, cutoff_hz, fs=rate_hz, output="sos"))
+    return sos, np.asarray(sosfilt_zi(sos))
 
-    return np.asarray(butter(4, cutoff_hz, fs=rate_hz, output="sos"))
+
+def _filtfilt(sos: np.ndarray, zi: np.ndarray, x: np.ndarray, padlen: int) -> np.ndarray:
+    """``scipy.signal.sosfiltfilt(sos, x, axis=0, padlen=padlen)`` with the initial
+    conditions ``zi`` given (the same operations in the same order: bitwise its result)."""
+    ext = np.concatenate((2 * x[:1] - x[padlen:0:-1], x,
+                          2 * x[-1:] - x[-2 : -(padlen + 2) : -1]))  # fmt: skip
+    state = zi.reshape(len(sos), 2, 1)
+    y, _ = sosfilt(sos, ext, axis=0, zi=state * ext[:1])
+    y, _ = sosfilt(sos, y[::-1], axis=0, zi=state * y[-1:])
+    y = y[::-1]
+    return np.asarray(y[padlen:-padlen] if padlen > 0 else y)
 
 
 def decisions_until_stable(choices: list[Any]) -> int:

@@ -28,6 +28,11 @@ GOVERNOR_SPAN = 0.05
 """The governor's full torque acts this far (a share of the governed speed) past it."""
 
 
+ROLLOUT_PERIODS = 16
+"""From this many control periods on, a stretch is stepped in one MuJoCo rollout (below,
+a Python loop of ``mj_step`` costs less than the rollout's own work)."""
+
+
 @dataclass(frozen=True)
 class Stretch:
     """Control periods stepped in one go (``Simulation.coast``): at each period's end, the
@@ -75,6 +80,7 @@ class Simulation:
         self._govern_from = GOVERNOR_ENGAGES * self._govern_speed
         self._governor_gain = robot.tau_max / (GOVERNOR_SPAN * self._govern_speed)
         self._state = np.zeros(mujoco.mj_stateSize(self.model, mujoco.mjtState.mjSTATE_FULLPHYSICS))
+        self._roller = rollout.Rollout(nthread=0)  # rollouts in this thread, checks skipped
         self._coast_start: tuple[np.ndarray, Mapping[str, Any]] = (self._state, {})
 
     @property
@@ -204,19 +210,8 @@ class Simulation:
         positions (n, 3). The final state is bitwise the one ``step`` would reach (same
         integrator, solver warm start carried over).
         """
-        spec = mujoco.mjtState.mjSTATE_FULLPHYSICS
-        mujoco.mj_getState(self.model, self.data, self._state, spec)
-        states, sensordata = rollout.rollout(
-            self.model,
-            self.data,
-            self._state,
-            self.data.ctrl[None, None, :].copy(),
-            control_spec=mujoco.mjtState.mjSTATE_CTRL,
-            nstep=n_periods * substeps,
-            initial_warmstart=self.data.qacc_warmstart[None, :].copy(),
-        )
-        ends = slice(substeps - 1, None, substeps)
-        times, rows = states[0, ends, 0].copy(), sensordata[0, ends].copy()  # time is first
+        control = np.repeat(self.data.ctrl[None, :], n_periods * substeps, axis=0)
+        times, rows = self._rollout(control, substeps)
         true_ee = rows[:, self._sensor_slices[3]].copy()
         rows[:, self._sensor_slices[0]] += self.joint_offset
         if self.settings.randomization.enabled:
@@ -256,8 +251,17 @@ class Simulation:
         model, data, step = self.model, self.data, mujoco.mj_step
         ctrl, sensors = data.ctrl[: self._n], data.sensordata
         stepped = periods
-        if near is None:
-            times, raw = self._roll(inputs, substeps)
+        if near is None and periods >= ROLLOUT_PERIODS:
+            control = np.repeat(data.ctrl[None, :], periods * substeps, axis=0)
+            control[substeps:, : self._n] = np.repeat(inputs, substeps, axis=0)
+            times, raw = self._rollout(control, substeps)
+        elif near is None:
+            for k in range(periods):
+                if k:
+                    ctrl[:] = inputs[k - 1]
+                step(model, data, substeps)
+                raw[k] = sensors
+                times[k] = data.time
         else:  # the end-effector as read (noise included) against the sphere, in floats
             limit = near[1] ** 2 * (1 + 1e-9)  # a stop a tick early costs a tick, no more
             point_noise = (near[0] - noise[:, ee]).tolist()
@@ -265,7 +269,7 @@ class Simulation:
             for k in range(periods):
                 if k:
                     ctrl[:] = inputs[k - 1]
-                step(model, data, nstep=substeps)
+                step(model, data, substeps)
                 row = raw[k]
                 row[:] = sensors
                 times[k] = data.time
@@ -284,20 +288,23 @@ class Simulation:
             rows += noise[:stepped]
         return Stretch(times, rows, true_ee, raw)
 
-    def _roll(self, inputs: np.ndarray, substeps: int) -> tuple[np.ndarray, np.ndarray]:
-        """Step the periods in one MuJoCo rollout (each input held for its period): the
-        times and sensor rows at the periods' ends; the data left at the last one."""
-        spec = mujoco.mjtState.mjSTATE_FULLPHYSICS
-        mujoco.mj_getState(self.model, self.data, self._state, spec)
-        control = np.repeat(self.data.ctrl[None, :], (len(inputs) + 1) * substeps, axis=0)
-        control[substeps:, : self._n] = np.repeat(inputs, substeps, axis=0)
-        states, sensordata = rollout.rollout(
-            self.model, self.data, self._state, control[None],
-            control_spec=mujoco.mjtState.mjSTATE_CTRL,
-            initial_warmstart=self.data.qacc_warmstart[None, :].copy(),
+    def _rollout(self, control: np.ndarray, substeps: int) -> tuple[np.ndarray, np.ndarray]:
+        """MuJoCo's rollout from the data's own state (warm start included), one row of
+        ``control`` per step: the times and sensor rows at the end of every ``substeps``
+        steps; the data is left at the last step (bitwise as ``step`` would leave it)."""
+        nstep = len(control)
+        mujoco.mj_getState(self.model, self.data, self._state,
+                           mujoco.mjtState.mjSTATE_FULLPHYSICS)  # fmt: skip
+        states = np.empty((1, nstep, self._state.size))
+        sensordata = np.empty((1, nstep, self.model.nsensordata))
+        self._roller.rollout(
+            [self.model], [self.data], self._state[None], control[None],
+            control_spec=mujoco.mjtState.mjSTATE_CTRL.value, skip_checks=True, nstep=nstep,
+            initial_warmstart=self.data.qacc_warmstart[None, :].copy(), state=states,
+            sensordata=sensordata,
         )  # fmt: skip
         ends = slice(substeps - 1, None, substeps)
-        return states[0, ends, 0].copy(), sensordata[0, ends].copy()
+        return states[0, ends, 0].copy(), sensordata[0, ends].copy()  # time is first
 
     def rewind(self, stretch: Stretch, inputs: np.ndarray, substeps: int, periods: int) -> None:
         """Put the physics and the noise stream back to the end of the stretch's period
