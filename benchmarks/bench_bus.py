@@ -234,10 +234,15 @@ def zenoh_round_trip(seconds: float, rate_hz: float) -> list[float]:
         session.declare_subscriber("bench/pong", lambda sample: arrived.set())
         ping = session.declare_publisher("bench/ping", express=True)
         spawn = multiprocessing.get_context("spawn")  # never fork a process running Zenoh
-        echo = spawn.Process(target=_zenoh_echo, args=(endpoint, seconds + 10))
+        echo = spawn.Process(target=_zenoh_echo, args=(endpoint, seconds + STARTUP_LIMIT_S))
         echo.start()
-        time.sleep(3.0)  # the spawned interpreter imports and connects
         payload, samples, period = bytes(PAYLOAD_BYTES), [], 1.0 / rate_hz
+        deadline = time.monotonic() + STARTUP_LIMIT_S
+        while time.monotonic() < deadline:  # the spawned interpreter imports and connects
+            arrived.clear()
+            ping.put(payload)
+            if arrived.wait(0.5):
+                break
         next_t = time.monotonic()
         end = next_t + seconds
         while time.monotonic() < end:

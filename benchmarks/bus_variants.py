@@ -3,11 +3,13 @@
 A variant patches the one choice in the process it runs in (the benchmark's sim and every
 service it starts), so the rest of the stack is the one that ships:
 
-* ``as built``: nothing changed;
-* ``1 ms polling``: no doorbell; a waiting loop looks at its rings every millisecond
-  (no Python callback per message);
-* ``doorbell in Zenoh's thread``: the doorbell rung from Zenoh's receiving thread instead
-  of zenoh-python's callback thread (one thread hand-over less per message);
+* ``as built``: nothing changed (a waiting loop looks at its rings every 0.2 ms in the
+  time-critical services, every 1 ms in the others);
+* ``doorbell (before)``: a waiting loop sleeps on a doorbell that every message rings (a
+  Python callback per message, run by zenoh-python's callback thread);
+* ``doorbell in Zenoh's thread``: the same rung from Zenoh's receiving thread (one thread
+  hand-over less per message, but Zenoh's thread waits for the GIL);
+* ``1 ms polling``: every service looks at its rings every millisecond;
 * ``5 ms GIL hand-over``: Python's default switch interval instead of the time-critical
   services' 0.2 ms;
 * ``no rate limits``: no per-link ingress downsampling in any session;
@@ -20,7 +22,7 @@ service it starts), so the rest of the stack is the one that ships:
 from __future__ import annotations
 
 import sys
-import time
+import threading
 from collections.abc import Callable
 
 import zenoh
@@ -32,20 +34,38 @@ from services.common.bus import Bus
 from services.common.security import ROLES
 
 
-def _polling() -> None:
-    def wait(self: Bus, timeout_s: float | None) -> None:
-        time.sleep(0.001 if timeout_s is None else min(timeout_s, 0.001))
+def _doorbell(indirect: bool) -> Callable[[], None]:
+    """Before: each subscription also rings a doorbell (a Python callback per message, in
+    zenoh-python's callback thread or, not ``indirect``, in Zenoh's receiving thread) that
+    a waiting loop sleeps on."""
 
-    Bus._declare_doorbell = lambda self, key_expr: None  # type: ignore[method-assign]
-    Bus._wait_for_doorbell = wait  # type: ignore[method-assign]
+    def patch() -> None:
+        subscribe_key = Bus.subscribe_key
+
+        def subscribe_with_doorbell(self: Bus, key_expr: str) -> None:
+            subscribe_key(self, key_expr)
+            doorbell = self.__dict__.setdefault("doorbell", threading.Event())
+            handler = zenoh.handlers.Callback(lambda _: doorbell.set(), indirect=indirect)
+            self.__dict__.setdefault("doorbells", []).append(
+                self.session.declare_subscriber(key_expr, handler)
+            )
+
+        def wait(self: Bus, timeout_s: float | None) -> None:
+            doorbell = self.__dict__.setdefault("doorbell", threading.Event())
+            doorbell.wait(timeout_s)
+            doorbell.clear()  # a ring is looked at next: nothing that rang is missed
+
+        Bus.subscribe_key = subscribe_with_doorbell  # type: ignore[method-assign]
+        Bus._wait = wait  # type: ignore[method-assign]
+
+    return patch
 
 
-def _doorbell_in_zenoh_thread() -> None:
-    def declare(self: Bus, key_expr: str) -> None:
-        ring = zenoh.handlers.Callback(self._ring_doorbell, indirect=False)
-        self._doorbells.append(self.session.declare_subscriber(key_expr, ring))
+def _polling_every(poll_s: float) -> Callable[[], None]:
+    def patch() -> None:
+        bus_module.CRITICAL_POLL_S = bus_module.POLL_S = poll_s
 
-    Bus._declare_doorbell = declare  # type: ignore[method-assign]
+    return patch
 
 
 def _default_switch_interval() -> None:
@@ -71,8 +91,9 @@ def _every_state_answered() -> None:
 
 VARIANTS: dict[str, Callable[[], None]] = {
     "as built": lambda: None,
-    "1 ms polling": _polling,
-    "doorbell in Zenoh's thread": _doorbell_in_zenoh_thread,
+    "doorbell (before)": _doorbell(indirect=True),
+    "doorbell in Zenoh's thread": _doorbell(indirect=False),
+    "1 ms polling": _polling_every(0.001),
     "5 ms GIL hand-over": _default_switch_interval,
     "no rate limits": _no_rate_limits,
     "every state answered": _every_state_answered,
