@@ -1,8 +1,9 @@
 """A service's connection to the Zenoh bus: typed publishers, one inbox, health.
 
 Subscriptions fill rings inside Zenoh (no Python runs per message); the service loop
-takes them out with :meth:`Bus.receive`, which decodes and validates each one. A payload that fails is logged once per key and counted; the counts go out in the
-service's Health reports (``dammrl status``), and the loop carries on.
+takes them out with :meth:`Bus.receive`, which decodes and validates each one. A payload
+that fails is logged once per key and counted; the counts go out in the service's Health
+reports (``dammrl status``), and the loop carries on.
 """
 
 from __future__ import annotations
