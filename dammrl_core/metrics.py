@@ -16,6 +16,11 @@ from scipy.signal import butter, find_peaks, sosfilt, sosfilt_zi  # at import: a
 
 # episode must not pause its loop for SciPy's import (0.5 s: the arm held at the first end)
 
+try:  # SciPy's filter loop (sosfilt's own, in place); tests/test_loop_speed.py pins it
+    from scipy.signal._sosfilt import _sosfilt as _sosfilt_rows
+except ImportError:  # pragma: no cover - another SciPy: the public wrapper, slower
+    _sosfilt_rows = None
+
 
 @dataclass(frozen=True)
 class ReachMetrics:
@@ -249,11 +254,22 @@ def _filtfilt(sos: np.ndarray, zi: np.ndarray, x: np.ndarray, padlen: int) -> np
     conditions ``zi`` given (the same operations in the same order: bitwise its result)."""
     ext = np.concatenate((2 * x[:1] - x[padlen:0:-1], x,
                           2 * x[-1:] - x[-2 : -(padlen + 2) : -1]))  # fmt: skip
-    state = zi.reshape(len(sos), 2, 1)
-    y, _ = sosfilt(sos, ext, axis=0, zi=state * ext[:1])
-    y, _ = sosfilt(sos, y[::-1], axis=0, zi=state * y[-1:])
-    y = y[::-1]
+    signals = np.array(ext.T, order="C")  # one row per axis, filtered in place
+    signals = _filter_rows(sos, signals, zi[None, :, :] * signals[:, :1, None])
+    backwards = np.array(signals[:, ::-1], order="C")
+    backwards = _filter_rows(sos, backwards, zi[None, :, :] * backwards[:, :1, None])
+    y = backwards[:, ::-1].T
     return np.asarray(y[padlen:-padlen] if padlen > 0 else y)
+
+
+def _filter_rows(sos: np.ndarray, rows: np.ndarray, zi: np.ndarray) -> np.ndarray:
+    """Each row of ``rows`` (k, n) through the sections from the states ``zi`` (k, s, 2):
+    SciPy's own filter loop, without its wrapper's reshaping (most of a short path's cost);
+    the public ``sosfilt`` where the loop is not where it was."""
+    if _sosfilt_rows is None:
+        return np.asarray(sosfilt(sos, rows, axis=-1, zi=np.moveaxis(zi, 0, -2).copy())[0])
+    _sosfilt_rows(sos, rows, np.ascontiguousarray(zi))
+    return rows
 
 
 def decisions_until_stable(choices: list[Any]) -> int:
