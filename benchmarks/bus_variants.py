@@ -12,6 +12,9 @@ service it starts), so the rest of the stack is the one that ships:
 * ``1 ms polling``: every service looks at its rings every millisecond;
 * ``5 ms GIL hand-over``: Python's default switch interval instead of the time-critical
   services' 0.2 ms;
+* ``loop thread SCHED_FIFO``: the sim's and the controller's loop thread (not Zenoh's)
+  under the kernel's real-time FIFO policy (needs root or CAP_SYS_NICE), ahead of every
+  ordinary process, other stacks' nice -10 services included;
 * ``no rate limits``: no per-link ingress downsampling in any session;
 * ``every state answered``: the controller answers each waiting state, not only the
   newest.
@@ -21,6 +24,7 @@ service it starts), so the rest of the stack is the one that ships:
 
 from __future__ import annotations
 
+import os
 import sys
 import threading
 from collections.abc import Callable
@@ -68,6 +72,20 @@ def _polling_every(poll_s: float) -> Callable[[], None]:
     return patch
 
 
+def _fifo_loop_thread() -> None:
+    """The time-critical services' loop thread (that thread only: Zenoh's are started
+    before) under the kernel's real-time FIFO policy, ahead of every ordinary process."""
+    enter = Bus.__enter__
+
+    def enter_fifo(self: Bus) -> Bus:
+        bus = enter(self)
+        if self.service in runtime.TIME_CRITICAL:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(10))
+        return bus
+
+    Bus.__enter__ = enter_fifo  # type: ignore[method-assign]
+
+
 def _default_switch_interval() -> None:
     runtime.CRITICAL_SWITCH_INTERVAL_S = 0.005
 
@@ -95,6 +113,7 @@ VARIANTS: dict[str, Callable[[], None]] = {
     "doorbell in Zenoh's thread": _doorbell(indirect=False),
     "1 ms polling": _polling_every(0.001),
     "5 ms GIL hand-over": _default_switch_interval,
+    "loop thread SCHED_FIFO": _fifo_loop_thread,
     "no rate limits": _no_rate_limits,
     "every state answered": _every_state_answered,
 }
