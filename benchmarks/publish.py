@@ -6,9 +6,11 @@ the section of ``docs/reference/performance.md`` between its markers, and says e
 figure that regressed beyond its stated tolerance against the last published one (exit
 1 when any did; nothing is written then unless ``--accept``):
 
-    PYTHONPATH=. python benchmarks/publish.py [--quick] [--accept] [--only bus core rl]
+    PYTHONPATH=. python benchmarks/publish.py [--quick] [--accept] [--only bus core rl] [--full]
 
-``--quick`` shortens every benchmark (a check, not figures to publish: it writes nothing).
+The default runs ``bus``, ``core`` and ``rl`` (about 15 minutes); ``--full`` adds every bus
+variant and the floods beside two CPU hogs (over an hour). ``--quick`` shortens every
+benchmark (a check of the command, not figures to publish: it writes nothing).
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ import datetime
 import json
 import os
 import platform
+import shlex
 import subprocess
 import sys
 import tempfile
@@ -108,7 +111,19 @@ def _benchmarks(quick: bool) -> dict[str, Callable[[Path], list[str]]]:
             "bench_rl.py", "--decisions", "100" if quick else "500", "--repeat",
             "1" if quick else "3", "--no-training", "--json", str(out),
         ],
+        # the long ones (--full): every bus variant, and the floods beside two CPU hogs
+        "bus-variants": lambda out: [
+            "bench_bus.py", "--seconds", "5" if quick else "10", "--rounds",
+            "1" if quick else "2", "--all", "--json", str(out),
+        ],
+        "floods": lambda out: [
+            "flood.py", "--episodes", "1" if quick else "3", "--floods", "none", "1kHz",
+            "denied", "--hogs", "2", "--json", str(out),
+        ],
     }  # fmt: skip
+
+
+DEFAULT = ("bus", "core", "rl")
 
 
 def run(names: list[str], quick: bool) -> dict[str, Any]:
@@ -125,8 +140,11 @@ def run(names: list[str], quick: bool) -> dict[str, Any]:
             env = os.environ | {"PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
             began = machine()
             subprocess.run(command, cwd=ROOT, env=env, check=True)
+            text = out.read_text()
+            figures = ({"runs": [json.loads(line) for line in text.splitlines()]}
+                       if name == "floods" else json.loads(text))  # fmt: skip
             runs[name] = {"date": datetime.date.today().isoformat(), "commit": commit(),
-                          "machine": began, "figures": json.loads(out.read_text())}  # fmt: skip
+                          "machine": began, "figures": figures}  # fmt: skip
     return runs
 
 
@@ -174,15 +192,8 @@ def section(record: dict[str, Any]) -> str:
         value = figure.value(record)
         shown = "not run" if value is None else f"{value:.{figure.decimals}f}"
         rows.append(f"| {figure.label} | {shown} | {figure.goal} | {figure.tolerance:.0%} |")
-    runs = []
-    for name, run in record.items():
-        m = run["machine"]
-        runs.append(f"- `{' '.join(_benchmarks(False)[name](Path('F'))[:-2])}`: "
-                    f"{run['date']}, commit `{run['commit']}`, {m['processor']} "
-                    f"({m['cores']} cores), {m['system']}, Python {m['python']}, load average "
-                    f"{m['load average (1 min)']} when it began")  # fmt: skip
     udp = record.get("bus", {}).get("figures", {}).get("udp [ms]", {})
-    return "\n".join([
+    parts = [
         "| figure | value | goal | regression tolerance |",
         "|---|---|---|---|",
         *rows,
@@ -190,14 +201,57 @@ def section(record: dict[str, Any]) -> str:
         f"Raw UDP ping-pong in the bus run: p50 {udp.get('p50', float('nan')):.2f} ms, p99 "
         f"{udp.get('p99', float('nan')):.2f} ms. The machine is shared: every figure is a "
         "ratio to its baseline in the same run, or measured beside it; processor-time figures "
-        "are the best of their repeats. Measured by (run from the repository's root with "
-        "`PYTHONPATH=.`):",
-        "",
-        *runs,
-        "",
-        "`PYTHONPATH=. python benchmarks/publish.py` runs them all, rewrites this section and "
-        "`performance.json`, and says each figure that regressed beyond its tolerance.",
-    ])  # fmt: skip
+        "are the best of their repeats.",
+    ]
+    if "bus-variants" in record:
+        parts += ["", "What each of the bus's choices costs (each undone alone, "
+                  "`benchmarks/bus_variants.py`; every row beside a bare Zenoh run of its own):",
+                  "", *_variants_table(record["bus-variants"]["figures"])]  # fmt: skip
+    if "floods" in record:
+        parts += ["", "Floods with the stack's own roles' certificates, beside two CPU hogs "
+                  "(`benchmarks/flood.py`; processor time in cores, averaged over the runs):",
+                  "", *_floods_table(record["floods"]["figures"]["runs"])]  # fmt: skip
+    parts += ["", "Measured by (from the repository's root, with `PYTHONPATH=.`):", ""]
+    for name, run in record.items():
+        m = run["machine"]
+        script, *arguments = _benchmarks(False)[name](Path("F"))[:-2]
+        parts.append(f"- `{shlex.join(['python', f'benchmarks/{script}', *arguments])}`"
+                     f": {run['date']}, commit `{run['commit']}`, {m['processor']} "
+                     f"({m['cores']} cores), {m['system']}, Python {m['python']}, load average "
+                     f"{m['load average (1 min)']} when it began")  # fmt: skip
+    parts += ["", "`PYTHONPATH=. python benchmarks/publish.py` runs the first three (`--full`: "
+              "all), rewrites this section and `performance.json`, and says each figure that "
+              "regressed beyond its tolerance against the last published one."]  # fmt: skip
+    return "\n".join(parts)
+
+
+def _variants_table(figures: dict[str, Any]) -> list[str]:
+    rows = ["| variant | round trip p50 / p99 [ms] | bare Zenoh p50 / p99 [ms] | p99 / bare "
+            "p99 (range over rounds) | commands per state | periods on their own answer |",
+            "|---|---|---|---|---|---|"]  # fmt: skip
+    for variant, f in figures["variants"].items():
+        low, high = f["p99 / bare p99, range"]
+        rows.append(f"| {variant} | {f['round trip p50 [ms]']:.2f} / "
+                    f"{f['round trip p99 [ms]']:.2f} | {f['bare Zenoh p50 [ms]']:.2f} / "
+                    f"{f['bare Zenoh p99 [ms]']:.2f} | {f['p99 / bare p99']:.2f} "
+                    f"({low:.2f}-{high:.2f}) | {f['commands per state']:.4f} | "
+                    f"{f['periods on their own answer']:.4f} |")  # fmt: skip
+    return rows
+
+
+def _floods_table(runs: list[dict[str, Any]]) -> list[str]:
+    rows = ["| flood | runs | stale holds / episodes | worst state gap [s] | controller | "
+            "sim | hub | flooder |", "|---|---|---|---|---|---|---|---|"]  # fmt: skip
+    for kind in dict.fromkeys(run["flood"] for run in runs):
+        of = [run for run in runs if run["flood"] == kind]
+        cores = {n: sum(r["cores used"].get(n, 0.0) for r in of) / len(of)
+                 for n in ("controller", "sim", "hub (launcher)", "flooder")}  # fmt: skip
+        rows.append(f"| {kind} | {len(of)} | {sum(r['stale holds'] for r in of)} / "
+                    f"{sum(r['episodes'] for r in of)} | "
+                    f"{max(r['worst gap [s]'] for r in of):.2f} | {cores['controller']:.2f} | "
+                    f"{cores['sim']:.2f} | {cores['hub (launcher)']:.2f} | "
+                    f"{cores['flooder']:.2f} |")  # fmt: skip
+    return rows
 
 
 def write_page(page: Path, text: str) -> None:
@@ -212,14 +266,15 @@ def write_page(page: Path, text: str) -> None:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--only", nargs="*", choices=list(_benchmarks(False)),
-                        default=list(_benchmarks(False)))  # fmt: skip
+                        default=list(DEFAULT))  # fmt: skip
+    parser.add_argument("--full", action="store_true", help="every benchmark (over an hour)")
     parser.add_argument("--quick", action="store_true", help="short runs; writes nothing")
     parser.add_argument("--accept", action="store_true", help="publish despite regressions")
     parser.add_argument("--page", type=Path, default=PAGE)
     parser.add_argument("--published", type=Path, default=PUBLISHED)
     args = parser.parse_args()
     published = json.loads(args.published.read_text()) if args.published.exists() else {}
-    runs = run(args.only, args.quick)
+    runs = run(list(_benchmarks(False)) if args.full else args.only, args.quick)
     record = {**published, **runs}  # the benchmarks not run keep their last figures
     found = regressions(runs, published)
     for line in found:
