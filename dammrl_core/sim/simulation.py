@@ -81,7 +81,9 @@ class Simulation:
         self._governor_gain = robot.tau_max / (GOVERNOR_SPAN * self._govern_speed)
         self._state = np.zeros(mujoco.mj_stateSize(self.model, mujoco.mjtState.mjSTATE_FULLPHYSICS))
         self._roller = rollout.Rollout(nthread=0)  # rollouts in this thread, checks skipped
-        self._coast_start: tuple[np.ndarray, Mapping[str, Any]] = (self._state, {})
+        integration = mujoco.mjtState.mjSTATE_INTEGRATION
+        self._coast_state = np.zeros(mujoco.mj_stateSize(self.model, integration))
+        self._coast_noise: Mapping[str, Any] = {}  # the noise stream where a stretch began
 
     @property
     def timestep_s(self) -> float:
@@ -242,7 +244,10 @@ class Simulation:
         ``read`` and ``step`` period by period."""
         periods = len(inputs) + 1
         noisy = self.settings.randomization.enabled
-        self._coast_start = self._integration_state(), self.rng.bit_generator.state
+        mujoco.mj_getState(self.model, self.data, self._coast_state,
+                           mujoco.mjtState.mjSTATE_INTEGRATION)  # fmt: skip
+        if noisy:
+            self._coast_noise = self.rng.bit_generator.state
         shape = (periods, self.model.nsensordata)
         noise = self._noise_std * self.rng.standard_normal(shape) if noisy else np.zeros(shape)
         ee = self._sensor_slices[3]
@@ -311,8 +316,8 @@ class Simulation:
         ``periods - 1`` (``periods`` of its periods stepped), as if it had ended there."""
         if periods == len(stretch.times):
             return
-        state, _ = self._coast_start
-        mujoco.mj_setState(self.model, self.data, state, mujoco.mjtState.mjSTATE_INTEGRATION)
+        mujoco.mj_setState(self.model, self.data, self._coast_state,
+                           mujoco.mjtState.mjSTATE_INTEGRATION)  # fmt: skip
         ctrl = self.data.ctrl[: self._n]
         for k in range(periods):
             if k:
@@ -326,17 +331,10 @@ class Simulation:
         """Note ``command`` as the one in force (its inputs already written by ``coast``)."""
         self._last_command = command
 
-    def _integration_state(self) -> np.ndarray:
-        spec = mujoco.mjtState.mjSTATE_INTEGRATION
-        state = np.empty(mujoco.mj_stateSize(self.model, spec))
-        mujoco.mj_getState(self.model, self.data, state, spec)
-        return state
-
     def _redraw_noise(self, periods: int) -> None:
         """The noise stream as if only ``periods`` rows had been drawn since the stretch
         began (the same numbers, fewer of them)."""
-        _, rng_state = self._coast_start
-        self.rng.bit_generator.state = rng_state
+        self.rng.bit_generator.state = self._coast_noise
         self.rng.standard_normal((periods, self.model.nsensordata))
 
     def _sensor_noise_std(self) -> np.ndarray:
