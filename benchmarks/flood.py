@@ -106,7 +106,8 @@ class Watch:
         self.session.close()  # type: ignore[no-untyped-call]
 
 
-def _flood(port: int, kind: str, stop: Any) -> None:
+def _flood(port: int, kind: str, stop: Any, count: Any) -> None:
+    """Flood until ``stop``; ``count`` (a shared integer) holds the messages sent."""
     if kind == "none":
         return
     if kind == "10MB":
@@ -114,6 +115,7 @@ def _flood(port: int, kind: str, stop: Any) -> None:
             for n in range(20):
                 topic = ("intent", "sensor/sample")[n % 2]
                 session.put(f"dammrl/{topic}", os.urandom(10_000_000))
+                count.value += 1
                 if stop.wait(0.25):
                     return
         return
@@ -131,8 +133,9 @@ def _flood(port: int, kind: str, stop: Any) -> None:
             while not stop.is_set():
                 for publisher, payload, _ in publishers:
                     publisher.put(payload)
-        else:  # each key at its rate limit: what the limits let through
-            _paced(publishers, stop)
+                count.value += len(publishers)
+        else:  # each key at its rate: what the limits let through, or the review's 1 kHz
+            _paced(publishers, stop, count)
     finally:
         for session in sessions.values():
             session.close()  # type: ignore[no-untyped-call]
@@ -143,7 +146,7 @@ def _denied_role(topic: str) -> str:
     return "tool" if "tool" not in roles_publishing(topic) else "recorder"
 
 
-def _paced(publishers: list[tuple[Any, bytes, float]], stop: Any) -> None:
+def _paced(publishers: list[tuple[Any, bytes, float]], stop: Any, count: Any) -> None:
     start, sent = time.monotonic(), [0] * len(publishers)
     while not stop.is_set():
         elapsed = time.monotonic() - start
@@ -151,6 +154,7 @@ def _paced(publishers: list[tuple[Any, bytes, float]], stop: Any) -> None:
             while sent[n] < elapsed * rate:
                 publisher.put(payload)
                 sent[n] += 1
+        count.value = sum(sent)
         time.sleep(0.001)
 
 
@@ -199,7 +203,8 @@ def _run(source: Path, kind: str, episodes: int) -> dict[str, object]:
     time.sleep(2.0)  # the first episode under way
     context = multiprocessing.get_context("spawn")
     stop = context.Event()  # the flood in a process of its own, as an adversary's is
-    flooder = context.Process(target=_flood, args=(port, kind, stop), daemon=True)
+    count = context.Value("q", 0)
+    flooder = context.Process(target=_flood, args=(port, kind, stop, count), daemon=True)
     flooder.start()
     assert flooder.pid is not None
     processes = _processes(launcher.pid, flooder.pid)
@@ -211,6 +216,7 @@ def _run(source: Path, kind: str, episodes: int) -> dict[str, object]:
         time.sleep(0.5)
     elapsed = time.monotonic() - started
     cores = {name: round((last[name] - first[name]) / elapsed, 2) for name in processes}
+    flooded = count.value / elapsed
     stop.set()
     flooder.join(10)
     flooder.kill()
@@ -228,6 +234,7 @@ def _run(source: Path, kind: str, episodes: int) -> dict[str, object]:
         "episodes": len(watch.results),
         "reasons": sorted({r.reason for r in watch.results if not r.success}),  # type: ignore[dict-item]
         "cores used": cores,
+        "flood [msg/s]": round(flooded),
     }
 
 
