@@ -240,13 +240,15 @@ def _variants_table(figures: dict[str, Any]) -> list[str]:
 
 
 def _floods_table(runs: list[dict[str, Any]]) -> list[str]:
-    rows = ["| flood | runs | stale holds / episodes | worst state gap [s] | controller | "
-            "sim | hub | flooder |", "|---|---|---|---|---|---|---|---|"]  # fmt: skip
+    rows = ["| flood | sent [msg/s] | runs | stale holds / episodes | worst state gap [s] | "
+            "controller | sim | hub | flooder |",
+            "|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
     for kind in dict.fromkeys(run["flood"] for run in runs):
         of = [run for run in runs if run["flood"] == kind]
         cores = {n: sum(r["cores used"].get(n, 0.0) for r in of) / len(of)
                  for n in ("controller", "sim", "hub (launcher)", "flooder")}  # fmt: skip
-        rows.append(f"| {kind} | {len(of)} | {sum(r['stale holds'] for r in of)} / "
+        sent = sum(r.get("flood [msg/s]", 0) for r in of) / len(of)
+        rows.append(f"| {kind} | {sent:.0f} | {len(of)} | {sum(r['stale holds'] for r in of)} / "
                     f"{sum(r['episodes'] for r in of)} | "
                     f"{max(r['worst gap [s]'] for r in of):.2f} | {cores['controller']:.2f} | "
                     f"{cores['sim']:.2f} | {cores['hub (launcher)']:.2f} | "
