@@ -106,8 +106,10 @@ class Watch:
         self.session.close()  # type: ignore[no-untyped-call]
 
 
-def _flood(port: int, kind: str, stop: Any, count: Any) -> None:
+def _flood(port: int, kind: str, stop: Any, count: Any, nice: int) -> None:
     """Flood until ``stop``; ``count`` (a shared integer) holds the messages sent."""
+    with contextlib.suppress(PermissionError):  # an adversary's flood at its own priority
+        os.setpriority(os.PRIO_PROCESS, 0, nice)
     if kind == "none":
         return
     if kind == "10MB":
@@ -185,7 +187,7 @@ def _processes(launcher: int, flooder: int) -> dict[str, int]:
     return named
 
 
-def _run(source: Path, kind: str, episodes: int) -> dict[str, object]:
+def _run(source: Path, kind: str, episodes: int, nice: int = 0) -> dict[str, object]:
     port = free_port()
     env = os.environ | {"PYTHONPATH": str(source)}
     launcher = subprocess.Popen(
@@ -204,7 +206,7 @@ def _run(source: Path, kind: str, episodes: int) -> dict[str, object]:
     context = multiprocessing.get_context("spawn")
     stop = context.Event()  # the flood in a process of its own, as an adversary's is
     count = context.Value("q", 0)
-    flooder = context.Process(target=_flood, args=(port, kind, stop, count), daemon=True)
+    flooder = context.Process(target=_flood, args=(port, kind, stop, count, nice), daemon=True)
     flooder.start()
     assert flooder.pid is not None
     processes = _processes(launcher.pid, flooder.pid)
@@ -246,6 +248,9 @@ def main() -> None:
     parser.add_argument("--floods", nargs="*", choices=FLOODS, help="default: all")
     parser.add_argument("--hogs", type=int, default=0, help="busy programs beside the runs")
     parser.add_argument("--rounds", type=int, default=1, help="everything this often")
+    parser.add_argument("--flooder-nice", type=int, default=0,
+                        help="the flooding process's niceness (-10: the stack's time-critical "
+                             "services' own, so that it floods at its rate on a busy machine)")  # fmt: skip
     parser.add_argument("--json", type=Path, help="append each run's figures here (lines)")
     args = parser.parse_args()
     sources = [*args.checkout, Path(__file__).resolve().parents[1]]
@@ -254,7 +259,8 @@ def main() -> None:
         for _ in range(args.rounds):
             for kind in args.floods or FLOODS:
                 for source in sources:
-                    _report(source, kind, args, _run(source.resolve(), kind, args.episodes))
+                    figures = _run(source.resolve(), kind, args.episodes, args.flooder_nice)
+                    _report(source, kind, args, figures)
     finally:
         for hog in hogs:
             hog.kill()
@@ -266,7 +272,13 @@ def _report(source: Path, kind: str, args: argparse.Namespace, figures: dict[str
     print(f"flood {kind:9s} {source.name:12s} hogs {args.hogs} {shown}", flush=True)
     if args.json is not None:
         with args.json.open("a") as out:
-            row = {"flood": kind, "checkout": str(source), "hogs": args.hogs, **figures}
+            row = {
+                "flood": kind,
+                "checkout": str(source),
+                "hogs": args.hogs,
+                "flooder nice": args.flooder_nice,
+                **figures,
+            }
             out.write(json.dumps(row) + "\n")
 
 
