@@ -249,8 +249,8 @@ def main() -> None:
     parser.add_argument("--hogs", type=int, default=0, help="busy programs beside the runs")
     parser.add_argument("--rounds", type=int, default=1, help="everything this often")
     parser.add_argument("--flooder-nice", type=int, default=0,
-                        help="the flooding process's niceness (-10: the stack's time-critical "
-                             "services' own, so that it floods at its rate on a busy machine)")  # fmt: skip
+                        help="the flooder's niceness (-10: the time-critical services' own, "
+                             "so that it floods at its rate on a busy machine)")  # fmt: skip
     parser.add_argument("--json", type=Path, help="append each run's figures here (lines)")
     args = parser.parse_args()
     sources = [*args.checkout, Path(__file__).resolve().parents[1]]
