@@ -59,7 +59,7 @@ def test_the_stacks_messages_stay_far_below_their_keys_size_limits() -> None:
 def test_zenoh_cuts_a_flooding_peer_to_the_keys_rate_on_its_own_link() -> None:
     """One peer floods intent as fast as it can; the subscriber's session (configured as
     every session of the stack is) sees at most the key's rate from that link, and a
-    second peer's messages on the same key all get through."""
+    second peer's messages on the same key get through."""
     port = free_port()
     listen = BusSettings(listen=[f"tcp/127.0.0.1:{port}"], mode="router")
     connect = BusSettings(connect=[f"tcp/127.0.0.1:{port}"])
@@ -91,4 +91,8 @@ def test_zenoh_cuts_a_flooding_peer_to_the_keys_rate_on_its_own_link() -> None:
     real, junk = got.count(b"real"), got.count(b"junk")
     assert sent > 5 * LIMITS["intent"].max_rate_hz  # it was a flood
     assert junk <= 1.2 * LIMITS["intent"].max_rate_hz  # cut to the key's rate
-    assert real == real_sent  # the other peer's messages were not crowded out
+    # the other peer's messages are not crowded out: its link has a budget of its own. The
+    # limit is a minimum interval per key and link, taken when the receiver processes a
+    # message: two of one link worked off back to back after the receiver was starved (a
+    # loaded machine) lose the second, whatever their rate (docs/guide/stack.md)
+    assert real >= 0.8 * real_sent
