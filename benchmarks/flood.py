@@ -51,6 +51,9 @@ from services.common.config import BusSettings
 from services.common.security import roles_publishing, run_credentials
 from tests.busutil import free_port
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bus_variants import VARIANTS
+
 FLOODS = ("none", "10MB", "at-limits", "1kHz", "denied", "unbounded")
 REVIEW_RATE_HZ = 1000.0  # the review's flood: ~1 kHz per key
 HOG = "while True: pass"  # another program on the lab's PC, at the default priority
@@ -187,9 +190,13 @@ def _processes(launcher: int, flooder: int) -> dict[str, int]:
     return named
 
 
-def _run(source: Path, kind: str, episodes: int, nice: int = 0) -> dict[str, object]:
+def _run(source: Path, kind: str, episodes: int, nice: int = 0, variant: str | None = None
+         ) -> dict[str, object]:  # fmt: skip
     port = free_port()
     env = os.environ | {"PYTHONPATH": str(source)}
+    if variant is not None:  # every process of the stack under it (variant_site)
+        site = Path(__file__).resolve().parent / "variant_site"
+        env |= {"PYTHONPATH": f"{site}:{source}", "DAMMRL_BENCH_VARIANT": variant}
     launcher = subprocess.Popen(
         [sys.executable, "-m", "dammrl", "up", "--episodes", str(episodes), "--model", "2,1",
          "--bus-port", str(port)],
@@ -251,16 +258,21 @@ def main() -> None:
     parser.add_argument("--flooder-nice", type=int, default=0,
                         help="the flooder's niceness (-10: the time-critical services' own, "
                              "so that it floods at its rate on a busy machine)")  # fmt: skip
+    parser.add_argument("--variants", nargs="*", choices=list(VARIANTS), default=["as built"],
+                        help="this checkout under each of bench_bus's variants")  # fmt: skip
     parser.add_argument("--json", type=Path, help="append each run's figures here (lines)")
     args = parser.parse_args()
-    sources = [*args.checkout, Path(__file__).resolve().parents[1]]
+    here = Path(__file__).resolve().parents[1]
+    runs = [(checkout, "as built") for checkout in args.checkout]
+    runs += [(here, variant) for variant in args.variants]
     hogs = [subprocess.Popen([sys.executable, "-c", HOG]) for _ in range(args.hogs)]
     try:
         for _ in range(args.rounds):
             for kind in args.floods or FLOODS:
-                for source in sources:
-                    figures = _run(source.resolve(), kind, args.episodes, args.flooder_nice)
-                    _report(source, kind, args, figures)
+                for source, variant in runs:
+                    figures = _run(source.resolve(), kind, args.episodes, args.flooder_nice,
+                                   None if variant == "as built" else variant)  # fmt: skip
+                    _report(source, kind, args, {"variant": variant, **figures})
     finally:
         for hog in hogs:
             hog.kill()
