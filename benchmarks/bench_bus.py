@@ -42,9 +42,9 @@ from dammrl_core.sim.settings import SimSettings
 from dammrl_core.task import TaskSettings
 from schemas import JointCommand
 from services.common.bus import Bus, zenoh_config
+from services.common.certificates import create_credentials
 from services.common.config import BusSettings
 from services.common.runtime import prioritise
-from services.common.security import create_credentials
 from services.sim.node import SimNode
 
 PAYLOAD_BYTES = 420  # about one msgpack RobotState

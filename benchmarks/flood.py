@@ -48,7 +48,7 @@ from schemas import TOPICS, DecodeError, EpisodeResult, RobotState, decode, key
 from schemas.keys import LIMITS
 from services.common.bus import zenoh_config
 from services.common.config import BusSettings
-from services.common.security import roles_publishing, run_credentials
+from services.common.security import OBSERVER, roles_publishing, run_credentials
 from tests.busutil import free_port
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -71,7 +71,7 @@ class Watch:
     filled by Zenoh without Python and drained every millisecond (what a service does)."""
 
     def __init__(self, port: int) -> None:
-        self.session = _session(port, "tool")
+        self.session = _session(port, "observer")
         self.arrivals: list[float] = []
         self.stamps: list[float] = []  # when the sim published each state (its clock)
         self.results: list[EpisodeResult] = []
@@ -148,7 +148,7 @@ def _flood(port: int, kind: str, stop: Any, count: Any, nice: int) -> None:
 
 def _denied_role(topic: str) -> str:
     """A role that may not publish ``topic``: the access control refuses its flood."""
-    return "tool" if "tool" not in roles_publishing(topic) else "recorder"
+    return OBSERVER if OBSERVER not in roles_publishing(topic) else "recorder"
 
 
 def _paced(publishers: list[tuple[Any, bytes, float]], stop: Any, count: Any) -> None:
