@@ -3,7 +3,9 @@ leave-one-block-out cross-validation, refused when the classes do not separate.
 
 A calibration session is blocks of cued trials (rest, -1, +1 in a shuffled order). A
 window is labelled with its trial's class when it lies wholly inside the trial after the
-person's reaction (``settle_s``); windows across a cue change are left out.
+person's reaction (``settle_s``); windows across a cue change are left out. The whole
+session is conditioned and its windows normalised in time order first, exactly as the
+decoder does live (:mod:`dammrl_core.intent.emg.conditioning`).
 """
 
 from __future__ import annotations
@@ -17,8 +19,9 @@ import numpy as np
 from dammrl_core.errors import ConfigurationError
 from dammrl_core.intent.emg.calibration import EmgCalibration, StreamDescription
 from dammrl_core.intent.emg.classifier import CrossValidation, cross_validate, fit
+from dammrl_core.intent.emg.conditioning import Conditioning, Normaliser, condition
 from dammrl_core.intent.emg.decoder import EmgDecoderSettings
-from dammrl_core.intent.emg.features import sliding_windows
+from dammrl_core.intent.emg.features import FLOOR, sliding_windows
 
 SETTLE_S = 0.5
 """A trial's first half second is the person's reaction: its windows are not labelled."""
@@ -38,12 +41,25 @@ class Cue:
     block: int
 
 
+def conditioned_windows(samples: np.ndarray, rate_hz: float, window_s: float, hop_s: float,
+                        kind: str, conditioning: Conditioning
+                        ) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """(features (m, k * channels), each window's last sample (m,)) of a recording
+    conditioned and normalised window by window as the live decoder does it."""
+    features, ends = sliding_windows(condition(samples, rate_hz, conditioning), rate_hz,
+                                     window_s, hop_s, kind)  # fmt: skip
+    normaliser = Normaliser(conditioning, hop_s, kind)
+    return np.array([normaliser(row) for row in features]).reshape(features.shape), ends
+
+
 def labelled_windows(samples: np.ndarray, times: np.ndarray, cues: list[Cue], rate_hz: float,
-                     window_s: float, hop_s: float, kind: str = "emg"
+                     window_s: float, hop_s: float, kind: str = "emg",
+                     conditioning: Conditioning | None = None,
                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
     """(features, labels, blocks, trials) of every window wholly inside a trial after its
     settle (``trials``: the index of its cue)."""
-    features, ends = sliding_windows(samples, rate_hz, window_s, hop_s, kind)
+    conditioning = conditioning or Conditioning.none()
+    features, ends = conditioned_windows(samples, rate_hz, window_s, hop_s, kind, conditioning)
     end_t = times[ends] if len(ends) else np.zeros(0)
     labels, blocks, trials = (np.full(len(ends), -99) for _ in range(3))
     for k, cue in enumerate(cues):
@@ -64,19 +80,44 @@ def rest_rms(samples: np.ndarray, times: np.ndarray, cues: list[Cue]) -> np.ndar
     return np.asarray(samples[rest].std(axis=0))
 
 
+def rest_level(samples: np.ndarray, times: np.ndarray, cues: list[Cue], rate_hz: float,
+               window_s: float, hop_s: float) -> np.ndarray:  # fmt: skip
+    """Each channel's median window MAV over the rest trials (conditioned samples)."""
+    features, ends = sliding_windows(samples, rate_hz, window_s, hop_s, "emg")
+    end_t = times[ends] if len(ends) else np.zeros(0)
+    rest = np.zeros(len(ends), dtype=bool)
+    for cue in cues:
+        if cue.label == 0:
+            rest |= (end_t - window_s >= cue.start_s + SETTLE_S) & (end_t <= cue.end_s)
+    channels = samples.shape[1]
+    return np.exp(np.median(features[rest, :channels], axis=0)) - FLOOR
+
+
+def default_conditioning(kind: str, mains_hz: Literal[0, 50, 60] = 50) -> Conditioning:
+    """EMG: a 20 Hz high-pass, the mains notch, levels relative to rest; an IMU: none
+    (its posture is the signal's DC)."""
+    return Conditioning.emg(mains_hz) if kind == "emg" else Conditioning.none()
+
+
 def train(samples: np.ndarray, times: np.ndarray, cues: list[Cue], stream: StreamDescription,
           window_s: float = 0.2, hop_s: float = 0.05,
           decoder: EmgDecoderSettings | None = None, participant: str | None = None,
-          kind: Literal["emg", "imu"] = "emg") -> EmgCalibration:  # fmt: skip
+          kind: Literal["emg", "imu"] = "emg",
+          conditioning: Conditioning | None = None) -> EmgCalibration:  # fmt: skip
     """The calibration of a cued recording (samples (n, channels) at ``times`` (n,)) with
-    the feature set ``kind``."""
+    the feature set ``kind`` and ``conditioning`` (default: ``default_conditioning``)."""
     decoder = decoder or EmgDecoderSettings()
+    conditioning = conditioning or default_conditioning(kind)
+    rate = stream.nominal_srate_hz
+    if (problem := conditioning.problem(rate)) is not None:
+        raise ConfigurationError(problem)
     features, labels, blocks, trials = labelled_windows(
-        samples, times, cues, stream.nominal_srate_hz, window_s, hop_s, kind
+        samples, times, cues, rate, window_s, hop_s, kind, conditioning
     )
     _enough(labels, blocks)
     cv = cross_validate(features, labels, blocks, trials, decoder.reject_below,
                         decoder.vote_windows)  # fmt: skip
+    conditioned = condition(samples, rate, conditioning)
     return EmgCalibration(
         created=datetime.now(UTC).isoformat(timespec="seconds"),
         participant=participant,
@@ -84,8 +125,11 @@ def train(samples: np.ndarray, times: np.ndarray, cues: list[Cue], stream: Strea
         features=kind,
         window_s=window_s,
         hop_s=hop_s,
+        conditioning=conditioning,
         classifier=fit(features, labels).model_copy(update={"temperature": cv.temperature}),
-        rest_rms=rest_rms(samples, times, cues).tolist(),
+        rest_rms=rest_rms(conditioned, times, cues).tolist(),
+        rest_level=(rest_level(conditioned, times, cues, rate, window_s, hop_s).tolist()
+                    if kind == "emg" else []),
         cross_validation=cv,
     )
 
