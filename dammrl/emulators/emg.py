@@ -94,7 +94,7 @@ class EmgStream:
         """(label, unit) per channel, as LSL's metadata convention has them."""
         if self.stream_type == "IMU":
             return [(f"accel_{a}", "g") for a in "xyz"] + [(f"gyro_{a}", "rad/s") for a in "xyz"]
-        return [(f"EMG{k + 1}", "normalised") for k in range(self.synth.model.channels)]
+        return [(f"EMG{k + 1}", "microvolts") for k in range(self.synth.model.channels)]
 
     # ---- the stream ------------------------------------------------------------------------
     def _run(self) -> None:

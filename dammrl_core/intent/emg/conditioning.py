@@ -21,6 +21,11 @@ online decoding and ``dammrl recording decode`` (the calibration file keeps it).
 The filters are causal (``sosfilt`` with its state carried from chunk to chunk), started
 in their steady state for the first sample (a DC offset gives no start-up transient), so
 filtering a recording at once and filtering it chunk by chunk give the same samples.
+
+A sudden *step* of the offset (an electrode or its cable moved) passes a high-pass as a
+burst of ringing as loud as a contraction for ~50 ms; ``baseline_step`` finds one in the
+raw samples (the mean of 25 ms beside the mean of the 25 ms before, far beyond the
+samples' own spread: EMG has no mean) so the decoder can ignore the burst.
 """
 
 from __future__ import annotations
@@ -72,15 +77,16 @@ class Conditioning(BaseModel):
         nyquist = rate_hz / 2
         for name, hz in (("high_pass_hz", self.high_pass_hz), ("notch_hz", self.notch_hz)):
             if hz and hz >= MAX_OF_NYQUIST * nyquist:
-                return (f"conditioning.{name} {hz:g} Hz is not below "
-                        f"{MAX_OF_NYQUIST:g} x half the stream's rate ({nyquist:g} Hz)")  # fmt: skip
+                limit = MAX_OF_NYQUIST * nyquist
+                return (f"conditioning.{name} {hz:g} Hz: below {limit:g} Hz at "
+                        f"{rate_hz:g} Hz (0.9 x half the rate)")  # fmt: skip
         return None
 
     def describe(self) -> str:
-        parts = [f"high-pass {self.high_pass_hz:g} Hz" if self.high_pass_hz else "no high-pass",
-                 f"{self.notch_hz} Hz notch" if self.notch_hz else "no notch",
-                 "levels relative to rest" if self.normalise_level else "absolute levels"]  # fmt: skip
-        return ", ".join(parts)
+        high = f"high-pass {self.high_pass_hz:g} Hz" if self.high_pass_hz else "no high-pass"
+        notch = f"{self.notch_hz} Hz notch" if self.notch_hz else "no notch"
+        levels = "levels relative to rest" if self.normalise_level else "absolute levels"
+        return f"{high}, {notch}, {levels}"
 
 
 def filter_sections(conditioning: Conditioning, rate_hz: float) -> np.ndarray | None:
@@ -194,3 +200,34 @@ class Normaliser:
 
     def reset(self) -> None:
         self.rest.reset()
+
+
+STEP_SEGMENT_S = 0.025
+"""A baseline step: the mean of this long beside the mean of as long before [s]."""
+STEP_OF_SPREAD = 8.0
+"""... differing by more than this many times the samples' spread about those means (EMG,
+20-450 Hz, has no mean over 25 ms: its two means differ by a fraction of its spread; a
+motion artefact's slow bump by about three times)."""
+
+
+def baseline_step(raw: np.ndarray, rate_hz: float) -> tuple[int, float] | None:
+    """The channel whose raw samples (n, channels) step most beyond their spread, and the
+    step's size (the stream's units), or None when none does."""
+    x = np.asarray(raw, dtype=float)
+    half = max(2, round(STEP_SEGMENT_S * rate_hz))
+    if len(x) < 2 * half:
+        return None
+    x = x - x.mean(axis=0)  # a DC offset of any size keeps its precision
+    total = np.concatenate([np.zeros((1, x.shape[1])), np.cumsum(x, axis=0)])
+    squares = np.concatenate([np.zeros((1, x.shape[1])), np.cumsum(x**2, axis=0)])
+    split = np.arange(half, len(x) - half + 1)  # the first sample after each split
+    before = (total[split] - total[split - half]) / half
+    after = (total[split + half] - total[split]) / half
+    spread_before = (squares[split] - squares[split - half]) / half - before**2
+    spread_after = (squares[split + half] - squares[split]) / half - after**2
+    spread = np.sqrt(np.maximum((spread_before + spread_after) / 2, 1e-24))
+    ratio = np.abs(after - before) / spread
+    k, channel = np.unravel_index(int(np.argmax(ratio)), ratio.shape)
+    if ratio[k, channel] <= STEP_OF_SPREAD:
+        return None
+    return int(channel), float(after[k, channel] - before[k, channel])

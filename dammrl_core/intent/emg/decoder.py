@@ -27,8 +27,8 @@ calibration's is a problem (an electrode's contact, not a person's gain);
 
 A decision below ``min_confidence``, or shorter than ``min_contraction_s`` (a twitch),
 is not acted on; one held longer than ``max_contraction_s`` is a stuck signal, not a
-decision. Bad signal (non-finite samples, a flat or clipping channel, a gap or a jump in
-the timestamps) drops the contraction in progress, and nothing counts until the signal
+decision. Bad signal (non-finite samples, a flat or clipping channel, a step of a
+channel's baseline, a gap or a jump in the timestamps) drops the contraction in progress, and nothing counts until the signal
 is clean and the person has rested: no decision ever spans it, and ``problem`` says what
 is wrong until the signal is clean again.
 """
@@ -43,7 +43,7 @@ from pydantic import BaseModel, Field
 
 from dammrl_core.intent.emg.calibration import EmgCalibration
 from dammrl_core.intent.emg.classifier import REJECTED, majority
-from dammrl_core.intent.emg.conditioning import Filters, Normaliser
+from dammrl_core.intent.emg.conditioning import Filters, Normaliser, baseline_step
 from dammrl_core.intent.emg.features import features_of, window_samples
 from dammrl_core.settings import FINITE
 
@@ -212,6 +212,10 @@ class WindowDecoder:
         clipped = at_extreme >= max(CLIPPED_MIN, CLIPPED_SHARE * len(raw))
         if np.any(clipped & (extreme > 0)):
             return f"channel {int(np.argmax(clipped))} clipping (saturated amplifier?)"
+        if self.calibration.conditioning.high_pass_hz and (
+            step := baseline_step(raw, self.rate_hz)
+        ):  # the high-pass rings after it: the burst is no contraction
+            return f"channel {step[0]}'s baseline stepped by {step[1]:+.4g} (an electrode moved?)"
         return None
 
     def _follow(self, label: int, p: np.ndarray, features: np.ndarray,
@@ -277,7 +281,7 @@ class WindowDecoder:
             return None
         channel = int(np.argmax(np.abs(np.log(ratio))))
         return (f"channel {channel}'s rest level is {ratio[channel]:.2g} x the calibration's "
-                f"(outside {low:g}-{high:g} x: check its electrode, or calibrate again)")  # fmt: skip
+                f"(not {low:g}-{high:g} x): check its electrode, or calibrate again")  # fmt: skip
 
     def rebaseline(self, seconds: float) -> None:
         """Measure the rest level afresh over the next ``seconds`` of signal (the person

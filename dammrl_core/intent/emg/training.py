@@ -128,8 +128,11 @@ def train(samples: np.ndarray, times: np.ndarray, cues: list[Cue], stream: Strea
         conditioning=conditioning,
         classifier=fit(features, labels).model_copy(update={"temperature": cv.temperature}),
         rest_rms=rest_rms(conditioned, times, cues).tolist(),
-        rest_level=(rest_level(conditioned, times, cues, rate, window_s, hop_s).tolist()
-                    if kind == "emg" else []),
+        rest_level=(
+            rest_level(conditioned, times, cues, rate, window_s, hop_s).tolist()
+            if kind == "emg"
+            else []
+        ),
         cross_validation=cv,
     )
 
