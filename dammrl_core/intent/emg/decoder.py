@@ -28,9 +28,10 @@ calibration's is a problem (an electrode's contact, not a person's gain);
 A decision below ``min_confidence``, or shorter than ``min_contraction_s`` (a twitch),
 is not acted on; one held longer than ``max_contraction_s`` is a stuck signal, not a
 decision. Bad signal (non-finite samples, a flat or clipping channel, a step of a
-channel's baseline, a gap or a jump in the timestamps) drops the contraction in progress, and nothing counts until the signal
-is clean and the person has rested: no decision ever spans it, and ``problem`` says what
-is wrong until the signal is clean again.
+channel's baseline, a gap or a jump in the timestamps) drops the contraction in
+progress, and nothing counts until the signal is clean and the person has rested: no
+decision ever spans it, and ``problem`` says what is wrong until the signal is clean
+again.
 """
 
 from __future__ import annotations
