@@ -45,6 +45,7 @@ from schemas import (
 from schemas import Message as BusMessage
 from services.recorder.core import header_of
 from services.recorder.gaps import SequenceAccount
+from services.recorder.raw import raw_stream_loss
 
 MAGIC = b"\x89MCAP0\r\n"
 COMPRESSIONS = ("", "zstd", "lz4")
@@ -236,6 +237,10 @@ def info(path: Path) -> dict[str, Any]:
         "topics": topics,
         "sequence_gaps": dict(account.gaps),
         "sequence_anomalies": account.anomalies(),
+        "raw_streams": raw_stream_loss(
+            recording.namespace(),
+            ((recording.topic(m), m.data) for m in recording.messages),
+        ),
         "skipped": dict(recording.skipped),
         "metadata": recording.metadata,
     }

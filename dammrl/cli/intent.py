@@ -65,6 +65,9 @@ def _add_calibrate(actions: Commands) -> None:
     calibrate.add_argument("--features", choices=["auto", "emg", "imu"], default="auto",
                            help="the feature set: EMG (Hudgins) or IMU (orientation and "
                            "movement); auto: from the stream's type")  # fmt: skip
+    calibrate.add_argument("--mains", choices=["50", "60", "off"], default="50",
+                           help="EMG: the mains frequency notched out before the features "
+                           "(50 Hz: Europe, Asia, Africa; 60 Hz: the Americas)")  # fmt: skip
     calibrate.add_argument("--force", action="store_true", help="save a refused calibration")
     calibrate.set_defaults(handler=_calibrate)
 
@@ -117,7 +120,9 @@ def _calibrate(args: argparse.Namespace) -> int:
               f"{info.nominal_srate():g} Hz from {info.hostname()}")  # fmt: skip
     protocol = Protocol(args.blocks, args.trial_s, args.relax_s)
     kind = args.features if args.features != "auto" else feature_set_of(info)
-    calibration, refused = calibrate(info, protocol, print_out, args.participant, kind)
+    mains = 0 if args.mains == "off" else int(args.mains)
+    calibration, refused = calibrate(info, protocol, print_out, args.participant, kind,
+                                     mains)  # type: ignore[arg-type]  # fmt: skip
     cv = calibration.cross_validation
     print_out(f"leave-one-block-out: accuracy {cv.accuracy:.3f}, active error rate "
               f"{cv.active_error_rate:.3f}, instability {cv.instability:.3f}, rejection rate "

@@ -4,8 +4,9 @@ One channel per key expression, message encoding ``msgpack``, schema encoding
 ``jsonschema`` from the pydantic models; ``log_time`` is the receipt time and
 ``publish_time`` the header stamp. Payloads that do not decode are still written, on a
 channel ``_invalid/<key>`` (schema-less), so nothing that crossed the bus is dropped.
-Sequence numbers are accounted per publisher (``gaps.SequenceAccount``); the counts go
-into a ``dammrl.loss`` metadata record when the file is finished.
+Sequence numbers are accounted per publisher (``gaps.SequenceAccount``), and the samples
+a wearable's raw stream lost as its chunks say (``raw.RawStreams``); the counts go into a
+``dammrl.loss`` metadata record when the file is finished.
 
 A chunk is closed by size (the writer) or by age (:meth:`McapRecorder.flush_due`, the
 node calls :meth:`McapRecorder.flush`), and a closed chunk goes to the OS at once: a
@@ -37,6 +38,7 @@ from schemas import (
     type_of,
 )
 from services.recorder.gaps import SequenceAccount
+from services.recorder.raw import RawStreams
 
 PROFILE = "dammrl"
 AT_ONCE: tuple[type[Message], ...] = (EpisodeResult, ComfortRating, SessionControl, EmergencyStop)
@@ -91,6 +93,7 @@ class McapRecorder:
         self._schemas: dict[type[Message], int] = {}
         self._channels: dict[str, int] = {}
         self.loss = SequenceAccount(namespace)
+        self.raw_streams = RawStreams(namespace)
         self.invalid: Counter[str] = Counter()
         self.first_ns: int | None = None
         self.unflushed_ns: int | None = None  # receipt time of the oldest unflushed message
@@ -122,6 +125,7 @@ class McapRecorder:
         missing = self.loss.see(key, str(header.get("source")), seq, log_time_ns, session)
         if missing:
             log.warning("%d message(s) missing on %s before seq %d", missing, key, seq)
+        self.raw_streams.see(key, payload)
         channel = self._channel(key, message_type)
         publish_ns = header["stamp_ns"] if header["stamp_ns"] >= 0 else log_time_ns
         self.writer.add_message(channel, log_time_ns, payload, publish_ns, seq % 2**32)
@@ -164,6 +168,7 @@ class McapRecorder:
             "messages": json.dumps(dict(loss.messages)),
             "invalid": json.dumps(dict(self.invalid)),
             "anomalies": json.dumps(loss.anomalies()),
+            "raw_streams": self.raw_streams.metadata(),
         }
 
     def _channel(self, topic: str, message_type: type[Message] | None) -> int:

@@ -78,6 +78,10 @@ class EmgDecoderSettings(BaseModel):
     """A contraction longer than this is a stuck signal: no decision until rest [s]."""
     max_gap_s: float = Field(0.25, ge=0.01, le=5.0)
     """A gap between timestamps longer than this resets the decoder [s]."""
+    onset_tolerance_s: float = Field(0.1, ge=0.0, le=0.5)
+    """A contraction whose onset is estimated up to this long before its request opened
+    still answers it (the onset's estimate: half a window back from the first voted
+    window); one that began earlier answers nothing [s]."""
     max_step_back_s: float = Field(0.05, ge=0.0, le=1.0)
     """Timestamps stepping back by up to this are jitter, not a clock jump: an acquisition
     PC stamps each chunk when it pushes it (LSL back-dates its samples at the nominal
@@ -138,6 +142,7 @@ class WindowDecoder:
         self.stuck = False
         self.need_rest = False
         self.signal_problem: str | None = None
+        self.interrupted: str | None = None  # why a rest is awaited (a clock jump)
         self.last_t: float | None = None
         self.windows = 0
         self.voted = 0  # the last voted label (0: rest)
@@ -224,6 +229,7 @@ class WindowDecoder:
         """Grow the contraction in progress, start one, or end it into a decision."""
         if self.need_rest:  # after bad signal: nothing counts until the person rests
             self.need_rest = label != 0
+            self.interrupted = self.interrupted if self.need_rest else None
             return None
         if label in (-1, 1):
             if self.run is None:
@@ -313,15 +319,24 @@ class WindowDecoder:
             self.since_window = 0
             self.last_t = None
 
+    def interrupt(self, problem: str) -> None:
+        """Something happened to the stream (its clock jumped): drop the contraction in
+        progress; decide again after a rest, saying why until then."""
+        self._drop_run()
+        self.need_rest = True
+        self.interrupted = problem
+
     def reset(self) -> None:
         """Forget everything (the stream was lost)."""
         self._bad("", keep_buffer=False)
-        self.signal_problem = None
+        self.signal_problem = self.interrupted = None
         self.measuring = 0
 
     def problem(self) -> str | None:
         if self.signal_problem:
             return self.signal_problem
+        if self.interrupted:
+            return f"{self.interrupted}: a rest, then decisions again"
         if self.measuring:
             return (f"measuring the rest level: {self.measuring / self.rate_hz:.1f} s left "
                     "(the participant rests)")  # fmt: skip
