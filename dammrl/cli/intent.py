@@ -76,10 +76,14 @@ def _add_emulate(actions: Commands) -> None:
     emulate = actions.add_parser(
         "emulate",
         help="an emulated EMG armband on LSL (until Ctrl-C)",
-        description="A synthetic forearm's EMG streamed on LSL in real time. Faults from "
-        "stdin, one per line: flat CH, clip CH, back CH, lose S, nan S, jump S, twin, untwin.",
+        description="A synthetic forearm's EMG (microvolts) streamed on LSL in real time. "
+        "Faults from stdin, one per line: flat CH, clip CH, back CH, lose S, nan S, jump S, "
+        "twin, untwin, dc MICROVOLTS, gain FACTOR.",
     )
     emulate.add_argument("--stream", default=EMULATED_STREAM, help="the LSL stream's name")
+    emulate.add_argument("--source-id", default="dammrl-emulated-emg",
+                         help="the stream's LSL source id ('' for none, as many amplifier "
+                         "programs send it)")  # fmt: skip
     emulate.add_argument("--pattern", choices=["patient", "cued", "rest"], default="patient",
                          help="patient: answers the stack's decision requests; cued: follows "
                          "`dammrl intent calibrate`; rest: nobody moves")  # fmt: skip
@@ -144,11 +148,13 @@ def _emulate(args: argparse.Namespace) -> int:
 
     if not 1 <= args.channels <= 64:
         raise ConfigurationError(f"--channels {args.channels}: 1-64")
+    if len(args.source_id) > 200:
+        raise ConfigurationError(f"--source-id: at most 200 characters, {len(args.source_id)} given")
     stop = stop_on_signals()
     stop_after(stop, args.seconds)
     synth = _synth(args)
     model = synth.model
-    with EmgStream(args.stream, synth) as stream:
+    with EmgStream(args.stream, synth, args.source_id) as stream:
         print_out(f"emulated {stream.stream_type} on LSL stream {args.stream!r}: "
                   f"{model.channels} channels at {model.rate_hz:g} Hz, {args.noise} noise; "
                   "Ctrl-C stops")  # fmt: skip

@@ -13,7 +13,8 @@ as an amplifier's software sends them. Who moves the forearm:
 
 Faults on demand (methods, or lines on stdin from ``dammrl intent emulate``): an
 electrode off (flat) or clipping, the stream lost for a while, non-finite samples, a
-jump of the timestamps, and a second stream of the same name (another device).
+jump of the timestamps, a second stream of the same name (another device), and the
+amplifier's own: a DC offset added to every channel, another gain.
 """
 
 from __future__ import annotations
@@ -58,6 +59,8 @@ class EmgStream:
         self.stop = threading.Event()
         self.thread = threading.Thread(target=self._run, name="emg-stream", daemon=True)
         self.clock_offset_s = 0.0
+        self.dc_offset = 0.0  # added to every sample (the stream's units)
+        self.gain = 1.0  # every sample multiplied
         self.nan_until = 0.0
         self.silent_until = 0.0
         self.sent = 0
@@ -107,7 +110,7 @@ class EmgStream:
             if due <= 0:
                 continue
             with self.lock:
-                samples = self.synth.generate(due).astype(np.float32)
+                samples = (self.gain * self.synth.generate(due) + self.dc_offset).astype(np.float32)
                 self.sent += due
                 now = pylsl.local_clock()
                 if now < self.silent_until:
@@ -142,6 +145,12 @@ class EmgStream:
         with self.lock:
             self.clock_offset_s += seconds
 
+    def amplifier(self, dc_offset: float | None = None, gain: float | None = None) -> None:
+        """The amplifier's DC offset (added, the stream's units) or gain from now on."""
+        with self.lock:
+            self.dc_offset = self.dc_offset if dc_offset is None else dc_offset
+            self.gain = self.gain if gain is None else gain
+
     def add_twin(self) -> None:
         """A second stream of the same name (another device or machine)."""
         with self.lock:
@@ -166,9 +175,12 @@ class EmgStream:
             "jump": lambda: self.jump_clock(arg),
             "twin": self.add_twin,
             "untwin": self.remove_twin,
+            "dc": lambda: self.amplifier(dc_offset=arg),
+            "gain": lambda: self.amplifier(gain=arg),
         }
         if what not in actions:
-            return f"unknown fault {what!r}: {', '.join(actions)} (with a channel or seconds)"
+            return (f"unknown fault {what!r}: {', '.join(actions)} (with a channel, seconds, "
+                    "an offset or a gain)")  # fmt: skip
         actions[what]()
         return f"{line.strip()}: done"
 

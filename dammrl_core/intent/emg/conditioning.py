@@ -140,13 +140,19 @@ class RestLevel:
         self.mav_log: deque[np.ndarray] = deque(
             maxlen=max(1, round(conditioning.level_window_s / hop_s))
         )
+        self.level = np.zeros(0)
 
     def add(self, log_mav: np.ndarray) -> np.ndarray:
         """Take one window's log MAV per channel; the rest level's log per channel."""
         self.mav_log.append(np.asarray(log_mav, dtype=float))
-        return self.level_log()
+        self.level = self._level_log()
+        return self.level
 
     def level_log(self) -> np.ndarray:
+        """The rest level's log per channel, as of the last window."""
+        return self.level
+
+    def _level_log(self) -> np.ndarray:
         """The k-th lowest window MAV (log) per channel: k = the quantile's share of a
         full history, and while the history fills, of that share as much as the history
         is full (the minimum at first): a calibration's first trial may be a 3 s
