@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import logging
 import threading
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -166,7 +167,7 @@ class EmgStream:
         if not words:
             return ""
         what, arg = words[0], float(words[1]) if len(words) > 1 else 1.0
-        actions = {
+        actions: dict[str, Callable[[], None]] = {
             "flat": lambda: self.synth.lift(int(arg), "flat"),
             "clip": lambda: self.synth.lift(int(arg), "clip"),
             "back": lambda: self.synth.put_back(int(arg)),

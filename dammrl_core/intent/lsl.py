@@ -106,7 +106,8 @@ def lsl_call(what: str, call: Callable[[], T]) -> T:
 def channel_metadata(info: Any) -> tuple[list[str], list[str]]:
     """(labels, units) of a full StreamInfo's channels (``desc/channels/channel``, LSL's
     metadata convention); empty lists when it has none."""
-    labels, units = [], []
+    labels: list[str] = []
+    units: list[str] = []
     channel = info.desc().child("channels").child("channel")
     while not channel.empty() and len(labels) < info.channel_count():
         labels.append(channel.child_value("label"))

@@ -19,7 +19,7 @@ from dammrl_core.intent.emg.classifier import CrossValidation, LinearClassifier
 from dammrl_core.intent.emg.conditioning import Conditioning
 from dammrl_core.intent.emg.features import per_channel
 
-CALIBRATION_VERSION = 2
+CALIBRATION_VERSION: Literal[2] = 2
 READABLE_VERSIONS = (1, 2)
 
 

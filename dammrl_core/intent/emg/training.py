@@ -90,7 +90,7 @@ def rest_level(samples: np.ndarray, times: np.ndarray, cues: list[Cue], rate_hz:
         if cue.label == 0:
             rest |= (end_t - window_s >= cue.start_s + SETTLE_S) & (end_t <= cue.end_s)
     channels = samples.shape[1]
-    return np.exp(np.median(features[rest, :channels], axis=0)) - FLOOR
+    return np.asarray(np.exp(np.median(features[rest, :channels], axis=0)) - FLOOR)
 
 
 def default_conditioning(kind: str, mains_hz: Literal[0, 50, 60] = 50) -> Conditioning:
