@@ -105,15 +105,20 @@ class IntentNode:
             while not stop.is_set():
                 for message in self.bus.receive_all(0.005):
                     self._dispatch(message)
-                self._ask_unanswered_by_the_policy()
-                decided = self._guarded("reading", lambda: self.source.poll(time.monotonic()))
-                if decided is not None:
-                    self._answer(decided)
-                self._publish_readings()
-                self._publish_stream()
-                self._report()
+                self.step()
         finally:
             self._guarded("closing", self.source.close)
+
+    def step(self) -> None:
+        """One turn after the messages: the source read, its decision answered, its
+        samples and evidence published, Health."""
+        self._ask_unanswered_by_the_policy()
+        decided = self._guarded("reading", lambda: self.source.poll(time.monotonic()))
+        if decided is not None:
+            self._answer(decided)
+        self._publish_readings()
+        self._publish_stream()
+        self._report()
 
     def _guarded(self, what: str, call: Callable[[], T]) -> T | None:
         """``call()``, a source's error stated (once per kind, in the log and in Health)
