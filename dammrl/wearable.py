@@ -123,7 +123,8 @@ def calibrate(info: Any, protocol: Protocol, show: Callable[[str], None],
     conditioning = default_conditioning(kind, mains_hz)
     calibration = train(samples, times, cues, recorder.stream, participant=participant,
                         kind=kind, conditioning=conditioning)  # fmt: skip
-    return calibration, refusal(calibration.cross_validation)
+    return calibration, refusal(calibration.cross_validation,
+                                following=calibration.cue_following)  # fmt: skip
 
 
 def _cue_blocks(protocol: Protocol, out: Any, show: Callable[[str], None]) -> list[Cue]:

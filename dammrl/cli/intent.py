@@ -149,7 +149,9 @@ def _emulate(args: argparse.Namespace) -> int:
     if not 1 <= args.channels <= 64:
         raise ConfigurationError(f"--channels {args.channels}: 1-64")
     if len(args.source_id) > 200:
-        raise ConfigurationError(f"--source-id: at most 200 characters, {len(args.source_id)} given")
+        raise ConfigurationError(
+            f"--source-id: at most 200 characters, {len(args.source_id)} given"
+        )
     stop = stop_on_signals()
     stop_after(stop, args.seconds)
     synth = _synth(args)

@@ -48,6 +48,17 @@ class StreamDescription(BaseModel):
         return self
 
 
+class CueFollowing(BaseModel):
+    """How often the muscles were active while rest was cued and while -1 or +1 was
+    (shares of labelled windows whose most active channel was ``ACTIVE_OF_REST`` times
+    its rest level): a person who follows the cues is active in the one, not the other."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
+
+    rest: float = Field(ge=0, le=1)
+    commands: float = Field(ge=0, le=1)
+
+
 class EmgCalibration(BaseModel):
     """One person's classifier for one stream, with how well it separated their classes."""
 
@@ -68,6 +79,8 @@ class EmgCalibration(BaseModel):
                                     "level (median window MAV at rest, conditioned): the gain "
                                     "since calibration is reported against it")  # fmt: skip
     cross_validation: CrossValidation
+    cue_following: CueFollowing | None = None
+    """None: not measured (levels not relative to rest: an IMU, a version 1 file)."""
 
     @model_validator(mode="before")
     @classmethod
