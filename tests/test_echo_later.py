@@ -1,0 +1,38 @@
+"""`dammrl echo` started before the run it listens to: a `dammrl up` started after it
+speaks TLS with credentials of its own, which did not exist when echo began."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import pytest
+
+from tests.busutil import Lines, free_port
+
+pytestmark = pytest.mark.slow  # a whole stack, real time
+
+
+def test_echo_started_before_the_run_finds_it() -> None:
+    """echo stayed on plain tcp, never connected, and said nothing more."""
+    port = free_port()
+    echo = subprocess.Popen([sys.executable, "-m", "dammrl", "echo", "robot/state", "--connect",
+                             f"tcp/127.0.0.1:{port}", "--count", "3", "--duration", "150"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)  # fmt: skip
+    said = Lines(echo.stderr)
+    up = None
+    try:
+        said.wait_for("nothing answers", 30)  # alone first, and says so
+        up = subprocess.Popen([sys.executable, "-m", "dammrl", "up", "--bus-port", str(port),
+                               "--episodes", "1"], stdout=subprocess.DEVNULL,
+                              stderr=subprocess.DEVNULL)  # fmt: skip
+        out, _ = echo.communicate(timeout=150)
+        up.wait(120)  # its one episode, then it stops its services
+    finally:
+        for process in (echo, up):  # SIGTERM: the launcher stops its services too
+            if process is not None and process.poll() is None:
+                process.terminate()
+                process.wait(30)
+    assert echo.returncode == 0, said.lines
+    assert len([line for line in out.splitlines() if '"key": "dammrl/robot/state"' in line]) == 3
+    assert any("a run answers at tls/127.0.0.1" in line for line in said.lines), said.lines
