@@ -309,3 +309,32 @@ def write_csv(rows: list[dict[str, object]], path: Path) -> Path:
         writer.writeheader()
         writer.writerows(rows)
     return path
+
+
+REBASELINE_WAIT_S = 5.0
+"""How long `dammrl intent rebaseline` waits for the intent service to confirm [s]."""
+
+
+def rebaseline(settings: Any, who: str, timeout_s: float = REBASELINE_WAIT_S) -> str | None:
+    """Ask the intent service on the bus (``settings``: BusSettings) to measure the
+    participant's rest level afresh; its Health line confirming it, or None if none came.
+    The request is sent again every second until confirmed (a message may be lost)."""
+    from schemas import Health, SessionControl, TaskGoal
+    from services.common.bus import Bus
+
+    with Bus(settings, "tool") as bus:
+        bus.subscribe(Health, TaskGoal)
+        control = bus.publisher(SessionControl)
+        episode, start, next_send = 1, time.monotonic(), 0.0
+        while (now := time.monotonic()) - start < timeout_s:
+            if now >= next_send:
+                control.send(SessionControl(header=control.stamp(), episode=episode,
+                                            action="rebaseline", who=who))  # fmt: skip
+                next_send = now + 1.0
+            message = bus.receive(0.05)
+            if isinstance(message, TaskGoal):
+                episode = max(1, message.episode)  # for the record: the reach it came in
+            if (isinstance(message, Health) and message.service == "intent"
+                    and "measuring the rest level" in message.detail):  # fmt: skip
+                return message.detail
+    return None

@@ -45,7 +45,7 @@ class Service:
     as the controller."""
 
     def __init__(self, stream: str, calibration: Path) -> None:
-        port = free_port()
+        self.port = port = free_port()
         self.bus = Bus(BusSettings(listen=[endpoint(port)], mode="router"), "controller")
         self.bus.__enter__()
         self.health: list[Health] = []
@@ -227,3 +227,20 @@ def test_the_amplifiers_dc_offset_and_gain_change_no_decision_live(
                 assert [(d.u_h, d.human_model) for d in decided] == [(u_h, 1 + held)], fault
         assert np.all(harness.source.decoder.level_ratio() < 0.5)  # x0.3 seen as such
         harness.source.close()
+
+
+def test_the_therapist_rebaselines_the_running_services_rest_level(
+    service: tuple[Service, str],
+) -> None:
+    intent, name = service
+    sender = _sender(name)
+    try:
+        wait_for(intent.decoding, 30, "the service decoding the stream")
+        done = subprocess.run([sys.executable, "-m", "dammrl", "intent", "rebaseline", "--who",
+                               "T01", "--connect", endpoint(intent.port)], capture_output=True,
+                              text=True, timeout=60, check=False)  # fmt: skip
+        assert done.returncode == 0, done.stderr
+        assert "measuring the rest level" in done.stdout
+        wait_for(intent.decoding, 15, "decoding again after the measurement (3 s)")
+    finally:
+        sender.kill()

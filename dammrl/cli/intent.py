@@ -40,6 +40,14 @@ def register(commands: Commands) -> None:
     sources.set_defaults(handler=_sources)
     _add_calibrate(actions)
     _add_emulate(actions)
+    helptext = (
+        "measure the participant's rest level afresh on the running stack's wearable "
+        "(they rest for DAMMRL_LSL_REBASELINE_S, 3 s; between blocks, no calibration)"
+    )
+    rebaseline = actions.add_parser("rebaseline", help=helptext, description=helptext)
+    add_bus_arguments(rebaseline, f"the stack's endpoint (default {DEFAULT_CONNECT})")
+    rebaseline.add_argument("--who", default="therapist", help="the operator's id (recorded)")
+    rebaseline.set_defaults(handler=_rebaseline)
 
 
 def _add_calibrate(actions: Commands) -> None:
@@ -138,6 +146,21 @@ def _calibrate(args: argparse.Namespace) -> int:
         return Exit.FAILED
     print_out(f"saved {save_calibration(calibration, args.out)}"
               + (f" (refused, kept by --force: {refused})" if refused else ""))  # fmt: skip
+    return Exit.OK
+
+
+def _rebaseline(args: argparse.Namespace) -> int:
+    from dammrl.cli.common import bus_settings
+    from dammrl.wearable import REBASELINE_WAIT_S, rebaseline
+
+    if not 1 <= len(args.who) <= 32:
+        raise ConfigurationError(f"--who {args.who!r}: 1-32 characters")
+    said = rebaseline(bus_settings(args), args.who)
+    if said is None:
+        print_err(f"dammrl: no intent service measuring a rest level confirmed within "
+                  f"{REBASELINE_WAIT_S:g} s (is the stack up, with a wearable?)")  # fmt: skip
+        return Exit.FAILED
+    print_out(f"intent: {said}")
     return Exit.OK
 
 
