@@ -59,6 +59,7 @@ class EmgStream:
         self.lock = threading.Lock()
         self.stop = threading.Event()
         self.thread = threading.Thread(target=self._run, name="emg-stream", daemon=True)
+        self.started_s = 0.0  # LSL's clock when the first sample was acquired
         self.clock_offset_s = 0.0
         self.dc_offset = 0.0  # added to every sample (the stream's units)
         self.gain = 1.0  # every sample multiplied
@@ -105,7 +106,7 @@ class EmgStream:
         import pylsl
 
         rate = self.synth.model.rate_hz
-        start = pylsl.local_clock()
+        start = self.started_s = pylsl.local_clock()
         while not self.stop.wait(CHUNK_S / 2):
             due = int((pylsl.local_clock() - start) * rate) - self.sent
             if due <= 0:
@@ -186,6 +187,14 @@ class EmgStream:
         return f"{line.strip()}: done"
 
     # ---- who moves ---------------------------------------------------------------------------
+    def contract(self, u_h: int, duration_s: float, delay_s: float) -> float:
+        """A contraction ``delay_s`` after the next sample; its onset as stamped (LSL's
+        clock, this machine's monotonic one) [s]."""
+        with self.lock:
+            self.synth.contract(u_h, duration_s, delay_s)
+            onset = self.synth.contractions[-1].start_s
+        return self.started_s + onset + 1.0 / self.synth.model.rate_hz
+
     def act(self, u_h: int, held: bool, delay_s: float) -> str:
         """The simulated patient's contraction (``dammrl.emulators.patient.Body``)."""
         with self.lock:
