@@ -88,8 +88,9 @@ def cued(level: str, seed: int) -> tuple[np.ndarray, np.ndarray, list[Cue]]:
 
 def held_out(calibration: EmgCalibration, level: str, seed: int) -> dict[str, float]:
     samples, times, cues = cued(level, seed)
-    window, hop = calibration.window_s, calibration.hop_s
-    features, labels, _, trials = labelled_windows(samples, times, cues, RATE, window, hop)
+    c = calibration
+    features, labels, _, trials = labelled_windows(samples, times, cues, RATE, c.window_s,
+                                                   c.hop_s, c.features, c.conditioning)  # fmt: skip
     settings = EmgDecoderSettings()
     p = calibration.classifier.probabilities(features)
     decided = np.concatenate([decide_windows(p[trials == k], calibration.classifier.classes,

@@ -61,12 +61,11 @@ def conditioned_windows(samples: np.ndarray, rate_hz: float, window_s: float, ho
 
 
 def labelled_windows(samples: np.ndarray, times: np.ndarray, cues: list[Cue], rate_hz: float,
-                     window_s: float, hop_s: float, kind: str = "emg",
-                     conditioning: Conditioning | None = None,
+                     window_s: float, hop_s: float, kind: str, conditioning: Conditioning,
                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
     """(features, labels, blocks, trials) of every window wholly inside a trial after its
-    settle (``trials``: the index of its cue)."""
-    conditioning = conditioning or Conditioning.none()
+    settle (``trials``: the index of its cue), conditioned as ``conditioning`` says (a
+    calibration's classifier reads only features conditioned as its own were)."""
     features, ends = conditioned_windows(samples, rate_hz, window_s, hop_s, kind, conditioning)
     end_t = times[ends] if len(ends) else np.zeros(0)
     labels, blocks, trials = (np.full(len(ends), -99) for _ in range(3))
