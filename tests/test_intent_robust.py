@@ -194,6 +194,7 @@ def test_a_source_that_raises_is_stated_and_the_service_goes_on() -> None:
     assert bus.published == []  # nothing answered: the arm holds at its request
     person.failing = False
     person.coming.append(Decided(u_h=1, human_model=2, confidence=0.9, decision_s=0.5))
+    node.retry_at.clear()  # its retry due (SOURCE_RETRY_S later)
     node.step()
     state, detail = bus.health[-1]
     assert state == "ok" and "recently: the source failed reading" in detail

@@ -61,6 +61,8 @@ the service's loop waits meanwhile [s]."""
 MEASURED_RATE_TOLERANCE = 0.05
 """A stream delivering (by its timestamps) this much more or less than its nominal rate
 is refused: a sender that announces one rate and sends another."""
+MAX_REFUSED = 64
+"""Streams remembered as refused (by their LSL uid: a stream's properties never change)."""
 log = logging.getLogger("dammrl.intent")
 T = TypeVar("T")
 
@@ -198,8 +200,10 @@ class LslSource:
             self.resolver = lsl_call("starting LSL's resolver", lambda: pylsl.ContinuousResolver(
                 "name", self.settings.stream, None, forget_s))  # fmt: skip
         except (ImportError, OSError, LslError) as exc:  # no liblsl here: said, retried
-            self.stream_problem = f"LSL unavailable: {exc}"
-            log.error("%s", self.stream_problem)
+            problem = f"LSL unavailable: {exc}"
+            if problem != self.stream_problem:
+                log.error("%s", problem)
+            self.stream_problem = problem
             return
         self._attach()
 
@@ -241,13 +245,15 @@ class LslSource:
             full = lsl_call("reading the stream's metadata", lambda: inlet.info(OPEN_TIMEOUT_S))
             if (refused := mismatch(describe(full), self.calibration.stream,
                                     self.settings.rate_tolerance)) is not None:  # fmt: skip
+                if len(self.refused) >= MAX_REFUSED:  # a sender restarted again and again
+                    self.refused.pop(next(iter(self.refused)))
                 self.refused[uid] = self.stream_problem = refused
                 log.warning("%s", refused)
-                inlet.close_stream()
+                _close(inlet)
                 return
             lsl_call("opening the stream", lambda: inlet.open_stream(OPEN_TIMEOUT_S))
         except LslError:
-            inlet.close_stream()
+            _close(inlet)
             raise
         self.inlet, self.attached, self.stream_problem = inlet, uid, None
         self.attachments += 1
@@ -271,12 +277,9 @@ class LslSource:
 
     def _drop(self, problem: str) -> None:
         """Let the stream go (lost, or replaced): nothing is decided until one is taken."""
-        if self.inlet is not None:
-            inlet, self.inlet = self.inlet, None
-            try:
-                inlet.close_stream()
-            except Exception as exc:  # a lost inlet may fail to close too
-                log.debug("closing a lost inlet: %s", exc)
+        inlet, self.inlet = self.inlet, None
+        if inlet is not None:
+            _close(inlet)
         if problem != self.stream_problem:
             log.warning("%s", problem)
         self.attached, self.stream_problem, self.twins = None, problem, None
@@ -301,10 +304,7 @@ class LslSource:
     def close(self) -> None:
         inlet, self.inlet = self.inlet, None
         if inlet is not None:
-            try:
-                inlet.close_stream()
-            except Exception as exc:  # the service is ending: said, not raised
-                log.debug("closing the inlet: %s", exc)
+            _close(inlet)
 
     # ---- requests --------------------------------------------------------------------------
     def new_episode(self, episode: int, seed: int) -> None: ...
@@ -413,6 +413,14 @@ class LslSource:
         if ratio is not None:
             parts.append(f"rest level x{np.min(ratio):.2g}-{np.max(ratio):.2g} of calibration")
         return ", ".join(parts)
+
+
+def _close(inlet: Any) -> None:
+    """Close an inlet that may be lost already (closing it may fail too: said, not raised)."""
+    try:
+        inlet.close_stream()
+    except Exception as exc:  # a library's boundary
+        log.debug("closing an inlet: %s", exc)
 
 
 class LslPlugin:

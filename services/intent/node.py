@@ -97,6 +97,7 @@ class IntentNode:
         self.operator_early: tuple[SessionControl, float] | None = None  # before its request
         self.asked_s = 0.0  # when the open request was asked
         self.failures: dict[str, str] = {}  # the source's errors, per call, while they last
+        self.retry_at: dict[str, float] = {}  # when a failed call is tried again
         self.problems = RecentProblems()
 
     def run(self, stop: threading.Event) -> None:
@@ -123,6 +124,8 @@ class IntentNode:
     def _guarded(self, what: str, call: Callable[[], T]) -> T | None:
         """``call()``, a source's error stated (once per kind, in the log and in Health)
         instead of ending the service: nothing is decided, the arm holds at its request."""
+        if what in self.failures and time.monotonic() < self.retry_at.get(what, 0.0):
+            return None  # retried later: meanwhile the loop serves the bus (a takeover)
         try:
             result = call()
         except Exception as exc:  # a plug-in's bug or a device's: the service lives
@@ -130,7 +133,7 @@ class IntentNode:
             if problem != self.failures.get(what):
                 log.exception("%s (retrying)", problem)
             self.failures[what] = problem
-            time.sleep(SOURCE_RETRY_S)
+            self.retry_at[what] = time.monotonic() + SOURCE_RETRY_S
             return None
         self.failures.pop(what, None)
         return result
