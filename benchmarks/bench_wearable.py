@@ -210,9 +210,9 @@ def _latencies(received: list[tuple[int, str, bytes]]) -> tuple[list[float], int
     return [(intents[r] - decided[r]) / 1e9 for r in intents if r in decided], len(intents)
 
 
-def onset_to_intent(calibrations: dict[str, Path], trials: int) -> dict[str, list[float]]:
+def onset_to_intent(calibrations: dict[str, Path], trials: int) -> dict[str, dict[int, float]]:
     """(e): per namespace (one intent service each, its calibration), seconds from each
-    0.3 s contraction's onset to the Intent received; a missed contraction is absent."""
+    0.3 s contraction's onset to the Intent received, per request; a missed one is absent."""
     name = f"bench-{uuid.uuid4().hex[:6]}"
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     received: list[tuple[int, str, bytes]] = []
@@ -243,11 +243,12 @@ def onset_to_intent(calibrations: dict[str, Path], trials: int) -> dict[str, lis
             for service in services:
                 service.terminate()
                 service.wait(10)
-    out: dict[str, list[float]] = {namespace: [] for namespace in calibrations}
+    out: dict[str, dict[int, float]] = {namespace: {} for namespace in calibrations}
     for t_ns, topic, payload in received:
         namespace = topic.split("/", 1)[0]
         if namespace in out and type_of(namespace, topic) is Intent:
-            out[namespace].append((t_ns - onsets[decode(Intent, payload).request]) / 1e9)
+            request = decode(Intent, payload).request
+            out[namespace].setdefault(request, (t_ns - onsets[request]) / 1e9)
     return out
 
 
@@ -275,13 +276,14 @@ def _intent_service(stream: str, calibration: Path, endpoint: str,
     return subprocess.Popen([sys.executable, "-m", "services.intent"], env=env)
 
 
-def paired_difference_ms(before: list[float], after: list[float]) -> str:
-    """The median of after - before over the trials both decoded, with a bootstrap 95 %
-    interval over trials (the two services heard the same contractions)."""
-    n = min(len(before), len(after))
+def paired_difference_ms(before: dict[int, float], after: dict[int, float]) -> str:
+    """The median of after - before over the contractions both decoded, with a bootstrap
+    95 % interval over contractions (the two services heard the same ones)."""
+    both = sorted(set(before) & set(after))
+    n = len(both)
     if n < 3:
         return "too few pairs"
-    diff = (np.asarray(after[:n]) - np.asarray(before[:n])) * 1e3
+    diff = np.array([after[k] - before[k] for k in both]) * 1e3
     rng = np.random.default_rng(0)
     boot = [np.median(rng.choice(diff, n)) for _ in range(2000)]
     low, high = np.percentile(boot, [2.5, 97.5])
@@ -398,7 +400,7 @@ def main() -> None:
               "paired (two services at once)")  # fmt: skip
         latency = onset_to_intent({"before": raw, "after": path}, args.trials)
         for label, values in latency.items():
-            print(f"  {label:6s} conditioning: {percentiles(values)}; "
+            print(f"  {label:6s} conditioning: {percentiles(list(values.values()))}; "
                   f"{len(values)} Intents for {args.trials} contractions")  # fmt: skip
         print(f"  after - before: {paired_difference_ms(latency['before'], latency['after'])}")
         print("(a) latency, medium noise, 1 kHz x 8 channels in 20 ms chunks")

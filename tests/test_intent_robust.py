@@ -7,6 +7,7 @@ long enough to be seen."""
 from __future__ import annotations
 
 import json
+import time
 from pathlib import Path
 from typing import Any
 
@@ -251,3 +252,23 @@ def test_the_display_says_when_a_question_is_answered_closed_or_a_movement_count
         assert "No question now" in shown() and "counts for nothing" in shown()
     finally:
         display.close()
+
+
+def test_a_request_opens_when_its_controller_stamped_it_not_when_it_arrived() -> None:
+    """Under load a request reached the intent service 0.3 s after the participant saw it:
+    their prompt contraction then 'began before the request opened' and counted for
+    nothing. Clocks that disagree by more than MAX_TRANSIT_S are not believed."""
+    from services.intent.node import MAX_TRANSIT_S, opened_s
+
+    now_wall, now = time.time_ns(), time.monotonic()
+    assert opened_s(now_wall - 300_000_000) == pytest.approx(now - 0.3, abs=0.05)
+    assert opened_s(now_wall + 5_000_000_000) == pytest.approx(now, abs=0.05)  # ahead
+    assert opened_s(now_wall - 60_000_000_000) == pytest.approx(now - MAX_TRANSIT_S, abs=0.05)
+    bus, person = HealthBus(), ScriptedPerson()
+    opened: list[float] = []
+    person.ask = lambda ask, now_s: opened.append(now_s)  # type: ignore[method-assign]
+    node = IntentNode(IntentSettings(), person, "pad", ModelSet(), bus)  # type: ignore[arg-type]
+    late = _request(1).model_copy(update={"header": Header(
+        stamp_ns=time.time_ns() - 400_000_000, seq=0, source="controller")})  # fmt: skip
+    node._dispatch(late)
+    assert opened == [pytest.approx(time.monotonic() - 0.4, abs=0.05)]

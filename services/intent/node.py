@@ -3,14 +3,16 @@
 The source is a plug-in (``DAMMRL_INTENT_SOURCE``: ``simulated``, ``pad``, or an installed
 package's), made from its own settings. The bookkeeping is here, once, whatever decides:
 a request is asked of the source once (a re-sent request gets the answer already given,
-never a new decision); a source that decides with the policy's radius (the simulated
-human) waits for the policy's ModelChoice of the same request, at most ``policy_wait_s``
-(then the request's own radius); a new episode (its TaskGoal, or a request of a later
-episode whose announcement was missed) closes an older episode's open request and tells
-the source. Raw samples go out as SensorSample; what keeps the source from deciding goes
-into Health ("degraded"), and stays in its detail for ``PROBLEM_HOLD_S`` after it cleared
-(a fault of a tenth of a second is seen by `dammrl status` too). A source that fails (an
-error it did not catch) is reported so and retried: the service lives, nothing is decided.
+never a new decision), a person's source with the time its controller opened it (its
+stamp: a late delivery here does not make a prompt contraction early); a source that
+decides with the policy's radius (the simulated human) waits for the policy's
+ModelChoice of the same request, at most ``policy_wait_s`` (then the request's own
+radius); a new episode (its TaskGoal, or a request of a later episode whose announcement
+was missed) closes an older episode's open request and tells the source. Raw samples go
+out as SensorSample; what keeps the source from deciding goes into Health ("degraded"),
+and stays in its detail for ``PROBLEM_HOLD_S`` after it cleared (a fault of a tenth of a
+second is seen by `dammrl status` too). A source that fails (an error it did not catch)
+is reported so and retried: the service lives, nothing is decided.
 """
 
 from __future__ import annotations
@@ -206,7 +208,7 @@ class IntentNode:
             self.waiting[key] = (time.monotonic(), request)
             self._ask_if_chosen(key)
         else:
-            self._ask(request, request.human_model)
+            self._ask(request, request.human_model, opened_s(request.header.stamp_ns))
 
     def _new_episode(self, episode: int, seed: int) -> None:
         """Once per episode (repeats of the announcement change nothing; a restarted
@@ -237,7 +239,10 @@ class IntentNode:
                 del self.waiting[key]
                 self._ask(request, request.human_model)
 
-    def _ask(self, request: DecisionRequest, human_model: int) -> None:
+    def _ask(self, request: DecisionRequest, human_model: int,
+             since_s: float | None = None) -> None:  # fmt: skip
+        """Ask the source ``request`` (open since ``since_s``, this machine's monotonic
+        clock; default now: a request handed back to the participant is asked afresh)."""
         self.open, self.asked_s = request, time.monotonic()
         if self.taken_by is not None:  # the therapist answers it
             early = self.operator_early
@@ -247,7 +252,7 @@ class IntentNode:
         ask = Ask(request.episode, request.request, request.seed, request.t_s,
                   np.array(request.ee_pos_m), np.array(request.goal_m), request.primary_axis,
                   human_model)  # fmt: skip
-        self.source.ask(ask, time.monotonic())
+        self.source.ask(ask, time.monotonic() if since_s is None else since_s)
 
     # ---- answers -------------------------------------------------------------------------
     def _answer(self, decided: Decided) -> None:
@@ -436,6 +441,21 @@ class RawBacklog:
         return Chunk(first.stream, first.rate_hz, np.concatenate([c.samples for c in taken]),
                      np.concatenate([c.times_s for c in taken]),
                      sum(c.missing for c in taken), taken[-1].clock_corrected_s)  # fmt: skip
+
+
+MAX_TRANSIT_S = 1.0
+"""A request's publisher stamp counts as its opening at most this long before it arrived
+(beyond, the two machines' clocks disagree) [s]."""
+
+
+def opened_s(stamp_ns: int) -> float:
+    """When a request opened, on this machine's monotonic clock: its publisher's stamp (the
+    participant may see it from then on: a loaded machine delivers it here later, and a
+    contraction begun in between is theirs), never after its arrival, nor more than
+    ``MAX_TRANSIT_S`` before it."""
+    now = time.monotonic()
+    stamped = now - (time.time_ns() - stamp_ns) / 1e9
+    return min(now, max(stamped, now - MAX_TRANSIT_S))
 
 
 def bus_ns(monotonic_s: float) -> int:
