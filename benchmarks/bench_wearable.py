@@ -249,6 +249,10 @@ def onset_to_intent(calibrations: dict[str, Path], trials: int) -> dict[str, dic
         if namespace in out and type_of(namespace, topic) is Intent:
             request = decode(Intent, payload).request
             out[namespace].setdefault(request, (t_ns - onsets[request]) / 1e9)
+        elif namespace in out and type_of(namespace, topic) is IntentEvidence:
+            evidence = decode(IntentEvidence, payload)
+            if not evidence.acted:  # why a contraction answered nothing, for the record
+                print(f"  ({namespace}: a decision not acted on: {evidence.reason})")
     return out
 
 

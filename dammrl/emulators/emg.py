@@ -188,17 +188,20 @@ class EmgStream:
 
     # ---- who moves ---------------------------------------------------------------------------
     def contract(self, u_h: int, duration_s: float, delay_s: float) -> float:
-        """A contraction ``delay_s`` after the next sample; its onset as stamped (LSL's
-        clock, this machine's monotonic one) [s]."""
+        """A contraction ``delay_s`` from now; its onset as stamped (LSL's clock, this
+        machine's monotonic one) [s]. The samples may lag real time (a busy machine): the
+        contraction is placed at now + ``delay_s`` on their timeline, never in its past."""
+        import pylsl
+
         with self.lock:
-            self.synth.contract(u_h, duration_s, delay_s)
+            behind = pylsl.local_clock() - (self.started_s + self.synth.t_s)
+            self.synth.contract(u_h, duration_s, delay_s + max(0.0, behind))
             onset = self.synth.contractions[-1].start_s
         return self.started_s + onset + 1.0 / self.synth.model.rate_hz
 
     def act(self, u_h: int, held: bool, delay_s: float) -> str:
         """The simulated patient's contraction (``dammrl.emulators.patient.Body``)."""
-        with self.lock:
-            self.synth.contract(u_h, HELD_S if held else QUICK_S, delay_s)
+        self.contract(u_h, HELD_S if held else QUICK_S, delay_s)
         return f"{'held' if held else 'quick'} contraction {u_h:+d}"
 
     def follow_cues(self, stop: threading.Event, reaction_s: float = 0.3) -> int:
