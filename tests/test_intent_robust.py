@@ -57,6 +57,38 @@ def test_a_stream_unlike_the_calibration_is_refused_in_one_line(
     assert words in str(mismatch(found, CALIBRATED, rate_tolerance=0.005))
 
 
+def test_a_stream_no_calibration_can_describe_is_refused_in_one_line() -> None:
+    from dammrl_core.intent.lsl import LslSource
+
+    class Irregular:  # an LSL marker stream of the same name: no regular rate
+        def name(self) -> str:
+            return "ForearmEMG"
+
+        def type(self) -> str:
+            return "EMG"
+
+        def channel_count(self) -> int:
+            return 4
+
+        def nominal_srate(self) -> float:
+            return 0.0
+
+        def source_id(self) -> str:
+            return ""
+
+        def hostname(self) -> str:
+            return "amp"
+
+        def desc(self) -> Any:
+            raise AssertionError("not reached: no labels asked of an unusable stream")
+
+    source = LslSource.__new__(LslSource)
+    source.settings = type("S", (), {"stream": "ForearmEMG", "rate_tolerance": 0.005})()  # type: ignore[assignment]
+    source.calibration = type("C", (), {"stream": CALIBRATED})()  # type: ignore[assignment]
+    line = str(source._unfit(Irregular()))
+    assert "stream 'ForearmEMG' cannot be used: nominal_srate_hz" in line, line
+
+
 def test_a_stream_within_the_rate_tolerance_and_unlabelled_calibrations_pass() -> None:
     assert mismatch(CALIBRATED.model_copy(update={"nominal_srate_hz": 2008.0}), CALIBRATED,
                     rate_tolerance=0.005) is None  # fmt: skip

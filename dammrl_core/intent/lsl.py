@@ -31,7 +31,7 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, ValidationError
 from pydantic_settings import SettingsConfigDict
 
 from dammrl_core.errors import ConfigurationError, DammrlError
@@ -122,12 +122,12 @@ def channel_metadata(info: Any) -> tuple[list[str], list[str]]:
 
 def describe(info: Any) -> StreamDescription:
     """A StreamInfo (with its metadata, from an inlet's ``info()``) as a calibration keeps it."""
-    labels, units = channel_metadata(info)
-    return StreamDescription(name=info.name(), type=info.type(),
-                             channel_count=info.channel_count(),
-                             nominal_srate_hz=info.nominal_srate(),
-                             source_id=info.source_id(), hostname=info.hostname(),
-                             channel_labels=labels, units=units)  # fmt: skip
+    plain = StreamDescription(name=info.name(), type=info.type(),
+                              channel_count=info.channel_count(),
+                              nominal_srate_hz=info.nominal_srate(),
+                              source_id=info.source_id(), hostname=info.hostname())  # fmt: skip
+    labels, units = channel_metadata(info)  # read once the stream is one a calibration takes
+    return StreamDescription(**plain.model_dump() | {"channel_labels": labels, "units": units})
 
 
 def mismatch(
@@ -243,8 +243,7 @@ class LslSource:
             info, max_buflen=2, recover=False, processing_flags=pylsl.proc_clocksync))  # fmt: skip
         try:
             full = lsl_call("reading the stream's metadata", lambda: inlet.info(OPEN_TIMEOUT_S))
-            if (refused := mismatch(describe(full), self.calibration.stream,
-                                    self.settings.rate_tolerance)) is not None:  # fmt: skip
+            if (refused := self._unfit(full)) is not None:
                 if len(self.refused) >= MAX_REFUSED:  # a sender restarted again and again
                     self.refused.pop(next(iter(self.refused)))
                 self.refused[uid] = self.stream_problem = refused
@@ -262,6 +261,16 @@ class LslSource:
         self.decoder.reset()
         log.info("taken LSL stream %r from %s (%s)", full.name(), full.hostname(),
                  full.source_id() or "no source id")  # fmt: skip
+
+    def _unfit(self, info: Any) -> str | None:
+        """Why the stream ``info`` (with its metadata) cannot be decoded, or None."""
+        try:
+            found = describe(info)
+        except ValidationError as exc:  # no regular rate, 300 channels, a name of 1 kB
+            first = exc.errors()[0]
+            where = ".".join(str(p) for p in first["loc"])
+            return f"stream {self.settings.stream!r} cannot be used: {where}: {first['msg']}"
+        return mismatch(found, self.calibration.stream, self.settings.rate_tolerance)
 
     def _not_one(self, found: list[Any]) -> str:
         name = self.settings.stream
