@@ -7,6 +7,8 @@ long enough to be seen."""
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -186,6 +188,10 @@ def test_the_recording_counts_a_raw_streams_missing_samples_and_clock_jumps(
     assert loss["emg"] == {"chunks": 4, "samples": 4, "missing_samples": 93, "gaps": 1,
                            "clock_jumps": 1, "clock_corrected_s": -5.0}  # fmt: skip
     assert recorded["raw_streams"] == loss  # a cut file's are counted from its messages too
+    shown = subprocess.run([sys.executable, "-m", "dammrl", "recording", "info",
+                            str(tmp_path / "r.mcap")], capture_output=True, text=True,
+                           check=True).stdout  # fmt: skip
+    assert "raw stream 'emg': 4 samples, 93 missing in 1 gaps, 1 clock jumps corrected" in shown
 
 
 # ---- the service lives, its problems are seen ----------------------------------------------------
