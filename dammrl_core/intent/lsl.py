@@ -326,6 +326,9 @@ class LslSource:
 
     def rebaseline(self) -> str:
         """Measure the participant's rest level afresh (they rest for ``rebaseline_s``)."""
+        if not self.decoder.normaliser.active:
+            return ("no rest level to measure: this calibration takes absolute levels (an "
+                    "IMU, or version 1: calibrate again)")  # fmt: skip
         self.decoder.rebaseline(self.settings.rebaseline_s)
         return f"measuring the rest level for {self.settings.rebaseline_s:g} s"
 
