@@ -310,3 +310,42 @@ def test_a_request_opens_when_its_controller_stamped_it_not_when_it_arrived() ->
         stamp_ns=time.time_ns() - 400_000_000, seq=0, source="controller")})  # fmt: skip
     node._dispatch(late)
     assert opened == [pytest.approx(time.monotonic() - 0.4, abs=0.05)]
+
+
+def test_a_decision_made_just_before_its_request_arrived_answers_it(tmp_path: Path) -> None:
+    """Under load the request reached the service after the person's quick contraction
+    had ended: 'no request open', the request stayed open and the person had to answer
+    again (8 of 30 in the latency benchmark at load 30)."""
+    from dammrl_core.intent.emg.calibration import save_calibration
+    from dammrl_core.intent.emg.decoder import Contraction
+    from dammrl_core.intent.emg.training import train
+    from dammrl_core.intent.lsl import CLAIM_WITHIN_S, LslSettings, LslSource
+    from dammrl_core.intent.source import Ask
+    from tests.test_wearable import STREAM, cued_session
+
+    path = save_calibration(train(*cued_session(), STREAM), tmp_path / "p.json")
+    source = LslSource(LslSettings(stream="emg", calibration_file=path))
+    now = time.monotonic()
+
+    def contraction(onset_s: float) -> Contraction:
+        return Contraction(1, 1, 0.99, onset_s, onset_s + 0.3, onset_s + 0.4, 6, (0.0,),
+                           True, "")  # fmt: skip
+
+    def ask(opened_s: float, number: int) -> None:
+        source.ask(Ask(1, number, 0, 0.0, np.zeros(3), np.ones(3), 0, 1), opened_s)
+
+    assert source._take_decision(contraction(now - 0.5)) is None  # no request here yet
+    ask(now - 0.7, 1)  # stamped before the contraction began: it is its answer
+    decided = source.poll(time.monotonic())
+    assert decided is not None and decided.decision_s == pytest.approx(0.2)
+    assert [(e.request, e.acted) for e in source.evidence()] == [(1, True)]
+    source._take_decision(contraction(now - 0.5))
+    ask(now - 0.2, 2)  # stamped after it began: meant for another moment
+    assert source.poll(time.monotonic()) is None
+    assert [(e.acted, e.reason) for e in source.evidence()] == [
+        (False, "began 0.30 s before the request opened")]  # fmt: skip
+    source.cancel()
+    source._take_decision(contraction(time.monotonic()))
+    source.unclaimed = (source.unclaimed[0], time.monotonic() - CLAIM_WITHIN_S - 0.1)  # type: ignore[index]
+    assert source.poll(time.monotonic()) is None  # no request came in time: evidence only
+    assert [(e.acted, e.reason) for e in source.evidence()] == [(False, "no request open")]

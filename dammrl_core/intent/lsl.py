@@ -6,7 +6,8 @@ it passes the calibration's checks, maps its timestamps to this machine's clock 
 clock correction, then :mod:`dammrl_core.intent.stamps` for a sender's own clock
 jumping), and decodes windows into decisions with the person's classifier
 (:mod:`dammrl_core.intent.emg.decoder`). One decision answers one open request, and only
-a contraction that began while that request was open (see ``belongs_to_request``); any
+a contraction that began while that request was open (see ``belongs_to_request``; one
+decided just before its request arrived, late on a busy bus, still answers it); any
 other is not acted on but kept as evidence. The raw samples go on as chunks.
 
 **Any sender.** Every LSL error (a stream lost, a timeout, a library error) is caught
@@ -61,6 +62,9 @@ the service's loop waits meanwhile [s]."""
 MEASURED_RATE_TOLERANCE = 0.05
 """A stream delivering (by its timestamps) this much more or less than its nominal rate
 is refused: a sender that announces one rate and sends another."""
+CLAIM_WITHIN_S = 1.0
+"""A decision made with no request open answers one that arrives this soon after, if the
+contraction began after that request was stamped: the bus delivered it late [s]."""
 MAX_REFUSED = 64
 """Streams remembered as refused (by their LSL uid: a stream's properties never change)."""
 log = logging.getLogger("dammrl.intent")
@@ -187,6 +191,7 @@ class LslSource:
         self.decisions = 0
         self.not_acted = 0
         self.attachments = 0
+        self.unclaimed: tuple[Contraction, float] | None = None  # decided, no request yet
 
     # ---- finding the stream ------------------------------------------------------------------
     def open(self) -> None:
@@ -334,6 +339,8 @@ class LslSource:
 
     # ---- the samples -------------------------------------------------------------------------
     def poll(self, now_s: float) -> Decided | None:
+        if (claimed := self._claim()) is not None:
+            return claimed
         if self.inlet is None:
             if now_s - self.last_resolve > self.settings.resolve_every_s:
                 self._attach()
@@ -381,6 +388,29 @@ class LslSource:
                 f"timestamps but announces {nominal:g} Hz (the calibration's)")  # fmt: skip
 
     def _take_decision(self, contraction: Contraction) -> Decided | None:
+        c = contraction
+        if c.accepted and self.open_since is None:  # its request may be on its way still
+            self._expire_unclaimed(now_s=np.inf)
+            self.unclaimed = (c, time.monotonic())
+            return None
+        return self._verdict(c)
+
+    def _claim(self) -> Decided | None:
+        """A decision made before its request arrived answers it, if it began after the
+        request was stamped (the bus was slower than the person)."""
+        self._expire_unclaimed(time.monotonic())
+        if self.unclaimed is None or self.open_since is None:
+            return None
+        contraction, self.unclaimed = self.unclaimed[0], None
+        return self._verdict(contraction)
+
+    def _expire_unclaimed(self, now_s: float) -> None:
+        if self.unclaimed is not None and now_s - self.unclaimed[1] > CLAIM_WITHIN_S:
+            contraction, self.unclaimed = self.unclaimed[0], None
+            self._verdict(contraction)  # no request came for it: evidence only
+
+    def _verdict(self, contraction: Contraction) -> Decided | None:
+        """The decision acted on, or not (its evidence either way)."""
         self.decisions += 1
         c = contraction
         # LSL's local clock is this machine's monotonic clock (as time.monotonic)
