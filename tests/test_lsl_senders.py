@@ -103,7 +103,7 @@ def test_a_sender_without_a_source_id_killed_leaves_the_service_alive_and_the_ar
     intent, name = service
     sender = _sender(name, "--source-id", "")
     try:
-        wait_for(intent.decoding, 30, "the service decoding the stream")
+        wait_for(intent.decoding, 60, "the service decoding the stream")
         intent.ask(1)  # a request open: the arm waits for its answer
         sender.send_signal(signal.SIGKILL)
         sender.wait(10)
@@ -235,7 +235,7 @@ def test_the_therapist_rebaselines_the_running_services_rest_level(
     intent, name = service
     sender = _sender(name)
     try:
-        wait_for(intent.decoding, 30, "the service decoding the stream")
+        wait_for(intent.decoding, 60, "the service decoding the stream")
         done = subprocess.run([sys.executable, "-m", "dammrl", "intent", "rebaseline", "--who",
                                "T01", "--connect", endpoint(intent.port)], capture_output=True,
                               text=True, timeout=60, check=False)  # fmt: skip
