@@ -30,6 +30,7 @@ import shutil
 import sys
 import threading
 import time
+from collections import Counter
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, replace
 from datetime import UTC, datetime
@@ -64,6 +65,7 @@ from schemas import (
     encode,
     key,
 )
+from services.common.security import DISPLAY, OPERATOR
 
 if TYPE_CHECKING:
     from dammrl.display import ParticipantDisplay
@@ -472,7 +474,8 @@ class StackRun:
         self.runner, self.session, self.setup = runner, session, setup
         self.group, self.total = group, total
         self.part = session.next_part()
-        self.hub: Any = None  # the stack's bus session, once it is up
+        self.hub: Any = None  # the stack's bus session (the operator's), once it is up
+        self.display_bus: Any = None  # the participant display's own (its role), once up
         self.stack: Stack | None = None
         self.episode = 1  # the reach under way (this run counts from 1)
         self.actions: list[dict[str, Any]] = []  # the console's, on the reach under way
@@ -482,7 +485,7 @@ class StackRun:
         self.end_block = False  # the rest of the block is skipped...
         self.end_block_why = ""  # ... by whom and why
         self.running = threading.Event()
-        self.sent = 0  # messages this run sent (their sequence numbers)
+        self.sent: Counter[type[Message]] = Counter()  # per message type (its key): its seq
         self.posterior: tuple[float, float] | None = None  # the policy's, last heard
         self.subscribers: list[Any] = []
 
@@ -520,19 +523,23 @@ class StackRun:
             return self.stack.run()
         finally:
             self.running.clear()
-            self.hub, self.subscribers = None, []
+            self.hub, self.display_bus, self.subscribers = None, None, []
             if self.posterior is not None and self.posterior != prior:
                 runner.participant.keep_posterior(self.posterior, self.session.folder.name,
                                                   [t.number for t in self.group])  # fmt: skip
                 self.session.events.add(runner.event("posterior", p=list(self.posterior)))
 
     def attach(self, hub: Any) -> None:
-        """The stack is up: the display follows its bus, the console acts on it."""
+        """The stack is up: the console acts on its bus as the operator; the display
+        follows it with a session of its own role, which may send the participant's
+        comfort rating and nothing else."""
         self.hub = hub
         if self.runner.display is not None:
             from dammrl.display import BusFeed
 
-            BusFeed(self.runner.display, DEFAULT_NAMESPACE).attach(hub)
+            assert self.stack is not None
+            self.display_bus = self.stack.join(DISPLAY)
+            BusFeed(self.runner.display, DEFAULT_NAMESPACE).attach(self.display_bus)
         self.subscribers = [hub.declare_subscriber(key(DEFAULT_NAMESPACE, ModelChoice),
                                                    self._choice)]  # fmt: skip
         self.running.set()
@@ -602,9 +609,11 @@ class StackRun:
             runner.say(f"no comfort rating within {runner.comfort_timeout_s:.0f} s")
             return
         rating, asked_s = answer
-        self._send(ComfortRating(header=self._header(), participant=runner.participant.id,
-                                 block=trial.block, trial=trial.number, rating=rating,
-                                 asked_s=asked_s))  # fmt: skip
+        rating_message = ComfortRating(header=self._header(ComfortRating, DISPLAY),
+                                       participant=runner.participant.id, block=trial.block,
+                                       trial=trial.number, rating=rating,
+                                       asked_s=asked_s)  # fmt: skip
+        self._send(rating_message, self.display_bus)
         time.sleep(0.2)  # the recorder takes it before the stack stops
         self.session.events.add(runner.event("comfort", block=trial.block, rating=rating,
                                              asked_s=round(asked_s, 2)))  # fmt: skip
@@ -636,7 +645,7 @@ class StackRun:
                                              why=command.why))  # fmt: skip
         if action in ("stop", "release"):
             reason = f"{runner.setup.operator}: {command.why}"[:200]
-            self._send(EmergencyStop(header=self._header(), engaged=action == "stop",
+            self._send(EmergencyStop(header=self._header(EmergencyStop), engaged=action == "stop",
                                      reason=reason))  # fmt: skip
         elif action == "pause" and self.paused_since is None:
             self.paused_since = time.monotonic()
@@ -659,17 +668,22 @@ class StackRun:
         runner.say(f"console: {action} (trial {trial.number})")
 
     def _control(self, action: str, why: str, **decision: int) -> None:
-        self._send(SessionControl(header=self._header(), episode=self.episode, action=action,
-                                  who=self.runner.setup.operator, why=why,
+        self._send(SessionControl(header=self._header(SessionControl), episode=self.episode,
+                                  action=action, who=self.runner.setup.operator, why=why,
                                   **decision))  # fmt: skip
 
-    def _header(self) -> Header:
-        self.sent += 1
-        return Header(stamp_ns=time.time_ns(), seq=self.sent - 1, source="tool")
+    def _header(self, message_type: type[Message], source: str = OPERATOR) -> Header:
+        """The next header of ``message_type``: one sequence per key and publisher, as
+        the recorder counts loss."""
+        self.sent[message_type] += 1
+        seq = self.sent[message_type] - 1
+        return Header(stamp_ns=time.time_ns(), seq=seq, source=source)
 
-    def _send(self, message: Message) -> None:
-        if self.hub is not None:
-            self.hub.put(key(DEFAULT_NAMESPACE, type(message)), encode(message))
+    def _send(self, message: Message, session: Any = None) -> None:
+        """Publish ``message`` on ``session`` (default: the operator's, the hub)."""
+        session = self.hub if session is None else session
+        if session is not None:
+            session.put(key(DEFAULT_NAMESPACE, type(message)), encode(message))
 
 
 def session_table(root: Path, participant: str | None = None) -> list[dict[str, Any]]:

@@ -321,8 +321,9 @@ def rebaseline(settings: Any, who: str, timeout_s: float = REBASELINE_WAIT_S) ->
     The request is sent again every second until confirmed (a message may be lost)."""
     from schemas import Health, SessionControl, TaskGoal
     from services.common.bus import Bus
+    from services.common.security import OPERATOR
 
-    with Bus(settings, "tool") as bus:
+    with Bus(settings, OPERATOR) as bus:  # the therapist's hand, as `dammrl stop`'s
         bus.subscribe(Health, TaskGoal)
         control = bus.publisher(SessionControl)
         episode, start, next_send = 1, time.monotonic(), 0.0

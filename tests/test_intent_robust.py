@@ -243,7 +243,7 @@ def test_a_source_that_raises_is_stated_and_the_service_goes_on() -> None:
 def test_the_therapists_rebaseline_reaches_the_source() -> None:
     bus, person = HealthBus(), FailingPerson()
     node = IntentNode(IntentSettings(), person, "lsl", ModelSet(), bus)  # type: ignore[arg-type]
-    node._dispatch(SessionControl(header=Header(stamp_ns=1, seq=0, source="tool"), episode=1,
+    node._dispatch(SessionControl(header=Header(stamp_ns=1, seq=0, source="operator"), episode=1,
                                   action="rebaseline", who="T01"))  # fmt: skip
     assert person.rebaselined == 1
 

@@ -149,7 +149,7 @@ def test_a_pause_holds_the_arm_without_a_jump_and_a_skip_ends_the_reach() -> Non
     marks: dict[str, float] = {}
 
     def control(hub: object, episode: int, action: str) -> None:
-        header = Header(stamp_ns=time.time_ns(), seq=len(marks), source="tool")
+        header = Header(stamp_ns=time.time_ns(), seq=len(marks), source="operator")
         message = SessionControl(header=header, episode=episode, action=action, who="T1",
                                  why="a test")  # fmt: skip
         marks[f"{action}{episode}"] = time.monotonic()
@@ -214,7 +214,7 @@ def test_the_therapist_takes_the_decisions_over_and_hands_them_back() -> None:
     sent = [0]
 
     def control(hub: object, action: str, **decision: int) -> None:
-        header = Header(stamp_ns=time.time_ns(), seq=sent[0], source="tool")
+        header = Header(stamp_ns=time.time_ns(), seq=sent[0], source="operator")
         sent[0] += 1
         message = SessionControl(header=header, episode=1, action=action, who="T1",
                                  **decision)  # type: ignore[arg-type]  # fmt: skip

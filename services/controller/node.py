@@ -23,7 +23,7 @@ from collections.abc import Sequence
 from dammrl_core import state as core
 from dammrl_core.control.pause import Pause, hold_command
 from dammrl_core.control.reach import Plan, Reach, plan_reach
-from dammrl_core.control.settings import ControllerSettings
+from dammrl_core.control.settings import ControllerSettings, check_workspace
 from dammrl_core.dynamics import ArmModel
 from dammrl_core.ik import make_ik_solver
 from dammrl_core.metrics import episode_summary
@@ -45,6 +45,7 @@ from schemas import (
 from services.common import convert
 from services.common.bus import Bus
 from services.common.entry import run_service
+from services.common.security import OPERATOR
 from services.controller.requests import Requests, Timing
 
 log = logging.getLogger("dammrl.controller")
@@ -61,6 +62,7 @@ class ControllerNode:
         models: ModelSet,
         bus: Bus,
     ) -> None:
+        check_workspace(settings, task)
         self.settings = settings
         self.task_settings = task
         self.models = models
@@ -100,7 +102,7 @@ class ControllerNode:
         bus.expect(RobotState, "sim", "robot")  # the simulated or the real arm
         bus.expect(Intent, "intent")
         bus.expect(ModelChoice, "policy")
-        bus.expect(SessionControl, "tool")  # the session's console
+        bus.expect(SessionControl, OPERATOR)  # the session's console
         self.pause = Pause()  # the therapist's pauses of the running reach
         self.last_command: core.JointCommand | None = None  # the last command sent
 

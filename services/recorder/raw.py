@@ -11,7 +11,6 @@ sequence gaps (a chunk lost on the bus is one of those).
 from __future__ import annotations
 
 import json
-from collections.abc import Iterable
 from dataclasses import asdict, dataclass
 
 import msgpack
@@ -57,14 +56,10 @@ class RawStreams:
         stream.clock_jumps += float(corrected) != stream.clock_corrected_s
         stream.clock_corrected_s = float(corrected)
 
+    def counts(self) -> dict[str, dict[str, float]]:
+        """Per stream: chunks, samples, missing samples, gaps, clock jumps, the correction."""
+        return {name: asdict(s) for name, s in self.streams.items()}
+
     def metadata(self) -> str:
         """The counts per stream, as JSON."""
-        return json.dumps({name: asdict(s) for name, s in self.streams.items()})
-
-
-def raw_stream_loss(namespace: str, messages: Iterable[tuple[str, bytes]]) -> dict[str, object]:
-    """The counts of a recording's (topic, payload) pairs, per stream."""
-    streams = RawStreams(namespace)
-    for topic, payload in messages:
-        streams.see(topic, payload)
-    return {name: asdict(s) for name, s in streams.streams.items()}
+        return json.dumps(self.counts())
