@@ -35,4 +35,4 @@ def test_echo_started_before_the_run_finds_it() -> None:
                 process.wait(30)
     assert echo.returncode == 0, said.lines
     assert len([line for line in out.splitlines() if '"key": "dammrl/robot/state"' in line]) == 3
-    assert any("a run answers at tls/127.0.0.1" in line for line in said.lines), said.lines
+    said.wait_for("a run answers at tls/127.0.0.1", 10)  # its stderr is read on a thread
