@@ -246,3 +246,30 @@ def test_the_therapist_rebaselines_the_running_services_rest_level(
         wait_for(intent.decoding, 15, "decoding again after the measurement (3 s)")
     finally:
         sender.kill()
+
+
+def test_a_frozen_sender_replaced_by_another_is_left_for_it(calibration_file: Path) -> None:
+    """A sender that hangs (its connection open, nothing sent, no longer answering LSL's
+    queries) while the lab starts another: the source lets the silent one go once LSL no
+    longer lists it, and takes the new one."""
+    name = _name()
+    frozen = _sender(name, "--source-id", "amp-1")
+    harness = None
+    try:
+        harness = Harness(EmgStream(name, EmgSynth(model_named("medium"), 1)), calibration_file)
+        harness.connect(timeout_s=60)
+        frozen.send_signal(signal.SIGSTOP)
+        harness.run(1.0)
+        assert "silent" in str(harness.source.problem())
+        other = _sender(name, "--source-id", "amp-2")
+        try:
+            took = _attached_to(harness, PICKUP_S + 5.0)  # LSL forgets the frozen one first
+            print(f"frozen sender left, the other taken after {took:.2f} s")
+        finally:
+            other.kill()
+            other.wait(10)
+    finally:
+        frozen.kill()
+        frozen.wait(10)
+        if harness is not None:
+            harness.source.close()
