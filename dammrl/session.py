@@ -56,6 +56,7 @@ from schemas import (
     ComfortRating,
     DecodeError,
     EmergencyStop,
+    EpisodeRecorded,
     EpisodeResult,
     Header,
     Message,
@@ -311,6 +312,43 @@ def runs(trials: list[Trial]) -> Iterator[list[Trial]]:
 
 Say = Callable[[str], None]
 
+RECORDED_WAIT_S = 15.0
+"""How long a stack run waits at its end for the recorder to confirm that each of its
+reaches is on disk (``EpisodeRecorded``) before the stack stops [s]. A reach it does not
+confirm is logged in ``events.jsonl`` and said; the catalogue reports it."""
+
+
+class RecordedEpisodes:
+    """The recorder's acknowledgements of one stack run's episodes, as they come (a
+    complete one supersedes an incomplete one), and a bounded wait for them."""
+
+    def __init__(self, part: Path) -> None:
+        self.stem = part.stem  # part-NN: its continuations are part-NN-001.mcap, ...
+        self.acks: dict[int, EpisodeRecorded] = {}
+        self.changed = threading.Condition()
+
+    def take(self, ack: EpisodeRecorded) -> None:
+        """One acknowledgement heard (the recorder of another run's file is not ours)."""
+        if ack.header.source != "recorder" or not ack.file.startswith(self.stem):
+            return
+        with self.changed:
+            known = self.acks.get(ack.episode)
+            if known is None or not known.complete:
+                self.acks[ack.episode] = ack
+            self.changed.notify_all()
+
+    def wait(self, episodes: list[int], timeout_s: float) -> dict[int, EpisodeRecorded]:
+        """The acknowledgements of ``episodes`` once each is complete, or what came within
+        ``timeout_s``."""
+        deadline = time.monotonic() + timeout_s
+        with self.changed:
+            while not all(e in self.acks and self.acks[e].complete for e in episodes):
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    break
+                self.changed.wait(remaining)
+            return {e: self.acks[e] for e in episodes if e in self.acks}
+
 
 class SessionRunner:
     """Runs (or resumes) a participant's session of a protocol through the stack."""
@@ -328,10 +366,12 @@ class SessionRunner:
         display: ParticipantDisplay | None = None,
         comfort_timeout_s: float = 120.0,
         console: TextIO | None = None,
+        recorded_wait_s: float = RECORDED_WAIT_S,
     ) -> None:
         self.participant = Participant(root, participant)
         self.display = display
         self.comfort_timeout_s = comfort_timeout_s
+        self.recorded_wait_s = recorded_wait_s
         self.console = Lines(sys.stdin if console is None else console)
         self.protocol_file = protocol_file
         self.protocol = load_protocol(protocol_file)
@@ -488,6 +528,8 @@ class StackRun:
         self.sent: Counter[type[Message]] = Counter()  # per message type (its key): its seq
         self.posterior: tuple[float, float] | None = None  # the policy's, last heard
         self.subscribers: list[Any] = []
+        self.recorded = RecordedEpisodes(self.part)  # what the recorder holds on disk
+        self.listening = False  # to the recorder's acknowledgements
 
     def run(self) -> int:
         runner, group = self.runner, self.group
@@ -541,7 +583,10 @@ class StackRun:
             self.display_bus = self.stack.join(DISPLAY)
             BusFeed(self.runner.display, DEFAULT_NAMESPACE).attach(self.display_bus)
         self.subscribers = [hub.declare_subscriber(key(DEFAULT_NAMESPACE, ModelChoice),
-                                                   self._choice)]  # fmt: skip
+                                                   self._choice),
+                            hub.declare_subscriber(key(DEFAULT_NAMESPACE, EpisodeRecorded),
+                                                   self._recorded)]  # fmt: skip
+        self.listening = True
         self.running.set()
         threading.Thread(target=self._console, daemon=True).start()
 
@@ -551,6 +596,10 @@ class StackRun:
             choice = decode(ModelChoice, sample.payload.to_bytes())
             if choice.posterior is not None and len(choice.posterior) == 2:
                 self.posterior = (choice.posterior[0], choice.posterior[1])
+
+    def _recorded(self, sample: Any) -> None:
+        with contextlib.suppress(DecodeError):
+            self.recorded.take(decode(EpisodeRecorded, sample.payload.to_bytes()))
 
     # ---- results --------------------------------------------------------------------
     def keep(self, result: EpisodeResult) -> None:
@@ -578,9 +627,34 @@ class StackRun:
             self._skip_rest_of_block(trial)
         if last or self.end_block:
             self._ask_comfort(trial)
+        if result.episode == len(self.group) or self.again or self.end_block:
+            self._await_recorded()  # the stack stops next
         if self.again or self.end_block:
             assert self.stack is not None
             self.stack.finish()
+
+    def _await_recorded(self) -> None:
+        """Wait (bounded) until the recorder confirms every reach of this run on disk;
+        log what it confirmed and say what it did not (the catalogue reports those)."""
+        if not self.listening:
+            return
+        runner, episodes = self.runner, list(range(1, self.episode))
+        started = time.monotonic()
+        acks = self.recorded.wait(episodes, runner.recorded_wait_s)
+        trial = {e: self.group[e - 1].number for e in episodes}
+        partial = {trial[e]: a.missing for e, a in acks.items() if not a.complete}
+        unconfirmed = [trial[e] for e in episodes if e not in acks]
+        self.session.events.add(runner.event(
+            "recorded", recording=self.part.name, episodes=episodes,
+            confirmed=[trial[e] for e, a in acks.items() if a.complete], partial=partial,
+            unconfirmed=unconfirmed, unconfirmed_episodes=[e for e in episodes if e not in acks],
+            waited_s=round(time.monotonic() - started, 3),
+        ))  # fmt: skip
+        if unconfirmed:
+            runner.say(f"the recorder did not confirm trial(s) {unconfirmed} on disk within "
+                       f"{runner.recorded_wait_s:g} s: the catalogue will report them")  # fmt: skip
+        for number, missing in partial.items():
+            runner.say(f"trial {number} is recorded without {missing}")
 
     def _recording(self) -> Path:
         """The file the recorder writes now: the part, or its newest continuation after
@@ -664,7 +738,7 @@ class StackRun:
             self.again = action == "again"
             if action == "end-block":
                 self.end_block, self.end_block_why = True, f"{runner.setup.operator}: {command.why}"
-            self._control("skip", command.why)
+            self._control(action, command.why)  # each ends the reach; recorded as itself
         runner.say(f"console: {action} (trial {trial.number})")
 
     def _control(self, action: str, why: str, **decision: int) -> None:

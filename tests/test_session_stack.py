@@ -134,10 +134,11 @@ def test_a_session_killed_again_and_again_resumes_and_runs_every_trial_exactly_o
         assert study["participant"] == "P001" and trial["trial"] in study["trials"]
 
 
-def test_a_pause_holds_the_arm_without_a_jump_and_a_skip_ends_the_reach() -> None:
-    """On the real stack: pause a reach under way for 2 s, resume it, then skip the next
-    one. The reference never steps further than in ordinary running; the paused reach
-    still succeeds and its time leaves the pause out."""
+def test_a_pause_holds_the_arm_without_a_jump_and_an_again_ends_the_reach() -> None:
+    """On the real stack: pause a reach under way for 2 s, resume it, then run the next
+    one again (it ends as a skip or an end of block does: ``ENDS_REACH``). The reference
+    never steps further than in ordinary running; the paused reach still succeeds and
+    its time leaves the pause out."""
     import threading
 
     from dammrl.launch import Stack, StackOptions
@@ -165,7 +166,7 @@ def test_a_pause_holds_the_arm_without_a_jump_and_a_skip_ends_the_reach() -> Non
         while not results and time.monotonic() < deadline + 60:
             time.sleep(0.05)
         time.sleep(1.0)
-        control(hub, 2, "skip")
+        control(hub, 2, "again")
 
     def on_up(hub: object) -> None:
         def take(sample: object) -> None:

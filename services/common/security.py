@@ -38,7 +38,7 @@ PUBLISHES: dict[str, tuple[str, ...]] = {
     ),
     "intent": ("intent", "intent/evidence", "sensor/sample", "sensor/chunk"),
     "policy": ("policy/model",),
-    "recorder": (),
+    "recorder": ("recorder/episode",),  # that an episode is on disk
     OBSERVER: (),  # viewers, status, echo, health checks, emulators that only listen
     DISPLAY: ("session/comfort",),  # the participant's display: their comfort rating
     # `dammrl stop`, the launcher and its therapist's console: a stop and its release,

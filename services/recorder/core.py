@@ -68,6 +68,13 @@ def complete_mcap(path: Path) -> bool:
 
 def header_of(payload: bytes) -> dict[str, Any] | None:
     """The header map of a msgpack message, without validating the rest (None if absent)."""
+    fields = message_map(payload)
+    return None if fields is None else fields["header"]
+
+
+def message_map(payload: bytes) -> dict[str, Any] | None:
+    """The map of a msgpack message whose header is well formed, the rest unvalidated
+    (None otherwise)."""
     try:
         obj = msgpack.unpackb(payload, raw=False)
     except (ValueError, TypeError, msgpack.ExtraData, msgpack.FormatError, msgpack.StackError):
@@ -77,7 +84,7 @@ def header_of(payload: bytes) -> dict[str, Any] | None:
         return None
     stamp, seq = header.get("stamp_ns"), header.get("seq")
     ok = type(stamp) is int and type(seq) is int and seq >= 0  # bool is no number here
-    return header if ok else None
+    return obj if ok else None
 
 
 def loss_record(account: SequenceAccount, invalid: Counter[str],
@@ -174,6 +181,12 @@ class McapRecorder:
         self.writer.flush()  # type: ignore[no-untyped-call]
         self._stream.commit()
         self.unflushed_ns = None
+
+    def sync(self) -> None:
+        """Flush, and have the OS write the file to the disk (fsync): what an
+        acknowledgement promises survives a power cut too."""
+        self.flush()
+        self._stream.sync()
 
     def bytes_written(self) -> int:
         return self._stream.tell()

@@ -73,6 +73,10 @@ class CommittedFile:
         return len(self._pending)
 
     # ---- commits --------------------------------------------------------------------------
+    def sync(self) -> None:
+        """Have the OS write what was committed to the disk (fsync)."""
+        os.fsync(self._fd)
+
     def commit(self) -> None:
         """Hand what was written to the OS, the file ending with a provisional footer."""
         if not self._pending and self._footer_at is not None:
