@@ -770,8 +770,10 @@ class PatientPrompts:
 
 
 def undecided(result: EpisodeResult) -> bool:
-    """An episode that ended (not skipped) without any decision: it could not be done."""
-    return result.n_decisions == 0 and result.outcome in ("hold", "timeout")
+    """An episode that ran out of time without any decision: the person's input never
+    answered. A hold is a fault that names itself (a stall, a limit, no state), whatever
+    the person did: one 0.3 s into a reach on a loaded machine was blamed on the wearable."""
+    return result.n_decisions == 0 and result.outcome == "timeout"
 
 
 def result_dict(result: EpisodeResult) -> dict[str, object]:
