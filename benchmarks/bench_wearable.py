@@ -205,6 +205,8 @@ def _latencies(received: list[tuple[int, str, bytes]]) -> tuple[list[float], int
             evidence = decode(IntentEvidence, payload)
             if evidence.acted:
                 decided[evidence.request] = evidence.decided_ns
+            else:  # why a contraction answered nothing, for the record
+                print(f"  (a decision not acted on: {evidence.reason})")
         elif kind is Intent:
             intents.setdefault(decode(Intent, payload).request, t_ns)
     return [(intents[r] - decided[r]) / 1e9 for r in intents if r in decided], len(intents)
