@@ -178,8 +178,9 @@ def through_the_service(calibration: Path, trials: int) -> tuple[list[float], in
                             "DAMMRL_LSL_CALIBRATION_FILE": str(calibration),
                             "DAMMRL_LOG_LEVEL": "ERROR"}  # fmt: skip
         service = subprocess.Popen([sys.executable, "-m", "services.intent"], env=env)
-        try:
-            time.sleep(4.0)  # the service up, the stream found
+        try:  # the service up and decoding (a fixed 4 s lost a third of the trials to a
+            _wait_decoding(received, [NS], 90.0)  # loaded machine's slow start)
+            time.sleep(2.0)  # the rest level
             request = bus.publisher(DecisionRequest)
             rng = np.random.default_rng(3)
             for k in range(1, trials + 1):
