@@ -8,7 +8,7 @@ import sys
 
 import pytest
 
-from tests.busutil import Lines, free_port
+from tests.busutil import Lines, free_port, wait_for
 
 pytestmark = pytest.mark.slow  # a whole stack, real time
 
@@ -19,14 +19,14 @@ def test_echo_started_before_the_run_finds_it() -> None:
     echo = subprocess.Popen([sys.executable, "-m", "dammrl", "echo", "robot/state", "--connect",
                              f"tcp/127.0.0.1:{port}", "--count", "3", "--duration", "150"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)  # fmt: skip
-    said = Lines(echo.stderr)
+    said, printed = Lines(echo.stderr), Lines(echo.stdout)  # each read on a thread of its own
     up = None
     try:
         said.wait_for("nothing answers", 30)  # alone first, and says so
         up = subprocess.Popen([sys.executable, "-m", "dammrl", "up", "--bus-port", str(port),
                                "--episodes", "1"], stdout=subprocess.DEVNULL,
                               stderr=subprocess.DEVNULL)  # fmt: skip
-        out, _ = echo.communicate(timeout=150)
+        echo.wait(150)  # not communicate(): it would race the threads for the pipes' lines
         up.wait(120)  # its one episode, then it stops its services
     finally:
         for process in (echo, up):  # SIGTERM: the launcher stops its services too
@@ -34,5 +34,10 @@ def test_echo_started_before_the_run_finds_it() -> None:
                 process.terminate()
                 process.wait(30)
     assert echo.returncode == 0, said.lines
-    assert len([line for line in out.splitlines() if '"key": "dammrl/robot/state"' in line]) == 3
-    said.wait_for("a run answers at tls/127.0.0.1", 10)  # its stderr is read on a thread
+    said.wait_for("a run answers at tls/127.0.0.1", 10)  # the pipes' ends read on threads
+
+    def states() -> int:
+        return sum('"key": "dammrl/robot/state"' in line for line in list(printed.lines))
+
+    wait_for(lambda: states() >= 3, 10, "echo's three states")
+    assert states() == 3

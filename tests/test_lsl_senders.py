@@ -118,11 +118,20 @@ def test_a_sender_without_a_source_id_killed_leaves_the_service_alive_and_the_ar
         sender.kill()
     again = _sender(name, "--source-id", "")  # started again, still without a source id
     try:
+        _streaming(name, 60.0)  # a new process: slow to start on a loaded machine
         start = time.monotonic()
         wait_for(lambda: intent.decoding() and intent.samples() > 0, PICKUP_S, "the new sender")
-        assert time.monotonic() - start < PICKUP_S
+        print(f"a sender without a source id, back, taken after {time.monotonic() - start:.2f} s")
     finally:
         again.kill()
+
+
+def _streaming(name: str, timeout_s: float) -> None:
+    """Until LSL lists a stream of this name: the pickup is timed from the sender's
+    stream, not from its process's start (imports alone took over 10 s at load 30)."""
+    import pylsl
+
+    wait_for(lambda: bool(pylsl.resolve_byprop("name", name, 1, 0.5)), timeout_s, name)
 
 
 def _attached_to(harness: Harness, timeout_s: float) -> float:
@@ -263,6 +272,7 @@ def test_a_frozen_sender_replaced_by_another_is_left_for_it(calibration_file: Pa
         assert "silent" in str(harness.source.problem())
         other = _sender(name, "--source-id", "amp-2")
         try:
+            _streaming(name, 60.0)
             took = _attached_to(harness, PICKUP_S + 5.0)  # LSL forgets the frozen one first
             print(f"frozen sender left, the other taken after {took:.2f} s")
         finally:
