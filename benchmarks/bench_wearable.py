@@ -418,9 +418,10 @@ def main() -> None:
         results = episodes(path, args.episodes)
         print(f"(d) {len(results)} semi-virtual episodes through the emulated armband:")
         for r in results:
+            why = "" if r["success"] else f" ({r['reason']})"  # a hold names its fault
             print(f"  seed {r['seed']}: {'success' if r['success'] else r['outcome']} in "
                   f"{r['t_total_s']:.1f} s, {r['n_decisions']} decisions, error rate "
-                  f"{r['human_error_rate']:.2f}, N_osc {r['n_osc']}")  # fmt: skip
+                  f"{r['human_error_rate']:.2f}, N_osc {r['n_osc']}{why}")  # fmt: skip
 
 
 if __name__ == "__main__":
