@@ -4,6 +4,7 @@ the emergency stop and every injected fault: a stop or a hold, reported, no jump
 
 from __future__ import annotations
 
+import re
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -23,7 +24,7 @@ from dammrl.emulators.servo_chain import (
     TICKS_PER_RAD,
     XM430_W350,
 )
-from dammrl_core.arm.driver import DriveCommand, JointState
+from dammrl_core.arm.driver import BadReplyError, DriveCommand, DriverError, JointState
 from dammrl_core.arm.dynamixel.calibration import Calibration, load_calibration, save_calibration
 from dammrl_core.arm.dynamixel.driver import DynamixelDriver
 from dammrl_core.arm.dynamixel.tools import guided_calibration, scan
@@ -93,6 +94,38 @@ def test_the_servo_law_is_the_joint_law(arm: EmulatedArm) -> None:
     servo_torque = CALIBRATION.joint_torque(current)
     law = command.tau_ff + command.kp * (q_ref - q) + command.kd * (command.dq_ref - dq)
     np.testing.assert_allclose(servo_torque, law, atol=0.02 * np.abs(law).max() + 0.05)
+
+
+@pytest.mark.parametrize("fault", ["short 1", "late 1"])
+def test_a_short_or_late_status_packet_is_a_missed_read_not_a_crash(
+    arm: EmulatedArm, fault: str
+) -> None:
+    """A status packet says nothing of what it answers: one a parameter short, or one that
+    comes after the SDK stopped waiting (here: the answer to the re-arm's one-byte read,
+    met by the next sync read) is a bus error like a timeout, and the next read is whole.
+    (It was ``struct.error: unpack requires a buffer of 10 bytes``: the service died.)"""
+    driver = DynamixelDriver(str(arm.bus.link), CALIBRATION)
+    with driver:
+        q = driver.read_state().q_rad
+        stiff = np.array([400.0, 400, 200, 200, 50, 50])
+        driver.write_command(DriveCommand(q, np.zeros(6), np.zeros(6), stiff, stiff / 10,
+                                          np.full(6, 30.0)))  # holding: a still arm  # fmt: skip
+        time.sleep(0.3)
+        inject(arm, fault)
+        if fault.startswith("late"):
+            with pytest.raises(DriverError, match="reading address 98 failed"):
+                driver.rearm()  # its answer comes too late
+        failed: list[DriverError] = []
+        for _ in range(20):  # a loaded machine may add timeouts of its own
+            try:
+                q = driver.read_state().q_rad
+                break
+            except DriverError as exc:  # nothing else: no struct.error, no IndexError
+                failed.append(exc)
+        assert any(isinstance(e, BadReplyError) and re.search(
+            "servo 1 answered (9|1) bytes where 10", str(e)) for e in failed), failed  # fmt: skip
+        with arm.bus.lock:
+            np.testing.assert_allclose(q, arm.physics.state.q, atol=0.02)  # whole again
 
 
 # ---- the tools: scan, jog, calibrate -----------------------------------------------------
@@ -368,6 +401,40 @@ def test_every_fault_ends_in_a_hold_or_a_stop_without_a_jump(
                 break
             rig.run(0.1)
         assert rig.fastest(len(rig.speeds) - 50) < 0.05
+
+
+def test_a_late_answer_after_a_stall_is_a_counted_bus_error_and_the_arm_goes_on(
+    rig: Rig, caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """After a stall the node re-arms the servos one read at a time; an answer that comes
+    late is met by the next cycle's sync read: a failed cycle like a timeout, logged and
+    counted in Health, and the arm follows commands again (the service lived on)."""
+    _started(rig)
+    target = np.array([0.05, -0.05, 0.05, 0.05, 0.0, 0.0])
+    rearm = rig.node.driver.rearm
+
+    def rearm_answered_late() -> list[int]:
+        if not rearmed:
+            rearmed.append(True)
+            inject(rig.arm, "late 1")  # servo 1's answer to the re-arm's first read
+        return rearm()
+
+    rearmed: list[bool] = []
+    monkeypatch.setattr(rig.node.driver, "rearm", rearm_answered_late)
+    time.sleep(0.3)  # a stall: the watchdog stops the servos, the node re-arms them
+    rig.run(1.5, lambda r: _answer(r, target))
+    assert "servo 1 answered 1 bytes where 10 were asked" in caplog.text
+    for _ in range(30):  # on a loaded machine the emulator's own timeouts come on top
+        if (
+            np.abs(rig.bus.states()[-1].q_rad - np.array(_goal(1).q_start_rad) - target).max()
+            < 0.02
+        ):
+            break
+        rig.run(0.2, lambda r: _answer(r, target))
+    np.testing.assert_allclose(rig.bus.states()[-1].q_rad,
+                               np.array(_goal(1).q_start_rad) + target, atol=0.02)  # fmt: skip
+    counted = re.search(r"(\d+) bus errors", rig.last_health[1])
+    assert counted is not None and int(counted[1]) >= 2, rig.last_health
 
 
 def _true_q(rig: Rig) -> np.ndarray:

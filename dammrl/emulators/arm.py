@@ -161,6 +161,10 @@ def inject(arm: EmulatedArm, line: str) -> str:
             faults.missing.discard(argument)
         elif verb == "corrupt" and argument is not None:
             faults.corrupt_responses = argument
+        elif verb == "short" and argument is not None:
+            faults.short_responses = argument
+        elif verb == "late" and argument is not None:
+            faults.late_responses = argument
         elif verb in ("silent", "talk"):
             faults.silent = verb == "silent"
         elif verb in ("unplug", "replug"):

@@ -31,6 +31,11 @@ class DriverError(DammrlError):
     """The drives' bus failed: a timeout, a corrupt answer, a missing drive."""
 
 
+class BadReplyError(DriverError):
+    """A drive's answer that cannot be the one asked for: the wrong length (a late answer
+    to an earlier request), or a value no drive reports. A missed read, as a timeout is."""
+
+
 class PortLostError(DriverError):
     """The device itself failed (a USB adapter pulled out): it must be reopened."""
 

@@ -25,6 +25,7 @@ class DriveLink:
         self.torque_on_s = 0.0
         self.next_connect_s = 0.0
         self.errors = 0  # failed cycles in a row
+        self.bus_errors = 0  # failed cycles since the start (Health says how many)
         self.last_written: DriveCommand | None = None  # the law last sent to the drives
         self.last_write_s = float("inf")  # when (monotonic); inf: not since connecting
 
@@ -64,6 +65,7 @@ class DriveLink:
         many in a row). Then the last law keeps being sent blind: the drives that still
         hear it hold with gravity compensation; the others' watchdog stops them."""
         self.errors += 1
+        self.bus_errors += 1
         if self.errors < self.settings.max_bus_errors:
             log.warning("bus cycle failed (%d in a row): %s", self.errors, exc)
             return False

@@ -243,7 +243,8 @@ class RobotNode:
         self.bus.report_health(state, detail, force=changed)
 
     def timing(self) -> str:
-        """Loop period p50/p99 and command-to-applied latency p50/p99 (Health detail)."""
+        """Loop period p50/p99, command-to-applied latency p50/p99, clamped commands and
+        failed bus cycles (a timeout, a bad answer) since the start (Health detail)."""
         parts = []
         if len(self.periods_s) > 10:
             p50, p99 = np.percentile(self.periods_s, [50, 99]) * 1000
@@ -252,6 +253,7 @@ class RobotNode:
             p50, p99 = np.percentile(self.latencies_s, [50, 99]) * 1000
             parts.append(f"command to servo p50 {p50:.2f} ms, p99 {p99:.2f} ms")
         parts.append(f"{self.law.freshness.clamped} commands clamped")
+        parts.append(f"{self.link.bus_errors} bus errors")
         return ", ".join(parts)
 
 

@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 
 from dammrl_core.arm.driver import (
+    BadReplyError,
     DriveCommand,
     DriveFault,
     DriverError,
@@ -51,6 +52,13 @@ COMM_SUCCESS = 0  # dynamixel_sdk.COMM_SUCCESS
 FIRST_PING_S = 0.05  # a rebooted servo is first looked for this long after the REBOOT [s]
 PING_EVERY_S = 0.05  # then this often (an unanswered ping costs the SDK's timeout, ~34 ms)
 OVERLOAD = 0x20
+STATUS_ID, STATUS_LENGTH, STATUS_ERROR, STATUS_PARAMS = 4, 5, 8, 9  # a status packet's fields
+PRESENT_RANGE = ((-2047, 2047), (-1023, 1023), (-1_048_575, 1_048_575))
+"""What an X-series servo can report in its present current, velocity and position (units;
+e-manual: within the largest current limit, the largest velocity limit, the multi-turn
+range of current-based position mode); a value beyond them is no reading."""
+BUTTON_RANGE_UM = (-1_000, 100_000)
+"""What the button board can report as its cap's travel [um]."""
 ERROR_BITS = {0x01: "input voltage", 0x04: "overheating", 0x08: "motor encoder",
               0x10: "electrical shock", 0x20: "overload"}  # fmt: skip
 
@@ -257,11 +265,9 @@ class DynamixelDriver:
             raise DriverError(f"sync read failed: {self._packet.getTxRxResult(result)}")
         rows, alerts = {}, []
         for servo_id in devices:
-            data, result, error = self._packet.readRx(self._port, servo_id, PRESENT_BYTES)
-            if result != sdk.COMM_SUCCESS:
-                why = self._packet.getTxRxResult(result)
-                raise DriverError(f"servo {servo_id} missing from the sync read: {why}")
-            rows[servo_id] = struct.unpack("<hii", bytes(data))
+            data, error = self._receive(servo_id, PRESENT_BYTES,
+                                        f"servo {servo_id} missing from the sync read")  # fmt: skip
+            rows[servo_id] = self._present(servo_id, data)
             if error & ALERT and servo_id in self.ids:
                 alerts.append(servo_id)
         button_m = 0.0
@@ -271,6 +277,21 @@ class DynamixelDriver:
         faults = tuple(self._fault(i, self._read1(i, ADDRESS["hardware_error"])) for i in alerts)
         self._last = replace(state, faults=faults)
         return self._last
+
+    def _present(self, servo_id: int, data: bytes) -> tuple[int, int, int]:
+        """Current, velocity and position (the button: its travel) of one sync-read row,
+        refused when no such device could report them."""
+        row: tuple[int, int, int] = struct.unpack("<hii", data)
+        if servo_id == self.calibration.button_id:
+            ranges = ((-(2**15), 2**15 - 1), (-(2**31), 2**31 - 1), BUTTON_RANGE_UM)
+        else:
+            ranges = PRESENT_RANGE
+        names = ("current", "velocity", "position")
+        for name, value, (low, high) in zip(names, row, ranges, strict=True):
+            if not low <= value <= high:
+                raise BadReplyError(f"servo {servo_id} reported {name} {value}, outside "
+                                    f"[{low}, {high}]: not a reading")  # fmt: skip
+        return row
 
     def _fault(self, servo_id: int, bits: int) -> DriveFault:
         """A servo's error bits; an overload alone is cleared by a restart (a REBOOT)."""
@@ -366,21 +387,47 @@ class DynamixelDriver:
                 self._port.closePort()
         self._port = None
 
-    def _read1(self, servo_id: int, address: int) -> int:
+    def _read(self, servo_id: int, address: int, length: int) -> bytes:
+        """``length`` bytes at ``address`` of one servo."""
         import dynamixel_sdk as sdk
 
-        value, result, _ = self._packet.read1ByteTxRx(self._port, servo_id, address)
-        if result != sdk.COMM_SUCCESS:
-            raise DriverError(f"servo {servo_id}: reading address {address} failed")
-        return int(value)
+        if self._packet.readTx(self._port, servo_id, address, length) != sdk.COMM_SUCCESS:
+            raise DriverError(f"servo {servo_id}: reading address {address} failed (not sent)")
+        return self._receive(
+            servo_id, length, f"servo {servo_id}: reading address {address} failed"
+        )[0]
+
+    def _receive(self, servo_id: int, length: int, failed: str) -> tuple[bytes, int]:
+        """The parameters (exactly ``length`` bytes) and error byte of ``servo_id``'s next
+        status packet (``failed``: what no answer is called); other servos' are skipped, as
+        the SDK's readRx does. A status packet says nothing of what it answers: one that
+        comes late (to an earlier request, after the SDK stopped waiting) is met here. The
+        SDK's readRx and readNByteTxRx would slice ``length`` bytes out of it checksum
+        included, or index past its end."""
+        import dynamixel_sdk as sdk
+
+        while True:
+            packet, result = self._packet.rxPacket(self._port, False)
+            if result != sdk.COMM_SUCCESS:
+                why = self._packet.getTxRxResult(result)
+                raise DriverError(f"{failed}: {why}")
+            if packet[STATUS_ID] == servo_id:
+                break
+        # LENGTH counts instruction, error, parameters and checksum (after unstuffing; the
+        # SDK leaves the bytes stuffing took at the list's end)
+        size = packet[STATUS_LENGTH] | packet[STATUS_LENGTH + 1] << 8
+        params = bytes(packet[STATUS_PARAMS : STATUS_PARAMS + size - 4])
+        if len(params) != length:
+            raise BadReplyError(f"servo {servo_id} answered {len(params)} bytes where {length} "
+                                "were asked (a late answer to an earlier request?): not a "
+                                "reading")  # fmt: skip
+        return params, int(packet[STATUS_ERROR])
+
+    def _read1(self, servo_id: int, address: int) -> int:
+        return self._read(servo_id, address, 1)[0]
 
     def _read4(self, servo_id: int, address: int) -> int:
-        import dynamixel_sdk as sdk
-
-        value, result, _ = self._packet.read4ByteTxRx(self._port, servo_id, address)
-        if result != sdk.COMM_SUCCESS:
-            raise DriverError(f"servo {servo_id}: reading address {address} failed")
-        return int(struct.unpack("<i", struct.pack("<I", value))[0])
+        return int(struct.unpack("<i", self._read(servo_id, address, 4))[0])
 
     def _write_bytes(self, servo_id: int, address: int, data: bytes) -> None:
         import dynamixel_sdk as sdk
