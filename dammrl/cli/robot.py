@@ -1,5 +1,5 @@
-"""``dammrl robot drivers|scan|jog|calibrate|emulate`` (the real arm, through its driver plug-in)
-and ``dammrl stop``."""
+"""``dammrl robot drivers|scan|jog|calibrate|emulate`` (the real arm, through its driver
+plug-in)."""
 
 from __future__ import annotations
 
@@ -13,10 +13,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from dammrl.cli.common import (
-    DEFAULT_CONNECT,
     Commands,
-    add_bus_arguments,
-    bus_settings,
     output_file,
     positive,
     print_err,
@@ -26,7 +23,6 @@ from dammrl_core.errors import DammrlError, Exit, UsageError
 
 if TYPE_CHECKING:
     from dammrl.emulators.arm import EmulatedArm
-    from dammrl.stop import StopReport
     from dammrl_core.arm.driver import DriverPlugin
     from dammrl_core.settings import Settings
 
@@ -60,29 +56,6 @@ def _add_driver_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("-s", "--driver-setting", action="append", default=[],
                         metavar="NAME=VALUE", help=SETTING_HELP)  # fmt: skip
     parser.add_argument("--port", help="shorthand for -s port=PORT")
-
-
-def register_stop(commands: Commands) -> None:
-    """Add ``stop``."""
-    helptext = "emergency stop: every arm on the bus holds where it is (or --release)"
-    stop = commands.add_parser(
-        "stop",
-        help=helptext,
-        description="Stop every arm service (sim or robot) within one control period: it "
-        "holds where it is with low gains and gravity compensation (or turns the torque off, "
-        "DAMMRL_ARM_STOP_ACTION=torque_off) and takes no command until released. Exit 0 "
-        "once every arm on the bus confirmed, 1 otherwise.",
-    )
-    add_bus_arguments(stop, f"where the stack listens (default {DEFAULT_CONNECT})")
-    stop.add_argument("--release", action="store_true",
-                      help="release the stop: the arms hold until commands resume")  # fmt: skip
-    stop.add_argument("--reason", default="", help="recorded with the stop")
-    stop.add_argument("--timeout", type=positive, default=2.0,
-                      help="seconds to wait for every arm to confirm")  # fmt: skip
-    stop.add_argument("--console", action="store_true",
-                      help="stay connected: Enter stops, 'release' releases, Ctrl-D quits "
-                           "(a stop then costs no start-up)")  # fmt: skip
-    stop.set_defaults(handler=_stop)
 
 
 def _add_jog(actions: Commands) -> None:
@@ -258,32 +231,3 @@ def _faults(arm: EmulatedArm, stop: threading.Event) -> None:
             print_err(said)
         if stop.is_set():
             return
-
-
-def _stop(args: argparse.Namespace) -> int:
-    from dammrl.stop import StopConsole
-
-    console = StopConsole(bus_settings(args))
-    try:
-        if not args.console:
-            return _say_stop(console.send(not args.release, args.reason, args.timeout),
-                             "release" if args.release else "stop", args.timeout)  # fmt: skip
-        print_err("stop console: Enter stops every arm, 'release' releases, Ctrl-D quits")
-        for line in sys.stdin:
-            release = line.strip() == "release"
-            report = console.send(not release, args.reason or "from the stop console",
-                                  args.timeout)  # fmt: skip
-            _say_stop(report, "release" if release else "stop", args.timeout)
-        return Exit.OK
-    finally:
-        console.close()
-
-
-def _say_stop(report: StopReport, what: str, timeout_s: float) -> int:
-    for service, seconds in sorted(report.acknowledged.items()):
-        print_out(f"{service}: {what} confirmed after {seconds * 1000:.0f} ms")
-    for service in report.silent:
-        print_err(f"dammrl: {service} did not confirm the {what} within {timeout_s:.1f} s")
-    if not report.acknowledged:
-        print_err(f"dammrl: no arm confirmed the {what}: is a stack running (dammrl status)?")
-    return Exit.OK if report.acknowledged and not report.silent else Exit.FAILED
