@@ -30,13 +30,15 @@ from dammrl_core.arm.dynamixel.driver import DynamixelDriver
 from dammrl_core.arm.dynamixel.tools import guided_calibration, scan
 from dammrl_core.arm.jog import jog
 from dammrl_core.arm.settings import ArmSettings, arm_limits
+from dammrl_core.arm.start import SoftStart
 from dammrl_core.dynamics import ArmModel
 from dammrl_core.errors import ConfigurationError
 from dammrl_core.robot import RobotSettings
 from dammrl_core.state import JointCommand as CoreCommand
 from dammrl_core.task import TaskSettings, scene_layout
 from schemas import EmergencyStop, Header, JointCommand, Message, RobotState, TaskGoal
-from services.robot.law import ArmLaw
+from services.robot.law import ArmLaw, Start
+from services.robot.link import DriveLink
 from services.robot.node import RobotNode
 
 CALIBRATION = Calibration(
@@ -546,3 +548,51 @@ def test_commands_taken_together_move_the_reference_no_faster_than_the_cap() -> 
     assert law.freshness.clamped == 2 and law.command is not None
     moved = np.abs(law.command.q_ref - reference(0.0))
     assert np.all(moved <= law.limits.dq_max * 0.02 + 1e-12)
+
+
+def _law_at_rest() -> tuple[ArmLaw, np.ndarray]:
+    settings = ArmSettings()
+    robot = RobotSettings().load()
+    limits = arm_limits(robot, (robot.q_min, robot.q_max), settings)
+    law = ArmLaw(settings, limits, scene_layout(TaskSettings()), ArmModel(robot), 0.01, 0.0)
+    return law, np.array(TaskSettings().home_q_rad)
+
+
+def test_a_late_cycle_never_jumps_the_homing_move_ahead() -> None:
+    """Homing's reference followed wall time: a cycle 0.9 s late (measured beside two CPU
+    hogs) found it 0.9 s further on, a goal jump the servos rushed to (overspeed stops at
+    homing). On the move's own clock a late cycle counts as two periods."""
+    law, q = _law_at_rest()
+    rest = JointState(q, np.zeros(6), np.zeros(6))
+    assert law.take_goal(Start(1, q + np.array([0.4, -0.3, 0.2, -0.4, 0.3, 0.2])), (0.45, 0, 0),
+                         rest, 0.0) is None  # fmt: skip
+    previous, now, steps = q, 0.0, []
+    for late in [0.01] * 20 + [0.9] + [0.01] * 5 + [0.5]:
+        now += late
+        q_ref = law.law(rest, now, 1.0, lambda: "").q_ref
+        steps.append(float(np.max(np.abs(q_ref - previous))))
+        previous = q_ref
+    assert max(steps) <= law.settings.homing_speed_rad_s * 0.02 + 1e-9, steps
+
+
+def test_the_soft_start_and_its_damping_ignore_how_late_a_cycle_is() -> None:
+    """The stiffness ramps on the soft start's own clock (a late cycle does not jump it to
+    full: a sagged arm would be pulled up hard), the damping is whole from the first law."""
+    link = DriveLink(DynamixelDriver("/dev/null"), ArmSettings(soft_start_s=1.0))
+    link.ramp = SoftStart.begin(1.0, 0.1, link.max_step_s, 0.0)
+    shares = [link.soft_start(t) for t in (0.0, 0.01, 0.92, 0.93)]
+    np.testing.assert_allclose(shares, [0.1, 0.109, 0.127, 0.136])
+    law, q = _law_at_rest()
+    drive = law.law(JointState(q, np.zeros(6), np.zeros(6)), 0.0, 0.1, lambda: "")
+    np.testing.assert_allclose(drive.kp, np.array(law.settings.hold_kp_nm_per_rad) * 0.1)
+    np.testing.assert_allclose(drive.kd, law.settings.hold_kd_nms_per_rad)
+
+
+def test_after_a_stall_a_hold_holds_where_the_arm_sagged_to() -> None:
+    """The drives stopped themselves during the stall (their feed-forward gone, the arm
+    sagged): the hold is taken again where the arm is, not pulled back to where it was."""
+    law, q = _law_at_rest()
+    law.law(JointState(q, np.zeros(6), np.zeros(6)), 0.0, 1.0, lambda: "")  # holding at q
+    sagged = JointState(q + np.array([0.0, -0.3, 0.0, -0.2, 0.0, 0.0]), np.zeros(6), np.zeros(6))
+    law.after_stall(sagged, 1.0)
+    np.testing.assert_allclose(law.law(sagged, 1.01, 1.0, lambda: "").q_ref, sagged.q_rad)

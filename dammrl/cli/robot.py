@@ -98,7 +98,8 @@ def _add_emulate(actions: Commands) -> None:
         help="the emulated arm on a pseudo-terminal (until Ctrl-C)",
         description="A Dynamixel Protocol 2.0 chain with the MuJoCo arm behind it, on a "
         "pseudo-terminal linked at --port, which the robot service opens like a USB "
-        f"adapter. {FAULT_HELP}.",
+        f"adapter; it runs at the arm loop's priority where allowed (it stands in for the "
+        f"servos' own processors). {FAULT_HELP}.",
     )
     emulate.add_argument(
         "--port", type=Path, default=Path("/tmp/ttyROBOT"),
@@ -201,9 +202,10 @@ def _emulate(args: argparse.Namespace) -> int:
     """Serve the emulated arm; fault commands from stdin."""
     from dammrl.emulators.arm import emulated_arm
     from dammrl_core.arm.dynamixel.calibration import Calibration, load_calibration
-    from services.common.runtime import stop_on_signals
+    from services.common.runtime import prioritise, stop_on_signals
 
     stop = stop_on_signals()
+    prioritise(True)  # it stands in for the servos' own processors: a busy host is not theirs
     calibration = Calibration() if args.calibration is None else load_calibration(args.calibration)
     with emulated_arm(args.port, calibration) as arm:
         ids = ", ".join(str(i) for i in arm.chain.servos)

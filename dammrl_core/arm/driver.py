@@ -72,16 +72,22 @@ class DriveCommand:
     torque_limit_nm: np.ndarray
 
 
+HoldLaw = Callable[[JointState], DriveCommand]
+"""The law drives hold with from their torque-on, made from the state read just before."""
+
+
 class Driver(Protocol):
     @property
     def stall_s(self) -> float | None:
         """The host's silence after which the drives stop themselves (None: never)."""
         ...
 
-    def connect(self, torque: bool = True) -> bool:
-        """Open and power up (``torque``: hold where the arm is with zero gains; else torque
-        off, for moving the arm by hand). True when every drive already held (no soft start
-        needed); raises DriverError."""
+    def connect(self, torque: bool = True, hold: HoldLaw | None = None) -> bool:
+        """Open and power up: ``torque``, the drives hold with ``hold``'s law from the moment
+        their torque goes on (None: zero gains, the caller writes a law at once; a host
+        that stalls then leaves the arm limp); else the torque goes off, for moving the
+        arm by hand. True when every drive already held (no soft start needed); raises
+        DriverError."""
         ...
 
     def read_state(self) -> JointState: ...

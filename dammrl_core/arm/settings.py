@@ -61,7 +61,8 @@ class ArmSettings(Settings):
     """Stiffness of a stop: low, so a person can move the arm against it [N m/rad]."""
     stop_kd_nms_per_rad: PerJointDamping = (20.0, 20.0, 8.0, 8.0, 1.0, 1.0)
     soft_start_s: float = Field(1.0, ge=0, le=10)
-    """After torque on, the gains ramp from ``soft_start_fraction`` to full over this [s]."""
+    """After torque on, the stiffness ramps from ``soft_start_fraction`` to full over this
+    [s] (the damping is full from the torque-on: a sagging joint stays slow)."""
     soft_start_fraction: float = Field(0.1, ge=0, le=1)
     homing_speed_rad_s: float = Field(0.3, gt=0, le=1.0)
     """A new episode moves the arm to its start posture at most this fast [rad/s]."""

@@ -16,8 +16,9 @@ SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 """What stops a service or a tool cleanly: Ctrl-C, a stop, a hang-up (its terminal, or
 its launcher's death: ``dammrl up`` asks for SIGHUP as its children's parent-death
 signal, so that they can tell it from a stop)."""
-TIME_CRITICAL = ("sim", "controller")
-"""The services that close the arm's loop (a late state or command stalls the arm)."""
+TIME_CRITICAL = ("sim", "robot", "controller")
+"""The services that close the arm's loop (a late state or command stalls the arm; the
+real arm's own loop feeds its servos' 0.1 s watchdog)."""
 CRITICAL_NICE = -10
 CRITICAL_SWITCH_INTERVAL_S = 0.0002
 

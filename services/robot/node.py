@@ -18,7 +18,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from dammrl_core.arm.driver import Driver, DriverError, JointState, driver_plugin
+from dammrl_core.arm.driver import DriveCommand, Driver, DriverError, JointState, driver_plugin
 from dammrl_core.arm.settings import ArmSettings, arm_limits
 from dammrl_core.dynamics import ArmModel
 from dammrl_core.robot import RobotSettings
@@ -98,8 +98,9 @@ class RobotNode:
         self._take_messages(now)
         if not self.link.connected and self.link.fault is not None:
             self.link.hold_blind()
-        if not self.link.connected and self.link.try_connect(now):
-            self.law.forget_motion()  # a stop is taken up by the law
+        if not self.link.connected:
+            self.law.forget_motion()  # nothing survives a lost bus; a stop is kept by the law
+            self.link.try_connect(now, lambda joint: self._torque_on_law(joint, now))
         if self.link.connected:
             self._drive(now)
         self._report_health()
@@ -126,6 +127,11 @@ class RobotNode:
         self.link.cycle_done()
         self.joint = joint
         self._publish_state(joint, now)
+
+    def _torque_on_law(self, joint: JointState, now: float) -> DriveCommand:
+        """What the drives hold with from their torque-on: the law's hold (or stop) where
+        the arm is, at the soft start's first stiffness, the damping whole."""
+        return self.law.law(joint, now, self.link.soft_start(now), self._controller_silence)
 
     def _stop(self, q: np.ndarray | None, now: float) -> None:
         """Hold where the arm is with the stop gains; or torque off."""

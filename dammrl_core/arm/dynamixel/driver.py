@@ -33,6 +33,7 @@ from dammrl_core.arm.driver import (
     DriveCommand,
     DriveFault,
     DriverError,
+    HoldLaw,
     JointState,
     PortLostError,
 )
@@ -117,12 +118,13 @@ class DynamixelDriver:
     def joint_limits(self, robot: RobotDescription) -> tuple[np.ndarray, np.ndarray]:
         return self.calibration.limits(robot)
 
-    def connect(self, torque: bool = True) -> bool:
+    def connect(self, torque: bool = True, hold: HoldLaw | None = None) -> bool:
         """Open the port (unless open), find every servo, refuse latched errors, clear a
-        watchdog stop, arm the watchdog. Servos with the torque off start holding where
-        they are with zero gains (the caller ramps them up). True when every servo was
-        already holding with the torque on (a reconnection: no soft start needed).
-        ``torque=False``: the torque goes off (the arm is moved by hand: calibration)."""
+        watchdog stop, arm the watchdog. Servos with the torque off start holding with
+        ``hold``'s law, made from the state read just before (None: where they are, with
+        zero gains). True when every servo was already holding with the torque on (a
+        reconnection: no soft start needed). ``torque=False``: the torque goes off (the
+        arm is moved by hand: calibration)."""
         import dynamixel_sdk as sdk
 
         if self._port is None:
@@ -136,12 +138,12 @@ class DynamixelDriver:
             self._port, self._packet, self._written = port, sdk.PacketHandler(2.0), {}
         try:
             with _bus_io(self.port):
-                return self._power_up(torque)
+                return self._power_up(torque, hold)
         except PortLostError:
             self._close()  # reopened at the next try
             raise
 
-    def _power_up(self, torque: bool) -> bool:
+    def _power_up(self, torque: bool, hold: HoldLaw | None) -> bool:
         import dynamixel_sdk as sdk
 
         devices = self.ids + (() if self.calibration.button_id is None
@@ -165,7 +167,7 @@ class DynamixelDriver:
         if holding and torque:
             self._written = {}  # gains and limits are written again with the next command
         else:
-            self._start(torque)
+            self._start(torque, hold)
         for servo_id in self.ids if torque else ():
             self._write1(servo_id, ADDRESS["watchdog"], self._watchdog_ticks)
         return holding and torque
@@ -228,18 +230,22 @@ class DynamixelDriver:
         self._write1(servo_id, ADDRESS["torque_enable"], 1)
         self._write1(servo_id, ADDRESS["watchdog"], self._watchdog_ticks)
 
-    def _start(self, torque: bool) -> None:
-        """Torque off, current-based position mode, then (``torque``) on, holding where
-        the arm is with zero gains."""
+    def _start(self, torque: bool, hold: HoldLaw | None) -> None:
+        """Torque off, current-based position mode, then (``torque``) on, holding with
+        ``hold``'s law (None: where the arm is, with zero gains)."""
         for servo_id in self.ids:
             self._write1(servo_id, ADDRESS["torque_enable"], 0)
             self._write1(servo_id, ADDRESS["operating_mode"], CURRENT_BASED_POSITION)
         if not torque:
             return
         state = self.read_state()
-        zeros = np.zeros(6)
-        limit = self.calibration.joint_torque(np.full(6, MAX_CURRENT_UNITS * CURRENT_UNIT_A))
-        self.write_command(DriveCommand(state.q_rad, zeros, zeros, zeros, zeros, np.abs(limit)))
+        if hold is None:
+            zeros = np.zeros(6)
+            limit = self.calibration.joint_torque(np.full(6, MAX_CURRENT_UNITS * CURRENT_UNIT_A))
+            law = DriveCommand(state.q_rad, zeros, zeros, zeros, zeros, np.abs(limit))
+        else:
+            law = hold(state)
+        self.write_command(law)
         for servo_id in self.ids:
             self._write1(servo_id, ADDRESS["torque_enable"], 1)
 
