@@ -9,6 +9,8 @@ Dynamixel arm; ``--mode virtual``: the sim), quiet and again beside two CPU hogs
   program has exited;
 * the stop console (``dammrl stop --console``, its session opened once): the time from
   Enter (one key) until every arm says "stopped";
+* ``dammrl status`` started as a program, to its exit (it waits for every service's
+  Health, up to its own bound);
 * the baselines, in the same run: ``python -c "import zenoh"`` (the bus library's start-up
   alone) and ``python -c "from dammrl.cli import parser; parser()"`` (the whole CLI's
   start-up, which a stop paid before it had a parser of its own).
@@ -112,7 +114,7 @@ def hogs(count: int) -> Iterator[None]:
 def timed_program(command: list[str]) -> float:
     """Wall time of a program from its start to its exit [s]."""
     started = time.monotonic()
-    subprocess.run(command, check=True, stdout=subprocess.DEVNULL)
+    subprocess.run(command, check=False, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     return time.monotonic() - started
 
 
@@ -157,6 +159,7 @@ def condition(name: str, trials: int, endpoint: str, arms: Arms, operator: StopC
         "dammrl stop: start to every arm stopped": [],
         "dammrl stop: start to exit": [],
         "stop console: Enter to every arm stopped": [],
+        "dammrl status: start to exit": [],
     }
     rows = list(figures.values())
     console = subprocess.Popen(
@@ -175,6 +178,8 @@ def condition(name: str, trials: int, endpoint: str, arms: Arms, operator: StopC
         release(operator, arms)
         rows[4].append(console_stop(console, arms))
         console_release(console, arms)
+        rows[5].append(timed_program([sys.executable, "-m", "dammrl", "status", "--connect",
+                                      endpoint]))  # fmt: skip
     assert console.stdin is not None
     console.stdin.close()
     console.wait(30)

@@ -4,6 +4,7 @@ the emergency stop and every injected fault: a stop or a hold, reported, no jump
 
 from __future__ import annotations
 
+import contextlib
 import re
 import time
 from collections.abc import Callable, Iterator
@@ -96,6 +97,42 @@ def test_the_servo_law_is_the_joint_law(arm: EmulatedArm) -> None:
     servo_torque = CALIBRATION.joint_torque(current)
     law = command.tau_ff + command.kp * (q_ref - q) + command.kd * (command.dq_ref - dq)
     np.testing.assert_allclose(servo_torque, law, atol=0.02 * np.abs(law).max() + 0.05)
+
+
+def test_the_servos_hold_with_the_law_given_from_their_torque_on(arm: EmulatedArm) -> None:
+    """The torque went on with zero gains and the host wrote its law a cycle later: a
+    host that stalled there left the arm limp (a free fall at start-up). The law is now
+    written before the torque-on; with the host silent, the watchdog stops the servos and
+    they keep its gains, whose damping holds a sagging joint below its speed limit."""
+    robot = RobotSettings().load()
+    settings = ArmSettings()
+    gravity_of = ArmModel(robot).inverse_dynamics
+    kp = np.array(settings.hold_kp_nm_per_rad) * settings.soft_start_fraction
+    kd = np.array(settings.hold_kd_nms_per_rad)
+
+    def hold(state: JointState) -> DriveCommand:
+        tau = gravity_of(state.q_rad, np.zeros(6), np.zeros(6))
+        return DriveCommand(state.q_rad, np.zeros(6), tau, kp, kd, robot.tau_max * 0.6)
+
+    driver = DynamixelDriver(str(arm.bus.link), CALIBRATION)
+    try:
+        for _ in range(20):  # as the node retries: a loaded machine may time a packet out
+            with contextlib.suppress(DriverError):
+                driver.connect(hold=hold)
+                break
+        with arm.bus.lock:
+            servos = [arm.chain.servos[i] for i in CALIBRATION.ids]
+            assert all(s.torque_on for s in servos)
+            assert all(s.value(POSITION_P_GAIN, 2) > 0 and s.value(POSITION_D_GAIN, 2) > 0
+                       for s in servos)  # fmt: skip
+        fastest, end = np.zeros(6), time.monotonic() + 1.0
+        while time.monotonic() < end:  # the host silent: the servos on their own
+            fastest = np.maximum(fastest, arm.joint_speeds())
+            time.sleep(0.005)
+        print(f"silent host after a torque-on at 10 % stiffness: fastest {np.round(fastest, 2)}")
+        assert np.all(fastest < robot.dq_max * settings.speed_fraction), fastest
+    finally:
+        driver.disconnect()
 
 
 @pytest.mark.parametrize("fault", ["short 1", "late 1"])
