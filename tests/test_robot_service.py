@@ -40,7 +40,7 @@ from dammrl_core.task import TaskSettings, scene_layout
 from schemas import EmergencyStop, Header, JointCommand, Message, RobotState, TaskGoal
 from services.robot.law import ArmLaw, Start
 from services.robot.link import DriveLink
-from services.robot.node import RobotNode
+from services.robot.node import RobotNode, make_driver
 
 CALIBRATION = Calibration(
     offsets_rad=(0.1, -0.05, 0.0, 0.2, 0.0, -0.1),
@@ -633,3 +633,24 @@ def test_after_a_stall_a_hold_holds_where_the_arm_sagged_to() -> None:
     sagged = JointState(q + np.array([0.0, -0.3, 0.0, -0.2, 0.0, 0.0]), np.zeros(6), np.zeros(6))
     law.after_stall(sagged, 1.0)
     np.testing.assert_allclose(law.law(sagged, 1.01, 1.0, lambda: "").q_ref, sagged.q_rad)
+
+
+def test_a_driver_that_cannot_hold_from_its_torque_on_is_refused_at_start(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A plug-in written before connect() took the law to hold with would turn its
+    torque on with none in force: one line at start, not a traceback mid-run."""
+
+    class Before:
+        def connect(self, torque: bool = True) -> bool:
+            return False
+
+    class Plugin:
+        settings = dict
+
+        def create(self, settings: object) -> Before:
+            return Before()
+
+    monkeypatch.setattr("services.robot.node.driver_plugin", lambda name: Plugin())
+    with pytest.raises(ConfigurationError, match=r"'lab-arm' has connect\(\) without 'hold'"):
+        make_driver(ArmSettings(driver="lab-arm"))

@@ -10,6 +10,7 @@ package's), made from its own settings.
 
 from __future__ import annotations
 
+import inspect
 import logging
 import threading
 import time
@@ -21,6 +22,7 @@ import numpy as np
 from dammrl_core.arm.driver import DriveCommand, Driver, DriverError, JointState, driver_plugin
 from dammrl_core.arm.settings import ArmSettings, arm_limits
 from dammrl_core.dynamics import ArmModel
+from dammrl_core.errors import ConfigurationError
 from dammrl_core.robot import RobotSettings
 from dammrl_core.state import RobotState as CoreState
 from dammrl_core.task import TaskSettings, scene_layout
@@ -38,9 +40,16 @@ BUTTON_PRESS_TRAVEL_M = 0.003  # as the sim's button
 
 
 def make_driver(settings: ArmSettings) -> Driver:
-    """The driver ``settings.driver`` names, made from its own settings."""
+    """The driver ``settings.driver`` names, made from its own settings; refused (one
+    line, at start) if it cannot hold the arm from its torque-on."""
     plugin = driver_plugin(settings.driver)
-    return plugin.create(plugin.settings())
+    driver = plugin.create(plugin.settings())
+    if "hold" not in inspect.signature(driver.connect).parameters:
+        raise ConfigurationError(
+            f"the arm driver {settings.driver!r} has connect() without 'hold': it would turn "
+            "the torque on with no law in force; update it to dammrl_core.arm.driver.Driver"
+        )
+    return driver
 
 
 class RobotNode:

@@ -135,7 +135,7 @@ class DynamixelDriver:
                 raise DriverError(f"cannot open the servo bus at {self.port}: {exc}") from None
             if not opened:
                 raise DriverError(f"cannot open the servo bus at {self.port}")
-            self._port, self._packet, self._written = port, sdk.PacketHandler(2.0), {}
+            self._port, self._packet = port, sdk.PacketHandler(2.0)
         try:
             with _bus_io(self.port):
                 return self._power_up(torque, hold)
@@ -152,7 +152,7 @@ class DynamixelDriver:
             _, result, _ = self._packet.ping(self._port, servo_id)
             if result != sdk.COMM_SUCCESS:
                 raise DriverError(f"servo {servo_id} does not answer on {self.port}")
-        holding = True
+        holding = []
         for servo_id in self.ids:
             bits = self._read1(servo_id, ADDRESS["hardware_error"])
             if bits:
@@ -160,17 +160,21 @@ class DynamixelDriver:
                     f"servo {servo_id} reports {describe_errors(bits)}: inspect the arm, "
                     "then power-cycle the servos"
                 )
-            holding &= (self._read1(servo_id, ADDRESS["torque_enable"]) == 1
-                        and self._read1(servo_id, ADDRESS["operating_mode"])
-                        == CURRENT_BASED_POSITION)  # fmt: skip
+            if (self._read1(servo_id, ADDRESS["torque_enable"]) == 1
+                    and self._read1(servo_id, ADDRESS["operating_mode"])
+                    == CURRENT_BASED_POSITION):  # fmt: skip
+                holding.append(servo_id)
             self._write1(servo_id, ADDRESS["watchdog"], 0)  # clears a watchdog stop
-        if holding and torque:
-            self._written = {}  # gains and limits are written again with the next command
-        else:
-            self._start(torque, hold)
-        for servo_id in self.ids if torque else ():
+        self._written = {}  # gains and limits are written again with the next law
+        if not torque:
+            self._start(self.ids, torque=False)
+            return False
+        every = len(holding) == len(self.ids)
+        if not every:
+            self._start([i for i in self.ids if i not in holding], hold=hold)
+        for servo_id in self.ids:
             self._write1(servo_id, ADDRESS["watchdog"], self._watchdog_ticks)
-        return holding and torque
+        return every
 
     @property
     def _watchdog_ticks(self) -> int:
@@ -230,10 +234,13 @@ class DynamixelDriver:
         self._write1(servo_id, ADDRESS["torque_enable"], 1)
         self._write1(servo_id, ADDRESS["watchdog"], self._watchdog_ticks)
 
-    def _start(self, torque: bool, hold: HoldLaw | None) -> None:
-        """Torque off, current-based position mode, then (``torque``) on, holding with
-        ``hold``'s law (None: where the arm is, with zero gains)."""
-        for servo_id in self.ids:
+    def _start(self, off: tuple[int, ...] | list[int], torque: bool = True,
+               hold: HoldLaw | None = None) -> None:  # fmt: skip
+        """The servos ``off`` to current-based position mode (the torque off to set it),
+        then (``torque``) on, every servo holding with ``hold``'s law (None: where the arm
+        is, with zero gains). The servos that hold meanwhile hold on: a start retried
+        after a failed packet does not let the arm drop."""
+        for servo_id in off:
             self._write1(servo_id, ADDRESS["torque_enable"], 0)
             self._write1(servo_id, ADDRESS["operating_mode"], CURRENT_BASED_POSITION)
         if not torque:
@@ -246,7 +253,7 @@ class DynamixelDriver:
         else:
             law = hold(state)
         self.write_command(law)
-        for servo_id in self.ids:
+        for servo_id in off:
             self._write1(servo_id, ADDRESS["torque_enable"], 1)
 
     # ---- reading -----------------------------------------------------------------------
