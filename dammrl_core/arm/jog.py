@@ -9,7 +9,7 @@ import numpy as np
 
 from dammrl_core.arm.driver import DriveCommand, Driver, DriverError
 from dammrl_core.arm.settings import ArmSettings, arm_limits
-from dammrl_core.arm.start import MotionClock, SoftStart, softened
+from dammrl_core.arm.start import LATE_CYCLE_S, MotionClock, SoftStart, softened
 from dammrl_core.dynamics import ArmModel
 from dammrl_core.robot import RobotDescription
 
@@ -29,7 +29,7 @@ def jog(
     arm = ArmModel(robot)
     kp, kd = np.array(settings.hold_kp_nm_per_rad), np.array(settings.hold_kd_nms_per_rad)
     period = 1.0 / settings.loop_rate_hz
-    ramp = SoftStart.begin(settings.soft_start_s, settings.soft_start_fraction, 2 * period,
+    ramp = SoftStart.begin(settings.soft_start_s, settings.soft_start_fraction, LATE_CYCLE_S,
                            time.monotonic())  # fmt: skip
 
     def hold(q_ref: np.ndarray) -> DriveCommand:
@@ -45,7 +45,7 @@ def jog(
         duration = max(0.5, 1.875 * abs(target[joint] - q0[joint]) / speed_rad_s)
         progress(f"joint {robot.joint_names[joint]}: {q0[joint]:+.3f} -> {target[joint]:+.3f} rad "
                  f"in {duration:.1f} s")  # fmt: skip
-        clock, failures = MotionClock(2 * period), 0  # a late cycle does not jump the move
+        clock, failures = MotionClock(LATE_CYCLE_S), 0  # a late cycle does not jump the move
         end = duration + 1.0 + settings.soft_start_s  # settle, after the soft start
         while (t := clock.advance(time.monotonic())) < end:
             s = min(max((t - settings.soft_start_s) / duration, 0.0), 1.0)

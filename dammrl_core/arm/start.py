@@ -8,8 +8,8 @@ hogs). Three rules keep the start and every planned move safe through it:
   torque over that damping) and a stiffness that ramps up (the soft start); a drive
   that stops itself when the host is silent keeps these gains;
 * a planned motion (the soft start's ramp, the homing move) runs on its own clock, which
-  advances with wall time but by at most ``max_step_s`` per cycle: a late cycle slows
-  the motion down and never jumps its reference ahead;
+  advances with wall time but by at most ``LATE_CYCLE_S`` per cycle: a late cycle slows
+  the motion down and never jumps its reference further than that much of its motion;
 * after the drives stopped themselves (a stall longer than their watchdog), the arm's
   law starts again from the measured posture (services.robot.law).
 
@@ -21,6 +21,13 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 from dammrl_core.arm.driver import DriveCommand
+
+LATE_CYCLE_S = 0.1
+"""A planned motion's clock advances by at most this per cycle [s]: as long as a servo's
+bus watchdog (after which it stops by itself and the motion is planned again from the
+measured posture), and short enough that a jump of the reference is small (homing at
+0.3 rad/s: 0.03 rad, as far as the joint limits' tolerance); a loop merely a little late
+under load is not slowed down."""
 
 
 @dataclass

@@ -30,7 +30,7 @@ import numpy as np
 from dammrl_core.arm.driver import DriveCommand, JointState
 from dammrl_core.arm.recovery import DriveRecovery
 from dammrl_core.arm.settings import ArmSettings
-from dammrl_core.arm.start import MotionClock, softened
+from dammrl_core.arm.start import LATE_CYCLE_S, MotionClock, softened
 from dammrl_core.dynamics import ArmModel
 from dammrl_core.robot import RobotDescription
 from dammrl_core.robot.scene import SceneLayout
@@ -100,7 +100,7 @@ class ArmLaw:
         self.layout = layout
         self.arm = arm
         self.period_s = period_s
-        self.max_step_s = 2 * period_s  # a planned motion's clock: a late cycle counts as two
+        self.max_step_s = LATE_CYCLE_S  # what a late cycle advances homing's clock by, at most
         self.caps = ArmCaps(
             settings.limit_tolerance_rad, settings.max_kp_nm_per_rad, settings.max_kd_nms_per_rad,
             settings.max_relative_target_rad, 1.0,  # the speed fraction is in the limits

@@ -10,7 +10,7 @@ import time
 
 from dammrl_core.arm.driver import DriveCommand, Driver, DriverError, HoldLaw, JointState
 from dammrl_core.arm.settings import ArmSettings
-from dammrl_core.arm.start import SoftStart
+from dammrl_core.arm.start import LATE_CYCLE_S, SoftStart
 
 log = logging.getLogger("dammrl.robot")
 
@@ -24,7 +24,7 @@ class DriveLink:
         self.connected = False
         self.limp = False  # a stop turned the torque off: the state is read, nothing written
         self.fault: str | None = None  # the bus is gone: reconnecting
-        self.max_step_s = 2.0 / settings.loop_rate_hz  # a late cycle counts as two periods
+        self.max_step_s = LATE_CYCLE_S  # what a late cycle advances the soft start by, at most
         self.ramp = SoftStart.begin(0.0, 1.0, self.max_step_s, 0.0, done=True)
         self.next_connect_s = 0.0
         self.errors = 0  # failed cycles in a row
