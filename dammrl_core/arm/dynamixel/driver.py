@@ -45,6 +45,9 @@ KP_UNIT_A_PER_RAD, KD_UNIT_AS_PER_RAD = 0.01, 0.001  # the position P and D gain
 ADDRESS = {"operating_mode": 11, "torque_enable": 64, "hardware_error": 70, "gains": 80,
            "watchdog": 98, "goal_current": 102, "goal_position": 116, "present": 126,
            "model": 0}  # fmt: skip
+VALID = {"operating_mode": {0, 1, 3, 4, 5, 16}, "torque_enable": {0, 1},
+         "hardware_error": set(range(256)), "watchdog": set(range(128)) | {0xFF}}  # fmt: skip
+"""What each one-byte field read can hold (e-manual); anything else is no answer to it."""
 PRESENT_BYTES = 10  # current (2), velocity (4), position (4): one sync read
 CURRENT_BASED_POSITION = 5
 MAX_GAIN_UNITS, MAX_CURRENT_UNITS = 16383, 1193
@@ -154,14 +157,14 @@ class DynamixelDriver:
                 raise DriverError(f"servo {servo_id} does not answer on {self.port}")
         holding = []
         for servo_id in self.ids:
-            bits = self._read1(servo_id, ADDRESS["hardware_error"])
+            bits = self._read1(servo_id, "hardware_error")
             if bits:
                 raise DriverError(
                     f"servo {servo_id} reports {describe_errors(bits)}: inspect the arm, "
                     "then power-cycle the servos"
                 )
-            if (self._read1(servo_id, ADDRESS["torque_enable"]) == 1
-                    and self._read1(servo_id, ADDRESS["operating_mode"])
+            if (self._read1(servo_id, "torque_enable") == 1
+                    and self._read1(servo_id, "operating_mode")
                     == CURRENT_BASED_POSITION):  # fmt: skip
                 holding.append(servo_id)
             self._write1(servo_id, ADDRESS["watchdog"], 0)  # clears a watchdog stop
@@ -187,7 +190,7 @@ class DynamixelDriver:
         stopped = []
         with _bus_io(self.port):
             for servo_id in self.ids:
-                if self._read1(servo_id, ADDRESS["watchdog"]) == 0xFF:  # -1: expired
+                if self._read1(servo_id, "watchdog") == 0xFF:  # -1: expired
                     self._write1(servo_id, ADDRESS["watchdog"], 0)
                     self._write1(servo_id, ADDRESS["watchdog"], self._watchdog_ticks)
                     stopped.append(servo_id)
@@ -229,7 +232,7 @@ class DynamixelDriver:
             row = self._written.get(name, ())[index * size : (index + 1) * size]
             if row:
                 self._write_bytes(servo_id, ADDRESS[name], bytes(row))
-        present = self._read4(servo_id, ADDRESS["present"] + 6)
+        present = self._read_position(servo_id)
         self._write_bytes(servo_id, ADDRESS["goal_position"], struct.pack("<i", present))
         self._write1(servo_id, ADDRESS["torque_enable"], 1)
         self._write1(servo_id, ADDRESS["watchdog"], self._watchdog_ticks)
@@ -287,7 +290,7 @@ class DynamixelDriver:
         if self.calibration.button_id is not None:
             button_m = rows[self.calibration.button_id][2] * 1e-6  # travel [um]
         state = self._joint_state(rows, button_m)
-        faults = tuple(self._fault(i, self._read1(i, ADDRESS["hardware_error"])) for i in alerts)
+        faults = tuple(self._fault(i, self._read1(i, "hardware_error")) for i in alerts)
         self._last = replace(state, faults=faults)
         return self._last
 
@@ -436,11 +439,20 @@ class DynamixelDriver:
                                 "reading")  # fmt: skip
         return params, int(packet[STATUS_ERROR])
 
-    def _read1(self, servo_id: int, address: int) -> int:
-        return self._read(servo_id, address, 1)[0]
+    def _read1(self, servo_id: int, name: str) -> int:
+        """The one-byte field ``name`` (of ADDRESS), refused unless it holds a valid value."""
+        value = self._read(servo_id, ADDRESS[name], 1)[0]
+        if value not in VALID[name]:
+            raise BadReplyError(f"servo {servo_id} reported {name} {value}: not a reading")
+        return value
 
-    def _read4(self, servo_id: int, address: int) -> int:
-        return int(struct.unpack("<i", self._read(servo_id, address, 4))[0])
+    def _read_position(self, servo_id: int) -> int:
+        """The present position [ticks], refused outside what a servo reports."""
+        value = int(struct.unpack("<i", self._read(servo_id, ADDRESS["present"] + 6, 4))[0])
+        low, high = PRESENT_RANGE[2]
+        if not low <= value <= high:
+            raise BadReplyError(f"servo {servo_id} reported position {value}: not a reading")
+        return value
 
     def _write_bytes(self, servo_id: int, address: int, data: bytes) -> None:
         import dynamixel_sdk as sdk
