@@ -70,8 +70,10 @@ MODES = {
     "semi-virtual": ("sim", "policy", "intent", "controller"),  # intent reads the sensor
     "real": ("robot", "policy", "intent", "controller"),  # the arm on a servo bus
 }
-EMULATOR_START_S = 15.0
 START_TIMEOUT_S = 60.0
+EMULATOR_START_S = START_TIMEOUT_S
+"""The emulated arm's pty appears this soon (it imports MuJoCo as a service does: 15 s
+was too short beside two CPU hogs) [s]."""
 FIRST_STATE_S = 30.0
 """The arm publishes its first state this soon after every service is alive [s]."""
 QUIET_S = 30.0
