@@ -25,7 +25,7 @@ from dammrl.emulators.servo_chain import (
     TICKS_PER_RAD,
     XM430_W350,
 )
-from dammrl_core.arm.driver import BadReplyError, DriveCommand, DriverError, JointState
+from dammrl_core.arm.driver import BadReplyError, DriveCommand, DriveFault, DriverError, JointState
 from dammrl_core.arm.dynamixel.calibration import Calibration, load_calibration, save_calibration
 from dammrl_core.arm.dynamixel.driver import DynamixelDriver
 from dammrl_core.arm.dynamixel.tools import guided_calibration, scan
@@ -654,3 +654,16 @@ def test_a_driver_that_cannot_hold_from_its_torque_on_is_refused_at_start(
     monkeypatch.setattr("services.robot.node.driver_plugin", lambda name: Plugin())
     with pytest.raises(ConfigurationError, match=r"'lab-arm' has connect\(\) without 'hold'"):
         make_driver(ArmSettings(driver="lab-arm"))
+
+
+def test_a_drive_left_off_is_logged_once_not_every_cycle(caplog: pytest.LogCaptureFixture) -> None:
+    """A servo left off keeps its alert bit: every read brings its fault again. It was an
+    error line per cycle (100 a second); it is said once, and again when its news change."""
+    law, q = _law_at_rest()
+    law.recovery.max_restarts = 0
+    overload = DriveFault(5, "servo 6: overload", restartable=True)
+    for _ in range(50):
+        law.check(JointState(q, np.zeros(6), np.zeros(6), faults=(overload,)), lambda j: None)
+    notes = [r.message for r in caplog.records if "servo 6" in r.message]
+    assert notes == ["servo 6: overload again: left off after 0 restarts: support the arm at "
+                     "this joint", "arm fault: servo 6: overload: stopping"], notes  # fmt: skip

@@ -109,6 +109,7 @@ class ArmLaw:
         self.stop_latch = StopLatch()
         self.fault: str | None = None  # the arm's own stop (drive faults, limits), latched
         self.recovery = DriveRecovery(settings.max_restarts)
+        self.said: dict[int, str] = {}  # joint -> the last word logged on its drive
         self.episode, self.episode_t0_s = 0, now_s
         self.homing: Homing | None = None
         self.unreachable_episode = -1  # its start posture was not reached: refused
@@ -184,7 +185,7 @@ class ArmLaw:
             for fault in joint.faults:
                 if self.settings.stop_action == "hold" and self.recovery.fault(fault):
                     restart(fault.joint)
-                log.error("%s", self.recovery.notes.get(fault.joint, fault.what))
+                self._say(fault.joint, self.recovery.notes.get(fault.joint, fault.what))
         elif first:
             self.fault = limit_violation(
                 self.limits, joint.q_rad, joint.dq_rad_s, self.settings.limit_tolerance_rad,
@@ -194,6 +195,12 @@ class ArmLaw:
             log.error("arm fault: %s: stopping", self.fault)
             return True
         return False
+
+    def _say(self, joint: int, note: str) -> None:
+        """A drive's news, logged once (a drive left off reports its fault every cycle)."""
+        if self.said.get(joint) != note:
+            self.said[joint] = note
+            log.error("%s", note)
 
     def _drive_back(self, j: int, joint: JointState) -> None:
         """A restarted drive holds where its joint is now: the stop's law there too."""
