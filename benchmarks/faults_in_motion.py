@@ -93,9 +93,9 @@ def run_fault(arm: EmulatedArm, joint: int, posture: np.ndarray, pull: int, faul
     worst excursion)."""
     port = free_port()
     observer = Observer(port)
+    quiet = os.environ.get("DAMMRL_LOG_LEVEL", "CRITICAL")  # the table is the output
     robot = start_service("robot", port, DAMMRL_DYNAMIXEL_PORT=str(arm.bus.link),
-                          DAMMRL_ARM_MAX_RESTARTS=str(reboots),
-                          DAMMRL_LOG_LEVEL=os.environ.get("DAMMRL_LOG_LEVEL", "CRITICAL"))  # fmt: skip
+                          DAMMRL_ARM_MAX_RESTARTS=str(reboots), DAMMRL_LOG_LEVEL=quiet)  # fmt: skip
     start = posture.copy()
     start[joint] -= pull * SWING_RAD  # the swing goes the way gravity pulls
     servo = arm.physics.calibration.ids[joint]
