@@ -135,6 +135,36 @@ def test_the_servos_hold_with_the_law_given_from_their_torque_on(arm: EmulatedAr
         driver.disconnect()
 
 
+def test_a_servo_started_beside_holding_ones_leaves_them_their_law(arm: EmulatedArm) -> None:
+    """A connect that finds some servos holding (a retry, a servo back from a brown-out)
+    starts the others only: the holding ones keep their stiffness (they neither drop, as
+    when every torque went off to set the mode, nor soften with a soft start), and it
+    counts as a reconnection (no soft start)."""
+    stiff, soft = np.array([300.0, 300, 150, 150, 40, 40]), np.full(6, 4.0)
+
+    def law(kp: np.ndarray) -> Callable[[JointState], DriveCommand]:
+        return lambda state: DriveCommand(state.q_rad, np.zeros(6), np.zeros(6), kp, kp / 10,
+                                          np.full(6, 30.0))  # fmt: skip
+
+    driver = DynamixelDriver(str(arm.bus.link), CALIBRATION)
+    gains = []
+    try:
+        for kp, held in ((stiff, False), (soft, True)):
+            for _ in range(20):  # as the node retries: a loaded machine may lose a packet
+                with contextlib.suppress(DriverError):
+                    assert driver.connect(hold=law(kp)) is held
+                    break
+            with arm.bus.lock:
+                gains.append([arm.chain.servos[i].value(POSITION_P_GAIN, 2)
+                              for i in CALIBRATION.ids])  # fmt: skip
+                arm.chain.servos[6].table[64] = 0  # servo 6 lost its torque (a brown-out)
+    finally:
+        driver.disconnect()
+    first, second = gains
+    assert second[:5] == first[:5], gains  # servos 1-5 kept their stiffness
+    assert second[5] < first[5] / 3, gains  # servo 6 started with the soft law
+
+
 @pytest.mark.parametrize("fault", ["short 1", "late 1"])
 def test_a_short_or_late_status_packet_is_a_missed_read_not_a_crash(
     arm: EmulatedArm, fault: str

@@ -85,8 +85,9 @@ class Driver(Protocol):
     def connect(self, torque: bool = True, hold: HoldLaw | None = None) -> bool:
         """Open and power up: ``torque``, the drives hold with ``hold``'s law from the moment
         their torque goes on (None: zero gains, the caller writes a law at once; a host
-        that stalls then leaves the arm limp); else the torque goes off, for moving the
-        arm by hand. True when every drive already held (no soft start needed); raises
+        that stalls then leaves the arm limp), those that already hold keep theirs; else
+        the torque goes off, for moving the arm by hand. True when any drive already held
+        (a reconnection: no soft start, which would soften the joints held); raises
         DriverError."""
         ...
 

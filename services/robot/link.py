@@ -48,7 +48,7 @@ class DriveLink:
                 log.error("%s: retrying every %.1f s", exc, self.settings.reconnect_s)
             self.fault = str(exc)
             return False
-        # drives that held with the torque on need no soft start (it would drop the arm)
+        # drives that held with the torque on: no soft start (it would let their joints sag)
         self.connected = True
         if holding:
             self.ramp = SoftStart.begin(0.0, 1.0, self.max_step_s, now, done=True)

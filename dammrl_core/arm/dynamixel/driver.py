@@ -21,7 +21,7 @@ import contextlib
 import math
 import struct
 import time
-from collections.abc import Iterator
+from collections.abc import Collection, Iterator
 from dataclasses import dataclass, field, replace
 from types import TracebackType
 from typing import Any
@@ -125,9 +125,10 @@ class DynamixelDriver:
         """Open the port (unless open), find every servo, refuse latched errors, clear a
         watchdog stop, arm the watchdog. Servos with the torque off start holding with
         ``hold``'s law, made from the state read just before (None: where they are, with
-        zero gains). True when every servo was already holding with the torque on (a
-        reconnection: no soft start needed). ``torque=False``: the torque goes off (the
-        arm is moved by hand: calibration)."""
+        zero gains); servos that hold with the torque on keep their law. True when any
+        servo was already holding (a reconnection: no soft start, which would soften the
+        joints held). ``torque=False``: the torque goes off (the arm is moved by hand:
+        calibration)."""
         import dynamixel_sdk as sdk
 
         if self._port is None:
@@ -172,12 +173,11 @@ class DynamixelDriver:
         if not torque:
             self._start(self.ids, torque=False)
             return False
-        every = len(holding) == len(self.ids)
-        if not every:
+        if len(holding) < len(self.ids):
             self._start([i for i in self.ids if i not in holding], hold=hold)
         for servo_id in self.ids:
             self._write1(servo_id, ADDRESS["watchdog"], self._watchdog_ticks)
-        return every
+        return bool(holding)
 
     @property
     def _watchdog_ticks(self) -> int:
@@ -241,8 +241,9 @@ class DynamixelDriver:
                hold: HoldLaw | None = None) -> None:  # fmt: skip
         """The servos ``off`` to current-based position mode (the torque off to set it),
         then (``torque``) on, every servo holding with ``hold``'s law (None: where the arm
-        is, with zero gains). The servos that hold meanwhile hold on: a start retried
-        after a failed packet does not let the arm drop."""
+        is, with zero gains). The servos that hold meanwhile keep their own law (a start
+        retried after a failed packet, a servo back from a brown-out: the arm neither
+        drops nor softens where it is held)."""
         for servo_id in off:
             self._write1(servo_id, ADDRESS["torque_enable"], 0)
             self._write1(servo_id, ADDRESS["operating_mode"], CURRENT_BASED_POSITION)
@@ -255,7 +256,7 @@ class DynamixelDriver:
             law = DriveCommand(state.q_rad, zeros, zeros, zeros, zeros, np.abs(limit))
         else:
             law = hold(state)
-        self.write_command(law)
+        self._write_command(law, None if len(off) == len(self.ids) else off)
         for servo_id in off:
             self._write1(servo_id, ADDRESS["torque_enable"], 1)
 
@@ -343,7 +344,8 @@ class DynamixelDriver:
         if self._port is None:
             raise DriverError(f"the servo bus at {self.port} is not open")
 
-    def _write_command(self, command: DriveCommand) -> None:
+    def _write_command(self, command: DriveCommand, only: Collection[int] | None = None) -> None:
+        """The law to every servo (``only``: to these, the others keep theirs)."""
         cal = self.calibration
         kp_servo = cal.servo_gain(command.kp)
         kd_servo = cal.servo_gain(command.kd)
@@ -352,28 +354,36 @@ class DynamixelDriver:
         current = cal.servo_current(command.torque_limit_nm)
         c_units = np.clip(np.round(current / CURRENT_UNIT_A), 0, MAX_CURRENT_UNITS).astype(int)
         gains = [list(struct.pack("<HHH", d, 0, p)) for d, p in zip(d_units, p_units, strict=True)]
-        self._sync_write_if_changed("gains", gains)
-        self._sync_write_if_changed("goal_current", [list(struct.pack("<h", c)) for c in c_units])
+        self._sync_write_if_changed("gains", gains, only)
+        self._sync_write_if_changed("goal_current", [list(struct.pack("<h", c)) for c in c_units],
+                                    only)  # fmt: skip
         # tau_ff + kd dq_ref through the position law: P (goal - q) = tau_ff + kd dq_ref + ...
         kp = np.maximum(command.kp, 1e-9)
         shift = (command.tau_ff + command.kd * command.dq_ref) / kp
         reach = np.minimum(command.torque_limit_nm / kp, self.max_goal_offset_rad)
         goal = command.q_ref + np.where(command.kp > 0, np.clip(shift, -reach, reach), 0.0)
         ticks = [list(struct.pack("<i", t)) for t in cal.to_ticks(goal)]
-        self._sync_write("goal_position", ticks)
+        self._sync_write("goal_position", ticks, only)
 
-    def _sync_write_if_changed(self, field_name: str, rows: list[list[int]]) -> None:
+    def _sync_write_if_changed(self, field_name: str, rows: list[list[int]],
+                               only: Collection[int] | None = None) -> None:  # fmt: skip
+        if only is not None:  # a part of the servos: nothing to remember for all
+            self._sync_write(field_name, rows, only)
+            return
         flat = tuple(b for row in rows for b in row)
         if self._written.get(field_name) != flat:
             self._sync_write(field_name, rows)
             self._written[field_name] = flat
 
-    def _sync_write(self, field_name: str, rows: list[list[int]]) -> None:
+    def _sync_write(self, field_name: str, rows: list[list[int]],
+                    only: Collection[int] | None = None) -> None:  # fmt: skip
         import dynamixel_sdk as sdk
 
         writer = sdk.GroupSyncWrite(self._port, self._packet, ADDRESS[field_name], len(rows[0]))
         for servo_id, row in zip(self.ids, rows, strict=True):
-            if servo_id not in self._booting:  # it would not hear it: it is put back later
+            if servo_id in self._booting:  # it would not hear it: it is put back later
+                continue
+            if only is None or servo_id in only:
                 writer.addParam(servo_id, row)
         result = writer.txPacket()
         if result != sdk.COMM_SUCCESS:
