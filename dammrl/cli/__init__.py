@@ -29,6 +29,7 @@ GROUPS = (
     "coadapt:register_adapt",
     "view",
     "bus",
+    "settings",
     "stop",
     "stack:register_schemas",
 )
