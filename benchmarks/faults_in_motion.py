@@ -10,14 +10,14 @@ limit early would hide how far it goes); shoulder yaw (joint 1) turns about the 
 so gravity never loads it: its posture is the one with the arm reaching furthest. The
 robot service moves the joint into that posture (a homing move, 0.3 rad/s at its peak) in
 the direction gravity pulls it, and each fault is injected as the joint passes 0.25
-rad/s: an overload of its servo (its torque cut until a reboot), its servo missing from
-the bus, the whole bus silent, the adapter unplugged (the last three recovered after 1 s).
-Per joint and fault, over the 3 s after the fault: the worst excursion of that joint from
-where it was [rad] and its fastest speed [rad/s], and the worst excursion of any other
-joint [rad]. The overload is run with no reboot (``DAMMRL_ARM_MAX_RESTARTS=0``: no
-software holds a joint whose drive is off) and with the reboot, at two boot times of the
-emulated servo (a real one's was not measured here). Each condition ``--trials`` times;
-the worst trial is printed.
+rad/s: an overload of its servo (its torque cut until a reboot), its servo overheating
+(torque cut, a fault a reboot does not clear: the drive is left off, and no software
+holds a joint whose drive is off), its servo missing from the bus, the whole bus silent,
+the adapter unplugged (the last three recovered after 1 s). Per joint and fault, over
+the 3 s after the fault: the worst excursion of that joint from where it was [rad] and
+its fastest speed [rad/s], and the worst excursion of any other joint [rad]. The
+overload is rebooted at two boot times of the emulated servo (a real one's was not
+measured here). Each condition ``--trials`` times; the worst trial is printed.
 
 The emulated arm runs in this process at the arm loop's priority (it stands in for the
 servos' own processors, which a busy host does not slow down).
@@ -43,7 +43,8 @@ from services.common.runtime import prioritise
 from tests.busutil import Observer, free_port, start_service, wait_for
 
 HOME = np.array([0.0, 1.0, 0.0, 1.6, 0.0, 0.3])
-FAULTS = {"overload": None, "missing": "present", "silent": "talk", "unplug": "replug"}
+FAULTS = {"overload": None, "overheat": None, "missing": "present", "silent": "talk",
+          "unplug": "replug"}  # the fault -> what ends it after 1 s (None: nothing)
 SWING_RAD = 0.4
 FAULT_AT_RAD_S = 0.25  # the swing's speed when the fault comes (its peak: 0.3 rad/s)
 
@@ -87,15 +88,15 @@ def _true(arm: EmulatedArm) -> tuple[np.ndarray, np.ndarray]:
         return np.array(arm.physics.state.q), np.array(arm.physics.state.dq)
 
 
-def run_fault(arm: EmulatedArm, joint: int, posture: np.ndarray, pull: int, fault: str,
-              reboots: int) -> tuple[float, float, float]:  # fmt: skip
+def run_fault(arm: EmulatedArm, joint: int, posture: np.ndarray, pull: int, fault: str
+              ) -> tuple[float, float, float]:  # fmt: skip
     """One fault mid-swing: (the joint's worst excursion, its fastest speed, the others'
     worst excursion)."""
     port = free_port()
     observer = Observer(port)
     quiet = os.environ.get("DAMMRL_LOG_LEVEL", "CRITICAL")  # the table is the output
     robot = start_service("robot", port, DAMMRL_DYNAMIXEL_PORT=str(arm.bus.link),
-                          DAMMRL_ARM_MAX_RESTARTS=str(reboots), DAMMRL_LOG_LEVEL=quiet)  # fmt: skip
+                          DAMMRL_LOG_LEVEL=quiet)  # fmt: skip
     start = posture.copy()
     start[joint] -= pull * SWING_RAD  # the swing goes the way gravity pulls
     servo = arm.physics.calibration.ids[joint]
@@ -152,20 +153,20 @@ def main() -> None:
     prioritise(True)
     postures = loaded_postures(args.room)
     names = RobotSettings().load().joint_names
-    runs = [("overload, no reboot", "overload", 0, args.boot[0])]
-    runs += [(f"overload, reboot in {b:g} s", "overload", 2, b) for b in args.boot]
-    runs += [(f"{f} 1 s", f, 2, args.boot[0]) for f in ("missing", "silent", "unplug")]
+    runs = [("overheating, left off", "overheat", args.boot[0])]
+    runs += [(f"overload, reboot in {b:g} s", "overload", b) for b in args.boot]
+    runs += [(f"{f} 1 s", f, args.boot[0]) for f in ("missing", "silent", "unplug")]
     print("| joint (posture, pull) | " + " | ".join(label for label, *_ in runs) + " |")
     print("|---" * (len(runs) + 1) + "|")
     with tempfile.TemporaryDirectory() as folder, emulated_arm(Path(folder) / "tty") as arm:
         for joint, (posture, pull) in sorted(postures.items()):
             cells = []
-            for _, fault, reboots, boot in runs:
+            for _, fault, boot in runs:
                 arm.chain.boot_s = boot
                 trials, failed = [], 0
                 while len(trials) < args.trials and failed <= args.trials:
                     try:
-                        trials.append(run_fault(arm, joint, posture, pull, fault, reboots))
+                        trials.append(run_fault(arm, joint, posture, pull, fault))
                     except AssertionError:  # the arm never got to the swing: no trial
                         failed += 1
                 if not trials:

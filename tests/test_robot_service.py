@@ -23,6 +23,7 @@ from dammrl.emulators.servo_chain import (
     POSITION_D_GAIN,
     POSITION_P_GAIN,
     TICKS_PER_RAD,
+    TORQUE_ENABLE,
     XM430_W350,
 )
 from dammrl_core.arm.driver import BadReplyError, DriveCommand, DriveFault, DriverError, JointState
@@ -322,6 +323,17 @@ class Rig:
                 self.gaps.append(np.abs(np.subtract(state.q_ref_applied_rad, state.q_rad)))
             time.sleep(0.01)
 
+    def run_until(self, done: Callable[[Rig], bool], timeout_s: float,
+                  each: Callable[[Rig], None] | None = None) -> None:  # fmt: skip
+        """Cycles until ``done`` (checked every 0.1 s), at most ``timeout_s``: a loaded
+        machine may take longer than a quiet one to get there."""
+        deadline = time.monotonic() + timeout_s
+        while not done(self):
+            if time.monotonic() > deadline:
+                health = self.bus.health[-1] if self.bus.health else None
+                raise AssertionError(f"not done after {timeout_s} s; Health {health}")
+            self.run(0.1, each)
+
     def fastest(self, since: int = 0, joints: list[int] | None = None) -> float:
         """The fastest any of ``joints`` (default all) moved since cycle ``since`` [rad/s]."""
         rows = np.array(self.speeds[since:])
@@ -368,12 +380,11 @@ def _answer(rig: Rig, offset: np.ndarray) -> None:
 
 def _started(rig: Rig) -> None:
     """Connected, soft-started, homed to episode 1's start and following commands."""
-    rig.run(0.5)
-    assert rig.node.connected and rig.last_health[0] == "holding"
+    rig.run_until(lambda r: r.node.connected and bool(r.bus.health)
+                  and r.last_health[0] == "holding", 20)  # fmt: skip
     rig.bus.send(_goal(1))
-    rig.run(4.0, lambda r: _answer(r, np.zeros(6)))
-    assert rig.node.law.episode == 1, rig.bus.rejected
-    assert rig.last_health[0] == "ok"
+    rig.run_until(lambda r: r.node.law.episode == 1 and r.last_health[0] == "ok", 20,
+                  lambda r: _answer(r, np.zeros(6)))  # fmt: skip
 
 
 def test_the_node_homes_follows_commands_and_holds_when_they_stop(rig: Rig) -> None:
@@ -536,6 +547,26 @@ def test_an_overloaded_servo_is_rebooted_and_holds_where_its_joint_is(rig: Rig) 
     inject(rig.arm, "overload 6")
     rig.run(0.5)
     assert "left off after 1 restarts: support the arm" in rig.last_health[1]
+
+
+def test_an_overheated_servo_is_left_off_and_said_while_the_others_hold(rig: Rig) -> None:
+    """Servo 6 overheats mid-motion (its torque cut, a fault a reboot does not clear): the
+    arm stops, the servo is never rebooted and stays off, Health says to support the arm,
+    and the other joints hold where they were."""
+    _started(rig)
+    rig.run(0.3, lambda r: _answer(r, np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.2])))  # moving
+    q0 = _true_q(rig)
+    inject(rig.arm, "overheat 6")
+    rig.run_until(lambda r: "left off" in r.last_health[1], 10)
+    rig.run(0.5)
+    state, detail = rig.last_health
+    assert state == "stopped" and "overheating: left off" in detail, detail
+    assert "support the arm" in detail, detail
+    assert rig.node.law.recovery.restarts[5] == 0  # never rebooted
+    with rig.arm.bus.lock:
+        assert rig.arm.chain.servos[6].booting_until_s is None
+        assert rig.arm.chain.servos[6].table[TORQUE_ENABLE] == 0  # still off
+    assert np.abs(_true_q(rig)[:5] - q0[:5]).max() < 0.02  # the others held
 
 
 def test_a_controller_starting_where_the_arm_rests_after_homing_meets_no_cap(rig: Rig) -> None:

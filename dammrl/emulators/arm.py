@@ -156,6 +156,8 @@ def inject(arm: EmulatedArm, line: str) -> str:
     with arm.bus.lock:
         if verb == "overload" and argument in arm.chain.servos:
             arm.chain.overload(argument)
+        elif verb == "overheat" and argument in arm.chain.servos:
+            arm.chain.overheat(argument)
         elif verb == "missing" and argument is not None:
             faults.missing.add(argument)
         elif verb == "present" and argument is not None:

@@ -1,7 +1,7 @@
 """An emulated chain of Dynamixel X-series servos behind Protocol 2.0: control tables,
 PING / READ / WRITE / SYNC READ / SYNC WRITE / REBOOT, hardware error bits, the bus
 watchdog and faults on demand (CRC errors, short or late status packets, a missing servo,
-no answer, an overload, unplugged).
+no answer, an overload or overheating, unplugged).
 
 REBOOT is the only way to clear a latched hardware error (the e-manual): the servo
 answers, then boots for ``ServoChain.boot_s`` (silent, torque off: its joint is free),
@@ -232,8 +232,8 @@ class FirstOrder:
 
 
 FAULT_HELP = (
-    "faults on stdin, one per line: overload ID | missing ID | present ID | corrupt N | "
-    "short N | late N | silent | talk | unplug | replug"
+    "faults on stdin, one per line: overload ID | overheat ID | missing ID | present ID | "
+    "corrupt N | short N | late N | silent | talk | unplug | replug"
 )
 
 
@@ -311,8 +311,17 @@ class ServoChain:
 
     def overload(self, servo_id: int) -> None:
         """Latch an overload error: torque off, the alert bit in every status."""
+        self.latch(servo_id, OVERLOAD_BIT)
+
+    def overheat(self, servo_id: int) -> None:
+        """Latch an overheating error (one a restart does not clear while the motor is
+        hot): torque off, the alert bit in every status."""
+        self.latch(servo_id, OVERHEAT_BIT)
+
+    def latch(self, servo_id: int, bit: int) -> None:
+        """Latch the hardware error ``bit``, as the firmware does: torque off."""
         servo = self.servos[servo_id]
-        servo.table[HARDWARE_ERROR_STATUS] |= OVERLOAD_BIT
+        servo.table[HARDWARE_ERROR_STATUS] |= bit
         servo.table[TORQUE_ENABLE] = 0
 
     # ---- the protocol --------------------------------------------------------------
