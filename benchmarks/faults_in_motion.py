@@ -43,8 +43,13 @@ from services.common.runtime import prioritise
 from tests.busutil import Observer, free_port, start_service, wait_for
 
 HOME = np.array([0.0, 1.0, 0.0, 1.6, 0.0, 0.3])
-FAULTS = {"overload": None, "overheat": None, "missing": "present", "silent": "talk",
-          "unplug": "replug"}  # the fault -> what ends it after 1 s (None: nothing)
+FAULTS = {
+    "overload": None,
+    "overheat": None,
+    "missing": "present",
+    "silent": "talk",
+    "unplug": "replug",
+}  # the fault -> what ends it after 1 s (None: nothing)
 SWING_RAD = 0.4
 FAULT_AT_RAD_S = 0.25  # the swing's speed when the fault comes (its peak: 0.3 rad/s)
 
