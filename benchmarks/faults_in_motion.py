@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -172,8 +173,9 @@ def main() -> None:
                 while len(trials) < args.trials and failed <= args.trials:
                     try:
                         trials.append(run_fault(arm, joint, posture, pull, fault))
-                    except AssertionError:  # the arm never got to the swing: no trial
+                    except AssertionError as exc:  # the arm never got to the swing: no trial
                         failed += 1
+                        print(f"joint {joint + 1}, {fault}: not run ({exc})", file=sys.stderr)
                 if not trials:
                     cells.append("no trial")
                     continue
