@@ -80,14 +80,17 @@ def start(index: int) -> tuple[str, str]:
     results = [json.loads(line) for line in out.splitlines() if line.startswith("{")]
     outcome = results[0]["outcome"] if results else "none"
     line = f"{ended}, episode {outcome}, {took:.0f} s{_robot_health(said)}"
+    (folder / "stderr.log").write_text(said)  # what every service said, kept to read
+    kept = f" (log: {folder / 'stderr.log'})"
     if "Traceback" in said or "exited unexpectedly" in said:
-        return "crash", f"{line}: {_first(said, ('Traceback', 'exited unexpectedly'))}"
+        return "crash", f"{line}: {_first(said, ('Traceback', 'exited unexpectedly'))}{kept}"
     if "rad/s beyond its limit" in said:
-        return "overspeed", f"{line}: {_first(said, ('rad/s beyond',))}"
+        return "overspeed", f"{line}: {_first(said, ('rad/s beyond',))}{kept}"
     if "robot stopped" in said:
-        return "other stop", f"{line}: {_first(said, ('robot stopped',))}"
+        return "other stop", f"{line}: {_first(said, ('robot stopped',))}{kept}"
     if ended != "exit 0" or not results:
-        return "failed" if ended.startswith("exit") else "hung", f"{line}: {said[-300:]!r}"
+        return ("failed" if ended.startswith("exit") else "hung",
+                f"{line}: {said[-300:]!r}{kept}")  # fmt: skip
     return "done", line
 
 
