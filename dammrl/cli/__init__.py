@@ -87,9 +87,10 @@ def parser(groups: Sequence[str] = GROUPS) -> argparse.ArgumentParser:
     if groups == GROUPS:
         import shtab
 
-        shtab.add_argument_to(top, ["--print-completion"], help="print a shell completion "
-                              "script (bash, zsh or tcsh), e.g. dammrl --print-completion "
-                              "bash > /etc/bash_completion.d/dammrl")  # fmt: skip
+        shtab.add_argument_to(top, ["--print-completion"],
+                              help="print a shell completion script (bash, zsh, tcsh, fish "
+                                   "or powershell), e.g. dammrl --print-completion bash > "
+                                   "/etc/bash_completion.d/dammrl")  # fmt: skip
     commands = top.add_subparsers(required=True, metavar="COMMAND")
     for group in groups:
         _register(group)(commands)

@@ -11,7 +11,7 @@ import argparse
 import sys
 
 from dammrl.cli.common import (
-    DEFAULT_CONNECT,
+    CONNECT_HELP,
     Commands,
     add_bus_arguments,
     bus_settings,
@@ -35,7 +35,7 @@ def register(commands: Commands) -> None:
         "once every arm on the bus confirmed, 1 otherwise. Where allowed (root or "
         "CAP_SYS_NICE) it runs at the arm loop's priority, ahead of whatever keeps the PC busy.",
     )
-    add_bus_arguments(stop, f"where the stack listens (default {DEFAULT_CONNECT})")
+    add_bus_arguments(stop, CONNECT_HELP)
     stop.add_argument("--release", action="store_true",
                       help="release the stop: the arms hold until commands resume")  # fmt: skip
     stop.add_argument("--reason", default="", help="recorded with the stop")
