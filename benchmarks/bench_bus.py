@@ -1,15 +1,21 @@
 """Bus benchmarks, in one run on this machine (figures, not pass/fail):
 
-(a) state -> command round trip through the real controller: the sim node runs in this
-    process (instrumented), policy / intent / controller as their own processes; latency
-    from a RobotState's publication to the arrival of the JointCommand answering it, on a
-    plain tcp bus and on a secured one (mutual TLS + access control), side by side;
-(b) the floor of this machine: a raw UDP ping-pong between two processes on loopback at
-    the same rate and payload size, and the same ping-pong over bare Zenoh (the transport
-    without the services' work);
-(c) the virtual stack's real-time factor (simulated / wall time) and missed deadlines.
+(a) state -> command round trip through the real controller: the sim node runs in a
+    process of its own (instrumented, at the sim service's priority), policy / intent /
+    controller as their services; from a RobotState's publication to the moment the sim
+    holds the JointCommand answering it (taken as it arrives, decoded and checked), over
+    ``--seconds`` of running reaches (the stack's start-up is left out and said apart);
+    the states of the running reaches the controller answered (commands per state), the
+    periods the physics stepped on the answer to their own state, and the states it
+    superseded; on a plain tcp bus and on a secured one (mutual TLS + access control);
+(b) the floor of this machine, run just before each (a): a bare Zenoh ping-pong between
+    two processes at the same rate and payload size (the transport without the services'
+    work), and once a raw UDP ping-pong;
+(c) the cost of each of the bus's design choices (``bus_variants.py``): each undone alone,
+    measured as (a) beside its own bare Zenoh run;
+(d) the virtual stack's real-time factor and missed deadlines.
 
-    python benchmarks/bench_bus.py [--seconds 30]
+    PYTHONPATH=. python benchmarks/bench_bus.py [--seconds 15] [--variants ...] [--hogs 2]
 """
 
 from __future__ import annotations
@@ -25,19 +31,27 @@ import tempfile
 import threading
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import zenoh
+from bus_variants import VARIANTS, apply  # beside this script
 
 from dammrl_core.robot import RobotSettings
 from dammrl_core.sim.settings import SimSettings
 from dammrl_core.task import TaskSettings
+from schemas import JointCommand
 from services.common.bus import Bus, zenoh_config
 from services.common.certificates import create_credentials
 from services.common.config import BusSettings
+from services.common.runtime import prioritise
 from services.sim.node import SimNode
 
 PAYLOAD_BYTES = 420  # about one msgpack RobotState
+STARTUP_LIMIT_S = 120.0  # the stack's first answer, on a loaded machine
+SECURED = "as built, mutual TLS + ACL"
+HOG = "while True: pass"  # another program on the lab's PC, at the default priority
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def free_port() -> int:
@@ -46,41 +60,117 @@ def free_port() -> int:
         return int(sock.getsockname()[1])
 
 
-def percentiles(samples_s: list[float] | np.ndarray) -> str:
+def percentiles(samples_s: list[float] | np.ndarray) -> dict[str, float]:
     ms = np.asarray(samples_s) * 1e3
+    if len(ms) == 0:
+        return {"p50": float("nan"), "p99": float("nan"), "p99.9": float("nan"), "n": 0}
     p50, p99, p999 = np.percentile(ms, [50, 99, 99.9])
-    return f"p50 {p50:6.3f} ms  p99 {p99:6.3f} ms  p99.9 {p999:6.3f} ms  (n={len(ms)})"
+    return {"p50": float(p50), "p99": float(p99), "p99.9": float(p999), "n": len(ms)}
 
 
-def bus_round_trip(
-    seconds: float, rate_hz: float, credentials: Path | None = None
-) -> tuple[SimNode, float]:
-    """Run the stack for ``seconds``; return the instrumented sim node and wall time."""
+class TimedSim(SimNode):
+    """The sim node, noting each state it publishes and each command it takes."""
+
+    def __init__(self, *args: Any) -> None:
+        super().__init__(*args)
+        self.published: list[tuple[int, int]] = []  # (stamp_ns, episode)
+        self.answers: list[tuple[int, int]] = []  # (answered state's stamp_ns, taken at ns)
+        self.first_answer_s: float | None = None
+
+    def _publish_state(self) -> None:
+        super()._publish_state()
+        self.published.append((self.last_stamp_ns, self.episode))
+
+    def _take_command(self, message: JointCommand) -> None:
+        if self.first_answer_s is None:
+            self.first_answer_s = time.monotonic()
+        self.answers.append((message.state_stamp_ns, self.bus.arrival_ns))
+        super()._take_command(message)
+
+
+def _stack_figures(sim: TimedSim, started_s: float) -> dict[str, Any]:
+    """Round trips and answered states over the running reaches: per episode, from its
+    first answered state to its last (between reaches nobody is asked to answer)."""
+    taken = dict(sim.answers)  # the first command answering each state
+    trips, states, answered = [], 0, 0
+    for episode in {e for _, e in sim.published if e > 0}:
+        stamps = [s for s, e in sim.published if e == episode]
+        hits = [i for i, s in enumerate(stamps) if s in taken]
+        if not hits:
+            continue
+        window = stamps[hits[0] : hits[-1] + 1]
+        states += len(window)
+        answered += sum(s in taken for s in window)
+        trips += [(taken[s] - s) * 1e-9 for s in window if s in taken]
+    assert sim.first_answer_s is not None
+    return {
+        "round trip [ms]": percentiles(trips),
+        "states": states,
+        "commands per state": answered / max(states, 1),
+        "periods on their own answer": sim.answered_periods / max(sim.commanded_periods, 1),
+        "start-up [s]": sim.first_answer_s - started_s,
+    }
+
+
+def _spawn_service(name: str, variant: str, env: dict[str, str]) -> subprocess.Popen[bytes]:
+    command = [sys.executable, str(ROOT / "benchmarks" / "bus_variants.py"), variant, name]
+    return subprocess.Popen(command, env=os.environ | env, cwd=ROOT)
+
+
+def stack_round_trip(
+    seconds: float, rate_hz: float, variant: str, credentials: Path | None
+) -> dict[str, Any]:
+    """Run the stack under ``variant`` for ``seconds`` of running reaches (this process is
+    the sim); its figures."""
+    apply(variant)
     port = free_port()
     endpoint = f"{'tcp' if credentials is None else 'tls'}/127.0.0.1:{port}"
     env = {"DAMMRL_BUS_CONNECT": json.dumps([endpoint]), "DAMMRL_LOG_LEVEL": "WARNING",
-           "DAMMRL_TASK_EPISODE_TIMEOUT_S": "1000"}  # fmt: skip
+           "DAMMRL_TASK_EPISODE_TIMEOUT_S": "1000", "PYTHONPATH": str(ROOT)}  # fmt: skip
     if credentials is not None:
         env["DAMMRL_BUS_CREDENTIALS"] = str(credentials)
-    children = [
-        subprocess.Popen([sys.executable, "-m", f"services.{name}"], env=os.environ | env)
-        for name in ("policy", "intent", "controller")
-    ]
+    settings = BusSettings(listen=[endpoint], credentials=credentials)
+    prioritise(True)  # as the sim service does
+    children = [_spawn_service(name, variant, env) for name in ("policy", "intent", "controller")]
     stop = threading.Event()
     try:
-        settings = SimSettings(state_rate_hz=rate_hz)
-        with Bus(BusSettings(listen=[endpoint], credentials=credentials), "sim") as bus:
-            node = SimNode(settings, TaskSettings(), RobotSettings(), bus)
-            timer = threading.Timer(seconds, stop.set)
-            timer.start()
-            start = time.monotonic()
-            node.run(stop)
-            wall = time.monotonic() - start
+        with Bus(settings, "sim") as bus:
+            sim = TimedSim(SimSettings(state_rate_hz=rate_hz), TaskSettings(), RobotSettings(), bus)
+            started = time.monotonic()
+            window: list[tuple[float, int, int]] = []  # (wall, ticks, missed) at its ends
+            threading.Thread(target=_stop_after, args=(sim, seconds, started, stop, window),
+                             daemon=True).start()  # fmt: skip
+            sim.run(stop)
+            window.append((time.monotonic(), sim.pacer.ticks, sim.pacer.missed))
     finally:
         for child in children:
             child.terminate()
-            child.wait(10)
-    return node, wall
+        for child in children:
+            try:
+                child.wait(20)  # a loaded machine: the services' own grace is 5 s
+            except subprocess.TimeoutExpired:
+                child.kill()
+                child.wait()
+    figures = _stack_figures(sim, started)
+    (t0, ticks0, missed0), (t1, ticks1, missed1) = window[0], window[-1]
+    figures["real-time factor"] = (ticks1 - ticks0) * sim.pacer.period_s / (t1 - t0)
+    figures["missed deadlines"] = (missed1 - missed0) / max(ticks1 - ticks0, 1)
+    return figures
+
+
+def _stop_after(
+    sim: TimedSim,
+    seconds: float,
+    started: float,
+    stop: threading.Event,
+    window: list[tuple[float, int, int]],
+) -> None:
+    """Stop ``seconds`` after the stack's first answer (or when it never came)."""
+    while sim.first_answer_s is None and time.monotonic() - started < STARTUP_LIMIT_S:
+        time.sleep(0.05)
+    window.append((time.monotonic(), sim.pacer.ticks, sim.pacer.missed))
+    time.sleep(seconds if sim.first_answer_s is not None else 0)
+    stop.set()
 
 
 def _echo_server(port_queue: multiprocessing.Queue, stop_after_s: float) -> None:  # type: ignore[type-arg]
@@ -144,10 +234,15 @@ def zenoh_round_trip(seconds: float, rate_hz: float) -> list[float]:
         session.declare_subscriber("bench/pong", lambda sample: arrived.set())
         ping = session.declare_publisher("bench/ping", express=True)
         spawn = multiprocessing.get_context("spawn")  # never fork a process running Zenoh
-        echo = spawn.Process(target=_zenoh_echo, args=(endpoint, seconds + 10))
+        echo = spawn.Process(target=_zenoh_echo, args=(endpoint, seconds + STARTUP_LIMIT_S))
         echo.start()
-        time.sleep(3.0)  # the spawned interpreter imports and connects
         payload, samples, period = bytes(PAYLOAD_BYTES), [], 1.0 / rate_hz
+        deadline = time.monotonic() + STARTUP_LIMIT_S
+        while time.monotonic() < deadline:  # the spawned interpreter imports and connects
+            arrived.clear()
+            ping.put(payload)
+            if arrived.wait(0.5):
+                break
         next_t = time.monotonic()
         end = next_t + seconds
         while time.monotonic() < end:
@@ -162,40 +257,111 @@ def zenoh_round_trip(seconds: float, rate_hz: float) -> list[float]:
     return samples
 
 
+def _one(args: argparse.Namespace) -> None:
+    """A child run: one variant of the stack, its figures as one JSON line."""
+    if args.one == SECURED:
+        with tempfile.TemporaryDirectory() as folder:
+            create_credentials(Path(folder) / "bus")
+            figures = stack_round_trip(args.seconds, args.rate, "as built", Path(folder) / "bus")
+    else:
+        figures = stack_round_trip(args.seconds, args.rate, args.one, None)
+    print(json.dumps(figures), flush=True)
+
+
+def run_variant(variant: str, seconds: float, rate_hz: float) -> dict[str, Any]:
+    """One variant in a process of its own (its patches stay there), beside a bare Zenoh
+    ping-pong run just before it."""
+    bare = percentiles(zenoh_round_trip(seconds, rate_hz))
+    command = [sys.executable, __file__, "--one", variant, "--seconds", str(seconds),
+               "--rate", str(rate_hz)]  # fmt: skip
+    out = subprocess.run(command, cwd=ROOT, env=os.environ | {"PYTHONPATH": str(ROOT)},
+                         capture_output=True, text=True, timeout=seconds + 300)  # fmt: skip
+    lines = [line for line in out.stdout.splitlines() if line.startswith("{")]
+    if not lines:
+        raise SystemExit(f"{variant}: no figures\n{out.stderr[-3000:]}")
+    figures: dict[str, Any] = json.loads(lines[-1])
+    figures["bare Zenoh [ms]"] = bare
+    return figures
+
+
+def summary(runs: list[dict[str, Any]]) -> dict[str, Any]:
+    """A variant's figures over its rounds: medians of the per-round percentiles and of
+    the per-round ratio to the bare Zenoh run just before; answered states pooled."""
+    ratios = [r["round trip [ms]"]["p99"] / r["bare Zenoh [ms]"]["p99"] for r in runs]
+    states = sum(r["states"] for r in runs)
+    answered = sum(r["commands per state"] * r["states"] for r in runs)
+    return {
+        "round trip p50 [ms]": float(np.median([r["round trip [ms]"]["p50"] for r in runs])),
+        "round trip p99 [ms]": float(np.median([r["round trip [ms]"]["p99"] for r in runs])),
+        "bare Zenoh p50 [ms]": float(np.median([r["bare Zenoh [ms]"]["p50"] for r in runs])),
+        "bare Zenoh p99 [ms]": float(np.median([r["bare Zenoh [ms]"]["p99"] for r in runs])),
+        "p99 / bare p99": float(np.median(ratios)),
+        "p99 / bare p99, range": (min(ratios), max(ratios)),
+        "commands per state": answered / max(states, 1),
+        "states": states,
+        "periods on their own answer": float(
+            np.mean([r["periods on their own answer"] for r in runs])
+        ),
+        "start-up [s]": float(np.median([r["start-up [s]"] for r in runs])),
+        "real-time factor": float(np.median([r["real-time factor"] for r in runs])),
+        "rounds": len(runs),
+    }
+
+
+def row(variant: str, f: dict[str, Any]) -> str:
+    low, high = f["p99 / bare p99, range"]
+    return (
+        f"| {variant} | {f['round trip p50 [ms]']:.2f} / {f['round trip p99 [ms]']:.2f} | "
+        f"{f['bare Zenoh p50 [ms]']:.2f} / {f['bare Zenoh p99 [ms]']:.2f} | "
+        f"{f['p99 / bare p99']:.2f} ({low:.2f}-{high:.2f}) | {f['commands per state']:.4f} | "
+        f"{f['periods on their own answer']:.4f} | {f['states']} | {f['start-up [s]']:.1f} | "
+        f"{f['real-time factor']:.3f} |"
+    )
+
+
+HEADER = (
+    "| variant | round trip p50 / p99 [ms] | bare Zenoh p50 / p99 [ms] | p99 / bare p99 "
+    "(range) | commands per state | periods on their own answer | states | start-up [s] | "
+    "real-time factor |\n|---|---|---|---|---|---|---|---|---|"
+)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--seconds", type=float, default=30.0)
+    parser.add_argument("--seconds", type=float, default=15.0, help="of running reaches")
     parser.add_argument("--rate", type=float, default=SimSettings().state_rate_hz)
+    parser.add_argument("--variants", nargs="*", choices=[*VARIANTS, SECURED],
+                        default=["as built", SECURED])  # fmt: skip
+    parser.add_argument("--all", action="store_true", help="every variant (c)")
+    parser.add_argument("--rounds", type=int, default=2, help="each variant this often")
+    parser.add_argument("--hogs", type=int, default=0, help="CPU hogs beside the runs")
+    parser.add_argument("--json", type=Path, help="write the figures here too")
+    parser.add_argument("--one", help=argparse.SUPPRESS)
     args = parser.parse_args()
-
-    node, wall = bus_round_trip(args.seconds, args.rate)
-    with tempfile.TemporaryDirectory() as folder:
-        create_credentials(Path(folder) / "bus")
-        secured, _ = bus_round_trip(args.seconds, args.rate, Path(folder) / "bus")
-    udp = udp_round_trip(args.seconds, args.rate)
-    bare = zenoh_round_trip(args.seconds, args.rate)
-    trips = list(node.round_trips_s)[50:]  # skip the connection warm-up
-    pacer = node.pacer
-    simulated = pacer.ticks * pacer.period_s
-    print(
-        f"state rate {args.rate:.0f} Hz, {args.seconds:.0f} s each, UDP payload {PAYLOAD_BYTES} B"
-    )
-    print(f"(a) bus state->command round trip : {percentiles(trips)}")
-    print(f"(a') the same, mutual TLS + ACL    : {percentiles(list(secured.round_trips_s)[50:])}")
-    print(f"(b) raw UDP ping-pong (2 processes): {percentiles(udp)}")
-    print(f"(b') bare Zenoh ping-pong (same)   : {percentiles(bare)}")
-    p99_ratio = np.percentile(trips, 99) / np.percentile(udp, 99)
-    bare_ratio = np.percentile(bare, 99) / np.percentile(udp, 99)
-    print(f"    p99 / UDP p99: bus {p99_ratio:.1f}x, bare Zenoh {bare_ratio:.1f}x (goal 2x)")
-    print(f"(c) real-time factor               : {simulated / wall:.3f}   (goal >= 0.99)")
-    print(
-        f"    missed control deadlines       : {pacer.missed} of {pacer.ticks} "
-        f"({pacer.missed / max(pacer.ticks, 1):.2%})"
-    )
-    print(
-        f"    messages per state             : {len(node.round_trips_s) / max(pacer.ticks, 1):.2f} "
-        "commands received per state published"
-    )
+    if args.one is not None:
+        _one(args)
+        return
+    variants = [*VARIANTS, SECURED] if args.all else args.variants
+    hogs = [subprocess.Popen([sys.executable, "-c", HOG]) for _ in range(args.hogs)]
+    runs: dict[str, list[dict[str, Any]]] = {v: [] for v in variants}
+    try:
+        udp = percentiles(udp_round_trip(args.seconds, args.rate))
+        for _ in range(args.rounds):  # interleaved: the machine's load changes
+            for variant in variants:
+                runs[variant].append(run_variant(variant, args.seconds, args.rate))
+    finally:
+        for hog in hogs:
+            hog.kill()
+    results = {variant: summary(r) for variant, r in runs.items()}
+    print(f"state rate {args.rate:.0f} Hz, {args.seconds:.0f} s of running reaches per run, "
+          f"{args.rounds} rounds, {args.hogs} CPU hogs beside; raw UDP ping-pong p50 "
+          f"{udp['p50']:.2f} ms / p99 {udp['p99']:.2f} ms")  # fmt: skip
+    print(HEADER)
+    for variant, figures in results.items():
+        print(row(variant, figures))
+    if args.json is not None:
+        args.json.write_text(json.dumps({"udp [ms]": udp, "variants": results, "runs": runs},
+                                        indent=1))  # fmt: skip
 
 
 if __name__ == "__main__":

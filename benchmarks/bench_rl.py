@@ -8,6 +8,7 @@ stable-baselines3's DQN on the same environment (when the ``bench`` extra is ins
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import tempfile
 import time
@@ -24,13 +25,14 @@ from dammrl.runner import ReachRunner, ReachSettings
 
 
 def environment(decisions: int, randomize: bool, seed: int = 0) -> tuple[float, float, int]:
-    """Random actions for ``decisions`` decisions: (wall [s], simulated [s], physics steps)."""
+    """Random actions for ``decisions`` decisions: (processor time [s], simulated [s],
+    physics steps)."""
     runner = ReachRunner(ReachSettings().randomized(randomize))
     env = ReachEnv(runner, RewardWeights.preset(2), max_decisions=150)
     rng = np.random.default_rng(seed)
     env.reset(seed=seed)
     episode, simulated = seed * 10_000, 0.0
-    start = time.perf_counter()
+    start = time.process_time()
     for _ in range(decisions):
         *_, terminated, truncated, _ = env.step(
             (rng.integers(ACTIONS[0]), rng.integers(ACTIONS[1]))
@@ -40,22 +42,22 @@ def environment(decisions: int, randomize: bool, seed: int = 0) -> tuple[float, 
             episode += 1
             env.reset(seed=episode)
     simulated += runner.sim.data.time
-    wall = time.perf_counter() - start
-    return wall, simulated, round(simulated / runner.sim.timestep_s)
+    spent = time.process_time() - start
+    return spent, simulated, round(simulated / runner.sim.timestep_s)
 
 
 def raw_physics(steps: int, randomize: bool) -> float:
-    """Wall time of ``steps`` bare mj_step calls (10 per call, as the control loop) on the
-    same model (randomised alike: joint friction adds constraints to solve): the ceiling
-    for the environment."""
+    """Processor time of ``steps`` bare mj_step calls (10 per call, as the control loop) on
+    the same model (randomised alike: joint friction adds constraints to solve): the
+    ceiling for the environment."""
     runner = ReachRunner(ReachSettings().randomized(randomize))
     model, data = runner.sim.model, runner.sim.data
     start = runner.start_posture(runner.sample(0).start)
     runner.sim.reset(start, (0.5, 0.0), rng=np.random.default_rng(0))
-    start = time.perf_counter()
+    start = time.process_time()
     for _ in range(steps // 10):
         mujoco.mj_step(model, data, nstep=10)
-    return time.perf_counter() - start
+    return time.process_time() - start
 
 
 def _worker(args: tuple[int, bool, int]) -> tuple[float, float, int]:
@@ -99,21 +101,36 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--decisions", type=int, default=2000)
     parser.add_argument("--train-episodes", type=int, default=200)
+    parser.add_argument("--repeat", type=int, default=3, help="each timing, the best kept")
+    parser.add_argument("--json", type=Path, help="write the figures here too")
+    parser.add_argument("--no-training", action="store_true", help="the environment only")
     args = parser.parse_args()
     environment(100, True)  # warm up (imports, caches)
+    figures: dict[str, float] = {}
     for randomize in (False, True):
-        wall, simulated, steps = environment(args.decisions, randomize)
-        physics = raw_physics(steps, randomize)
+        timings = []
+        for _ in range(args.repeat):  # interleaved: the machine's load changes
+            spent, simulated, steps = environment(args.decisions, randomize)
+            timings.append((spent, raw_physics(steps, randomize)))
+        spent, physics = min(t[0] for t in timings), min(t[1] for t in timings)
         arm = "randomised" if randomize else "nominal"
-        print(f"environment, 1 core, {arm} arm: {args.decisions / wall:.0f} decisions/s "
-              f"({simulated / wall:.0f}x real time); raw mj_step for the same {simulated:.0f} s "
-              f"simulated: {args.decisions / physics:.0f} decisions/s "
-              f"(environment at {physics / wall:.0%} of it)")  # fmt: skip
+        print(f"environment, 1 core, {arm} arm: {args.decisions / spent:.0f} decisions per "
+              f"processor second ({simulated / spent:.0f}x real time); raw mj_step for the "
+              f"same {simulated:.0f} s simulated: {args.decisions / physics:.0f} decisions/s "
+              f"(environment at {physics / spent:.0%} of it; best of {args.repeat})")  # fmt: skip
+        figures[f"environment / raw mj_step, {arm}"] = physics / spent
+        figures[f"environment decisions/s, {arm}"] = args.decisions / spent
+    if args.no_training:
+        _write(args.json, figures)
+        return
     cores = os.cpu_count() or 1
-    one = args.decisions / environment(args.decisions, True, seed=1)[0]
+    started = time.perf_counter()  # wall time, as the processes' below
+    environment(args.decisions, True, seed=1)
+    one = args.decisions / (time.perf_counter() - started)
     many = parallel_environment(args.decisions, cores)
     print(f"environment, {cores} processes: {many:.0f} decisions/s in all "
           f"({many / one:.2f}x one core)")  # fmt: skip
+    figures[f"environment, {cores} processes / 1"] = many / one
     training(2)  # warm: imports (TensorBoard, SciPy's filters) outside the timing, as SB3's
     wall, decisions = training(args.train_episodes)
     print(f"training (dammrl dual-agent DQN): {args.train_episodes} episodes, {decisions} "
@@ -124,6 +141,13 @@ def main() -> None:
     else:
         print(f"training (stable-baselines3 DQN, joint action): {decisions} decisions in "
               f"{sb3:.1f} s; dammrl / sb3 wall time = {wall / sb3:.2f}")  # fmt: skip
+        figures["training dammrl / sb3 wall time"] = wall / sb3
+    _write(args.json, figures)
+
+
+def _write(path: Path | None, figures: dict[str, float]) -> None:
+    if path is not None:
+        path.write_text(json.dumps(figures, indent=1))
 
 
 if __name__ == "__main__":

@@ -50,6 +50,22 @@ from dammrl_core.task import (
     task_for_seed,
 )
 
+COAST_PERIODS = 100
+"""The most control periods stepped in one go while a reach coasts (1 s at 100 Hz)."""
+
+
+SETTLE_S = 0.05
+"""While the arm approaches its subgoal, a stretch foresees the commands this far past
+the reference's rest (the trigger fires about then; foreseen beyond it, they are waste)."""
+
+
+def _tick_times(t_s: float, ticks: int, substeps: int, timestep_s: float) -> np.ndarray:
+    """The robot times of the next ``ticks`` ticks after ``t_s``, as MuJoCo's clock will
+    read them: it adds the timestep once per step (``accumulate`` adds in order too)."""
+    steps = np.full(ticks * substeps + 1, timestep_s)
+    steps[0] = t_s
+    return np.asarray(np.add.accumulate(steps)[substeps::substeps])
+
 
 class ReachSettings(BaseModel):
     """Everything one in-process reach needs (the same settings the services read)."""
@@ -265,7 +281,7 @@ class Episode:
             if tick.command is None or self._observed_enough(state):
                 return
             self.sim.apply(tick.command)
-            next_state = self._advance(state.t_s)
+            next_state = self._advance(state)
             if next_state is None:
                 return
             state = next_state
@@ -287,14 +303,70 @@ class Episode:
             self.hold_until = self.reach.end_s + HOLD_OBSERVATION_S
         return state.t_s >= self.hold_until - 1e-9
 
-    def _advance(self, t_s: float) -> RobotState | None:
-        """The next tick's state: one control period, or an idle stretch in one rollout
-        (None when the reach ended inside it)."""
-        idle = self._idle_periods(t_s)
+    def _advance(self, state: RobotState) -> RobotState | None:
+        """The next tick's state: one control period, an idle stretch in one rollout
+        (None when the reach ended inside it), or a stretch of quiet ticks in one go."""
+        idle = self._idle_periods(state.t_s)
         if idle > 1:
             return self._fast_forward(idle)
+        periods = self._coast_periods(state)
+        if periods > 1:
+            return self._coast(state.t_s, periods)
         self.sim.step(self.runner.substeps)
         return self.sim.read()
+
+    def _coast_periods(self, state: RobotState) -> int:
+        """Control periods to step in one go while the reach coasts (0: tick each): up to
+        the next event known in advance (a decision due, a planned step ready, a timeout),
+        at most ``COAST_PERIODS``; none while the arm is already near its subgoal."""
+        reach, controller = self.reach, self.controller
+        if not self.runner.settings.fast_forward or not reach.coasting:
+            return 0
+        if controller.awaiting_trigger and controller.subgoal is not None:
+            error = controller.subgoal - state.ee_pos
+            if error @ error <= controller.radius_m**2 * (1 + 1e-9):
+                return 0  # the trigger may fire at any tick now
+            until = controller.segment.t0_s + controller.settings.trigger_timeout_s
+            # it fires about when the reference comes to rest: foresee no farther
+            until = min(until, max(controller.segment.end_s, state.t_s) + SETTLE_S)
+        else:
+            until = math.inf
+        if controller.planned:
+            until = min(until, controller.planned[0].ready_s)
+        if reach.pending is not None:
+            until = min(until, reach.pending.intent.t_s)
+        until = min(until, reach.timeout_s)
+        ahead = math.ceil((until - state.t_s) / self.runner.control_dt_s - 1e-9)
+        return min(ahead, COAST_PERIODS)
+
+    def _coast(self, t_s: float, periods: int) -> RobotState:
+        """Quiet ticks in bulk: the commands the controller would send at each (a function
+        of time while it coasts) are stepped in one go, stopping when the arm comes near its
+        subgoal; the ticks before the first state that brings an event are logged as ticks
+        (the physics rewound to it if it came earlier), and that state is returned for the
+        loop to tick. Bitwise the same reach as ticking each period."""
+        runner, controller, sim = self.runner, self.controller, self.sim
+        times = _tick_times(t_s, periods - 1, runner.substeps, sim.timestep_s)
+        inputs = controller.reference_inputs(times)
+        ctrl = sim.inputs_of(inputs.q_ref, inputs.dq_ref, inputs.tau_ff, controller.kp,
+                             controller.kd)  # fmt: skip
+        near = None
+        if controller.awaiting_trigger and controller.subgoal is not None:
+            near = (controller.subgoal, controller.radius_m)
+        stretch = sim.coast(ctrl, runner.substeps, near)
+        stepped = len(stretch.times)
+        ticks = stretch.times[: stepped - 1]
+        # the commands are those of the times foreseen: a tick at another time ends it
+        same = ticks == times[: stepped - 1]
+        ran = int(np.argmin(same)) if not same.all() else stepped - 1
+        press = sim.settings.button_press_travel_m
+        ran = self.reach.first_event(ticks[:ran], stretch.rows[:ran], press)
+        sim.rewind(stretch, ctrl, runner.substeps, ran + 1)
+        self.reach.coast(ticks[:ran], stretch.rows[:ran], stretch.true_ee[:ran], press)
+        if (command := controller.settle(inputs, ran)) is not None:
+            sim.latch(command)
+        return sim.state_from_sensors(float(stretch.times[ran]), stretch.rows[ran],
+                                      stretch.true_ee[ran])  # fmt: skip
 
     def _idle_periods(self, t_s: float) -> int:
         """Control periods until something can change while the controller is idle."""

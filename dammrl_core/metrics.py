@@ -12,9 +12,14 @@ from dataclasses import asdict, dataclass
 from typing import Any
 
 import numpy as np
-from scipy.signal import butter, find_peaks, sosfiltfilt  # at import: a service's first
+from scipy.signal import butter, find_peaks, sosfilt, sosfilt_zi  # at import: a service's first
 
 # episode must not pause its loop for SciPy's import (0.5 s: the arm held at the first end)
+
+try:  # SciPy's filter loop (sosfilt's own, in place); tests/test_loop_speed.py pins it
+    from scipy.signal._sosfilt import _sosfilt as _sosfilt_rows
+except ImportError:  # pragma: no cover - another SciPy: the public wrapper, slower
+    _sosfilt_rows = None
 
 
 @dataclass(frozen=True)
@@ -231,16 +236,40 @@ def motion_estimate(
 
     if cutoff_hz >= rate_hz / 2 or len(x) < 16:
         return x
-    sos = _low_pass(cutoff_hz, rate_hz).copy()  # scipy wants a writable array
-    return np.asarray(sosfiltfilt(sos, x, axis=0, padlen=min(len(x) - 1, 27)))
+    sos, zi = _low_pass(cutoff_hz, rate_hz)
+    return _filtfilt(sos, zi, np.asarray(x, dtype=float), min(len(x) - 1, 27))
 
 
 @functools.lru_cache(maxsize=16)
-def _low_pass(cutoff_hz: float, rate_hz: float) -> np.ndarray:
-    """The filter's sections, designed once per rate (the design costs as much as the
-    filtering: the RL reward counts oscillations at every decision)."""
+def _low_pass(cutoff_hz: float, rate_hz: float) -> tuple[np.ndarray, np.ndarray]:
+    """The filter's sections and their steady-state initial conditions (n_sections, 2),
+    computed once per rate: designing them costs more than filtering a decision's path, and
+    the RL reward counts oscillations at every decision."""
+    sos = np.asarray(butter(4, cutoff_hz, fs=rate_hz, output="sos"))
+    return sos, np.asarray(sosfilt_zi(sos))
 
-    return np.asarray(butter(4, cutoff_hz, fs=rate_hz, output="sos"))
+
+def _filtfilt(sos: np.ndarray, zi: np.ndarray, x: np.ndarray, padlen: int) -> np.ndarray:
+    """``scipy.signal.sosfiltfilt(sos, x, axis=0, padlen=padlen)`` with the initial
+    conditions ``zi`` given (the same operations in the same order: bitwise its result)."""
+    ext = np.concatenate((2 * x[:1] - x[padlen:0:-1], x,
+                          2 * x[-1:] - x[-2 : -(padlen + 2) : -1]))  # fmt: skip
+    signals = np.array(ext.T, order="C")  # one row per axis, filtered in place
+    signals = _filter_rows(sos, signals, zi[None, :, :] * signals[:, :1, None])
+    backwards = np.array(signals[:, ::-1], order="C")
+    backwards = _filter_rows(sos, backwards, zi[None, :, :] * backwards[:, :1, None])
+    y = backwards[:, ::-1].T
+    return np.asarray(y[padlen:-padlen] if padlen > 0 else y)
+
+
+def _filter_rows(sos: np.ndarray, rows: np.ndarray, zi: np.ndarray) -> np.ndarray:
+    """Each row of ``rows`` (k, n) through the sections from the states ``zi`` (k, s, 2):
+    SciPy's own filter loop, without its wrapper's reshaping (most of a short path's cost);
+    the public ``sosfilt`` where the loop is not where it was."""
+    if _sosfilt_rows is None:
+        return np.asarray(sosfilt(sos, rows, axis=-1, zi=np.moveaxis(zi, 0, -2).copy())[0])
+    _sosfilt_rows(sos, rows, np.ascontiguousarray(zi))
+    return rows
 
 
 def decisions_until_stable(choices: list[Any]) -> int:

@@ -37,6 +37,18 @@ class ControllerOutput:
 
 
 @dataclass(frozen=True)
+class ReferenceInputs:
+    """The commands ``Controller.tick`` returns at a run of quiet ticks (rows): the
+    reference and the feedforward, (n, n_joints) each; ``resting``: the ticks at which the
+    reference rests (the controller then re-sends one command object)."""
+
+    q_ref: np.ndarray
+    dq_ref: np.ndarray
+    tau_ff: np.ndarray
+    resting: np.ndarray  # (n,) bool
+
+
+@dataclass(frozen=True)
 class _PlannedStep:
     ready_s: float  # when the IK result becomes available
     q_target: np.ndarray
@@ -306,6 +318,86 @@ class Controller:
         self.subgoal = planned.event.subgoal
         self.awaiting_trigger = self.settings.trigger == "event"
         return planned.event
+
+    # ---- quiet ticks, in bulk (the in-process runner) --------------------------------
+    @property
+    def coasting(self) -> bool:
+        """Until a state brings an event (``first_event``), every tick would only check the
+        state and command the reference at its time (``reference_inputs``): the event
+        trigger, the inverse-dynamics feedforward (the command is a function of time), no
+        hold, and no decision waiting to be planned."""
+        return (
+            self.hold_reason is None
+            and self.settings.trigger == "event"
+            and self.settings.feedforward == "inverse_dynamics"
+            and (self.awaiting_trigger or bool(self.planned) or self.intent is None)
+        )
+
+    def first_event(
+        self,
+        times: np.ndarray,
+        q: np.ndarray,
+        dq: np.ndarray,
+        ee_pos: np.ndarray,
+        ee_vel: np.ndarray,
+    ) -> int:
+        """The first of these states (rows: times (n,), the rest (n, k)) at which ``tick``
+        would do more than command the reference: a limit broken, a planned step ready,
+        the trigger fired or timed out; n when none. The same tests as ``tick``: what bulk
+        arithmetic finds near the admission sphere is confirmed with the tick's own."""
+        n = len(times)
+        limits = self.limits
+        eventful = np.any(np.abs(q - limits.q_mid) > limits.q_half_span, axis=1)
+        eventful |= np.any(np.abs(dq) > limits.dq_max, axis=1)
+        if self.planned:
+            eventful |= times >= self.planned[0].ready_s
+        first = int(np.argmax(eventful)) if eventful.any() else n
+        if not self.awaiting_trigger or self.subgoal is None:
+            return first
+        late = (times - self.segment.t0_s) > self.settings.trigger_timeout_s
+        first = min(first, int(np.argmax(late)) if late.any() else n)
+        error = self.subgoal - ee_pos[:first]
+        # a few ulps from the tick's own sum of squares at most: only these may be inside
+        near = np.sum(error * error, axis=1) <= self.radius_m**2 * (1 + 1e-9)
+        for k in np.flatnonzero(near):
+            if event_trigger(ee_pos[k], ee_vel[k], self.subgoal, self.radius_m, self.weights):
+                return int(k)
+        return first
+
+    def reference_inputs(self, times: np.ndarray) -> ReferenceInputs:
+        """The commands ``tick`` returns at these times while ``coasting`` (changing
+        nothing: ``settle`` takes the ticks that ran)."""
+        segment = self.segment
+        q_ref, dq_ref, ddq_ref = segment.sample_many(times)
+        resting = times >= segment.t0_s + segment.duration_s
+        moving = int(np.argmax(resting)) if resting.any() else len(times)
+        tau = np.empty_like(q_ref)
+        dynamics = self.arm.inverse_dynamics
+        for k in range(moving):
+            tau[k] = dynamics(q_ref[k], dq_ref[k], ddq_ref[k])
+        if moving < len(times):  # the same reference at rest: the same torque
+            cached = self._rest_command is not None and self._rest_segment is segment
+            if cached and self._rest_command is not None:
+                tau[moving:] = self._rest_command.tau_ff
+            else:
+                tau[moving:] = dynamics(q_ref[moving], dq_ref[moving], ddq_ref[moving])
+        tau = safety.saturate_torque(tau, self.robot.tau_max)  # elementwise, as per tick
+        return ReferenceInputs(q_ref, dq_ref, tau, resting)
+
+    def settle(self, inputs: ReferenceInputs, ran: int) -> JointCommand | None:
+        """The first ``ran`` of ``inputs`` ran as ticks: the command of the last one
+        (None: none ran), keeping the resting command as ``tick`` does."""
+        if ran == 0:
+            return None
+        k = ran - 1
+        if not inputs.resting[k]:
+            return JointCommand(inputs.q_ref[k], inputs.dq_ref[k], inputs.tau_ff[k],
+                                self.kp, self.kd)  # fmt: skip
+        if self._rest_command is None or self._rest_segment is not self.segment:
+            q, dq, _ = self.segment.rest
+            command = JointCommand(q, dq, inputs.tau_ff[k], self.kp, self.kd)
+            self._rest_command, self._rest_segment = command, self.segment
+        return self._rest_command
 
     # ---- command ------------------------------------------------------------------
     def _command(self, state: RobotState) -> JointCommand:

@@ -208,6 +208,42 @@ class Reach:
         if self.ended is None:
             self._end((outcome, reason), t_s)
 
+    # ---- quiet ticks in bulk (the in-process runner) ---------------------------------
+    @property
+    def coasting(self) -> bool:
+        """The coming ticks would only log their state and command the reference until a
+        state brings an event (``first_event``): a running reach, no press being held, no
+        decision to ask for, and the controller coasting."""
+        return (
+            self.started
+            and self.ended is None
+            and not self.dwelling
+            and not self._wants_decision()
+            and self.controller.coasting
+        )
+
+    def first_event(self, times: np.ndarray, rows: np.ndarray, press_travel_m: float) -> int:
+        """The first of these states (times (n,), sensor rows (n, k) as the arm reads them,
+        see SENSOR_LAYOUT) at which ``tick`` would do more than log it and command the
+        reference: the button pressed, the timeout, a decision due, or the controller's own
+        events; n: none."""
+        travel = -rows[:, SENSOR_LAYOUT["button"]][:, 0]
+        eventful = (travel >= press_travel_m) | (times >= self.timeout_s)
+        if self.pending is not None:
+            eventful |= times >= self.pending.intent.t_s - DUE_TOLERANCE_S
+        first = int(np.argmax(eventful)) if eventful.any() else len(times)
+        column = {k: rows[:first, SENSOR_LAYOUT[k]] for k in ("q", "dq", "ee_pos", "ee_vel")}
+        return self.controller.first_event(times[:first], column["q"], column["dq"],
+                                           column["ee_pos"], column["ee_vel"])  # fmt: skip
+
+    def coast(
+        self, times: np.ndarray, rows: np.ndarray, true_ee: np.ndarray, press_travel_m: float
+    ) -> None:
+        """These states (before ``first_event``) ran as quiet ticks: logged, as ``tick``
+        logs them (the controller's part: ``Controller.settle``)."""
+        self.log.record_many(times, rows, self.controller.subgoal, self.controller.radius_m,
+                             press_travel_m, true_ee)  # fmt: skip
+
     # ---- results ------------------------------------------------------------------
     def metrics(self) -> ReachMetrics:
         """The metrics of the reach up to its end (a hold counts from its start)."""

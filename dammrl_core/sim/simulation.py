@@ -9,7 +9,9 @@ The latest command is held between commands.
 
 from __future__ import annotations
 
-from dataclasses import replace
+from collections.abc import Mapping
+from dataclasses import dataclass, replace
+from typing import Any
 
 import mujoco
 import numpy as np
@@ -24,6 +26,23 @@ GOVERNOR_ENGAGES = 0.8
 """The speed governor looks at a joint from this share of its governed speed on."""
 GOVERNOR_SPAN = 0.05
 """The governor's full torque acts this far (a share of the governed speed) past it."""
+
+
+ROLLOUT_PERIODS = 16
+"""From this many control periods on, a stretch is stepped in one MuJoCo rollout (below,
+a Python loop of ``mj_step`` costs less than the rollout's own work)."""
+
+
+@dataclass(frozen=True)
+class Stretch:
+    """Control periods stepped in one go (``Simulation.coast``): at each period's end, the
+    time (m,), the sensor row as ``read`` returns it (m, nsensordata: encoder offsets and
+    noise added) and the noise-free end-effector position (m, 3)."""
+
+    times: np.ndarray
+    rows: np.ndarray
+    true_ee: np.ndarray
+    sensordata: np.ndarray  # MuJoCo's own rows (for a rewind)
 
 
 class Simulation:
@@ -61,6 +80,10 @@ class Simulation:
         self._govern_from = GOVERNOR_ENGAGES * self._govern_speed
         self._governor_gain = robot.tau_max / (GOVERNOR_SPAN * self._govern_speed)
         self._state = np.zeros(mujoco.mj_stateSize(self.model, mujoco.mjtState.mjSTATE_FULLPHYSICS))
+        self._roller = rollout.Rollout(nthread=0)  # rollouts in this thread, checks skipped
+        integration = mujoco.mjtState.mjSTATE_INTEGRATION
+        self._coast_state = np.zeros(mujoco.mj_stateSize(self.model, integration))
+        self._coast_noise: Mapping[str, Any] = {}  # the noise stream where a stretch began
 
     @property
     def timestep_s(self) -> float:
@@ -189,24 +212,130 @@ class Simulation:
         positions (n, 3). The final state is bitwise the one ``step`` would reach (same
         integrator, solver warm start carried over).
         """
-        spec = mujoco.mjtState.mjSTATE_FULLPHYSICS
-        mujoco.mj_getState(self.model, self.data, self._state, spec)
-        states, sensordata = rollout.rollout(
-            self.model,
-            self.data,
-            self._state,
-            self.data.ctrl[None, None, :].copy(),
-            control_spec=mujoco.mjtState.mjSTATE_CTRL,
-            nstep=n_periods * substeps,
-            initial_warmstart=self.data.qacc_warmstart[None, :].copy(),
-        )
-        ends = slice(substeps - 1, None, substeps)
-        times, rows = states[0, ends, 0].copy(), sensordata[0, ends].copy()  # time is first
+        control = np.repeat(self.data.ctrl[None, :], n_periods * substeps, axis=0)
+        times, rows = self._rollout(control, substeps)
         true_ee = rows[:, self._sensor_slices[3]].copy()
         rows[:, self._sensor_slices[0]] += self.joint_offset
         if self.settings.randomization.enabled:
             rows += self._noise_std * self.rng.standard_normal(rows.shape)
         return times, rows, true_ee
+
+    def inputs_of(
+        self, q_ref: np.ndarray, dq_ref: np.ndarray, tau_ff: np.ndarray, kp: np.ndarray,
+        kd: np.ndarray,
+    ) -> np.ndarray:  # fmt: skip
+        """The actuator inputs ``apply`` writes for commands with these rows (n, n_joints)
+        and gains (the same arithmetic, row by row)."""
+        return np.asarray(tau_ff + kp * (q_ref - self.joint_offset) + kd * dq_ref)
+
+    def coast(
+        self,
+        inputs: np.ndarray,
+        substeps: int,
+        near: tuple[np.ndarray, float] | None = None,
+    ) -> Stretch:
+        """Step up to ``len(inputs) + 1`` control periods of ``substeps`` steps: the first
+        under the latched command, period k under ``inputs[k - 1]`` (the commands' rows,
+        ``inputs_of``). With ``near`` (point, radius [m]): stop after the first period
+        that ends with the end-effector, as ``read`` reports it (noise included), within
+        the radius of the point (or a few ulps beyond): a hint only, where the caller
+        expects its next event. ``rewind`` takes the physics and
+        the noise back to the end of any period of the stretch: numbers bitwise those of
+        ``read`` and ``step`` period by period."""
+        periods = len(inputs) + 1
+        noisy = self.settings.randomization.enabled
+        mujoco.mj_getState(self.model, self.data, self._coast_state,
+                           mujoco.mjtState.mjSTATE_INTEGRATION)  # fmt: skip
+        if noisy:
+            self._coast_noise = self.rng.bit_generator.state
+        shape = (periods, self.model.nsensordata)
+        noise = self._noise_std * self.rng.standard_normal(shape) if noisy else np.zeros(shape)
+        ee = self._sensor_slices[3]
+        raw = np.empty((periods, self.model.nsensordata))
+        times = np.empty(periods)
+        model, data, step = self.model, self.data, mujoco.mj_step
+        ctrl, sensors = data.ctrl[: self._n], data.sensordata
+        stepped = periods
+        if near is None and periods >= ROLLOUT_PERIODS:
+            control = np.repeat(data.ctrl[None, :], periods * substeps, axis=0)
+            control[substeps:, : self._n] = np.repeat(inputs, substeps, axis=0)
+            times, raw = self._rollout(control, substeps)
+        elif near is None:
+            for k in range(periods):
+                if k:
+                    ctrl[:] = inputs[k - 1]
+                step(model, data, substeps)
+                raw[k] = sensors
+                times[k] = data.time
+        else:  # the end-effector as read (noise included) against the sphere, in floats
+            limit = near[1] ** 2 * (1 + 1e-9)  # a stop a tick early costs a tick, no more
+            point_noise = (near[0] - noise[:, ee]).tolist()
+            i = ee.start
+            for k in range(periods):
+                if k:
+                    ctrl[:] = inputs[k - 1]
+                step(model, data, substeps)
+                row = raw[k]
+                row[:] = sensors
+                times[k] = data.time
+                x, y, z = row[i : i + 3].tolist()
+                px, py, pz = point_noise[k]
+                if (px - x) ** 2 + (py - y) ** 2 + (pz - z) ** 2 <= limit:
+                    stepped = k + 1
+                    break
+        raw, times = raw[:stepped], times[:stepped]
+        if noisy and stepped < periods:
+            self._redraw_noise(stepped)
+        rows = raw.copy()
+        true_ee = rows[:, ee].copy()
+        rows[:, self._sensor_slices[0]] += self.joint_offset
+        if noisy:
+            rows += noise[:stepped]
+        return Stretch(times, rows, true_ee, raw)
+
+    def _rollout(self, control: np.ndarray, substeps: int) -> tuple[np.ndarray, np.ndarray]:
+        """MuJoCo's rollout from the data's own state (warm start included), one row of
+        ``control`` per step: the times and sensor rows at the end of every ``substeps``
+        steps; the data is left at the last step (bitwise as ``step`` would leave it)."""
+        nstep = len(control)
+        mujoco.mj_getState(self.model, self.data, self._state,
+                           mujoco.mjtState.mjSTATE_FULLPHYSICS)  # fmt: skip
+        states = np.empty((1, nstep, self._state.size))
+        sensordata = np.empty((1, nstep, self.model.nsensordata))
+        self._roller.rollout(
+            [self.model], [self.data], self._state[None], control[None],
+            control_spec=mujoco.mjtState.mjSTATE_CTRL.value, skip_checks=True, nstep=nstep,
+            initial_warmstart=self.data.qacc_warmstart[None, :].copy(), state=states,
+            sensordata=sensordata,
+        )  # fmt: skip
+        ends = slice(substeps - 1, None, substeps)
+        return states[0, ends, 0].copy(), sensordata[0, ends].copy()  # time is first
+
+    def rewind(self, stretch: Stretch, inputs: np.ndarray, substeps: int, periods: int) -> None:
+        """Put the physics and the noise stream back to the end of the stretch's period
+        ``periods - 1`` (``periods`` of its periods stepped), as if it had ended there."""
+        if periods == len(stretch.times):
+            return
+        mujoco.mj_setState(self.model, self.data, self._coast_state,
+                           mujoco.mjtState.mjSTATE_INTEGRATION)  # fmt: skip
+        ctrl = self.data.ctrl[: self._n]
+        for k in range(periods):
+            if k:
+                ctrl[:] = inputs[k - 1]
+            mujoco.mj_step(self.model, self.data, nstep=substeps)
+        self.data.sensordata[:] = stretch.sensordata[periods - 1]
+        if self.settings.randomization.enabled:
+            self._redraw_noise(periods)
+
+    def latch(self, command: JointCommand) -> None:
+        """Note ``command`` as the one in force (its inputs already written by ``coast``)."""
+        self._last_command = command
+
+    def _redraw_noise(self, periods: int) -> None:
+        """The noise stream as if only ``periods`` rows had been drawn since the stretch
+        began (the same numbers, fewer of them)."""
+        self.rng.bit_generator.state = self._coast_noise
+        self.rng.standard_normal((periods, self.model.nsensordata))
 
     def _sensor_noise_std(self) -> np.ndarray:
         """Per-entry standard deviation of the sensordata noise (see SENSOR_LAYOUT)."""

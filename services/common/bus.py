@@ -1,9 +1,9 @@
 """A service's connection to the Zenoh bus: typed publishers, one inbox, health.
 
-Subscriptions only enqueue raw payloads (the callback never blocks or publishes); the
-service loop takes them out with :meth:`Bus.receive`, which decodes and validates each
-one. A payload that fails is logged once per key and counted; the counts go out in the
-service's Health reports (``dammrl status``), and the loop carries on.
+Subscriptions fill rings inside Zenoh (no Python runs per message); the service loop
+takes them out with :meth:`Bus.receive`, which decodes and validates each one. A payload
+that fails is logged once per key and counted; the counts go out in the service's Health
+reports (``dammrl status``), and the loop carries on.
 """
 
 from __future__ import annotations
@@ -37,6 +37,7 @@ from schemas.keys import MAX_MESSAGE_BYTES, downsampling
 from schemas.messages import HealthState
 from services.common.admission import Admission
 from services.common.config import BusSettings
+from services.common.runtime import TIME_CRITICAL
 from services.common.security import OBSERVER, PEOPLE, ROLES, secure_config_entries
 
 M = TypeVar("M", bound=Message)
@@ -48,6 +49,11 @@ keeps everything; people's tools look (replay as fast as possible into a recorde
 """The loop's messages (100 Hz each way): a late one stalls the arm, so they go first."""
 log = logging.getLogger("dammrl.bus")
 MAX_DETAIL, MAX_REJECTED = 2000, 63  # Health.detail's and .rejected's bounds (schemas)
+CRITICAL_POLL_S = 0.0002
+"""How often a waiting time-critical service (the arm's loop) looks at its inbox [s]: a
+message waits at most this long on top of the bus (~2-3 % of a core while waiting)."""
+POLL_S = 0.001
+"""How often any other waiting service looks at its inbox [s]."""
 
 
 def _priority(message_type: type[Message] | None) -> int:
@@ -132,15 +138,14 @@ class Bus:
         self.rejected: Counter[str] = Counter()
         self.dropped = 0
         self.admission = Admission(settings.namespace)
-        # the arm's loop and an emergency stop are taken out before anything else waiting
-        # one ring per key, filled by Zenoh's own threads (a payload is copied into Python
-        # only when taken); taken out stop first, then the loop's. NOTE: the doorbell is a
-        # Python callback per message (it takes the GIL); 1 ms polling instead measured the
-        # same under a flood (docs/guide/stack.md)
+        # one ring per key, filled by Zenoh's own threads without Python (a payload is
+        # copied into Python only when taken); taken out stop first, then the loop's. A
+        # waiting loop looks at its rings every ``poll_s``: no Python runs per message, so
+        # no other thread wants the GIL and none has to be woken on a busy machine (a
+        # callback per message measured worse under load: docs/reference/performance.md)
         self._rings: list[tuple[int, Any]] = []  # (priority, subscriber), by priority
         self._taken: deque[tuple[Message, int]] = deque()  # decoded, not yet received
-        self._doorbell = threading.Event()  # set by Zenoh's threads when a ring got one
-        self._doorbells: list[Any] = []
+        self.poll_s = CRITICAL_POLL_S if service in TIME_CRITICAL else POLL_S
         self.arrival_ns = 0  # when the last message receive() returned was taken from its ring
         self._publishers: list[Publisher[Any]] = []
         self._started = time.monotonic()
@@ -230,11 +235,6 @@ class Bus:
         message_type = type_of(self.namespace, key_expr.replace("*", "x"))
         self._rings.append((_priority(message_type), subscriber))
         self._rings.sort(key=lambda entry: entry[0])
-        # the doorbell: a waiting loop wakes when something arrives (one flag set, no copy)
-        self._doorbells.append(self.session.declare_subscriber(key_expr, self._ring_doorbell))
-
-    def _ring_doorbell(self, sample: zenoh.Sample) -> None:
-        self._doorbell.set()
 
     def receive_all(self, timeout_s: float) -> list[Message]:
         """Every message waiting (waiting up to ``timeout_s`` for a first one): an
@@ -253,15 +253,18 @@ class Bus:
         """The next valid message, or None after ``timeout_s`` (0: do not wait)."""
         deadline = None if timeout_s is None else time.monotonic() + timeout_s
         while not self._taken:
-            self._doorbell.clear()
             self._take()
             if self._taken:
                 break
             remaining = None if deadline is None else deadline - time.monotonic()
             if remaining is not None and remaining <= 0:
                 return None
-            self._doorbell.wait(remaining)
+            self._wait(remaining)
         return self._next()
+
+    def _wait(self, timeout_s: float | None) -> None:
+        """Until the rings may hold something new (at most ``timeout_s``)."""
+        time.sleep(self.poll_s if timeout_s is None else min(timeout_s, self.poll_s))
 
     def _next(self) -> Message:
         message, self.arrival_ns = self._taken.popleft()

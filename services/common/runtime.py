@@ -9,7 +9,7 @@ import signal
 import sys
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 
 SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
@@ -167,13 +167,17 @@ class Pacer:
         self.next_s = time.monotonic()
         self.ticks = self.missed = 0
 
-    def wait(self) -> None:
-        """Sleep until the next deadline; a loop more than a period late starts afresh."""
+    def wait(self, idle: Callable[[float], object] = time.sleep) -> None:
+        """Wait until the next deadline, handing the time left to ``idle(seconds)`` until
+        it is over (default: sleep; a loop that answers messages as they arrive passes a
+        bounded wait for them); a loop more than a period late starts afresh."""
         self.ticks += 1
         self.next_s += self.period_s
         delay = self.next_s - time.monotonic()
         if delay > 0:
-            time.sleep(delay)
+            while delay > 0:
+                idle(delay)
+                delay = self.next_s - time.monotonic()
         elif delay < -self.period_s:
             self.missed += 1
             self.next_s = time.monotonic()

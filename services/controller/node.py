@@ -180,14 +180,18 @@ class ControllerNode:
         observed (logged, judged), not answered."""
         states = [m for m in messages if isinstance(m, RobotState)]
         for message in messages:
-            if isinstance(message, Intent | ModelChoice):
-                self._take_answer(message)
-            elif isinstance(message, SessionControl):
-                self._take_control(message)
+            if not isinstance(message, RobotState):
+                self._dispatch_other(message)
         for state in states[:-1]:
             self._on_state(state, answer=False)
         if states:
             self._on_state(states[-1])
+
+    def _dispatch_other(self, message: Message) -> None:
+        if isinstance(message, Intent | ModelChoice):
+            self._take_answer(message)
+        elif isinstance(message, SessionControl):
+            self._take_control(message)
 
     def _take_answer(self, message: Intent | ModelChoice) -> None:
         asked = self.reach is not None and self.reach.asked

@@ -62,6 +62,10 @@ class SimNode:
         self.settling = False  # a reset was refused while the arm moved
         self.holding = False
         self.round_trips_s: deque[float] = deque(maxlen=100_000)  # state sent -> command in
+        # periods stepped under the controller's command, and those of them stepped on the
+        # command answering the state published at their start (the loop closed in time)
+        self.commanded_periods = 0
+        self.answered_periods = 0
         self.pacer = Pacer(self.substeps * self.sim.timestep_s)
         self.state_publisher = bus.publisher(RobotState)
         self.caps = ArmCaps(
@@ -100,11 +104,14 @@ class SimNode:
             if lockstep and not self.settling:
                 self._await_answer()
             else:  # real time, or lockstep while the arm settles for a refused reset
-                self.pacer.wait()
+                # each command is taken as it arrives (its round trip is true), applied at
+                # the deadline's step as before: the physics sees what it saw
+                self.pacer.wait(self._take_messages)
                 self._take_messages(0)
             if self.reset_pending:
                 continue  # the reset state is published before any step
             self._hold_if_stale(lockstep)
+            self._count_period()
             self.sim.step_governed(self.substeps)
             self.state = self.sim.read()
             self._check_limits()
@@ -124,8 +131,10 @@ class SimNode:
         self.last_stamp_ns = message.header.stamp_ns
         self.freshness.published(self.last_stamp_ns, self.state.t_s)
         self.answered = False
+        answered = self.answered_periods / max(self.commanded_periods, 1)
         detail = (
             f"missed {self.pacer.missed} of {self.pacer.ticks} deadlines, "
+            f"{answered:.1%} of commanded periods on their own state's answer, "
             f"{self.freshness.clamped} commands clamped"
         )
         reason = self.stop_latch.reason or self.fault
@@ -135,6 +144,12 @@ class SimNode:
             self.bus.report_health("stopped", f"{reason}; {detail}", changed)
         else:
             self.bus.report_health("holding" if self.holding else "ok", detail, changed)
+
+    def _count_period(self) -> None:
+        """A period about to be stepped: under command, and on its own state's answer?"""
+        if not self.holding:
+            self.commanded_periods += 1
+            self.answered_periods += self.in_force_answers_ns == self.last_stamp_ns
 
     def _await_answer(self) -> None:
         """Lockstep: take messages until the command answering the last state (bounded)."""

@@ -1,0 +1,135 @@
+"""The bus's design choices, each undone alone, to measure what it costs (``bench_bus.py``).
+
+A variant patches the one choice in the process it runs in (the benchmark's sim and every
+service it starts), so the rest of the stack is the one that ships:
+
+* ``as built``: nothing changed (a waiting loop looks at its rings every 0.2 ms in the
+  time-critical services, every 1 ms in the others);
+* ``doorbell (before)``: a waiting loop sleeps on a doorbell that every message rings (a
+  Python callback per message, run by zenoh-python's callback thread);
+* ``doorbell in Zenoh's thread``: the same rung from Zenoh's receiving thread (one thread
+  hand-over less per message, but Zenoh's thread waits for the GIL);
+* ``1 ms polling``: every service looks at its rings every millisecond;
+* ``5 ms GIL hand-over``: Python's default switch interval instead of the time-critical
+  services' 0.2 ms;
+* ``loop thread SCHED_FIFO``: the sim's and the controller's loop thread (not Zenoh's)
+  under the kernel's real-time FIFO policy (needs root or CAP_SYS_NICE), ahead of every
+  ordinary process, other stacks' nice -10 services included;
+* ``no rate limits``: no per-link ingress downsampling in any session;
+* ``every state answered``: the controller answers each waiting state, not only the
+  newest.
+
+    python benchmarks/bus_variants.py VARIANT SERVICE   # a service under a variant
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import threading
+from collections.abc import Callable
+
+import zenoh
+
+from schemas import RobotState
+from services.common import bus as bus_module
+from services.common import runtime
+from services.common.bus import Bus
+from services.common.security import ROLES
+
+
+def _doorbell(indirect: bool) -> Callable[[], None]:
+    """Before: each subscription also rings a doorbell (a Python callback per message, in
+    zenoh-python's callback thread or, not ``indirect``, in Zenoh's receiving thread) that
+    a waiting loop sleeps on."""
+
+    def patch() -> None:
+        subscribe_key = Bus.subscribe_key
+
+        def subscribe_with_doorbell(self: Bus, key_expr: str) -> None:
+            subscribe_key(self, key_expr)
+            doorbell = self.__dict__.setdefault("doorbell", threading.Event())
+            handler = zenoh.handlers.Callback(lambda _: doorbell.set(), indirect=indirect)
+            self.__dict__.setdefault("doorbells", []).append(
+                self.session.declare_subscriber(key_expr, handler)
+            )
+
+        def wait(self: Bus, timeout_s: float | None) -> None:
+            doorbell = self.__dict__.setdefault("doorbell", threading.Event())
+            doorbell.wait(timeout_s)
+            doorbell.clear()  # a ring is looked at next: nothing that rang is missed
+
+        Bus.subscribe_key = subscribe_with_doorbell  # type: ignore[method-assign]
+        Bus._wait = wait  # type: ignore[method-assign]
+
+    return patch
+
+
+def _polling_every(poll_s: float) -> Callable[[], None]:
+    def patch() -> None:
+        bus_module.CRITICAL_POLL_S = bus_module.POLL_S = poll_s
+
+    return patch
+
+
+def _fifo_loop_thread() -> None:
+    """The time-critical services' loop thread (that thread only: Zenoh's are started
+    before) under the kernel's real-time FIFO policy, ahead of every ordinary process."""
+    enter = Bus.__enter__
+
+    def enter_fifo(self: Bus) -> Bus:
+        bus = enter(self)
+        if self.service in runtime.TIME_CRITICAL:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(10))
+        return bus
+
+    Bus.__enter__ = enter_fifo  # type: ignore[method-assign]
+
+
+def _default_switch_interval() -> None:
+    runtime.CRITICAL_SWITCH_INTERVAL_S = 0.005
+
+
+def _no_rate_limits() -> None:
+    bus_module.UNLIMITED_ROLES = tuple(ROLES)
+
+
+def _every_state_answered() -> None:
+    from services.controller.node import ControllerNode
+
+    def dispatch_all(self: ControllerNode, messages: list[object]) -> None:
+        for message in messages:
+            if isinstance(message, RobotState):
+                self._on_state(message)
+            else:
+                self._dispatch_other(message)  # type: ignore[arg-type]
+
+    ControllerNode._dispatch_all = dispatch_all  # type: ignore[method-assign,assignment]
+
+
+VARIANTS: dict[str, Callable[[], None]] = {
+    "as built": lambda: None,
+    "doorbell (before)": _doorbell(indirect=True),
+    "doorbell in Zenoh's thread": _doorbell(indirect=False),
+    "1 ms polling": _polling_every(0.001),
+    "5 ms GIL hand-over": _default_switch_interval,
+    "loop thread SCHED_FIFO": _fifo_loop_thread,
+    "no rate limits": _no_rate_limits,
+    "every state answered": _every_state_answered,
+}
+
+
+def apply(variant: str) -> None:
+    """Undo one design choice in this process (see the module's docstring)."""
+    VARIANTS[variant]()
+
+
+def main() -> int:
+    variant, service = sys.argv[1], sys.argv[2]
+    apply(variant)
+    module = __import__(f"services.{service}.node", fromlist=["main"])
+    return int(module.main([]))
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
