@@ -68,8 +68,10 @@ MODES = {
     "semi-virtual": ("sim", "policy", "intent", "controller"),  # intent reads the sensor
     "real": ("robot", "policy", "intent", "controller"),  # the arm on a servo bus
 }
-EMULATOR_START_S = 15.0
 START_TIMEOUT_S = 60.0
+EMULATOR_START_S = START_TIMEOUT_S
+"""The emulated arm's pty appears this soon (it imports MuJoCo as a service does: 15 s
+was too short beside two CPU hogs) [s]."""
 FIRST_STATE_S = 30.0
 """The arm publishes its first state this soon after every service is alive [s]."""
 QUIET_S = 30.0
@@ -278,9 +280,14 @@ def _environment(env: dict[str, str]) -> Iterator[None]:
 
 
 def _die_with_parent() -> None:
-    """In the child: receive SIGTERM when the launcher dies, even by kill -9 (Linux)."""
+    """In the child: receive SIGHUP when the launcher dies, even by kill -9 (Linux), so that
+    a service can tell its launcher's death from a stop (SIGTERM) and remove the run's
+    keys. Ignored until the child's own handler is set (an ignored signal stays ignored
+    across exec): a launcher dying while the child starts is then noticed by the child's
+    check of its parent, not by a death without a clean end."""
+    signal.signal(signal.SIGHUP, signal.SIG_IGN)
     libc = ctypes.CDLL(None, use_errno=True)
-    libc.prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    libc.prctl(1, signal.SIGHUP)  # PR_SET_PDEATHSIG
 
 
 class Stack:

@@ -40,6 +40,7 @@ from typing import TYPE_CHECKING, Any, TextIO
 from dammrl import __version__
 from dammrl.console import HELP, Command, Lines, parse
 from dammrl.launch import Stack, StackOptions, recording_files, result_dict
+from dammrl.stop import StopConsole
 from dammrl_core.coadaptation import Targets
 from dammrl_core.errors import ConfigurationError, DammrlError, Exit, UsageError
 from dammrl_core.protocol import (
@@ -66,10 +67,14 @@ from schemas import (
     encode,
     key,
 )
+from services.common.config import BusSettings
 from services.common.security import DISPLAY, OPERATOR
 
 if TYPE_CHECKING:
     from dammrl.display import ParticipantDisplay
+
+STOP_CONFIRM_S = 2.0
+"""The console's stop (or release) is sent until every arm confirms it, this long at most."""
 
 
 def check_participant(participant: str) -> str:
@@ -536,6 +541,7 @@ class StackRun:
         self.part = session.next_part()
         self.hub: Any = None  # the stack's bus session (the operator's), once it is up
         self.display_bus: Any = None  # the participant display's own (its role), once up
+        self.stopper: StopConsole | None = None  # the console's stop, once the stack is up
         self.stack: Stack | None = None
         self.episode = 1  # the reach under way (this run counts from 1)
         self.actions: list[dict[str, Any]] = []  # the console's, on the reach under way
@@ -586,6 +592,9 @@ class StackRun:
         finally:
             self.running.clear()
             self.hub, self.display_bus, self.subscribers = None, None, []
+            if self.stopper is not None:
+                self.stopper.close()
+                self.stopper = None
             if self.posterior is not None and self.posterior != prior:
                 runner.participant.keep_posterior(self.posterior, self.session.folder.name,
                                                   [t.number for t in self.group])  # fmt: skip
@@ -606,6 +615,9 @@ class StackRun:
                                                    self._choice),
                             hub.declare_subscriber(key(DEFAULT_NAMESPACE, EpisodeRecorded),
                                                    self._recorded)]  # fmt: skip
+        if self.stack is not None:  # the stop one key away: its session open from now on
+            self.stopper = StopConsole(BusSettings(connect=[self.stack.endpoint],
+                                                   credentials=self.stack.credentials))  # fmt: skip
         self.listening = True
         self.running.set()
         threading.Thread(target=self._console, daemon=True).start()
@@ -738,9 +750,7 @@ class StackRun:
         self.session.events.add(runner.event("console", trial=trial.number, action=action,
                                              why=command.why))  # fmt: skip
         if action in ("stop", "release"):
-            reason = f"{runner.setup.operator}: {command.why}"[:200]
-            self._send(EmergencyStop(header=self._header(EmergencyStop), engaged=action == "stop",
-                                     reason=reason))  # fmt: skip
+            self._stop(action, f"{runner.setup.operator}: {command.why}"[:200])
         elif action == "pause" and self.paused_since is None:
             self.paused_since = time.monotonic()
             self._control("pause", command.why)
@@ -760,6 +770,21 @@ class StackRun:
                 self.end_block, self.end_block_why = True, f"{runner.setup.operator}: {command.why}"
             self._control(action, command.why)  # each ends the reach; recorded as itself
         runner.say(f"console: {action} (trial {trial.number})")
+
+    def _stop(self, action: str, reason: str) -> None:
+        """The emergency stop (or its release), sent until every arm confirms it (as
+        ``dammrl stop --console`` does: no start-up, repeated while unconfirmed)."""
+        if self.stopper is None:  # the stack is not up yet
+            self._send(EmergencyStop(header=self._header(EmergencyStop),
+                                     engaged=action == "stop", reason=reason))  # fmt: skip
+            return
+        report = self.stopper.send(action == "stop", reason, STOP_CONFIRM_S)
+        for service, seconds in sorted(report.acknowledged.items()):
+            self.runner.say(f"console: {action} confirmed by {service} after "
+                            f"{seconds * 1000:.0f} ms")  # fmt: skip
+        for service in report.silent or ([] if report.acknowledged else ["no arm"]):
+            self.runner.say(f"console: {service} did not confirm the {action} within "
+                            f"{STOP_CONFIRM_S:.0f} s: use the hardware stop")  # fmt: skip
 
     def _control(self, action: str, why: str, **decision: int) -> None:
         self._send(SessionControl(header=self._header(SessionControl), episode=self.episode,

@@ -48,8 +48,8 @@ def limit_violation(
                 f"joint {name} at {q[i]:.3f} rad outside its limits "
                 f"[{robot.q_min[i]:.3f}, {robot.q_max[i]:.3f}] rad"
             )
-        if abs(dq[i]) > velocity_tolerance * robot.dq_max[i]:
-            return f"joint {name} at {dq[i]:.2f} rad/s beyond its limit {robot.dq_max[i]:.2f} rad/s"
+        if abs(dq[i]) > (stop_at := velocity_tolerance * robot.dq_max[i]):
+            return f"joint {name} at {dq[i]:.2f} rad/s beyond its limit {stop_at:.2f} rad/s"
     return None
 
 

@@ -100,8 +100,10 @@ class FirstOrderArm:
         self.q_ref, self.dq = self.q.copy(), np.zeros(6)
         self.last, self.commands = time.monotonic(), 0
 
-    def connect(self, torque: bool = True) -> bool:
+    def connect(self, torque: bool = True, hold=None) -> bool:
         self.last = time.monotonic()
+        if hold is not None:
+            self.write_command(hold(self.read_state()))
         return False
     def read_state(self) -> JointState:
         now = time.monotonic()

@@ -16,6 +16,7 @@ import pytest
 from dammrl.console import parse
 from dammrl.launch import StackOptions
 from dammrl.session import JsonLines, SessionRunner, SetUp, check_participant, session_table
+from dammrl.stop import StopReport
 from dammrl_core.errors import ConfigurationError, DammrlError, JobFailedError, UsageError
 from dammrl_core.protocol import balanced_latin_square, block_order, load_protocol, plan_trials
 from schemas import EpisodeRecorded, EpisodeResult, Header, SessionControl, decode
@@ -304,6 +305,46 @@ def test_the_consoles_pause_skip_again_and_end_of_block_are_logged_and_counted(
     assert sorted(by_trial) == list(range(1, 8))
     keys = [k for k, _ in scripted.sent]
     assert "dammrl/safety/stop" in keys and keys.count("dammrl/session/control") == 5
+
+
+class _Stopper:
+    """The stop console a running stack gives the session's console."""
+
+    def __init__(self) -> None:
+        self.sent: list[tuple[bool, str]] = []
+        self.closed = False
+
+    def send(self, engaged: bool, reason: str, timeout_s: float) -> StopReport:
+        self.sent.append((engaged, reason))
+        return StopReport({"robot": 0.012}, [] if engaged else ["sim"])
+
+    def close(self) -> None:
+        self.closed = True
+
+
+def test_the_consoles_stop_is_sent_until_every_arm_confirms_it_and_says_so(
+    tmp_path: Path, scripted: type[ScriptedStack], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """x (one key) goes through the stop console opened with the stack (repeated until each
+    arm's Health confirms it, no start-up); what each arm said is told to the operator."""
+    said: list[str] = []
+    stopper = _Stopper()
+    original = ScriptedStack.run
+
+    def run_with_a_stopper(self: ScriptedStack) -> int:
+        self.on_up.__self__.stopper = stopper
+        return original(self)
+
+    monkeypatch.setattr(ScriptedStack, "run", run_with_a_stopper)
+    scripted.console = {2: ["x the patient is tired", "release"]}
+    runner = _runner(tmp_path)
+    runner.say = said.append
+    assert runner.run() == 0
+    assert stopper.sent == [(True, "operator: the patient is tired"), (False, "operator: ")]
+    assert "console: stop confirmed by robot after 12 ms" in said
+    assert "console: sim did not confirm the release within 2 s: use the hardware stop" in said
+    assert "dammrl/safety/stop" not in [k for k, _ in scripted.sent]  # not the one-off put
+    assert stopper.closed  # with the stack
 
 
 def test_the_persons_posterior_is_carried_to_the_next_run_and_session(

@@ -9,7 +9,6 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, TypeAlias
 
-from dammrl_core.models import parse_model
 from schemas import DEFAULT_NAMESPACE
 
 if TYPE_CHECKING:
@@ -98,6 +97,8 @@ def seeds_arg(text: str) -> range:
 
 def model_arg(text: str) -> tuple[int, int]:
     """Argument type: a multi-model index ``I,J``."""
+    from dammrl_core.models import parse_model
+
     try:
         return parse_model(text)
     except ValueError as exc:

@@ -1,5 +1,5 @@
-"""``dammrl robot drivers|scan|jog|calibrate|emulate`` (the real arm, through its driver plug-in)
-and ``dammrl stop``."""
+"""``dammrl robot drivers|scan|jog|calibrate|emulate`` (the real arm, through its driver
+plug-in)."""
 
 from __future__ import annotations
 
@@ -13,10 +13,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from dammrl.cli.common import (
-    CONNECT_HELP,
     Commands,
-    add_bus_arguments,
-    bus_settings,
     output_file,
     positive,
     print_err,
@@ -26,7 +23,6 @@ from dammrl_core.errors import DammrlError, Exit, UsageError
 
 if TYPE_CHECKING:
     from dammrl.emulators.arm import EmulatedArm
-    from dammrl.stop import StopReport
     from dammrl_core.arm.driver import DriverPlugin
     from dammrl_core.settings import Settings
 
@@ -60,29 +56,6 @@ def _add_driver_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("-s", "--driver-setting", action="append", default=[],
                         metavar="NAME=VALUE", help=SETTING_HELP)  # fmt: skip
     parser.add_argument("--port", help="shorthand for -s port=PORT")
-
-
-def register_stop(commands: Commands) -> None:
-    """Add ``stop``."""
-    helptext = "emergency stop: every arm on the bus holds where it is (or --release)"
-    stop = commands.add_parser(
-        "stop",
-        help=helptext,
-        description="Stop every arm service (sim or robot) within one control period: it "
-        "holds where it is with low gains and gravity compensation (or turns the torque off, "
-        "DAMMRL_ARM_STOP_ACTION=torque_off) and takes no command until released. Exit 0 "
-        "once every arm on the bus confirmed, 1 otherwise.",
-    )
-    add_bus_arguments(stop, CONNECT_HELP)
-    stop.add_argument("--release", action="store_true",
-                      help="release the stop: the arms hold until commands resume")  # fmt: skip
-    stop.add_argument("--reason", default="", help="recorded with the stop")
-    stop.add_argument("--timeout", type=positive, default=2.0,
-                      help="seconds to wait for every arm to confirm")  # fmt: skip
-    stop.add_argument("--console", action="store_true",
-                      help="stay connected: Enter stops, 'release' releases, Ctrl-D quits "
-                           "(a stop then costs no start-up)")  # fmt: skip
-    stop.set_defaults(handler=_stop)
 
 
 def _add_jog(actions: Commands) -> None:
@@ -125,7 +98,8 @@ def _add_emulate(actions: Commands) -> None:
         help="the emulated arm on a pseudo-terminal (until Ctrl-C)",
         description="A Dynamixel Protocol 2.0 chain with the MuJoCo arm behind it, on a "
         "pseudo-terminal linked at --port, which the robot service opens like a USB "
-        f"adapter. {FAULT_HELP}.",
+        f"adapter; it runs at the arm loop's priority where allowed (it stands in for the "
+        f"servos' own processors). {FAULT_HELP}.",
     )
     emulate.add_argument(
         "--port", type=Path, default=Path("/tmp/ttyROBOT"),
@@ -228,9 +202,10 @@ def _emulate(args: argparse.Namespace) -> int:
     """Serve the emulated arm; fault commands from stdin."""
     from dammrl.emulators.arm import emulated_arm
     from dammrl_core.arm.dynamixel.calibration import Calibration, load_calibration
-    from services.common.runtime import stop_on_signals
+    from services.common.runtime import prioritise, stop_on_signals
 
     stop = stop_on_signals()
+    prioritise(True)  # it stands in for the servos' own processors: a busy host is not theirs
     calibration = Calibration() if args.calibration is None else load_calibration(args.calibration)
     with emulated_arm(args.port, calibration) as arm:
         ids = ", ".join(str(i) for i in arm.chain.servos)
@@ -258,32 +233,3 @@ def _faults(arm: EmulatedArm, stop: threading.Event) -> None:
             print_err(said)
         if stop.is_set():
             return
-
-
-def _stop(args: argparse.Namespace) -> int:
-    from dammrl.stop import StopConsole
-
-    console = StopConsole(bus_settings(args))
-    try:
-        if not args.console:
-            return _say_stop(console.send(not args.release, args.reason, args.timeout),
-                             "release" if args.release else "stop", args.timeout)  # fmt: skip
-        print_err("stop console: Enter stops every arm, 'release' releases, Ctrl-D quits")
-        for line in sys.stdin:
-            release = line.strip() == "release"
-            report = console.send(not release, args.reason or "from the stop console",
-                                  args.timeout)  # fmt: skip
-            _say_stop(report, "release" if release else "stop", args.timeout)
-        return Exit.OK
-    finally:
-        console.close()
-
-
-def _say_stop(report: StopReport, what: str, timeout_s: float) -> int:
-    for service, seconds in sorted(report.acknowledged.items()):
-        print_out(f"{service}: {what} confirmed after {seconds * 1000:.0f} ms")
-    for service in report.silent:
-        print_err(f"dammrl: {service} did not confirm the {what} within {timeout_s:.1f} s")
-    if not report.acknowledged:
-        print_err(f"dammrl: no arm confirmed the {what}: is a stack running (dammrl status)?")
-    return Exit.OK if report.acknowledged and not report.silent else Exit.FAILED

@@ -156,12 +156,18 @@ def inject(arm: EmulatedArm, line: str) -> str:
     with arm.bus.lock:
         if verb == "overload" and argument in arm.chain.servos:
             arm.chain.overload(argument)
+        elif verb == "overheat" and argument in arm.chain.servos:
+            arm.chain.overheat(argument)
         elif verb == "missing" and argument is not None:
             faults.missing.add(argument)
         elif verb == "present" and argument is not None:
             faults.missing.discard(argument)
         elif verb == "corrupt" and argument is not None:
             faults.corrupt_responses = argument
+        elif verb == "short" and argument is not None:
+            faults.short_responses = argument
+        elif verb == "late" and argument is not None:
+            faults.late_responses = argument
         elif verb in ("silent", "talk"):
             faults.silent = verb == "silent"
         elif verb in ("unplug", "replug"):

@@ -1,7 +1,7 @@
 """An emulated chain of Dynamixel X-series servos behind Protocol 2.0: control tables,
 PING / READ / WRITE / SYNC READ / SYNC WRITE / REBOOT, hardware error bits, the bus
-watchdog and faults on demand (CRC errors, a missing servo, no answer, an overload,
-unplugged).
+watchdog and faults on demand (CRC errors, short or late status packets, a missing servo,
+no answer, an overload or overheating, unplugged).
 
 REBOOT is the only way to clear a latched hardware error (the e-manual): the servo
 answers, then boots for ``ServoChain.boot_s`` (silent, torque off: its joint is free),
@@ -196,6 +196,12 @@ class EmulatedServo:
         struct.pack_into("<h", self.table, PRESENT_CURRENT, current)
 
 
+def _status_params(packet: bytes) -> bytes:
+    """The parameters of a status packet built by ``status_packet`` (stuffing undone)."""
+    unstuffed = bytes(packet[:7]) + bytes(packet[7:]).replace(b"\xff\xff\xfd\xfd", b"\xff\xff\xfd")
+    return unstuffed[9:-2]
+
+
 def _span(address: int, length: int) -> int | None:
     """Bytes of the writable fields from ``address`` covering ``length`` (None: not one)."""
     covered = 0
@@ -226,8 +232,8 @@ class FirstOrder:
 
 
 FAULT_HELP = (
-    "faults on stdin, one per line: overload ID | missing ID | present ID | corrupt N | "
-    "silent | talk | unplug | replug"
+    "faults on stdin, one per line: overload ID | overheat ID | missing ID | present ID | "
+    "corrupt N | short N | late N | silent | talk | unplug | replug"
 )
 
 
@@ -236,6 +242,8 @@ class Faults:
     """Faults on demand."""
 
     corrupt_responses: int = 0  # the next N status packets go out with a broken CRC
+    short_responses: int = 0  # the next N lose their last parameter byte (a valid CRC)
+    late_responses: int = 0  # the next N go out only after the next instruction came in
     missing: set[int] = field(default_factory=set)  # servos that never answer
     silent: bool = False  # no servo answers (a timeout on every request)
     unplugged: bool = False  # the bus is gone: nothing in, nothing out
@@ -270,6 +278,7 @@ class ServoChain:
         self.keep_writes = False  # benchmarks: when the goals arrive
         self.now_s = 0.0
         self._last_step_s = 0.0
+        self._held: list[bytes] = []  # late status packets: sent before the next answers
 
     @property
     def motors(self) -> dict[int, EmulatedServo]:
@@ -302,8 +311,17 @@ class ServoChain:
 
     def overload(self, servo_id: int) -> None:
         """Latch an overload error: torque off, the alert bit in every status."""
+        self.latch(servo_id, OVERLOAD_BIT)
+
+    def overheat(self, servo_id: int) -> None:
+        """Latch an overheating error (one a restart does not clear while the motor is
+        hot): torque off, the alert bit in every status."""
+        self.latch(servo_id, OVERHEAT_BIT)
+
+    def latch(self, servo_id: int, bit: int) -> None:
+        """Latch the hardware error ``bit``, as the firmware does: torque off."""
         servo = self.servos[servo_id]
-        servo.table[HARDWARE_ERROR_STATUS] |= OVERLOAD_BIT
+        servo.table[HARDWARE_ERROR_STATUS] |= bit
         servo.table[TORQUE_ENABLE] = 0
 
     # ---- the protocol --------------------------------------------------------------
@@ -311,10 +329,12 @@ class ServoChain:
         """The status packets answering one instruction (in bus order)."""
         if self.faults.unplugged or isinstance(packet, CorruptPacket):
             return []  # a device ignores a packet whose CRC fails
+        late, self._held = self._held, []
         responses = self._answer(packet)
         if self.faults.silent:
-            return []
-        return [self._maybe_corrupt(r) for r in responses]
+            return late
+        return late + self._hold_late([self._maybe_corrupt(self._maybe_short(r))
+                                       for r in responses])  # fmt: skip
 
     def _answer(self, packet: Instruction) -> list[bytes]:
         kind = packet.instruction
@@ -398,6 +418,26 @@ class ServoChain:
             for servo in self._targets(servo_id):
                 servo.heard(self.now_s)
                 servo.write(address, params[start + 1 : start + block], self.now_s)
+
+    def _hold_late(self, responses: list[bytes]) -> list[bytes]:
+        """A servo answering after the host stopped waiting (a busy host or firmware): the
+        host meets this answer while it waits for the next one."""
+        now = []
+        for response in responses:
+            if self.faults.late_responses > 0:
+                self.faults.late_responses -= 1
+                self._held.append(response)
+            else:
+                now.append(response)
+        return now
+
+    def _maybe_short(self, response: bytes) -> bytes:
+        """A status packet one parameter byte short, framed and checksummed as sent."""
+        params = _status_params(response)
+        if self.faults.short_responses <= 0 or not params:
+            return response
+        self.faults.short_responses -= 1
+        return status_packet(response[4], response[8], params[:-1])
 
     def _maybe_corrupt(self, response: bytes) -> bytes:
         if self.faults.corrupt_responses <= 0:

@@ -31,6 +31,11 @@ class DriverError(DammrlError):
     """The drives' bus failed: a timeout, a corrupt answer, a missing drive."""
 
 
+class BadReplyError(DriverError):
+    """A drive's answer that cannot be the one asked for: the wrong length (a late answer
+    to an earlier request), or a value no drive reports. A missed read, as a timeout is."""
+
+
 class PortLostError(DriverError):
     """The device itself failed (a USB adapter pulled out): it must be reopened."""
 
@@ -67,16 +72,23 @@ class DriveCommand:
     torque_limit_nm: np.ndarray
 
 
+HoldLaw = Callable[[JointState], DriveCommand]
+"""The law drives hold with from their torque-on, made from the state read just before."""
+
+
 class Driver(Protocol):
     @property
     def stall_s(self) -> float | None:
         """The host's silence after which the drives stop themselves (None: never)."""
         ...
 
-    def connect(self, torque: bool = True) -> bool:
-        """Open and power up (``torque``: hold where the arm is with zero gains; else torque
-        off, for moving the arm by hand). True when every drive already held (no soft start
-        needed); raises DriverError."""
+    def connect(self, torque: bool = True, hold: HoldLaw | None = None) -> bool:
+        """Open and power up: ``torque``, the drives hold with ``hold``'s law from the moment
+        their torque goes on (None: zero gains, the caller writes a law at once; a host
+        that stalls then leaves the arm limp), those that already hold keep theirs; else
+        the torque goes off, for moving the arm by hand. True when any drive already held
+        (a reconnection: no soft start, which would soften the joints held); raises
+        DriverError."""
         ...
 
     def read_state(self) -> JointState: ...

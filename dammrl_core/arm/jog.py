@@ -9,6 +9,7 @@ import numpy as np
 
 from dammrl_core.arm.driver import DriveCommand, Driver, DriverError
 from dammrl_core.arm.settings import ArmSettings, arm_limits
+from dammrl_core.arm.start import LATE_CYCLE_S, MotionClock, SoftStart, softened
 from dammrl_core.dynamics import ArmModel
 from dammrl_core.robot import RobotDescription
 
@@ -28,26 +29,32 @@ def jog(
     arm = ArmModel(robot)
     kp, kd = np.array(settings.hold_kp_nm_per_rad), np.array(settings.hold_kd_nms_per_rad)
     period = 1.0 / settings.loop_rate_hz
-    with driver:
+    ramp = SoftStart.begin(settings.soft_start_s, settings.soft_start_fraction, LATE_CYCLE_S,
+                           time.monotonic())  # fmt: skip
+
+    def hold(q_ref: np.ndarray) -> DriveCommand:
+        gravity = arm.inverse_dynamics(q_ref, np.zeros(6), np.zeros(6))
+        law = DriveCommand(q_ref, np.zeros(6), gravity, kp, kd, limits.tau_max)
+        return softened(law, ramp.share(time.monotonic()))
+
+    try:
+        driver.connect(hold=lambda state: hold(state.q_rad))
         q0 = driver.read_state().q_rad
         target = q0.copy()
         target[joint] = float(np.clip(q0[joint] + by_rad, limits.q_min[joint], limits.q_max[joint]))
         duration = max(0.5, 1.875 * abs(target[joint] - q0[joint]) / speed_rad_s)
         progress(f"joint {robot.joint_names[joint]}: {q0[joint]:+.3f} -> {target[joint]:+.3f} rad "
                  f"in {duration:.1f} s")  # fmt: skip
-        start, failures = time.monotonic(), 0
-        end = start + duration + 1.0 + settings.soft_start_s  # settle, after the soft start
-        while (now := time.monotonic()) < end:
-            s = min(max((now - start - settings.soft_start_s) / duration, 0.0), 1.0)
+        clock, failures = MotionClock(LATE_CYCLE_S), 0  # a late cycle does not jump the move
+        end = duration + 1.0 + settings.soft_start_s  # settle, after the soft start
+        while (t := clock.advance(time.monotonic())) < end:
+            s = min(max((t - settings.soft_start_s) / duration, 0.0), 1.0)
             q_ref = q0 + (10 * s**3 - 15 * s**4 + 6 * s**5) * (target - q0)
-            ramp = min((now - start) / max(settings.soft_start_s, 1e-9), 1.0)
-            share = settings.soft_start_fraction + (1 - settings.soft_start_fraction) * ramp
-            gravity = arm.inverse_dynamics(q_ref, np.zeros(6), np.zeros(6))
-            law = DriveCommand(q_ref, np.zeros(6), gravity, kp * share, kd * share,
-                               limits.tau_max)  # fmt: skip
-            failures = _cycle(driver, law, failures, settings.max_bus_errors)
+            failures = _cycle(driver, hold(q_ref), failures, settings.max_bus_errors)
             time.sleep(period)
         moved = float(driver.read_state().q_rad[joint] - q0[joint])
+    finally:
+        driver.disconnect()
     return moved
 
 

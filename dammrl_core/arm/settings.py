@@ -74,11 +74,12 @@ class ArmSettings(Settings):
     stop_kd_nms_per_rad: PerJointDamping = (20.0, 20.0, 8.0, 8.0, 1.0, 1.0)
     """Damping of a stop [N m s/rad]."""
     soft_start_s: float = Field(1.0, ge=0.2, le=10)
-    """After torque on, the gains ramp from ``soft_start_fraction`` to full over this [s]
-    (0.2-10 s: no ramp at all would jump to the reference at full stiffness)."""
+    """After torque on, the stiffness ramps from ``soft_start_fraction`` to full over this
+    [s] (the damping is full from the torque-on: a sagging joint stays slow; 0.2-10 s: no
+    ramp at all would jump to the reference at full stiffness)."""
     soft_start_fraction: float = Field(0.1, ge=0.05, le=1)
-    """Where the ramp starts, a fraction of the full gains (0.05-1: at 0 the arm would
-    start with no stiffness at all)."""
+    """Where the stiffness ramp starts, a fraction of the full stiffness (0.05-1: at 0 the
+    arm would start with no stiffness at all)."""
     homing_speed_rad_s: float = Field(0.3, gt=0, le=1.0)
     """A new episode moves the arm to its start posture at most this fast [rad/s]."""
     rest_speed_rad_s: float = Field(0.05, gt=0, le=1.0)

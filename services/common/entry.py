@@ -5,7 +5,9 @@ from __future__ import annotations
 import argparse
 import logging
 import os
+import signal
 import threading
+import time
 from collections.abc import Callable, Sequence
 from typing import Protocol
 
@@ -82,7 +84,7 @@ def run_service(
         return Exit.BAD_INPUT
     finally:
         if settings is not None:
-            _remove_an_orphaned_runs_credentials(settings)
+            _remove_an_orphaned_runs_credentials(settings, stop.signum == signal.SIGHUP)
     log.info("stopped")
     return Exit.OK
 
@@ -107,9 +109,29 @@ def follow_launcher(launcher_pid: int, stop: threading.Event) -> None:
     threading.Thread(target=watch, name="follow-launcher", daemon=True).start()
 
 
-def _remove_an_orphaned_runs_credentials(settings: BusSettings) -> None:
-    """The launcher removes its run's credentials when it ends; if it was killed, the
-    last of its services does (any of them: the first to get here)."""
+LAUNCHER_END_S = 2.0
+"""A service told of its launcher's death waits at most this long for the launcher's last
+thread to end before it decides who removes the run's keys [s]."""
+
+
+def _remove_an_orphaned_runs_credentials(settings: BusSettings, launcher_died: bool) -> None:
+    """The launcher removes its run's credentials when it ends; if it was killed, its
+    services do (any of them: the first to get here). ``launcher_died``: the parent-death
+    signal (SIGHUP) stopped this service."""
     pid, folder = settings.launcher_pid, settings.credentials
-    if pid is not None and folder is not None and os.getppid() != pid:
+    if pid is not None and folder is not None and launcher_gone(pid, launcher_died):
         remove_run_credentials(folder, pid)
+
+
+def launcher_gone(launcher_pid: int, dying: bool) -> bool:
+    """Whether the launcher has ended (this process is no longer its child). The
+    parent-death signal comes as the launcher's thread that started this process ends;
+    after ``kill -9`` its other threads end after it, and until the last has, the
+    launcher is still this process's parent: a service that stopped fast and looked then
+    kept the keys (4 of 6 runs). ``dying``: that signal came; wait for the end."""
+    deadline = time.monotonic() + (LAUNCHER_END_S if dying else 0.0)
+    while os.getppid() == launcher_pid:
+        if time.monotonic() >= deadline:
+            return False  # alive: it removes them itself when it ends
+        time.sleep(0.005)
+    return True

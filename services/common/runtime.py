@@ -12,9 +12,13 @@ import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 
-SIGNALS = (signal.SIGINT, signal.SIGTERM)
-TIME_CRITICAL = ("sim", "controller")
-"""The services that close the arm's loop (a late state or command stalls the arm)."""
+SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+"""What stops a service or a tool cleanly: Ctrl-C, a stop, a hang-up (its terminal, or
+its launcher's death: ``dammrl up`` asks for SIGHUP as its children's parent-death
+signal, so that they can tell it from a stop)."""
+TIME_CRITICAL = ("sim", "robot", "controller")
+"""The services that close the arm's loop (a late state or command stalls the arm; the
+real arm's own loop feeds its servos' 0.1 s watchdog)."""
 CRITICAL_NICE = -10
 CRITICAL_SWITCH_INTERVAL_S = 0.0002
 
@@ -38,7 +42,8 @@ def prioritise(critical: bool) -> str:
 
 
 class SignalStop(threading.Event):
-    """An event set by SIGINT or SIGTERM; ``signum`` is the one that arrived (0: none).
+    """An event set by SIGINT, SIGTERM or SIGHUP; ``signum`` is the one that arrived (0:
+    none).
 
     The handler takes no lock: Python runs it in the main thread between any two
     bytecodes, also inside this event's own ``wait`` while that holds the lock ``set``
@@ -78,7 +83,8 @@ class SignalStop(threading.Event):
 
 
 def stop_on_signals() -> SignalStop:
-    """An event set by SIGINT or SIGTERM, so loops end cleanly and ``finally`` runs."""
+    """An event set by SIGINT, SIGTERM or SIGHUP, so loops end cleanly and ``finally``
+    runs."""
     stop = SignalStop()
     for signum in SIGNALS:
         signal.signal(signum, stop.handle)
@@ -86,7 +92,7 @@ def stop_on_signals() -> SignalStop:
 
 
 EXIT_GRACE_S = 5.0
-"""After SIGINT/SIGTERM a service has this long to stop cleanly, then it exits anyway."""
+"""After a stopping signal a service has this long to stop cleanly, then it exits anyway."""
 
 
 def exit_within(stop: SignalStop, grace_s: float = EXIT_GRACE_S) -> None:

@@ -6,10 +6,15 @@
    refused until an emergency stop is released; a fault holds until the service restarts,
    a drive whose overload cut its torque is restarted and holds again where it is;
 2. **homing**: a new episode (TaskGoal) moves the arm slowly to its start posture (a real
-   arm cannot be reset); the episode begins, at robot time 0, once it rests there;
+   arm cannot be reset) on the move's own clock, which a late cycle cannot jump ahead
+   (dammrl_core.arm.start); the episode begins, at robot time 0, once it rests there;
 3. the controller's **command**, through the arm-side safety function (``guard_command``:
    limits, a cap on |q_ref - q|, rate and freshness);
 4. a **hold** where the arm was when commands went stale.
+
+After the drives stopped themselves (this process stalled longer than their watchdog),
+every law starts again from the measured posture: a hold or a stop holds there, homing
+plans its move from there.
 
 No bus and no driver here: messages come in as arguments, the law goes out as a value.
 """
@@ -25,6 +30,7 @@ import numpy as np
 from dammrl_core.arm.driver import DriveCommand, JointState
 from dammrl_core.arm.recovery import DriveRecovery
 from dammrl_core.arm.settings import ArmSettings
+from dammrl_core.arm.start import LATE_CYCLE_S, MotionClock, softened
 from dammrl_core.dynamics import ArmModel
 from dammrl_core.robot import RobotDescription
 from dammrl_core.robot.scene import SceneLayout
@@ -49,27 +55,39 @@ class Start:
     q_rad: np.ndarray
 
 
-@dataclass(frozen=True)
+@dataclass
 class Homing:
-    """A minimum-jerk joint move to an episode's start posture."""
+    """A minimum-jerk joint move to an episode's start posture, on its own clock."""
 
     start: Start
     q_from: np.ndarray
-    t0_s: float
     duration_s: float
+    clock: MotionClock
+    ended_s: float | None = None  # the wall time its clock reached the move's end
 
     @classmethod
-    def plan(cls, start: Start, q: np.ndarray, speed_rad_s: float, now_s: float) -> Homing:
+    def plan(cls, start: Start, q: np.ndarray, speed_rad_s: float, now_s: float,
+             max_step_s: float) -> Homing:  # fmt: skip
+        """From ``q`` at wall time ``now_s``; the move's clock advances by at most
+        ``max_step_s`` a cycle."""
         distance = float(np.max(np.abs(start.q_rad - q)))
-        return cls(start, q.copy(), now_s, max(0.2, 1.875 * distance / speed_rad_s))
+        clock = MotionClock(max_step_s)
+        clock.advance(now_s)
+        return cls(start, q.copy(), max(0.2, 1.875 * distance / speed_rad_s), clock)
 
     def reference(self, now_s: float) -> tuple[np.ndarray, np.ndarray]:
-        """(q, dq) of the move at wall time ``now_s``."""
-        s = min(max((now_s - self.t0_s) / self.duration_s, 0.0), 1.0)
+        """(q, dq) of the move, its clock advanced to wall time ``now_s``."""
+        s = min(self.clock.advance(now_s) / self.duration_s, 1.0)
+        if s >= 1.0 and self.ended_s is None:
+            self.ended_s = now_s
         shape = 10 * s**3 - 15 * s**4 + 6 * s**5
         rate = (30 * s**2 - 60 * s**3 + 30 * s**4) / self.duration_s
         delta = self.start.q_rad - self.q_from
         return self.q_from + shape * delta, rate * delta
+
+    def since_end(self, now_s: float) -> float:
+        """Wall time since the move's end [s] (negative: not at its end yet)."""
+        return -1.0 if self.ended_s is None else now_s - self.ended_s
 
 
 class ArmLaw:
@@ -82,6 +100,7 @@ class ArmLaw:
         self.layout = layout
         self.arm = arm
         self.period_s = period_s
+        self.max_step_s = LATE_CYCLE_S  # what a late cycle advances homing's clock by, at most
         self.caps = ArmCaps(
             settings.limit_tolerance_rad, settings.max_kp_nm_per_rad, settings.max_kd_nms_per_rad,
             settings.max_relative_target_rad, 1.0,  # the speed fraction is in the limits
@@ -90,6 +109,7 @@ class ArmLaw:
         self.stop_latch = StopLatch()
         self.fault: str | None = None  # the arm's own stop (drive faults, limits), latched
         self.recovery = DriveRecovery(settings.max_restarts)
+        self.said: dict[int, str] = {}  # joint -> the last word logged on its drive
         self.episode, self.episode_t0_s = 0, now_s
         self.homing: Homing | None = None
         self.unreachable_episode = -1  # its start posture was not reached: refused
@@ -126,7 +146,7 @@ class ArmLaw:
         )
         if reason is not None:
             return reason
-        self.homing = Homing.plan(start, joint.q_rad, self.settings.homing_speed_rad_s, now)
+        self.homing = self._plan_homing(start, joint.q_rad, now)
         self.command = self.held = None
         log.info("episode %d: moving to the start posture (%.1f s)", start.episode,
                  self.homing.duration_s)  # fmt: skip
@@ -165,7 +185,7 @@ class ArmLaw:
             for fault in joint.faults:
                 if self.settings.stop_action == "hold" and self.recovery.fault(fault):
                     restart(fault.joint)
-                log.error("%s", self.recovery.notes.get(fault.joint, fault.what))
+                self._say(fault.joint, self.recovery.notes.get(fault.joint, fault.what))
         elif first:
             self.fault = limit_violation(
                 self.limits, joint.q_rad, joint.dq_rad_s, self.settings.limit_tolerance_rad,
@@ -175,6 +195,12 @@ class ArmLaw:
             log.error("arm fault: %s: stopping", self.fault)
             return True
         return False
+
+    def _say(self, joint: int, note: str) -> None:
+        """A drive's news, logged once (a drive left off reports its fault every cycle)."""
+        if self.said.get(joint) != note:
+            self.said[joint] = note
+            log.error("%s", note)
 
     def _drive_back(self, j: int, joint: JointState) -> None:
         """A restarted drive holds where its joint is now: the stop's law there too."""
@@ -208,22 +234,27 @@ class ArmLaw:
         else:
             law = self.begin_hold(joint.q_rad, now, say_silent)
         self.last_q_ref = law.q_ref
-        return DriveCommand(
-            law.q_ref, law.dq_ref, law.tau_ff, law.kp * ramp, law.kd * ramp, self.limits.tau_max
-        )
+        drive = DriveCommand(law.q_ref, law.dq_ref, law.tau_ff, law.kp, law.kd,
+                             self.limits.tau_max)  # fmt: skip
+        return softened(drive, ramp)
 
     def _stale(self, now: float) -> bool:
         return now - self.command_wall_s > self.settings.command_stale_s
 
     def after_stall(self, joint: JointState, now: float) -> None:
-        """The drives had stopped themselves during a stall of this process: hold where the
-        arm is (a homing move starts again from there): nothing resumes a motion planned
-        before the stall."""
+        """The drives had stopped themselves during a stall of this process (where they
+        were, with the gains in force, the feed-forward gone: the arm sagged): hold where
+        it is now, with the law's gains (a homing move starts again from there). Nothing
+        resumes a motion, nor pulls back to a hold, planned before the stall."""
         if self.homing is not None:
-            start = self.homing.start
-            self.homing = Homing.plan(start, joint.q_rad, self.settings.homing_speed_rad_s, now)
-        elif self.held is None:
+            self.homing = self._plan_homing(self.homing.start, joint.q_rad, now)
+        elif self.held is not None:
+            self.held = self._hold_law(joint.q_rad, self.held.kp, self.held.kd, now)
+        else:
             self.begin_hold(joint.q_rad, now, None)  # this process stalled, not the controller
+
+    def _plan_homing(self, start: Start, q: np.ndarray, now: float) -> Homing:
+        return Homing.plan(start, q, self.settings.homing_speed_rad_s, now, self.max_step_s)
 
     def begin_hold(
         self, q: np.ndarray, now: float, say_silent: Callable[[], str] | None
@@ -258,7 +289,7 @@ class ArmLaw:
         q_ref, dq_ref = homing.reference(now)
         resting = float(np.max(np.abs(joint.dq_rad_s))) < self.settings.rest_speed_rad_s
         there = float(np.max(np.abs(joint.q_rad - homing.start.q_rad)))
-        late = now - homing.t0_s - homing.duration_s
+        late = homing.since_end(now)
         if late >= 0 and resting and there < self.settings.homing_tolerance_rad:
             return self._begin_episode(homing.start, joint.q_rad, now)
         if late > self.settings.homing_timeout_s:

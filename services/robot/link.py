@@ -1,5 +1,6 @@
 """The robot service's link to the arm's drives: connecting, a lost bus, holding blind,
-the soft start after a torque-on, and the drives' own stop after a silent host."""
+the soft start after a torque-on (on its own clock: dammrl_core.arm.start), and the
+drives' own stop after a silent host."""
 
 from __future__ import annotations
 
@@ -7,8 +8,9 @@ import contextlib
 import logging
 import time
 
-from dammrl_core.arm.driver import DriveCommand, Driver, DriverError, JointState
+from dammrl_core.arm.driver import DriveCommand, Driver, DriverError, HoldLaw, JointState
 from dammrl_core.arm.settings import ArmSettings
+from dammrl_core.arm.start import LATE_CYCLE_S, SoftStart
 
 log = logging.getLogger("dammrl.robot")
 
@@ -22,27 +24,34 @@ class DriveLink:
         self.connected = False
         self.limp = False  # a stop turned the torque off: the state is read, nothing written
         self.fault: str | None = None  # the bus is gone: reconnecting
-        self.torque_on_s = 0.0
+        self.max_step_s = LATE_CYCLE_S  # what a late cycle advances the soft start by, at most
+        self.ramp = SoftStart.begin(0.0, 1.0, self.max_step_s, 0.0, done=True)
         self.next_connect_s = 0.0
         self.errors = 0  # failed cycles in a row
+        self.bus_errors = 0  # failed cycles since the start (Health says how many)
         self.last_written: DriveCommand | None = None  # the law last sent to the drives
         self.last_write_s = float("inf")  # when (monotonic); inf: not since connecting
 
-    def try_connect(self, now: float) -> bool:
-        """Connect when it is time to try; whether it just connected."""
+    def try_connect(self, now: float, hold: HoldLaw) -> bool:
+        """Connect when it is time to try, the drives holding with ``hold``'s law from
+        their torque-on (at the soft start's first share); whether it just connected."""
         if now < self.next_connect_s:
             return False
         self.next_connect_s = now + self.settings.reconnect_s
+        settings = self.settings
+        self.ramp = SoftStart.begin(settings.soft_start_s, settings.soft_start_fraction,
+                                    self.max_step_s, now)  # fmt: skip
         try:
-            holding = self.driver.connect()
+            holding = self.driver.connect(hold=hold)
         except DriverError as exc:
             if self.fault != str(exc):
                 log.error("%s: retrying every %.1f s", exc, self.settings.reconnect_s)
             self.fault = str(exc)
             return False
-        # drives that held with the torque on need no soft start (it would drop the arm)
+        # drives that held with the torque on: no soft start (it would let their joints sag)
         self.connected = True
-        self.torque_on_s = time.monotonic() - (self.settings.soft_start_s if holding else 0.0)
+        if holding:
+            self.ramp = SoftStart.begin(0.0, 1.0, self.max_step_s, now, done=True)
         self.last_write_s = float("inf")  # connect armed the drives' watchdog: no stall yet
         if self.fault is not None:
             log.warning("the drives' bus answers again: holding where the arm is")
@@ -64,6 +73,7 @@ class DriveLink:
         many in a row). Then the last law keeps being sent blind: the drives that still
         hear it hold with gravity compensation; the others' watchdog stops them."""
         self.errors += 1
+        self.bus_errors += 1
         if self.errors < self.settings.max_bus_errors:
             log.warning("bus cycle failed (%d in a row): %s", self.errors, exc)
             return False
@@ -96,13 +106,8 @@ class DriveLink:
         return stall_s is not None and now - self.last_write_s > stall_s
 
     def soft_start(self, now: float) -> float:
-        """The gains' share after torque-on: from ``soft_start_fraction`` to 1, linearly."""
-        duration = self.settings.soft_start_s
-        if duration <= 0:
-            return 1.0
-        share = min((now - self.torque_on_s) / duration, 1.0)
-        low = self.settings.soft_start_fraction
-        return low + (1.0 - low) * max(share, 0.0)
+        """The stiffness's share after torque-on: from ``soft_start_fraction`` to 1."""
+        return self.ramp.share(now)
 
     def close(self) -> None:
         if self.connected:

@@ -10,6 +10,7 @@ package's), made from its own settings.
 
 from __future__ import annotations
 
+import inspect
 import logging
 import threading
 import time
@@ -18,9 +19,10 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from dammrl_core.arm.driver import Driver, DriverError, JointState, driver_plugin
+from dammrl_core.arm.driver import DriveCommand, Driver, DriverError, JointState, driver_plugin
 from dammrl_core.arm.settings import ArmSettings, arm_limits
 from dammrl_core.dynamics import ArmModel
+from dammrl_core.errors import ConfigurationError
 from dammrl_core.robot import RobotSettings
 from dammrl_core.state import RobotState as CoreState
 from dammrl_core.task import TaskSettings, scene_layout
@@ -39,9 +41,16 @@ BUTTON_PRESS_TRAVEL_M = 0.003  # as the sim's button
 
 
 def make_driver(settings: ArmSettings) -> Driver:
-    """The driver ``settings.driver`` names, made from its own settings."""
+    """The driver ``settings.driver`` names, made from its own settings; refused (one
+    line, at start) if it cannot hold the arm from its torque-on."""
     plugin = driver_plugin(settings.driver)
-    return plugin.create(plugin.settings())
+    driver = plugin.create(plugin.settings())
+    if "hold" not in inspect.signature(driver.connect).parameters:
+        raise ConfigurationError(
+            f"the arm driver {settings.driver!r} has connect() without 'hold': it would turn "
+            "the torque on with no law in force; update it to dammrl_core.arm.driver.Driver"
+        )
+    return driver
 
 
 class RobotNode:
@@ -99,8 +108,9 @@ class RobotNode:
         self._take_messages(now)
         if not self.link.connected and self.link.fault is not None:
             self.link.hold_blind()
-        if not self.link.connected and self.link.try_connect(now):
-            self.law.forget_motion()  # a stop is taken up by the law
+        if not self.link.connected:
+            self.law.forget_motion()  # nothing survives a lost bus; a stop is kept by the law
+            self.link.try_connect(now, lambda joint: self._torque_on_law(joint, now))
         if self.link.connected:
             self._drive(now)
         self._report_health()
@@ -127,6 +137,11 @@ class RobotNode:
         self.link.cycle_done()
         self.joint = joint
         self._publish_state(joint, now)
+
+    def _torque_on_law(self, joint: JointState, now: float) -> DriveCommand:
+        """What the drives hold with from their torque-on: the law's hold (or stop) where
+        the arm is, at the soft start's first stiffness, the damping whole."""
+        return self.law.law(joint, now, self.link.soft_start(now), self._controller_silence)
 
     def _stop(self, q: np.ndarray | None, now: float) -> None:
         """Hold where the arm is with the stop gains; or torque off."""
@@ -244,7 +259,8 @@ class RobotNode:
         self.bus.report_health(state, detail, force=changed)
 
     def timing(self) -> str:
-        """Loop period p50/p99 and command-to-applied latency p50/p99 (Health detail)."""
+        """Loop period p50/p99, command-to-applied latency p50/p99, clamped commands and
+        failed bus cycles (a timeout, a bad answer) since the start (Health detail)."""
         parts = []
         if len(self.periods_s) > 10:
             p50, p99 = np.percentile(self.periods_s, [50, 99]) * 1000
@@ -253,6 +269,7 @@ class RobotNode:
             p50, p99 = np.percentile(self.latencies_s, [50, 99]) * 1000
             parts.append(f"command to servo p50 {p50:.2f} ms, p99 {p99:.2f} ms")
         parts.append(f"{self.law.freshness.clamped} commands clamped")
+        parts.append(f"{self.link.bus_errors} bus errors")
         return ", ".join(parts)
 
 

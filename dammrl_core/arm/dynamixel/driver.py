@@ -21,7 +21,7 @@ import contextlib
 import math
 import struct
 import time
-from collections.abc import Iterator
+from collections.abc import Collection, Iterator
 from dataclasses import dataclass, field, replace
 from types import TracebackType
 from typing import Any
@@ -29,9 +29,11 @@ from typing import Any
 import numpy as np
 
 from dammrl_core.arm.driver import (
+    BadReplyError,
     DriveCommand,
     DriveFault,
     DriverError,
+    HoldLaw,
     JointState,
     PortLostError,
 )
@@ -43,6 +45,9 @@ KP_UNIT_A_PER_RAD, KD_UNIT_AS_PER_RAD = 0.01, 0.001  # the position P and D gain
 ADDRESS = {"operating_mode": 11, "torque_enable": 64, "hardware_error": 70, "gains": 80,
            "watchdog": 98, "goal_current": 102, "goal_position": 116, "present": 126,
            "model": 0}  # fmt: skip
+VALID = {"operating_mode": {0, 1, 3, 4, 5, 16}, "torque_enable": {0, 1},
+         "hardware_error": set(range(256)), "watchdog": set(range(128)) | {0xFF}}  # fmt: skip
+"""What each one-byte field read can hold (e-manual); anything else is no answer to it."""
 PRESENT_BYTES = 10  # current (2), velocity (4), position (4): one sync read
 CURRENT_BASED_POSITION = 5
 MAX_GAIN_UNITS, MAX_CURRENT_UNITS = 16383, 1193
@@ -51,6 +56,13 @@ COMM_SUCCESS = 0  # dynamixel_sdk.COMM_SUCCESS
 FIRST_PING_S = 0.05  # a rebooted servo is first looked for this long after the REBOOT [s]
 PING_EVERY_S = 0.05  # then this often (an unanswered ping costs the SDK's timeout, ~34 ms)
 OVERLOAD = 0x20
+STATUS_ID, STATUS_LENGTH, STATUS_ERROR, STATUS_PARAMS = 4, 5, 8, 9  # a status packet's fields
+PRESENT_RANGE = ((-2047, 2047), (-1023, 1023), (-1_048_575, 1_048_575))
+"""What an X-series servo can report in its present current, velocity and position (units;
+e-manual: within the largest current limit, the largest velocity limit, the multi-turn
+range of current-based position mode); a value beyond them is no reading."""
+BUTTON_RANGE_UM = (-1_000, 100_000)
+"""What the button board can report as its cap's travel [um]."""
 ERROR_BITS = {0x01: "input voltage", 0x04: "overheating", 0x08: "motor encoder",
               0x10: "electrical shock", 0x20: "overload"}  # fmt: skip
 
@@ -109,12 +121,14 @@ class DynamixelDriver:
     def joint_limits(self, robot: RobotDescription) -> tuple[np.ndarray, np.ndarray]:
         return self.calibration.limits(robot)
 
-    def connect(self, torque: bool = True) -> bool:
+    def connect(self, torque: bool = True, hold: HoldLaw | None = None) -> bool:
         """Open the port (unless open), find every servo, refuse latched errors, clear a
-        watchdog stop, arm the watchdog. Servos with the torque off start holding where
-        they are with zero gains (the caller ramps them up). True when every servo was
-        already holding with the torque on (a reconnection: no soft start needed).
-        ``torque=False``: the torque goes off (the arm is moved by hand: calibration)."""
+        watchdog stop, arm the watchdog. Servos with the torque off start holding with
+        ``hold``'s law, made from the state read just before (None: where they are, with
+        zero gains); servos that hold with the torque on keep their law. True when any
+        servo was already holding (a reconnection: no soft start, which would soften the
+        joints held). ``torque=False``: the torque goes off (the arm is moved by hand:
+        calibration)."""
         import dynamixel_sdk as sdk
 
         if self._port is None:
@@ -125,15 +139,15 @@ class DynamixelDriver:
                 raise DriverError(f"cannot open the servo bus at {self.port}: {exc}") from None
             if not opened:
                 raise DriverError(f"cannot open the servo bus at {self.port}")
-            self._port, self._packet, self._written = port, sdk.PacketHandler(2.0), {}
+            self._port, self._packet = port, sdk.PacketHandler(2.0)
         try:
             with _bus_io(self.port):
-                return self._power_up(torque)
+                return self._power_up(torque, hold)
         except PortLostError:
             self._close()  # reopened at the next try
             raise
 
-    def _power_up(self, torque: bool) -> bool:
+    def _power_up(self, torque: bool, hold: HoldLaw | None) -> bool:
         import dynamixel_sdk as sdk
 
         devices = self.ids + (() if self.calibration.button_id is None
@@ -142,25 +156,28 @@ class DynamixelDriver:
             _, result, _ = self._packet.ping(self._port, servo_id)
             if result != sdk.COMM_SUCCESS:
                 raise DriverError(f"servo {servo_id} does not answer on {self.port}")
-        holding = True
+        holding = []
         for servo_id in self.ids:
-            bits = self._read1(servo_id, ADDRESS["hardware_error"])
+            bits = self._read1(servo_id, "hardware_error")
             if bits:
                 raise DriverError(
                     f"servo {servo_id} reports {describe_errors(bits)}: inspect the arm, "
                     "then power-cycle the servos"
                 )
-            holding &= (self._read1(servo_id, ADDRESS["torque_enable"]) == 1
-                        and self._read1(servo_id, ADDRESS["operating_mode"])
-                        == CURRENT_BASED_POSITION)  # fmt: skip
+            if (self._read1(servo_id, "torque_enable") == 1
+                    and self._read1(servo_id, "operating_mode")
+                    == CURRENT_BASED_POSITION):  # fmt: skip
+                holding.append(servo_id)
             self._write1(servo_id, ADDRESS["watchdog"], 0)  # clears a watchdog stop
-        if holding and torque:
-            self._written = {}  # gains and limits are written again with the next command
-        else:
-            self._start(torque)
-        for servo_id in self.ids if torque else ():
+        self._written = {}  # gains and limits are written again with the next law
+        if not torque:
+            self._start(self.ids, torque=False)
+            return False
+        if len(holding) < len(self.ids):
+            self._start([i for i in self.ids if i not in holding], hold=hold)
+        for servo_id in self.ids:
             self._write1(servo_id, ADDRESS["watchdog"], self._watchdog_ticks)
-        return holding and torque
+        return bool(holding)
 
     @property
     def _watchdog_ticks(self) -> int:
@@ -173,7 +190,7 @@ class DynamixelDriver:
         stopped = []
         with _bus_io(self.port):
             for servo_id in self.ids:
-                if self._read1(servo_id, ADDRESS["watchdog"]) == 0xFF:  # -1: expired
+                if self._read1(servo_id, "watchdog") == 0xFF:  # -1: expired
                     self._write1(servo_id, ADDRESS["watchdog"], 0)
                     self._write1(servo_id, ADDRESS["watchdog"], self._watchdog_ticks)
                     stopped.append(servo_id)
@@ -215,24 +232,32 @@ class DynamixelDriver:
             row = self._written.get(name, ())[index * size : (index + 1) * size]
             if row:
                 self._write_bytes(servo_id, ADDRESS[name], bytes(row))
-        present = self._read4(servo_id, ADDRESS["present"] + 6)
+        present = self._read_position(servo_id)
         self._write_bytes(servo_id, ADDRESS["goal_position"], struct.pack("<i", present))
         self._write1(servo_id, ADDRESS["torque_enable"], 1)
         self._write1(servo_id, ADDRESS["watchdog"], self._watchdog_ticks)
 
-    def _start(self, torque: bool) -> None:
-        """Torque off, current-based position mode, then (``torque``) on, holding where
-        the arm is with zero gains."""
-        for servo_id in self.ids:
+    def _start(self, off: tuple[int, ...] | list[int], torque: bool = True,
+               hold: HoldLaw | None = None) -> None:  # fmt: skip
+        """The servos ``off`` to current-based position mode (the torque off to set it),
+        then (``torque``) on, every servo holding with ``hold``'s law (None: where the arm
+        is, with zero gains). The servos that hold meanwhile keep their own law (a start
+        retried after a failed packet, a servo back from a brown-out: the arm neither
+        drops nor softens where it is held)."""
+        for servo_id in off:
             self._write1(servo_id, ADDRESS["torque_enable"], 0)
             self._write1(servo_id, ADDRESS["operating_mode"], CURRENT_BASED_POSITION)
         if not torque:
             return
         state = self.read_state()
-        zeros = np.zeros(6)
-        limit = self.calibration.joint_torque(np.full(6, MAX_CURRENT_UNITS * CURRENT_UNIT_A))
-        self.write_command(DriveCommand(state.q_rad, zeros, zeros, zeros, zeros, np.abs(limit)))
-        for servo_id in self.ids:
+        if hold is None:
+            zeros = np.zeros(6)
+            limit = self.calibration.joint_torque(np.full(6, MAX_CURRENT_UNITS * CURRENT_UNIT_A))
+            law = DriveCommand(state.q_rad, zeros, zeros, zeros, zeros, np.abs(limit))
+        else:
+            law = hold(state)
+        self._write_command(law, None if len(off) == len(self.ids) else off)
+        for servo_id in off:
             self._write1(servo_id, ADDRESS["torque_enable"], 1)
 
     # ---- reading -----------------------------------------------------------------------
@@ -257,20 +282,33 @@ class DynamixelDriver:
             raise DriverError(f"sync read failed: {self._packet.getTxRxResult(result)}")
         rows, alerts = {}, []
         for servo_id in devices:
-            data, result, error = self._packet.readRx(self._port, servo_id, PRESENT_BYTES)
-            if result != sdk.COMM_SUCCESS:
-                why = self._packet.getTxRxResult(result)
-                raise DriverError(f"servo {servo_id} missing from the sync read: {why}")
-            rows[servo_id] = struct.unpack("<hii", bytes(data))
+            data, error = self._receive(servo_id, PRESENT_BYTES,
+                                        f"servo {servo_id} missing from the sync read")  # fmt: skip
+            rows[servo_id] = self._present(servo_id, data)
             if error & ALERT and servo_id in self.ids:
                 alerts.append(servo_id)
         button_m = 0.0
         if self.calibration.button_id is not None:
             button_m = rows[self.calibration.button_id][2] * 1e-6  # travel [um]
         state = self._joint_state(rows, button_m)
-        faults = tuple(self._fault(i, self._read1(i, ADDRESS["hardware_error"])) for i in alerts)
+        faults = tuple(self._fault(i, self._read1(i, "hardware_error")) for i in alerts)
         self._last = replace(state, faults=faults)
         return self._last
+
+    def _present(self, servo_id: int, data: bytes) -> tuple[int, int, int]:
+        """Current, velocity and position (the button: its travel) of one sync-read row,
+        refused when no such device could report them."""
+        row: tuple[int, int, int] = struct.unpack("<hii", data)
+        if servo_id == self.calibration.button_id:
+            ranges = ((-(2**15), 2**15 - 1), (-(2**31), 2**31 - 1), BUTTON_RANGE_UM)
+        else:
+            ranges = PRESENT_RANGE
+        names = ("current", "velocity", "position")
+        for name, value, (low, high) in zip(names, row, ranges, strict=True):
+            if not low <= value <= high:
+                raise BadReplyError(f"servo {servo_id} reported {name} {value}, outside "
+                                    f"[{low}, {high}]: not a reading")  # fmt: skip
+        return row
 
     def _fault(self, servo_id: int, bits: int) -> DriveFault:
         """A servo's error bits; an overload alone is cleared by a restart (a REBOOT)."""
@@ -306,7 +344,8 @@ class DynamixelDriver:
         if self._port is None:
             raise DriverError(f"the servo bus at {self.port} is not open")
 
-    def _write_command(self, command: DriveCommand) -> None:
+    def _write_command(self, command: DriveCommand, only: Collection[int] | None = None) -> None:
+        """The law to every servo (``only``: to these, the others keep theirs)."""
         cal = self.calibration
         kp_servo = cal.servo_gain(command.kp)
         kd_servo = cal.servo_gain(command.kd)
@@ -315,28 +354,36 @@ class DynamixelDriver:
         current = cal.servo_current(command.torque_limit_nm)
         c_units = np.clip(np.round(current / CURRENT_UNIT_A), 0, MAX_CURRENT_UNITS).astype(int)
         gains = [list(struct.pack("<HHH", d, 0, p)) for d, p in zip(d_units, p_units, strict=True)]
-        self._sync_write_if_changed("gains", gains)
-        self._sync_write_if_changed("goal_current", [list(struct.pack("<h", c)) for c in c_units])
+        self._sync_write_if_changed("gains", gains, only)
+        self._sync_write_if_changed("goal_current", [list(struct.pack("<h", c)) for c in c_units],
+                                    only)  # fmt: skip
         # tau_ff + kd dq_ref through the position law: P (goal - q) = tau_ff + kd dq_ref + ...
         kp = np.maximum(command.kp, 1e-9)
         shift = (command.tau_ff + command.kd * command.dq_ref) / kp
         reach = np.minimum(command.torque_limit_nm / kp, self.max_goal_offset_rad)
         goal = command.q_ref + np.where(command.kp > 0, np.clip(shift, -reach, reach), 0.0)
         ticks = [list(struct.pack("<i", t)) for t in cal.to_ticks(goal)]
-        self._sync_write("goal_position", ticks)
+        self._sync_write("goal_position", ticks, only)
 
-    def _sync_write_if_changed(self, field_name: str, rows: list[list[int]]) -> None:
+    def _sync_write_if_changed(self, field_name: str, rows: list[list[int]],
+                               only: Collection[int] | None = None) -> None:  # fmt: skip
+        if only is not None:  # a part of the servos: nothing to remember for all
+            self._sync_write(field_name, rows, only)
+            return
         flat = tuple(b for row in rows for b in row)
         if self._written.get(field_name) != flat:
             self._sync_write(field_name, rows)
             self._written[field_name] = flat
 
-    def _sync_write(self, field_name: str, rows: list[list[int]]) -> None:
+    def _sync_write(self, field_name: str, rows: list[list[int]],
+                    only: Collection[int] | None = None) -> None:  # fmt: skip
         import dynamixel_sdk as sdk
 
         writer = sdk.GroupSyncWrite(self._port, self._packet, ADDRESS[field_name], len(rows[0]))
         for servo_id, row in zip(self.ids, rows, strict=True):
-            if servo_id not in self._booting:  # it would not hear it: it is put back later
+            if servo_id in self._booting:  # it would not hear it: it is put back later
+                continue
+            if only is None or servo_id in only:
                 writer.addParam(servo_id, row)
         result = writer.txPacket()
         if result != sdk.COMM_SUCCESS:
@@ -366,21 +413,56 @@ class DynamixelDriver:
                 self._port.closePort()
         self._port = None
 
-    def _read1(self, servo_id: int, address: int) -> int:
+    def _read(self, servo_id: int, address: int, length: int) -> bytes:
+        """``length`` bytes at ``address`` of one servo."""
         import dynamixel_sdk as sdk
 
-        value, result, _ = self._packet.read1ByteTxRx(self._port, servo_id, address)
-        if result != sdk.COMM_SUCCESS:
-            raise DriverError(f"servo {servo_id}: reading address {address} failed")
-        return int(value)
+        if self._packet.readTx(self._port, servo_id, address, length) != sdk.COMM_SUCCESS:
+            raise DriverError(f"servo {servo_id}: reading address {address} failed (not sent)")
+        return self._receive(
+            servo_id, length, f"servo {servo_id}: reading address {address} failed"
+        )[0]
 
-    def _read4(self, servo_id: int, address: int) -> int:
+    def _receive(self, servo_id: int, length: int, failed: str) -> tuple[bytes, int]:
+        """The parameters (exactly ``length`` bytes) and error byte of ``servo_id``'s next
+        status packet (``failed``: what no answer is called); other servos' are skipped, as
+        the SDK's readRx does. A status packet says nothing of what it answers: one that
+        comes late (to an earlier request, after the SDK stopped waiting) is met here. The
+        SDK's readRx and readNByteTxRx would slice ``length`` bytes out of it checksum
+        included, or index past its end."""
         import dynamixel_sdk as sdk
 
-        value, result, _ = self._packet.read4ByteTxRx(self._port, servo_id, address)
-        if result != sdk.COMM_SUCCESS:
-            raise DriverError(f"servo {servo_id}: reading address {address} failed")
-        return int(struct.unpack("<i", struct.pack("<I", value))[0])
+        while True:
+            packet, result = self._packet.rxPacket(self._port, False)
+            if result != sdk.COMM_SUCCESS:
+                why = self._packet.getTxRxResult(result)
+                raise DriverError(f"{failed}: {why}")
+            if packet[STATUS_ID] == servo_id:
+                break
+        # LENGTH counts instruction, error, parameters and checksum (after unstuffing; the
+        # SDK leaves the bytes stuffing took at the list's end)
+        size = packet[STATUS_LENGTH] | packet[STATUS_LENGTH + 1] << 8
+        params = bytes(packet[STATUS_PARAMS : STATUS_PARAMS + size - 4])
+        if len(params) != length:
+            raise BadReplyError(f"servo {servo_id} answered {len(params)} bytes where {length} "
+                                "were asked (a late answer to an earlier request?): not a "
+                                "reading")  # fmt: skip
+        return params, int(packet[STATUS_ERROR])
+
+    def _read1(self, servo_id: int, name: str) -> int:
+        """The one-byte field ``name`` (of ADDRESS), refused unless it holds a valid value."""
+        value = self._read(servo_id, ADDRESS[name], 1)[0]
+        if value not in VALID[name]:
+            raise BadReplyError(f"servo {servo_id} reported {name} {value}: not a reading")
+        return value
+
+    def _read_position(self, servo_id: int) -> int:
+        """The present position [ticks], refused outside what a servo reports."""
+        value = int(struct.unpack("<i", self._read(servo_id, ADDRESS["present"] + 6, 4))[0])
+        low, high = PRESENT_RANGE[2]
+        if not low <= value <= high:
+            raise BadReplyError(f"servo {servo_id} reported position {value}: not a reading")
+        return value
 
     def _write_bytes(self, servo_id: int, address: int, data: bytes) -> None:
         import dynamixel_sdk as sdk
