@@ -1,31 +1,34 @@
-"""Sessions with people: pseudonymous participants, a folder per sitting, a protocol's
-trials run through the service stack, and resumption after any crash.
+"""Sessions with people: a protocol's trials run through the service stack for a
+pseudonymous participant, the therapist's console answered at every step, and
+resumption after any crash.
 
-A session folder holds everything a sitting produced::
+A session folder holds everything a sitting produced (``dammrl.participants``)::
 
-    <root>/<participant>/participant.json      id, Latin-square row, current calibration
     <root>/<participant>/ses-01/session.json   protocol (name, version, SHA-256), set-up
     <root>/<participant>/ses-01/protocol.yaml  the protocol as run
     <root>/<participant>/ses-01/trials.jsonl   one line per finished trial (fsync'd)
-    <root>/<participant>/ses-01/events.jsonl   who did what and why (start, interruptions,
-                                               resumption, rests, the end)
+    <root>/<participant>/ses-01/events.jsonl   who did what and why (start, blocks, rests,
+                                               comfort, stops, resumption, the end)
     <root>/<participant>/ses-01/recordings/    part-NN.mcap, one per stack run, never reused
     <root>/<participant>/ses-01/calibration.*  the calibration the session used
 
+The flow never surprises: everything that can fail is checked before anyone is enrolled
+(``session_problems``); nothing moves before the therapist presses Enter at a block's
+start, a resumption or after an emergency stop; a stop ends the reach under way (it is
+not counted: run again or marked stopped, the therapist's choice) and the stack with it;
+a console line is acted on or refused when it is typed, whatever the session is doing.
+
 A trial counts as done only once its line is in ``trials.jsonl``; whatever stopped a
 session (``kill -9`` of the runner or of a service, a lost cable, Ctrl-C), the next
-``dammrl session run`` for that participant resumes at the first trial without a line,
-after checking that the set-up is the one the session recorded. The recording of an
-interrupted run is kept as it is; its trial runs again in a new part.
+``dammrl session run`` for that participant completes what the end of the last block
+left undone (its comfort question, its rest) and resumes at the first trial without a
+line, after checking that the set-up is the one the session recorded. The recording of
+an interrupted run is kept as it is; its trial runs again in a new part.
 """
 
 from __future__ import annotations
 
 import contextlib
-import hashlib
-import json
-import os
-import re
 import shutil
 import sys
 import threading
@@ -37,19 +40,33 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
 
 from dammrl import __version__
-from dammrl.console import HELP, Command, Lines, parse
-from dammrl.launch import Stack, StackOptions, recording_files, result_dict
+from dammrl.console import HELP, Command, Console, Names, parse
+from dammrl.launch import Stack, StackOptions, check_stack, recording_files, result_dict
+from dammrl.participants import (
+    JsonLines,
+    Participant,
+    SessionFolder,
+    check_participant,
+    differences,
+    now_utc,
+    session_table,
+    sha256_of,
+)
 from dammrl_core.coadaptation import Targets
-from dammrl_core.errors import ConfigurationError, DammrlError, Exit, UsageError
+from dammrl_core.errors import DammrlError, Exit, UsageError
 from dammrl_core.protocol import (
-    PARTICIPANT_ID,
+    Block,
+    Condition,
     Protocol,
+    ProtocolError,
     StudyTag,
     Trial,
+    check_protocol,
     load_protocol,
     plan_trials,
 )
 from dammrl_core.robot import RobotSettings
+from dammrl_core.settings import error_line
 from schemas import (
     DEFAULT_NAMESPACE,
     ComfortRating,
@@ -60,6 +77,7 @@ from schemas import (
     Message,
     ModelChoice,
     SessionControl,
+    TaskGoal,
     decode,
     encode,
     key,
@@ -68,73 +86,22 @@ from schemas import (
 if TYPE_CHECKING:
     from dammrl.display import ParticipantDisplay
 
+__all__ = [  # the session's folders live in dammrl.participants; callers import them here
+    "JsonLines", "Participant", "SessionFolder", "SessionRunner", "SetUp", "check_participant",
+    "session_problems", "session_table",
+]  # fmt: skip
 
-def check_participant(participant: str) -> str:
-    """``participant`` if it is a pseudonymous id; a UsageError saying what is expected."""
-    if not re.match(PARTICIPANT_ID, participant):
-        raise UsageError(
-            f"participant {participant!r}: give a pseudonymous id such as P012 (1-4 letters, "
-            "1-6 digits); names and other personal data are never stored"
-        )
-    return participant.upper()
-
-
-def now_utc() -> str:
-    return datetime.now(UTC).isoformat(timespec="milliseconds")
-
-
-def sha256_of(path: Path) -> str:
-    return hashlib.sha256(path.read_bytes()).hexdigest()
-
-
-def write_json(path: Path, content: dict[str, Any]) -> None:
-    """Replace ``path`` atomically (a crash leaves the old file or the new one)."""
-    temporary = path.with_suffix(path.suffix + ".tmp")
-    temporary.write_text(json.dumps(content, indent=2) + "\n")
-    with open(temporary, "rb+") as handle:
-        os.fsync(handle.fileno())
-    temporary.replace(path)
-
-
-def read_json(path: Path) -> dict[str, Any]:
-    try:
-        content = json.loads(path.read_text())
-    except (OSError, ValueError) as exc:
-        raise ConfigurationError(f"{path}: unreadable ({exc})") from exc
-    if not isinstance(content, dict):
-        raise ConfigurationError(f"{path}: not a JSON object")
-    return content
-
-
-class JsonLines:
-    """An append-only log, one JSON object a line, each on disk before ``add`` returns. A
-    torn last line (a crash mid-write) is skipped when read, and counted."""
-
-    def __init__(self, path: Path):
-        self.path = path
-
-    def add(self, entry: dict[str, Any]) -> None:
-        with open(self.path, "a", encoding="utf-8") as handle:
-            handle.write(json.dumps(entry) + "\n")
-            handle.flush()
-            os.fsync(handle.fileno())
-
-    def read(self) -> tuple[list[dict[str, Any]], int]:
-        """The entries, and how many lines were unreadable."""
-        if not self.path.exists():
-            return [], 0
-        entries, torn = [], 0
-        for line in self.path.read_text(encoding="utf-8", errors="replace").splitlines():
-            try:
-                entry = json.loads(line)
-            except ValueError:
-                torn += 1
-                continue
-            if isinstance(entry, dict):
-                entries.append(entry)
-            else:
-                torn += 1
-        return entries, torn
+CONSOLE_SOURCE = "tool"
+"""The bus identity (certificate role) the therapist's console speaks as: the stop, pause,
+skip and take-over. One place to change when the operator gets a role of its own."""
+DISPLAY_SOURCE = "tool"
+"""The bus identity the participant's page speaks as: only its comfort rating."""
+PERSON = ("pad", "lsl")
+"""Intent sources through which a person decides (they need a device and a calibration)."""
+STOP_RESULT_WAIT_S = 3.0
+"""After a stop heard mid-reach, how long the stack waits for the controller to end the
+reach (``stopped``) before it stops anyway [s]."""
+MAX_OUTCOME_S = 30.0
 
 
 @dataclass(frozen=True)
@@ -151,6 +118,20 @@ class SetUp:
     lockstep: bool = False
     operator: str = "operator"
     """Who runs the session (initials or a staff id), written beside every action."""
+    outcome_s: float = 2.0
+    """How long each reach's outcome stays on the display before the next reach begins
+    [s] (0-30)."""
+    rehearsal: bool = False
+    """A rehearsal (the simulated patient, before a person sits down): it takes no row of
+    the enrolment ledger and runs the order the next participant will run."""
+    names: Names | None = None
+    """The lab's participant registry: reasons typed at the console are stored without a
+    registered name (None: stored as typed, which the console says)."""
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.outcome_s <= MAX_OUTCOME_S:
+            raise UsageError(f"--outcome-s {self.outcome_s:g}: the outcome is held 0 to "
+                             f"{MAX_OUTCOME_S:g} s")  # fmt: skip
 
     def fingerprint(self, protocol: Protocol, calibration_sha256: str | None) -> dict[str, Any]:
         """What must not change between the start of a session and its resumption."""
@@ -168,130 +149,42 @@ class SetUp:
         }
 
 
-class Participant:
-    """A pseudonymous participant's folder: their Latin-square row (their enrolment
-    order), their current calibration and their sessions."""
-
-    def __init__(self, root: Path, participant: str):
-        self.id = check_participant(participant)
-        self.root = root
-        self.folder = root / self.id
-        self.file = self.folder / "participant.json"
-
-    def enrol(self) -> dict[str, Any]:
-        """Their record, enrolling them (the next row) on first sight."""
-        if self.file.exists():
-            return read_json(self.file)
-        self.root.mkdir(parents=True, exist_ok=True)
-        row = sum(1 for p in self.root.glob("*/participant.json"))
-        self.folder.mkdir(exist_ok=True)
-        record = {"id": self.id, "row": row, "enrolled": now_utc(), "calibration": None}
-        write_json(self.file, record)
-        return record
-
-    @property
-    def policy_folder(self) -> Path:
-        """Where ``dammrl adapt --participant`` puts the policy refined for them; their
-        sessions load it when it is there."""
-        return self.folder / "policy"
-
-    def refined_policy(self) -> Path | None:
-        folder = self.policy_folder
-        return folder if (folder / "checkpoint.pt").is_file() else None
-
-    def sessions(self) -> list[Path]:
-        return sorted(p for p in self.folder.glob("ses-*") if (p / "session.json").exists())
-
-    def keep_calibration(self, calibration: Path) -> Path:
-        """Carry ``calibration`` to their later sessions: copied into their folder."""
-        kept = self.folder / f"calibration{calibration.suffix or '.json'}"
-        if calibration.resolve() != kept.resolve():
-            shutil.copyfile(calibration, kept)
-        record = read_json(self.file) | {"calibration": kept.name}
-        write_json(self.file, record)
-        return kept
-
-    def posterior(self) -> tuple[float, float] | None:
-        """The human-model posterior their earlier runs ended with (None: none yet)."""
-        path = self.folder / "posterior.json"
-        if not path.exists():
-            return None
-        p = read_json(path).get("probabilities")
-        if not (isinstance(p, list) and len(p) == 2 and all(isinstance(v, float) for v in p)):
-            raise ConfigurationError(f"{path}: no 'probabilities' of the two human models")
-        return (p[0], p[1])
-
-    def keep_posterior(self, probabilities: tuple[float, ...], session: str, trials: list[int]
-                       ) -> None:  # fmt: skip
-        """Carry the posterior a run ended with to the next run and session."""
-        write_json(self.folder / "posterior.json", {
-            "probabilities": [float(v) for v in probabilities], "session": session,
-            "after_trials": trials, "utc": now_utc(),
-        })  # fmt: skip
-
-    def calibration(self) -> Path | None:
-        """The calibration their last session kept, if any."""
-        name = read_json(self.file).get("calibration")
-        return None if not name else self.folder / str(name)
+def stack_options(setup: SetUp, condition: Condition, seed: int, episodes: int,
+                  calibration: Path | None, **run: Any) -> StackOptions:  # fmt: skip
+    """The stack run of ``episodes`` trials of a block from ``seed`` (``run``: what a
+    real run adds: its recording, the study tag, the person's prior and policy)."""
+    intent = condition.intent or setup.intent
+    person = intent in PERSON
+    return StackOptions(
+        mode=setup.mode, episodes=episodes, seed=seed, model=condition.model,
+        trigger=condition.trigger, port=setup.bus_port, intent=intent,
+        pad_port=setup.pad_port if intent == "pad" else None,
+        lsl_stream=setup.stream if intent == "lsl" else None,
+        calibration=calibration if person else None, lockstep=setup.lockstep,
+        adaptive=(condition.targets or Targets()) if condition.policy == "adaptive" else None,
+        outcome_hold_s=setup.outcome_s, **run,
+    )  # fmt: skip
 
 
-@dataclass
-class Progress:
-    """What a session folder says about its trials."""
+def session_problems(protocol: Protocol, setup: SetUp, calibration: Path | None) -> list[str]:
+    """Everything a session of ``protocol`` under ``setup`` would fail on once it runs,
+    one plain line each ([] when none): the protocol's own checks (installed intent
+    sources, seed ranges), then each block's stack as the launcher checks it before it
+    starts (the device and calibration a person needs, every service's settings)."""
+    from dammrl_core.intent.source import source_plugins
 
-    done: dict[int, dict[str, Any]]
-    torn: int
-    ended: bool
-
-
-class SessionFolder:
-    """One sitting's folder (see the module docstring)."""
-
-    def __init__(self, folder: Path):
-        self.folder = folder
-        self.manifest = folder / "session.json"
-        self.trials = JsonLines(folder / "trials.jsonl")
-        self.events = JsonLines(folder / "events.jsonl")
-        self.recordings = folder / "recordings"
-
-    @classmethod
-    def create(cls, participant: Participant, protocol: Protocol, protocol_file: Path,
-               manifest: dict[str, Any]) -> SessionFolder:  # fmt: skip
-        number = len(participant.sessions()) + 1
-        folder = participant.folder / f"ses-{number:02d}"
-        while folder.exists():  # a folder a crash left without its manifest: never reused
-            number += 1
-            folder = participant.folder / f"ses-{number:02d}"
-        folder.mkdir(parents=True)
-        session = cls(folder)
-        session.recordings.mkdir()
-        shutil.copyfile(protocol_file, folder / "protocol.yaml")
-        write_json(session.manifest, manifest | {"session": folder.name, "started": now_utc()})
-        return session
-
-    def read_manifest(self) -> dict[str, Any]:
-        return read_json(self.manifest)
-
-    def progress(self) -> Progress:
-        entries, torn = self.trials.read()
-        done = {int(e["trial"]): e for e in entries
-                if isinstance(e.get("trial"), int) and not e.get("repeat")}  # fmt: skip
-        return Progress(done, torn, "ended" in self.read_manifest())
-
-    def next_part(self) -> Path:
-        """A recording file no run has used."""
-        parts = [int(p.stem.split("-")[1]) for p in self.recordings.glob("part-*.mcap")]
-        return self.recordings / f"part-{max(parts, default=0) + 1:02d}.mcap"
-
-    def end(self) -> None:
-        write_json(self.manifest, self.read_manifest() | {"ended": now_utc()})
-
-
-def differences(recorded: dict[str, Any], now: dict[str, Any]) -> list[str]:
-    """What changed between the set-up a session recorded and this one."""
-    keys = sorted(set(recorded) | set(now))
-    return [f"{k}: {recorded.get(k)!r} then, {now.get(k)!r} now" for k in keys
-            if recorded.get(k) != now.get(k)]  # fmt: skip
+    problems = check_protocol(protocol, source_plugins())
+    if problems:
+        return problems
+    by_problem: dict[str, list[str]] = {}
+    for number, block in enumerate(protocol.blocks, start=1):
+        options = stack_options(setup, block.condition, block.seed, block.trials, calibration)
+        try:
+            check_stack(options)
+        except (DammrlError, ValueError) as exc:
+            by_problem.setdefault(error_line(exc), []).append(f"{number} ({block.name})")
+    return [f"block{'s' if len(blocks) > 1 else ''} {', '.join(blocks)}: {problem}"
+            for problem, blocks in by_problem.items()]  # fmt: skip
 
 
 def runs(trials: list[Trial]) -> Iterator[list[Trial]]:
@@ -305,6 +198,14 @@ def runs(trials: list[Trial]) -> Iterator[list[Trial]]:
         group.append(trial)
     if group:
         yield group
+
+
+def seconds_since(utc: str) -> float:
+    """Seconds from an event's ``utc`` stamp to now (0 for an unreadable stamp)."""
+    try:
+        return max(0.0, (datetime.now(UTC) - datetime.fromisoformat(utc)).total_seconds())
+    except (TypeError, ValueError):
+        return 0.0
 
 
 Say = Callable[[str], None]
@@ -330,7 +231,6 @@ class SessionRunner:
         self.participant = Participant(root, participant)
         self.display = display
         self.comfort_timeout_s = comfort_timeout_s
-        self.console = Lines(sys.stdin if console is None else console)
         self.protocol_file = protocol_file
         self.protocol = load_protocol(protocol_file)
         self.blocks = {b.name: b for b in self.protocol.blocks}
@@ -339,34 +239,54 @@ class SessionRunner:
         self.new = new
         self.accept_changes = accept_changes
         self.wait = sys.stdin.isatty() if wait_for_operator is None else wait_for_operator
+        self.console = Console(sys.stdin if console is None else console, self._idle, say)
+        self.session: SessionFolder | None = None
+        self.resumed = False
+        self.latched: str | None = (
+            None  # an emergency stop (the console's, the bus's) until released
+        )
+        self.warned_reasons = False
+        self.pending_comfort: list[tuple[Trial, int, float]] = []  # rated while no stack ran
+
+    def problems(self) -> list[str]:
+        """What this session would fail on once it runs (``session_problems``), with the
+        calibration given or the one the participant has."""
+        known = self.participant.calibration() if self.participant.file.exists() else None
+        return session_problems(self.protocol, self.setup, self.setup.calibration or known)
 
     def run(self) -> int:
-        """Run every trial not yet done; the exit code."""
-        record = self.participant.enrol()
+        """Check everything, then run every trial not yet done; the exit code."""
+        problems = self.problems()
+        if problems:  # before anyone is enrolled: nothing is written
+            raise ProtocolError(self.protocol_file, problems)
+        record = self.participant.enrol(self.setup.rehearsal)
         calibration = self._calibration()
         setup = replace(self.setup, calibration=calibration)
         fingerprint = setup.fingerprint(
             self.protocol, None if calibration is None else sha256_of(calibration)
         )
-        session = self._session(record, fingerprint)
+        session = self.session = self._session(record, fingerprint)
         if calibration is not None:
             kept = session.folder / f"calibration{calibration.suffix or '.json'}"
             if not kept.exists():
                 shutil.copyfile(calibration, kept)
         trials = plan_trials(self.protocol, int(record["row"]))
         self.say(HELP)
+        if self.setup.names is None:
+            self.say("console: reasons are stored as typed (events, recordings, BIDS): never "
+                     "type a name (--names checks them against your registry)")  # fmt: skip
         progress = session.progress()
-        remaining = [t for t in trials if t.number not in progress.done]
-        if not remaining:
+        if all(t.number in progress.done for t in trials):
             self.say(f"{session.folder}: all {len(trials)} trials are done")
             return Exit.OK
-        return self._run_trials(session, setup, trials)
+        with self._watching_the_page():
+            return self._run_trials(session, setup, trials)
 
     def _calibration(self) -> Path | None:
         """The calibration given now (kept for later sessions), else the participant's."""
         if self.setup.calibration is not None:
             return self.participant.keep_calibration(self.setup.calibration)
-        return self.participant.calibration() if self.setup.intent in ("pad", "lsl") else None
+        return self.participant.calibration() if self.setup.intent in PERSON else None
 
     def _session(self, record: dict[str, Any], fingerprint: dict[str, Any]) -> SessionFolder:
         """The unfinished session to resume (its set-up checked), or a new one."""
@@ -376,6 +296,7 @@ class SessionRunner:
             manifest = last.read_manifest()
             if "ended" not in manifest:
                 self._check_resumable(last, manifest, fingerprint)
+                self.resumed = True
                 return last
         if sessions and "ended" not in (last := SessionFolder(sessions[-1])).read_manifest():
             last.events.add(self.event("left unfinished: a new session started"))
@@ -406,30 +327,41 @@ class SessionRunner:
         return {"utc": now_utc(), "who": self.setup.operator, "what": what} | details
 
     def _run_trials(self, session: SessionFolder, setup: SetUp, trials: list[Trial]) -> int:
-        """Run stack after stack until every trial is done (a repeated one runs again)."""
+        """Run stack after stack until every trial is done (a repeated one runs again);
+        each block closed (comfort, its end, the rest) before the next begins."""
         total = len(trials)
+        self._close_interrupted_block(session, trials)
+        ready = self.resumed  # a resumption waits for the therapist's Enter
         while remaining := [t for t in trials if t.number not in session.progress().done]:
             group = next(runs(remaining))
             block = self.blocks[group[0].block]
-            if group[0].index == 1:
-                self._begin_block(session, group[0], block.instructions)
+            if (group[0].index == 1 or ready) and not self._begin(session, group[0], block):
+                self._stopped(session, group, "the console closed while the stop was latched")
+                return Exit.FAILED
+            ready = False
+            stack_run = StackRun(self, session, setup, group, total)
             try:
-                code = StackRun(self, session, setup, group, total).run()
+                code = stack_run.run()
             except DammrlError as exc:
                 self._stopped(session, group, str(exc))
                 raise
             if code != Exit.OK:
                 self._stopped(session, group, f"exit code {int(code)}")
                 return code
-            done = session.progress().done
-            if all(t.number in done for t in trials if t.block == block.name):
-                session.events.add(self.event("block-end", block=block.name))
-                if block.rest_s > 0 and len(done) < total:
-                    self._rest(session, block.rest_s)
+            if stack_run.stopping is not None or self.latched is not None:
+                if not self._after_stop(session, stack_run):
+                    self._stopped(session, group, "the console closed while the stop was latched")
+                    return Exit.FAILED
+                ready = True
+            self._close_block(session, block, trials)
         session.events.add(self.event("end"))
         session.end()
         if self.display is not None:
-            self.display.say("Thank you", "The session is complete.", "good")
+            self.display.end()
+        unpublished = [f"{t.block}: {rating}" for t, rating, _ in self.pending_comfort]
+        if unpublished:
+            self.say(f"comfort ({', '.join(unpublished)}) asked after the last stack: kept in "
+                     "events.jsonl only (no recording runs to take it)")  # fmt: skip
         self.say(f"session complete: {total} trials in {session.folder}")
         return Exit.OK
 
@@ -444,28 +376,332 @@ class SessionRunner:
         done = session.progress().done
         return next((t.number for t in group if t.number not in done), None)
 
-    def _begin_block(self, session: SessionFolder, trial: Trial, instructions: str) -> None:
+    # ---- a block's start and end ------------------------------------------------------
+    def _begin(self, session: SessionFolder, trial: Trial, block: Block) -> bool:
+        """The block's instructions (again, on a resumption mid-block), then the
+        therapist's Enter; False if that can never come (a latched stop, no console)."""
         kind = "practice block" if trial.practice else "block"
-        self.say(f"{kind} {trial.block_position} ({trial.block}): {instructions}".rstrip(": "))
-        if self.display is not None:
-            self.display.say(f"{kind.capitalize()} {trial.block_position}", instructions)
-        session.events.add(self.event("block-start", block=trial.block))
-        if self.wait:
-            self.say("press Enter when the participant is ready")
-            self.console.get(None)
-
-    def _rest(self, session: SessionFolder, rest_s: float) -> None:
-        session.events.add(self.event("rest", seconds=rest_s))
-        self.say(f"rest for {rest_s:.0f} s (Ctrl-C ends the session here; it resumes later)")
-        if self.display is not None:
-            self.display.rest(rest_s)
+        label = f"{kind} {trial.block_position} ({trial.block})"
+        if trial.index == 1:
+            self.say(f"{label}: {block.instructions}".rstrip(": "))
+            session.events.add(self.event("block-start", block=trial.block))
         else:
-            time.sleep(rest_s)
+            self.say(f"{label} goes on at trial {trial.number} (its {trial.index} of "
+                     f"{block.trials}): {block.instructions}".rstrip(": "))  # fmt: skip
+        if self.display is not None:
+            self.display.block(f"{kind.capitalize()} {trial.block_position}", block.instructions)
+        return self._wait_ready()
+
+    def _wait_ready(self) -> bool:
+        """Wait for Enter (never while a stop is latched); False when the console ends
+        with the stop latched."""
+        if not self.wait and self.latched is None:
+            return True
+        ready = threading.Event()
+
+        def enter() -> None:
+            if self.latched is not None:
+                self.say("console: the emergency stop is latched: type release first")
+            else:
+                ready.set()
+
+        self.console.route(lambda line: self._between(line, "waiting for Enter", enter=enter))
+        page = "" if self.display is None or self.display.pages() else (
+            f" (the participant's page is not connected: open {self.display.url})")  # fmt: skip
+        self.say("press Enter when the participant is ready" + page)
+        try:
+            while not ready.wait(0.2):
+                if self.console.closed:
+                    return self.latched is None
+            return True
+        finally:
+            self.console.route(self._idle)
+
+    def _close_interrupted_block(self, session: SessionFolder, trials: list[Trial]) -> None:
+        """A resumption at a block's first trial completes the previous block's end (its
+        comfort question and its rest, if a kill interrupted them)."""
+        done = session.progress().done
+        upcoming = next((t for t in trials if t.number not in done), None)
+        if upcoming is not None and upcoming.index == 1 and upcoming.number > 1:
+            self._close_block(session, self.blocks[trials[upcoming.number - 2].block], trials)
+
+    def _close_block(self, session: SessionFolder, block: Block, trials: list[Trial]) -> None:
+        """Once every trial of ``block`` is done: whatever its end still lacks (its comfort
+        rating, its end, its rest), each written to the events as it is done."""
+        done = session.progress().done
+        mine = [t for t in trials if t.block == block.name]
+        if not all(t.number in done for t in mine):
+            return
+        happened = {e.get("what") for e in session.events.read()[0] if e.get("block") == block.name}
+        if "comfort" not in happened and self._asks_comfort():
+            self.say(f"the comfort question after {block.name} was not answered yet: asked now")
+            answer = self.ask_comfort(session, mine[-1])
+            if answer is not None:  # no stack runs: the next run's recording takes it
+                self.pending_comfort.append((mine[-1], *answer))
+        if "block-end" not in happened:
+            session.events.add(self.event("block-end", block=block.name))
+        if block.rest_s > 0 and "rest-end" not in happened and len(done) < len(trials):
+            started = [e for e in session.events.read()[0]
+                       if e.get("what") == "rest" and e.get("block") == block.name]  # fmt: skip
+            rested = seconds_since(started[-1].get("utc", "")) if started else 0.0
+            self._rest(session, block, block.rest_s - rested, resumed=bool(started))
+
+    def _asks_comfort(self) -> bool:
+        return self.display is not None and self.protocol.comfort != "none"
+
+    def ask_comfort(self, session: SessionFolder, trial: Trial) -> tuple[int, float] | None:
+        """The comfort question on the display (the console's s skips it), logged in the
+        events; (rating, seconds it took) or None."""
+        display = self.display
+        assert display is not None
+        if not display.pages():
+            self.say(f"no participant page is connected: the comfort question waits on a page "
+                     f"nobody sees (open {display.url})")  # fmt: skip
+        skipped: list[Command] = []
+        cancel = threading.Event()
+
+        def skip(command: Command) -> None:
+            skipped.append(command)
+            cancel.set()
+
+        previous = self.console.handler
+        self.console.route(lambda line: self._between(
+            line, "the participant is answering the comfort question (s skips it)",
+            {"skip": skip}, fallback=previous,
+        ))  # fmt: skip
+        try:
+            answer = display.ask_comfort(self.comfort_timeout_s, cancel)
+        finally:
+            self.console.route(previous)
+        details: dict[str, Any] = {"rating": None if answer is None else answer[0]}
+        if answer is not None:
+            details["asked_s"] = round(answer[1], 2)
+            self.say(f"comfort after {trial.block}: {answer[0]} of 5")
+        elif skipped:
+            details["skipped"] = skipped[0].why
+            self.say("console: the comfort question skipped")
+        else:
+            self.say(f"no comfort rating within {self.comfort_timeout_s:.0f} s")
+        session.events.add(self.event("comfort", block=trial.block, trial=trial.number,
+                                      **details))  # fmt: skip
+        return answer
+
+    def _rest(self, session: SessionFolder, block: Block, seconds: float, resumed: bool) -> None:
+        """The rest after ``block``: a countdown on the display that the console's s ends
+        early; logged as it begins and as it ends."""
+        if seconds <= 0.5:
+            session.events.add(self.event("rest-end", block=block.name, rested_s=0.0,
+                                          early=False, why="its time passed while the "
+                                          "session was down"))  # fmt: skip
+            return
+        ended: list[Command] = []
+        over = threading.Event()
+
+        def end_early(command: Command) -> None:
+            ended.append(command)
+            over.set()
+
+        started = time.monotonic()
+
+        def left() -> str:
+            return f"the rest ({seconds - (time.monotonic() - started):.0f} s left; s ends it)"
+
+        session.events.add(self.event("rest", block=block.name, seconds=round(seconds, 1),
+                                      **({"resumed": True} if resumed else {})))  # fmt: skip
+        self.say(f"rest for {seconds:.0f} s{' (what was left of it)' if resumed else ''}: s "
+                 "ends it early (Ctrl-C ends the session here; it resumes later)")  # fmt: skip
+        if self.display is not None:
+            self.display.rest(seconds)
+        self.console.route(lambda line: self._between(
+            line, left(), {"skip": end_early, "end-block": end_early},
+            enter=lambda: self.say(f"console: {left()}"),
+        ))  # fmt: skip
+        try:
+            over.wait(seconds)
+        finally:
+            self.console.route(self._idle)
+        rested = round(time.monotonic() - started, 1)
+        why = {"why": ended[0].why} if ended else {}
+        session.events.add(self.event("rest-end", block=block.name, rested_s=rested,
+                                      early=bool(ended), **why))  # fmt: skip
+        if ended:
+            self.say(f"console: the rest ended early after {rested:.0f} s")
+
+    # ---- emergency stops --------------------------------------------------------------
+    def heard_stop(self, engaged: bool, reason: str) -> None:
+        """An emergency stop or its release on the running stack's bus (the console's x,
+        `dammrl stop` from anywhere): the session follows the arm's latch."""
+        changed = (self.latched is None) == engaged
+        self.latched = reason if engaged else None
+        if changed and self.session is not None:
+            self.session.events.add(self.event("emergency-stop", engaged=engaged, reason=reason))
+
+    def _after_stop(self, session: SessionFolder, stack_run: StackRun) -> bool:
+        """The session paused by an emergency stop: the trial it interrupted is run again
+        or marked stopped, by the therapist's choice, once the stop is released; False
+        when the console ends first."""
+        trial = stack_run.stopped_trial
+        reason = stack_run.stopping or self.latched or "emergency stop"
+        if self.display is not None and self.latched is not None:
+            self.display.stopped()
+        if trial is None:
+            self.say("the session is paused by the emergency stop: `release` when it is safe; "
+                     "then Enter goes on")  # fmt: skip
+            return True  # _begin waits for the release and the Enter
+        self.say(
+            f"trial {trial.number} is not counted (emergency stop). When it is safe: "
+            f"`release`, then `a` runs trial {trial.number} again or `s` marks it stopped"
+        )
+        chosen: list[Command] = []
+        decided = threading.Event()
+
+        def choose(command: Command) -> None:
+            if self.latched is not None:
+                self.say("console: the emergency stop is latched: type release first")
+                return
+            chosen.append(command)
+            decided.set()
+
+        self.console.route(lambda line: self._between(
+            line, f"trial {trial.number} was stopped: release, then a (again) or s (stopped)",
+            {"again": choose, "skip": choose},
+        ))  # fmt: skip
+        try:
+            while not decided.wait(0.2):
+                if self.console.closed:
+                    return False
+        finally:
+            self.console.route(self._idle)
+        command = chosen[0]
+        session.events.add(self.event("console", trial=trial.number, action=command.action,
+                                      why=command.why, after="emergency stop"))  # fmt: skip
+        if command.action == "skip":
+            session.trials.add(trial_line(trial) | {"result": None, "stopped": reason,
+                                                    "why": command.why})  # fmt: skip
+            self.say(f"trial {trial.number} marked stopped")
+        else:
+            self.say(f"trial {trial.number} runs again")
+        return True
+
+    # ---- the console between reaches ------------------------------------------------
+    def _idle(self, line: str) -> None:
+        """A line while no reach can be acted on (a stack starting or ending)."""
+        self._between(line, "no reach runs now (a stack is starting or ending): type it "
+                      "again once the reach runs")  # fmt: skip
+
+    def _between(
+        self,
+        line: str,
+        now: str,
+        acts: dict[str, Callable[[Command], None]] | None = None,
+        enter: Callable[[], None] | None = None,
+        fallback: Callable[[str], None] | None = None,
+    ) -> None:
+        """One line while no reach runs: ``acts`` (by action), Enter, the stop and its
+        release, help; anything else is refused in one line saying what the session does
+        ``now`` (``fallback``: the handler a question interrupted, for the stop)."""
+        if not line.strip():
+            if enter is not None:
+                enter()
+            else:
+                self.say(f"console: {now}")
+            return
+        command = self.command(line)
+        if command is None:
+            return
+        act = (acts or {}).get(command.action)
+        if act is not None:
+            act(command)
+        elif command.action in ("stop", "release") and fallback is not None:
+            fallback(line)  # a stack runs: the stop goes on its bus
+        elif command.action == "stop":
+            self._latch(command)
+        elif command.action == "release":
+            self._release(command)
+        elif command.action == "help":
+            self.say(HELP)
+        else:
+            self.say(f"console: {command.action} refused: {now}")
+
+    def command(self, line: str) -> Command | None:
+        """The command of ``line`` with its reason as it may be stored; None (said) when it
+        is no command."""
+        command = parse(line)
+        if isinstance(command, str):
+            self.say(command)
+            return None
+        if not command.why:
+            return command
+        if self.setup.names is not None:
+            why, named = self.setup.names.redact(command.why)
+            if named:
+                self.say("console: the reason named a person of your registry: it is stored "
+                         "without the name")  # fmt: skip
+            return Command(command.action, why)
+        return command
+
+    def _latch(self, command: Command) -> None:
+        """The stop typed while no stack runs: nothing is driven, and nothing starts
+        until it is released."""
+        self.latched = f"emergency stop from {self.setup.operator}" + (
+            f": {command.why}" if command.why else "")  # fmt: skip
+        if self.session is not None:
+            self.session.events.add(self.event("console", action="stop", why=command.why))
+        if self.display is not None:
+            self.display.stopped()
+        self.say("console: emergency stop latched (no stack runs: nothing is driven); the "
+                 "session goes on only after release")  # fmt: skip
+
+    def _release(self, command: Command) -> None:
+        if self.latched is None:
+            self.say("console: no emergency stop is latched")
+            return
+        self.latched = None
+        if self.session is not None:
+            self.session.events.add(self.event("console", action="release", why=command.why))
+        if self.display is not None:
+            self.display.released()
+        self.say("console: released (nothing moves before Enter)")
+
+    # ---- the participant's page -------------------------------------------------------
+    @contextlib.contextmanager
+    def _watching_the_page(self) -> Iterator[None]:
+        """Say when the participant's page connects or goes (checked twice a second)."""
+        display = self.display
+        if display is None:
+            yield
+            return
+        done = threading.Event()
+
+        def watch() -> None:
+            shown = -1
+            while not done.wait(0.5):
+                pages = display.pages()
+                if (pages > 0) != (shown > 0) or shown < 0:
+                    self.say(f"participant page: connected ({pages})" if pages else
+                             f"participant page: not connected (open {display.url})")  # fmt: skip
+                shown = pages
+
+        thread = threading.Thread(target=watch, daemon=True)
+        thread.start()
+        try:
+            yield
+        finally:
+            done.set()
+            thread.join(2)
+
+
+def trial_line(trial: Trial) -> dict[str, Any]:
+    """What every line of ``trials.jsonl`` says of its trial."""
+    return {"trial": trial.number, "block": trial.block, "block_position": trial.block_position,
+            "index": trial.index, "seed": trial.seed, "practice": trial.practice,
+            "utc": now_utc()}  # fmt: skip
 
 
 class StackRun:
     """One stack run over trials of one block: each trial logged as its result comes,
-    the therapist's console obeyed meanwhile, the comfort asked at the block's end."""
+    the therapist's console obeyed meanwhile, the comfort asked at the block's end, and
+    the run ended by an emergency stop (after the stopped reach's result)."""
 
     def __init__(self, runner: SessionRunner, session: SessionFolder, setup: SetUp,
                  group: list[Trial], total: int) -> None:  # fmt: skip
@@ -474,14 +710,16 @@ class StackRun:
         self.part = session.next_part()
         self.hub: Any = None  # the stack's bus session, once it is up
         self.stack: Stack | None = None
-        self.episode = 1  # the reach under way (this run counts from 1)
+        self.episode = 1  # the reach under way, or the next one (this run counts from 1)
+        self.announced = 0  # the last reach the controller announced (its TaskGoal)
         self.actions: list[dict[str, Any]] = []  # the console's, on the reach under way
         self.paused_since: float | None = None
         self.paused_s = 0.0
         self.again = False  # the reach under way runs again
         self.end_block = False  # the rest of the block is skipped...
         self.end_block_why = ""  # ... by whom and why
-        self.running = threading.Event()
+        self.stopping: str | None = None  # an emergency stop ends this run: why
+        self.stopped_trial: Trial | None = None  # the trial the stop interrupted
         self.sent = 0  # messages this run sent (their sequence numbers)
         self.posterior: tuple[float, float] | None = None  # the policy's, last heard
         self.subscribers: list[Any] = []
@@ -494,20 +732,12 @@ class StackRun:
                          sha256=runner.protocol.sha256, block=group[0].block,
                          practice=group[0].practice, condition=condition,
                          trials=[t.number for t in group]).model_dump_json()  # fmt: skip
-        setup = self.setup
         prior = runner.participant.posterior()  # what this person's earlier runs said
         checkpoint = runner.participant.refined_policy()  # dammrl adapt --participant
-        intent = condition.intent or setup.intent
-        person = intent in ("pad", "lsl")
-        options = StackOptions(
-            mode=setup.mode, episodes=len(group), seed=group[0].seed, model=condition.model,
-            trigger=condition.trigger, port=setup.bus_port, record=self.part, study=study,
-            intent=None if person else intent,
-            pad_port=setup.pad_port if intent == "pad" else None,
-            lsl_stream=setup.stream if intent == "lsl" else None,
-            calibration=setup.calibration if person else None, lockstep=setup.lockstep,
-            prior=prior, checkpoint=checkpoint if condition.model is None else None,
-            adaptive=(condition.targets or Targets()) if condition.policy == "adaptive" else None,
+        options = stack_options(
+            self.setup, condition, group[0].seed, len(group), self.setup.calibration,
+            record=self.part, study=study, prior=prior,
+            checkpoint=checkpoint if condition.model is None else None,
         )  # fmt: skip
         self.session.events.add(runner.event("run", block=group[0].block,
                                              recording=self.part.name,
@@ -519,7 +749,7 @@ class StackRun:
         try:
             return self.stack.run()
         finally:
-            self.running.clear()
+            runner.console.route(runner._idle)
             self.hub, self.subscribers = None, []
             if self.posterior is not None and self.posterior != prior:
                 runner.participant.keep_posterior(self.posterior, self.session.folder.name,
@@ -528,15 +758,33 @@ class StackRun:
 
     def attach(self, hub: Any) -> None:
         """The stack is up: the display follows its bus, the console acts on it."""
+        runner = self.runner
         self.hub = hub
-        if self.runner.display is not None:
+        if runner.display is not None:
             from dammrl.display import BusFeed
 
-            BusFeed(self.runner.display, DEFAULT_NAMESPACE).attach(hub)
-        self.subscribers = [hub.declare_subscriber(key(DEFAULT_NAMESPACE, ModelChoice),
-                                                   self._choice)]  # fmt: skip
-        self.running.set()
-        threading.Thread(target=self._console, daemon=True).start()
+            runner.display.expect_run(self.places(), condition_intent(self.group[0], self.setup))
+            BusFeed(runner.display, DEFAULT_NAMESPACE).attach(hub)
+        self.subscribers = [
+            hub.declare_subscriber(key(DEFAULT_NAMESPACE, ModelChoice), self._choice),
+            hub.declare_subscriber(key(DEFAULT_NAMESPACE, EmergencyStop), self._stop_heard),
+            hub.declare_subscriber(key(DEFAULT_NAMESPACE, TaskGoal), self._goal_heard),
+        ]
+        for trial, rating, asked_s in runner.pending_comfort:  # asked while no stack ran
+            self._send(self._rating(trial, rating, asked_s))
+        runner.pending_comfort = []
+        if runner.latched is not None:  # typed while the stack started: it holds the arm
+            self._send(EmergencyStop(header=self._header(), engaged=True, reason=runner.latched))
+        runner.console.route(self.line)
+
+    def places(self) -> dict[int, Any]:
+        """Each reach's place in the session, for the participant's page."""
+        from dammrl.display import Place
+
+        blocks = len(self.runner.protocol.blocks)
+        trials = self.runner.blocks[self.group[0].block].trials
+        return {episode: Place(t.index, trials, t.block_position, blocks, t.practice)
+                for episode, t in enumerate(self.group, start=1)}  # fmt: skip
 
     def _choice(self, sample: Any) -> None:
         """The policy's posterior of this person, as it learns (kept after the run)."""
@@ -545,97 +793,140 @@ class StackRun:
             if choice.posterior is not None and len(choice.posterior) == 2:
                 self.posterior = (choice.posterior[0], choice.posterior[1])
 
+    def _goal_heard(self, sample: Any) -> None:
+        with contextlib.suppress(DecodeError):
+            goal = decode(TaskGoal, sample.payload.to_bytes())
+            if goal.header.source == "controller":
+                self.announced = max(self.announced, goal.episode)
+
+    def _stop_heard(self, sample: Any) -> None:
+        """An emergency stop (or its release) on the bus, from the console or anyone: the
+        session follows it; a stop ends this run (after the stopped reach's result)."""
+        try:
+            stop = decode(EmergencyStop, sample.payload.to_bytes())
+        except DecodeError:
+            return
+        reason = f"emergency stop from {stop.header.source}" + (
+            f": {stop.reason}" if stop.reason else "")  # fmt: skip
+        self.runner.heard_stop(stop.engaged, reason)
+        if not stop.engaged or self.stopping is not None:
+            return
+        self.stopping = reason
+        if self.under_way():  # the controller ends the reach: its result ends the run
+            threading.Timer(STOP_RESULT_WAIT_S, self._finish).start()
+        else:
+            self._finish()
+
+    def under_way(self) -> bool:
+        """A reach of this run was announced and has no result yet."""
+        return self.announced >= self.episode
+
+    def _finish(self) -> None:
+        if self.stack is not None:
+            self.stack.finish()
+
     # ---- results --------------------------------------------------------------------
     def keep(self, result: EpisodeResult) -> None:
         trial = self.group[result.episode - 1]
         if self.paused_since is not None:  # skipped while paused
             self.paused_s += time.monotonic() - self.paused_since
             self.paused_since = None
-        entry = {"trial": trial.number, "block": trial.block,
-                 "block_position": trial.block_position, "index": trial.index,
-                 "seed": trial.seed, "practice": trial.practice,
-                 "condition": trial.condition.model_dump(mode="json"),
-                 "recording": f"recordings/{self._recording().name}", "episode": result.episode,
-                 "utc": now_utc(), "result": result_dict(result),
-                 "pauses": sum(a["action"] == "pause" for a in self.actions),
-                 "paused_s": round(self.paused_s, 2), "actions": self.actions}  # fmt: skip
-        if self.again:
+        stopped = result.outcome == "stopped"
+        entry = trial_line(trial) | {
+            "condition": trial.condition.model_dump(mode="json"),
+            "recording": f"recordings/{self._recording().name}", "episode": result.episode,
+            "result": result_dict(result),
+            "pauses": sum(a["action"] == "pause" for a in self.actions),
+            "paused_s": round(self.paused_s, 2), "actions": self.actions}  # fmt: skip
+        if self.again or stopped:
             entry["repeat"] = True  # an attempt: the trial is not done
+        if stopped:
+            entry["stopped"] = result.reason
+            self.stopping = self.stopping or result.reason
+            self.stopped_trial = trial
+            if self.runner.latched is None:  # its stop was not heard: the arm's latch holds
+                self.runner.heard_stop(True, result.reason)
         self.session.trials.add(entry)
+        outcome = "stopped: not counted" if stopped else result.outcome
         self.runner.say(f"trial {trial.number}/{self.total} ({trial.block} {trial.index}): "
-                        f"{result.outcome} in {result.t_total_s:.1f} s"
+                        f"{outcome} after {result.t_total_s:.1f} s"
                         + (": it runs again" if self.again else ""))  # fmt: skip
         self.episode, self.actions, self.paused_s = result.episode + 1, [], 0.0
         last = trial.index == self.runner.blocks[trial.block].trials
         if self.end_block:
             self._skip_rest_of_block(trial)
-        if last or self.end_block:
+        if (last or self.end_block) and not stopped:
             self._ask_comfort(trial)
-        if self.again or self.end_block:
-            assert self.stack is not None
-            self.stack.finish()
+        if self.again or self.end_block or self.stopping is not None:
+            self._finish()
 
     def _recording(self) -> Path:
         """The file the recorder writes now: the part, or its newest continuation after
         a restarted recorder (``part-NN-001.mcap``, ...)."""
         return recording_files(self.part)[-1]
 
-    def _skip_rest_of_block(self, after: Trial) -> None:
-        """Log the block's trials after ``after`` as skipped (the operator ended it)."""
-        why = self.end_block_why
-        for trial in self.group[self.group.index(after) + 1 :]:
-            self.session.trials.add({"trial": trial.number, "block": trial.block,
-                                     "block_position": trial.block_position,
-                                     "index": trial.index, "seed": trial.seed,
-                                     "practice": trial.practice, "utc": now_utc(),
-                                     "result": None, "skipped": why})  # fmt: skip
+    def _skip_rest_of_block(self, after: Trial | None) -> None:
+        """Log the block's trials after ``after`` (None: all of this run's) as skipped
+        (the operator ended the block)."""
+        first = 0 if after is None else self.group.index(after) + 1
+        for trial in self.group[first:]:
+            skipped = {"result": None, "skipped": self.end_block_why}
+            self.session.trials.add(trial_line(trial) | skipped)
 
     def _ask_comfort(self, trial: Trial) -> None:
         """The participant's comfort after the block, on the display: on the bus (the
         recording keeps it; the block's stack still runs) and in the events."""
         runner = self.runner
-        if runner.display is None or runner.protocol.comfort == "none":
+        if not runner._asks_comfort():
             return
-        answer = runner.display.ask_comfort(runner.comfort_timeout_s)
-        if answer is None:
-            self.session.events.add(runner.event("comfort", block=trial.block, rating=None))
-            runner.say(f"no comfort rating within {runner.comfort_timeout_s:.0f} s")
-            return
-        rating, asked_s = answer
-        self._send(ComfortRating(header=self._header(), participant=runner.participant.id,
-                                 block=trial.block, trial=trial.number, rating=rating,
-                                 asked_s=asked_s))  # fmt: skip
-        time.sleep(0.2)  # the recorder takes it before the stack stops
-        self.session.events.add(runner.event("comfort", block=trial.block, rating=rating,
-                                             asked_s=round(asked_s, 2)))  # fmt: skip
-        runner.say(f"comfort after {trial.block}: {rating} of 5")
+        answer = runner.ask_comfort(self.session, trial)
+        if answer is not None:
+            self._send(self._rating(trial, *answer))
+            time.sleep(0.2)  # the recorder takes it before the stack stops
+
+    def _rating(self, trial: Trial, rating: int, asked_s: float) -> ComfortRating:
+        header = self._header(DISPLAY_SOURCE)
+        return ComfortRating(header=header, participant=self.runner.participant.id,
+                             block=trial.block, trial=trial.number, rating=rating,
+                             asked_s=asked_s)  # fmt: skip
 
     # ---- the therapist's console ------------------------------------------------------
-    def _console(self) -> None:
-        while self.running.is_set():
-            line = self.runner.console.get(0.2)
-            if line is None or not line.strip():
-                continue
-            command = parse(line)
-            if isinstance(command, str):
-                self.runner.say(command)
-            else:
-                self.act(command)
+    def line(self, line: str) -> None:
+        """One console line while the stack runs."""
+        if not line.strip():
+            where = "reach under way" if self.under_way() else "between two reaches"
+            self.runner.say(f"console: trial {self.trial().number}, {where} (h for help)")
+            return
+        command = self.runner.command(line)
+        if command is not None:
+            self.act(command)
+
+    def trial(self) -> Trial:
+        """The trial under way, or the next one."""
+        return self.group[min(self.episode, len(self.group)) - 1]
 
     def act(self, command: Command) -> None:
-        """Carry out one console command on the reach under way, logged with who and why."""
+        """Carry out one console command on the reach under way, logged with who and why;
+        between two reaches, ending a trial is refused and ending the block acts at once."""
         runner, action = self.runner, command.action
         if action == "help":
             runner.say(HELP)
             return
-        trial = self.group[min(self.episode, len(self.group)) - 1]
+        trial = self.trial()
+        if action in ("skip", "again") and not self.under_way():
+            runner.say(f"console: {action} refused: no reach is under way (trial {trial.number} "
+                       "begins in a moment): type it again once it runs")  # fmt: skip
+            return
+        if action in ("pause", "resume", "skip", "again", "end-block") and self.stopping:
+            runner.say(f"console: {action} refused: the emergency stop ends this run")
+            return
         record = {"action": action, "who": runner.setup.operator, "why": command.why,
                   "utc": now_utc()}  # fmt: skip
         self.actions.append(record)
         self.session.events.add(runner.event("console", trial=trial.number, action=action,
                                              why=command.why))  # fmt: skip
         if action in ("stop", "release"):
-            reason = f"{runner.setup.operator}: {command.why}"[:200]
+            reason = f"{runner.setup.operator}: {command.why}"[:200].rstrip(": ")
             self._send(EmergencyStop(header=self._header(), engaged=action == "stop",
                                      reason=reason))  # fmt: skip
         elif action == "pause" and self.paused_since is None:
@@ -651,6 +942,8 @@ class StackRun:
             small = command.why.split()[:1] == ["small"]
             self._control("decide", command.why, u_h=1 if action == "forward" else -1,
                           human_model=2 if small else 1)  # fmt: skip
+        elif action == "end-block" and not self.under_way():
+            self._end_block_between(command)
         elif action in ("skip", "again", "end-block"):
             self.again = action == "again"
             if action == "end-block":
@@ -658,38 +951,36 @@ class StackRun:
             self._control("skip", command.why)
         runner.say(f"console: {action} (trial {trial.number})")
 
+    def _end_block_between(self, command: Command) -> None:
+        """End the block between two reaches: the next reach is held (paused before it
+        begins), the block's remaining trials are logged skipped, the comfort question
+        asked (on a thread: the console answers meanwhile), then the run ends."""
+        self.end_block, self.end_block_why = True, f"{self.runner.setup.operator}: {command.why}"
+        self._control("pause", "the block ends")
+        done = self.group[self.episode - 2] if self.episode > 1 else None
+        self._skip_rest_of_block(done)
+
+        def close() -> None:
+            if done is not None or self.group[0].index > 1:  # a reach of the block was run
+                self._ask_comfort(self.group[-1])
+            self._finish()
+
+        threading.Thread(target=close, daemon=True).start()
+
     def _control(self, action: str, why: str, **decision: int) -> None:
         self._send(SessionControl(header=self._header(), episode=self.episode, action=action,
                                   who=self.runner.setup.operator, why=why,
                                   **decision))  # fmt: skip
 
-    def _header(self) -> Header:
+    def _header(self, source: str = CONSOLE_SOURCE) -> Header:
         self.sent += 1
-        return Header(stamp_ns=time.time_ns(), seq=self.sent - 1, source="tool")
+        return Header(stamp_ns=time.time_ns(), seq=self.sent - 1, source=source)
 
     def _send(self, message: Message) -> None:
         if self.hub is not None:
             self.hub.put(key(DEFAULT_NAMESPACE, type(message)), encode(message))
 
 
-def session_table(root: Path, participant: str | None = None) -> list[dict[str, Any]]:
-    """One row per session under ``root`` (one participant's, if given)."""
-    folders = [Participant(root, participant).folder] if participant else sorted(
-        p for p in root.glob("*") if (p / "participant.json").exists()
-    )  # fmt: skip
-    rows = []
-    for folder in folders:
-        for path in sorted(folder.glob("ses-*/session.json")):
-            session = SessionFolder(path.parent)
-            manifest, progress = session.read_manifest(), session.progress()
-            total = len(plan_trials(load_protocol(path.parent / "protocol.yaml"),
-                                    int(manifest.get("row", 0))))  # fmt: skip
-            successes = sum(bool((e.get("result") or {}).get("success"))
-                            for e in progress.done.values())  # fmt: skip
-            rows.append({"participant": folder.name, "session": path.parent.name,
-                         "protocol": manifest["setup"]["protocol"],
-                         "started": manifest.get("started", ""),
-                         "trials": f"{len(progress.done)}/{total}",
-                         "successes": successes,
-                         "state": "ended" if progress.ended else "unfinished"})  # fmt: skip
-    return rows
+def condition_intent(trial: Trial, setup: SetUp) -> str:
+    """Who decides ``trial``: its block's intent source, else the session's."""
+    return trial.condition.intent or setup.intent

@@ -39,6 +39,9 @@ class Browser:
         self.next_id = 0
         self.events: list[dict[str, Any]] = []
         self.call("Page.enable")
+        # the page's viewport exactly: headless Chromium's window keeps some for itself
+        self.call("Emulation.setDeviceMetricsOverride", width=width, height=height,
+                  deviceScaleFactor=1, mobile=False)  # fmt: skip
 
     def _page_socket(self) -> str:
         deadline = time.monotonic() + 20

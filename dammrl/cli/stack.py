@@ -108,6 +108,7 @@ def _add_up(commands: Commands) -> None:
 
 def _up(args: argparse.Namespace) -> int:
     """Launch the stack; runs until the episodes are done, a signal, or a dead service."""
+    from dammrl.display.screens import OUTCOME_S
     from dammrl.launch import Stack, StackOptions
 
     options = StackOptions(
@@ -119,6 +120,7 @@ def _up(args: argparse.Namespace) -> int:
         lockstep=args.lockstep, credentials=args.credentials, insecure=args.insecure,
         robot_port=args.robot_port, robot_calibration=args.robot_calibration,
         emulate_robot=args.emulate_robot,
+        outcome_hold_s=0.0 if args.display is None else OUTCOME_S,  # the page shows it
     )  # fmt: skip
     if args.display is None:
         return Stack(options, out=print_out, info=print_err).run()
