@@ -508,14 +508,14 @@ class SessionRunner:
 
         session.events.add(self.event("rest", block=block.name, seconds=round(seconds, 1),
                                       **({"resumed": True} if resumed else {})))  # fmt: skip
-        self.say(f"rest for {seconds:.0f} s{' (what was left of it)' if resumed else ''}: s "
-                 "ends it early (Ctrl-C ends the session here; it resumes later)")  # fmt: skip
-        if self.display is not None:
-            self.display.rest(seconds)
         self.console.route(lambda line: self._between(
             line, left(), {"skip": end_early, "end-block": end_early},
             enter=lambda: self.say(f"console: {left()}"),
         ))  # fmt: skip
+        self.say(f"rest for {seconds:.0f} s{' (what was left of it)' if resumed else ''}: s "
+                 "ends it early (Ctrl-C ends the session here; it resumes later)")  # fmt: skip
+        if self.display is not None:
+            self.display.rest(seconds)
         try:
             over.wait(seconds)
         finally:
@@ -548,10 +548,6 @@ class SessionRunner:
             self.say("the session is paused by the emergency stop: `release` when it is safe; "
                      "then Enter goes on")  # fmt: skip
             return True  # _begin waits for the release and the Enter
-        self.say(
-            f"trial {trial.number} is not counted (emergency stop). When it is safe: "
-            f"`release`, then `a` runs trial {trial.number} again or `s` marks it stopped"
-        )
         chosen: list[Command] = []
         decided = threading.Event()
 
@@ -566,6 +562,9 @@ class SessionRunner:
             line, f"trial {trial.number} was stopped: release, then a (again) or s (stopped)",
             {"again": choose, "skip": choose},
         ))  # fmt: skip
+        self.say(f"trial {trial.number} is not counted (emergency stop). When it is safe: "
+                 f"`release`, then `a` runs trial {trial.number} again or `s` marks it "
+                 "stopped")  # fmt: skip
         try:
             while not decided.wait(0.2):
                 if self.console.closed:

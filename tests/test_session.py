@@ -8,26 +8,14 @@ import itertools
 import json
 import time
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import Any
 
 import pytest
 
-from dammrl.console import parse
-from dammrl.launch import StackOptions
 from dammrl.session import JsonLines, SessionRunner, SetUp, check_participant, session_table
-from dammrl_core.errors import ConfigurationError, DammrlError, JobFailedError, UsageError
+from dammrl_core.errors import ConfigurationError, DammrlError, UsageError
 from dammrl_core.protocol import balanced_latin_square, block_order, load_protocol, plan_trials
-from schemas import EpisodeResult, Header
-
-PROTOCOL = """\
-format: 1
-name: two-blocks
-version: "1"
-blocks:
-  - {name: practice, practice: true, trials: 1, seed: 100}
-  - {name: event, trials: 3, seed: 200, condition: {trigger: event}}
-  - {name: fixed, trials: 3, seed: 200, condition: {trigger: fixed, policy: fixed, model: [2, 1]}}
-"""
+from tests.sessionutil import PROTOCOL, ScriptedStack, reset
 
 
 def _protocol(tmp_path: Path, text: str = PROTOCOL) -> Path:
@@ -104,71 +92,10 @@ def test_a_torn_last_log_line_is_skipped_and_counted(tmp_path: Path) -> None:
     assert log.read() == ([{"trial": 1}], 1)
 
 
-def _result(episode: int, seed: int, outcome: str = "success") -> EpisodeResult:
-    return EpisodeResult(  # type: ignore[arg-type]  # outcome: one of the Literal's
-        header=Header(stamp_ns=1, seq=episode, source="controller"), episode=episode,
-        seed=seed, trigger="event", model=(2, 1), success=outcome == "success", reached=True,
-        outcome=outcome, reason="button pressed", t_total_s=5.0, t_step_mean_s=0.5,
-        final_error_m=0.01, n_osc=1, n_osc_per_step=0.1, jerk_isj=1.0, sparc=-2.0, ldlj=-7.0,
-        human_error_rate=0.1, n_steps=10, n_decisions=10, button_pressed=True,
-        start_m=(0.3, 0, 0), goal_m=(0.5, 0, -0.2),
-    )  # fmt: skip
-
-
-class ScriptedStack:
-    """The launcher's part a session uses: episodes of the given seeds, results handed on;
-    ``crash_after`` results in all, it dies as a dead service makes it; ``console`` lines
-    are typed (to the run's console) before the reach of the given number in all."""
-
-    runs: ClassVar[list[StackOptions]] = []
-    crash_after: ClassVar[int | None] = None
-    given: ClassVar[int] = 0
-    console: ClassVar[dict[int, list[str]]] = {}
-    sent: ClassVar[list[Any]] = []
-    posterior: ClassVar[tuple[float, float] | None] = None
-
-    def __init__(self, options: StackOptions, out: Any, info: Any, on_result: Any,
-                 on_up: Any) -> None:  # fmt: skip
-        self.options, self.on_result, self.on_up = options, on_result, on_up
-        self.finishing = False
-
-    def put(self, key: str, payload: bytes) -> None:  # the hub session's
-        ScriptedStack.sent.append((key, payload))
-
-    def finish(self) -> None:
-        self.finishing = True
-
-    def run(self) -> int:
-        ScriptedStack.runs.append(self.options)
-        assert self.options.episodes is not None and self.options.record is not None
-        self.options.record.write_bytes(b"mcap")
-        stack_run = self.on_up.__self__
-        stack_run.hub = self  # as attach() does, without its console thread
-        for episode in range(1, self.options.episodes + 1):
-            if ScriptedStack.crash_after is not None and self.given >= self.crash_after:
-                raise JobFailedError("service controller exited unexpectedly with code -9")
-            ScriptedStack.given += 1
-            stack_run.announced = episode  # the controller's TaskGoal, heard
-            outcome = "success"
-            for line in ScriptedStack.console.get(ScriptedStack.given, []):
-                command = parse(line)
-                assert not isinstance(command, str)
-                stack_run.act(command)
-                outcome = "skipped" if command.action in ("skip", "again", "end-block") else outcome
-            if ScriptedStack.posterior is not None:  # the policy spoke of the person
-                stack_run.posterior = ScriptedStack.posterior
-            self.on_result(_result(episode, self.options.seed + episode - 1, outcome))
-            if self.finishing:
-                break
-        return 0
-
-
 @pytest.fixture
 def scripted(monkeypatch: pytest.MonkeyPatch) -> type[ScriptedStack]:
     monkeypatch.setattr("dammrl.session.Stack", ScriptedStack)
-    ScriptedStack.runs, ScriptedStack.crash_after, ScriptedStack.given = [], None, 0
-    ScriptedStack.console, ScriptedStack.sent, ScriptedStack.posterior = {}, [], None
-    return ScriptedStack
+    return reset(ScriptedStack)
 
 
 def _runner(tmp_path: Path, **kwargs: Any) -> SessionRunner:
@@ -270,9 +197,9 @@ def test_the_consoles_pause_skip_again_and_end_of_block_are_logged_and_counted(
     tmp_path: Path, scripted: type[ScriptedStack]
 ) -> None:
     """Reach 2 paused and resumed, reach 3 skipped, reach 4 run again, reach 6 ends its
-    block (the rest of it is skipped); the stop reaches the bus."""
+    block (the rest of it is skipped); tests/test_session_flow.py stops reaches."""
     scripted.console = {2: ["p the patient coughs", "r"], 3: ["s"], 4: ["a the arm slipped"],
-                        6: ["e tired", "x"]}  # fmt: skip
+                        6: ["e tired"]}  # fmt: skip
     assert _runner(tmp_path).run() == 0
     trials = _trials(tmp_path)
     by_trial: dict[int, list[dict[str, Any]]] = {}
@@ -289,7 +216,7 @@ def test_the_consoles_pause_skip_again_and_end_of_block_are_logged_and_counted(
     assert by_trial[6][0]["skipped"] == "operator: tired" and by_trial[6][0]["result"] is None
     assert sorted(by_trial) == list(range(1, 8))
     keys = [k for k, _ in scripted.sent]
-    assert "dammrl/safety/stop" in keys and keys.count("dammrl/session/control") == 5
+    assert keys.count("dammrl/session/control") == 5
 
 
 def test_the_persons_posterior_is_carried_to_the_next_run_and_session(

@@ -212,7 +212,11 @@ class ControllerNode:
 
     def _on_state(self, message: RobotState, answer: bool = True) -> None:
         plan = self.plan
-        if plan is None or message.episode != self.number:
+        if message.episode != self.number:
+            return
+        if plan is None:  # the outcome is held: the arm holds where the reach left it
+            if answer and self.next_due_s is not None and not self.stop_latch.engaged:
+                self._hold_paused(message.header.stamp_ns)
             return
         if (reason := self._implausible_time(message.t_s)) is not None:
             self.bus.reject(self.bus.key(RobotState), reason)
@@ -253,7 +257,7 @@ class ControllerNode:
             self._finish()
 
     def _hold_paused(self, state_stamp_ns: int) -> None:
-        """Paused: the arm holds the last reference at rest."""
+        """Paused (or between two reaches): the arm holds the last reference at rest."""
         self.last_state_s = time.monotonic()
         if self.last_command is None:
             return  # no reference yet: the arm holds its start as it does unasked
