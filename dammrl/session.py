@@ -70,6 +70,7 @@ from dammrl_core.settings import error_line
 from schemas import (
     DEFAULT_NAMESPACE,
     ComfortRating,
+    DecisionRequest,
     DecodeError,
     EmergencyStop,
     EpisodeResult,
@@ -768,6 +769,7 @@ class StackRun:
             hub.declare_subscriber(key(DEFAULT_NAMESPACE, ModelChoice), self._choice),
             hub.declare_subscriber(key(DEFAULT_NAMESPACE, EmergencyStop), self._stop_heard),
             hub.declare_subscriber(key(DEFAULT_NAMESPACE, TaskGoal), self._goal_heard),
+            hub.declare_subscriber(key(DEFAULT_NAMESPACE, DecisionRequest), self._asked),
         ]
         for trial, rating, asked_s in runner.pending_comfort:  # asked while no stack ran
             self._send(self._rating(trial, rating, asked_s))
@@ -797,6 +799,14 @@ class StackRun:
             goal = decode(TaskGoal, sample.payload.to_bytes())
             if goal.header.source == "controller":
                 self.announced = max(self.announced, goal.episode)
+
+    def _asked(self, sample: Any) -> None:
+        """A decision request: its reach runs (its goal may have gone out before the run
+        listened)."""
+        with contextlib.suppress(DecodeError):
+            request = decode(DecisionRequest, sample.payload.to_bytes())
+            if request.header.source == "controller":
+                self.announced = max(self.announced, request.episode)
 
     def _stop_heard(self, sample: Any) -> None:
         """An emergency stop (or its release) on the bus, from the console or anyone: the
@@ -878,6 +888,7 @@ class StackRun:
         runner = self.runner
         if not runner._asks_comfort():
             return
+        time.sleep(self.setup.outcome_s)  # the block's last outcome shows as every other
         answer = runner.ask_comfort(self.session, trial)
         if answer is not None:
             self._send(self._rating(trial, *answer))

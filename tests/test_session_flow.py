@@ -60,7 +60,8 @@ def scripted(monkeypatch: pytest.MonkeyPatch) -> type[ScriptedStack]:
 
 def _runner(tmp_path: Path, typist: Typist, rest_s: float = 0.0, **kwargs: Any) -> SessionRunner:
     protocol = write_protocol(tmp_path, TWO_BLOCKS.replace("REST", str(rest_s)))
-    return SessionRunner(tmp_path / "sessions", "P001", protocol, SetUp(), say=typist.say,
+    return SessionRunner(tmp_path / "sessions", "P001", protocol, SetUp(outcome_s=0.0),
+                         say=typist.say,
                          wait_for_operator=True, console=typist.stream, **kwargs)  # fmt: skip
 
 

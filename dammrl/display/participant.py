@@ -135,6 +135,9 @@ class ParticipantDisplay:
             if isinstance(message, TaskGoal) and message.episode != self.screens.episode:
                 self._marks |= {"goal": list(message.goal_m), "subgoal": None}
                 self.server.publish("marks", self._marks)
+            elif isinstance(message, DecisionRequest) and message.episode > self.screens.episode:
+                self._marks |= {"goal": list(message.goal_m), "subgoal": None}  # goal unheard
+                self.server.publish("marks", self._marks)
             elif isinstance(message, StepEvent):
                 self._marks |= {"subgoal": list(message.subgoal_m), "radius_m": message.radius_m}
                 self.server.publish("marks", self._marks)

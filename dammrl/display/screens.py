@@ -106,6 +106,7 @@ class Screens:
         self.inputs = inputs
         self.places: dict[int, Place] = {}  # the running stack's reaches, by episode
         self.episode = 0  # the reach under way
+        self.ended = 0  # the last reach whose outcome came
         self.guided = False  # the therapist decides for the participant
         self.paused = False
         self.stopped = False  # an emergency stop (the bus's or the session's)
@@ -124,7 +125,7 @@ class Screens:
     # ---- the session's steps ----------------------------------------------------------
     def expect_run(self, places: dict[int, Place], inputs: Inputs) -> None:
         """A new stack run: its reaches' places (by episode), who decides and how."""
-        self.places, self.inputs, self.episode = places, inputs, 0
+        self.places, self.inputs, self.episode, self.ended = places, inputs, 0, 0
         self.guided = self.paused = False
 
     def show(self, screen: Screen) -> None:
@@ -157,6 +158,8 @@ class Screens:
         """Follow one bus message; whether the screen may have changed."""
         if isinstance(message, TaskGoal):
             return self._new_reach(message)
+        if isinstance(message, DecisionRequest | Intent) and not self._running(message.episode):
+            return False  # late: its reach has its outcome (or was never announced here)
         if isinstance(message, DecisionRequest):
             self.base = self._cue()
         elif isinstance(message, Intent):
@@ -170,6 +173,13 @@ class Screens:
         else:
             return False
         return True
+
+    def _running(self, episode: int) -> bool:
+        """Whether ``episode`` runs: the reach under way, or a later one whose goal this
+        page did not hear (a page that joined late, a goal announced before it listened)."""
+        if episode > self.episode:
+            self.episode, self.paused = episode, False
+        return episode == self.episode and self.ended != episode
 
     def _new_reach(self, goal: TaskGoal) -> bool:
         if goal.episode == self.episode:
@@ -196,6 +206,7 @@ class Screens:
                       chosen=intent.u_h)  # fmt: skip
 
     def _outcome(self, result: EpisodeResult) -> None:
+        self.ended = result.episode
         place = self._place()
         if result.outcome == "stopped":
             return  # the stop's screen says it

@@ -34,8 +34,9 @@ TEMPLATE = resources.files("dammrl.display").joinpath("page.html").read_bytes()
 VERSION = hashlib.sha256(TEMPLATE).hexdigest()[:12]
 """A page of another version reloads itself when it reconnects (an upgraded dammrl)."""
 PAGE = TEMPLATE.replace(b"%VERSION%", VERSION.encode())
-ALIVE_S = 3.0
-"""A page that said nothing for this long is no longer counted as connected [s]."""
+ALIVE_S = 6.0
+"""A page that said nothing for this long (it pings every second) is no longer counted as
+connected [s]; a page that closes says so at once."""
 BEAT_S = 1.0
 MAX_INCOMING = 4096  # a page sends pings and ratings, nothing larger
 SEND_TIMEOUT_S = 2

@@ -214,8 +214,8 @@ class ControllerNode:
         plan = self.plan
         if message.episode != self.number:
             return
-        if plan is None:  # the outcome is held: the arm holds where the reach left it
-            if answer and self.next_due_s is not None and not self.stop_latch.engaged:
+        if plan is None:  # between reaches, or after the last: it holds where it was left
+            if answer and not self.stop_latch.engaged:
                 self._hold_paused(message.header.stamp_ns)
             return
         if (reason := self._implausible_time(message.t_s)) is not None:

@@ -1,0 +1,174 @@
+"""A real session (the service stack, the emulated pad pressed by the simulated
+patient, in real time) shown on the participant's page in headless Chromium, with a
+therapist at the console who visits every screen: a decision cue, the arm moving, an
+outcome, a takeover, a pause, an emergency stop mid-reach (released, the trial run again),
+the comfort question (answered by touch), a rest, the end. The page logs each screen it
+shows with its own clock (a MutationObserver installed before the page's own script).
+tests/test_session_display.py checks what the tour saw; benchmarks/display_screenshots.py
+keeps its screenshots for the docs."""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from dammrl.cli.session import open_display
+from dammrl.session import SessionRunner, SetUp
+from tests.browser import Browser
+from tests.busutil import free_port, start_patient
+from tests.sessionutil import Typist
+
+PROTOCOL = """\
+format: 1
+name: tour
+version: "1"
+blocks:
+  - {name: first, trials: 2, seed: 7100100, rest_s: 5,
+     condition: {policy: fixed, model: [2, 1]},
+     instructions: Two reaches. The arm moves on once it is near each waypoint.}
+  - {name: second, trials: 1, seed: 7100200, condition: {policy: fixed, model: [2, 1]},
+     instructions: One more reach.}
+"""
+SCREENS = ("cue", "moving", "outcome", "rest", "comfort", "stopped", "taken", "end")
+"""The screens the issue asks to see, each once at least (and in the docs)."""
+LOG_SCREENS = """
+window.__screens = [];
+new MutationObserver(() => {
+  const body = document.body, title = document.getElementById('title');
+  if (!body || !title) return;
+  const last = window.__screens[window.__screens.length - 1];
+  const seen = {t: performance.timeOrigin + performance.now(), kind: body.dataset.kind,
+                title: title.textContent, place: document.getElementById('place').textContent};
+  if (!last || last.kind !== seen.kind || last.title !== seen.title) window.__screens.push(seen);
+}).observe(document, {subtree: true, childList: true, characterData: true,
+                      attributes: true, attributeFilter: ['data-kind']});
+"""
+CLICK_FOUR = """(() => { const b = [...document.querySelectorAll('#answers button')]
+    .find(b => b.innerText.trim().startsWith('4 ')); if (b) { b.click(); return true; }
+    return false; })()"""
+
+
+@dataclass
+class Tour:
+    """What the tour saw: the page's screens in order, the screenshots, what the session
+    said at the console, its exit code and its folder."""
+
+    screens: list[dict[str, Any]] = field(default_factory=list)
+    shots: dict[str, Path] = field(default_factory=dict)
+    said: list[str] = field(default_factory=list)
+    code: int | None = None
+    folder: Path | None = None
+    facts: dict[str, Any] = field(default_factory=dict)  # the page's arrows, counter, ...
+
+
+def tour(work: Path, shots: Path, timeout_s: float = 480.0) -> Tour:
+    """Run the session under ``work`` (the emulated pad pressed by the simulated patient),
+    screenshots into ``shots``; what was seen."""
+    shots.mkdir(parents=True, exist_ok=True)
+    (work / "tour.yaml").write_text(PROTOCOL)
+    typist = Typist([("is not counted", "release"), ("released", "a the arm is free")],
+                    every={"press Enter": ""})  # fmt: skip
+    link, bus = work / "ttyPAD", free_port()
+    patient = start_patient(link, bus, human_model=1)
+    display = open_display("127.0.0.1", free_port(), "pad")
+    setup = SetUp(mode="semi-virtual", intent="pad", pad_port=str(link), bus_port=bus,
+                  operator="T1")  # fmt: skip
+    runner = SessionRunner(work / "sessions", "P001", work / "tour.yaml", setup,
+                           say=typist.say, wait_for_operator=True, display=display,
+                           comfort_timeout_s=60, console=typist.stream)  # fmt: skip
+    seen = Tour(said=typist.said)
+    browser = Browser("about:blank")
+    try:
+        browser.before_each_page(LOG_SCREENS)
+        browser.open(display.url.replace("localhost", "127.0.0.1"))
+        running = threading.Event()
+        running.set()
+        deadline = time.monotonic() + timeout_s
+        visitor = threading.Thread(target=_visit, args=(browser, typist, seen, shots, running,
+                                                          deadline))  # fmt: skip
+        visitor.start()
+        try:
+            seen.code = runner.run()  # the stack takes signals: the main thread's
+        finally:
+            running.clear()
+            visitor.join(30)
+        seen.screens = list(browser.evaluate("window.__screens") or [])
+        seen.folder = work / "sessions" / "P001" / "ses-01"
+    finally:
+        typist.close()
+        browser.close()
+        display.close()
+        patient.terminate()
+        patient.wait(10)
+    return seen
+
+
+def _visit(browser: Browser, typist: Typist, seen: Tour, shots: Path,
+           running: threading.Event, deadline: float) -> None:  # fmt: skip
+    """Act on each screen as it comes: shoot it the first time, then what the therapist
+    or the participant does there; past ``deadline`` the console ends (so does the
+    session). The second reach is paused, resumed and then stopped."""
+    typed: set[str] = set()
+
+    def once(line: str) -> None:
+        if line not in typed:
+            typed.add(line)
+            typist.type(line)
+
+    while running.is_set():
+        if time.monotonic() > deadline:
+            typist.close()
+            return
+        kind = str(browser.evaluate("document.body && document.body.dataset.kind") or "")
+        if kind and kind not in seen.shots:
+            _shoot(browser, kind, seen, shots)
+        if kind == "comfort":
+            browser.evaluate(CLICK_FOUR)  # every question is answered
+        steps = ("t the patient is tired", "g", "p a sip of water", "r", "x the arm slipped")
+        step = next((line for line in steps if line not in typed), None)
+        if step == steps[0] and kind in ("cue", "moving"):
+            once(step)  # take the decisions over ...
+        elif step == "g" and kind == "taken":
+            once(step)  # ... and give them back
+        elif step == steps[2] and kind == "outcome":
+            typed.add("outcome")  # the next reach is paused, resumed, then stopped
+        elif (
+            (step == steps[2] and "outcome" in typed and kind in ("cue", "moving"))
+            or (step == "r" and kind == "paused")
+            or (step == steps[4] and kind in ("cue", "moving"))
+        ):
+            once(step)
+        time.sleep(0.05)
+
+
+def _shoot(browser: Browser, kind: str, seen: Tour, shots: Path) -> None:
+    """A screenshot of ``kind`` once the scene is drawn, kept if the page still shows it
+    when the picture is taken (a quick screen is taken the next time it shows)."""
+    count = "window.__screens.length"
+    before = browser.evaluate(count)
+    time.sleep(0.3)  # the canvas drawn with the words
+    png = browser.screenshot()
+    if browser.evaluate(count) != before or browser.evaluate("document.body.dataset.kind") != kind:
+        return
+    seen.shots[kind] = shots / f"display_{kind}.png"
+    seen.shots[kind].write_bytes(png)
+    _facts(browser, kind, seen)
+
+
+def _facts(browser: Browser, kind: str, seen: Tour) -> None:
+    """What the page shows beside the words, as it shows each screen."""
+    seen.facts[kind] = {
+        "arrows": browser.evaluate(
+            "getComputedStyle(document.getElementById('arrows')).display"
+            " !== 'none' ? document.getElementById('arrows').innerText "
+            ": ''"
+        ),
+        "place": browser.evaluate("document.getElementById('place').innerText"),
+        "words_px": browser.evaluate(
+            "document.getElementById('words').getBoundingClientRect().height"
+        ),
+        "background": browser.evaluate("getComputedStyle(document.body).backgroundColor"),
+    }
