@@ -9,6 +9,7 @@ keeps its screenshots for the docs."""
 
 from __future__ import annotations
 
+import base64
 import threading
 import time
 from dataclasses import dataclass, field
@@ -18,7 +19,7 @@ from typing import Any
 from dammrl.cli.session import open_display
 from dammrl.session import SessionRunner, SetUp
 from tests.browser import Browser
-from tests.busutil import free_port, start_patient
+from tests.busutil import free_port, start_patient, wait_for
 from tests.sessionutil import Typist
 
 PROTOCOL = """\
@@ -40,8 +41,12 @@ new MutationObserver(() => {
   const body = document.body, title = document.getElementById('title');
   if (!body || !title) return;
   const last = window.__screens[window.__screens.length - 1];
+  const arrows = document.getElementById('arrows');
   const seen = {t: performance.timeOrigin + performance.now(), kind: body.dataset.kind,
-                title: title.textContent, place: document.getElementById('place').textContent};
+                title: title.textContent, place: document.getElementById('place').textContent,
+                arrows: getComputedStyle(arrows).display !== 'none' ? arrows.innerText : '',
+                words_px: document.getElementById('words').getBoundingClientRect().height,
+                background: getComputedStyle(body).backgroundColor};
   if (!last || last.kind !== seen.kind || last.title !== seen.title) window.__screens.push(seen);
 }).observe(document, {subtree: true, childList: true, characterData: true,
                       attributes: true, attributeFilter: ['data-kind']});
@@ -62,6 +67,7 @@ class Tour:
     code: int | None = None
     folder: Path | None = None
     facts: dict[str, Any] = field(default_factory=dict)  # the page's arrows, counter, ...
+    error: str = ""  # what went wrong on the browser's side
 
 
 def tour(work: Path, shots: Path, timeout_s: float = 480.0) -> Tour:
@@ -87,8 +93,15 @@ def tour(work: Path, shots: Path, timeout_s: float = 480.0) -> Tour:
         running = threading.Event()
         running.set()
         deadline = time.monotonic() + timeout_s
-        visitor = threading.Thread(target=_visit, args=(browser, typist, seen, shots, running,
-                                                          deadline))  # fmt: skip
+
+        def visit() -> None:
+            try:
+                _visit(browser, typist, seen, shots, running, deadline)
+            except Exception as exc:  # the session must not wait on a dead visitor
+                seen.error = f"the visitor failed: {exc!r}"
+                typist.close()
+
+        visitor = threading.Thread(target=visit)
         visitor.start()
         try:
             seen.code = runner.run()  # the stack takes signals: the main thread's
@@ -118,13 +131,14 @@ def _visit(browser: Browser, typist: Typist, seen: Tour, shots: Path,
             typed.add(line)
             typist.type(line)
 
+    frames = Frames(browser)
     while running.is_set():
         if time.monotonic() > deadline:
             typist.close()
             return
+        frames.take()
         kind = str(browser.evaluate("document.body && document.body.dataset.kind") or "")
-        if kind and kind not in seen.shots:
-            _shoot(browser, kind, seen, shots)
+        frames.shoot(list(browser.evaluate("window.__screens") or []), seen, shots)
         if kind == "comfort":
             browser.evaluate(CLICK_FOUR)  # every question is answered
         steps = ("t the patient is tired", "g", "p a sip of water", "r", "x the arm slipped")
@@ -142,33 +156,41 @@ def _visit(browser: Browser, typist: Typist, seen: Tour, shots: Path,
         ):
             once(step)
         time.sleep(0.05)
+    time.sleep(1.0)  # the last screen painted
+    frames.take()
+    frames.shoot(list(browser.evaluate("window.__screens") or []), seen, shots, last=True)
 
 
-def _shoot(browser: Browser, kind: str, seen: Tour, shots: Path) -> None:
-    """A screenshot of ``kind`` once the scene is drawn, kept if the page still shows it
-    when the picture is taken (a quick screen is taken the next time it shows)."""
-    count = "window.__screens.length"
-    before = browser.evaluate(count)
-    time.sleep(0.3)  # the canvas drawn with the words
-    png = browser.screenshot()
-    if browser.evaluate(count) != before or browser.evaluate("document.body.dataset.kind") != kind:
-        return
-    seen.shots[kind] = shots / f"display_{kind}.png"
-    seen.shots[kind].write_bytes(png)
-    _facts(browser, kind, seen)
+class Frames:
+    """The page's painted frames (Chromium's screencast, each with its paint time) and,
+    for each screen in the page's own log, the first picture painted while it showed:
+    a screen that lasts half a second is caught as surely as a long one."""
 
+    def __init__(self, browser: Browser) -> None:
+        self.browser = browser
+        self.frames: list[tuple[float, str]] = []  # (paint time [ms since epoch], PNG base64)
+        loaded = "document.readyState === 'complete' && !!document.body.dataset.kind"
+        wait_for(lambda: bool(browser.evaluate(loaded)), 60, "the page loaded")
+        browser.call("Page.startScreencast", format="png", everyNthFrame=1)
 
-def _facts(browser: Browser, kind: str, seen: Tour) -> None:
-    """What the page shows beside the words, as it shows each screen."""
-    seen.facts[kind] = {
-        "arrows": browser.evaluate(
-            "getComputedStyle(document.getElementById('arrows')).display"
-            " !== 'none' ? document.getElementById('arrows').innerText "
-            ": ''"
-        ),
-        "place": browser.evaluate("document.getElementById('place').innerText"),
-        "words_px": browser.evaluate(
-            "document.getElementById('words').getBoundingClientRect().height"
-        ),
-        "background": browser.evaluate("getComputedStyle(document.body).backgroundColor"),
-    }
+    def take(self) -> None:
+        """Every frame painted since the last look (each acknowledged, or none come)."""
+        while (frame := self.browser.event("Page.screencastFrame", 0.0)) is not None:
+            self.browser.call("Page.screencastFrameAck", sessionId=frame["sessionId"])
+            self.frames.append((1000 * float(frame["metadata"]["timestamp"]), frame["data"]))
+        self.frames = self.frames[-120:]
+
+    def shoot(self, screens: list[dict[str, Any]], seen: Tour, shots: Path,
+              last: bool = False) -> None:  # fmt: skip
+        """A picture of each screen kind not yet pictured, from the frames painted while
+        it showed (the last screen too when ``last``: nothing follows it)."""
+        ends = [s["t"] for s in screens[1:]] + [float("inf") if last else -1.0]
+        for screen, end in zip(screens, ends, strict=True):
+            kind = screen["kind"]
+            if not kind or kind in seen.shots:
+                continue
+            painted = [data for t, data in self.frames if screen["t"] <= t < end]
+            if painted:  # the last: a still screen paints once, a moving scene on and on
+                seen.shots[kind] = shots / f"display_{kind}.png"
+                seen.shots[kind].write_bytes(base64.b64decode(painted[-1]))
+                seen.facts[kind] = screen
