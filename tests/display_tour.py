@@ -51,6 +51,11 @@ new MutationObserver(() => {
 }).observe(document, {subtree: true, childList: true, characterData: true,
                       attributes: true, attributeFilter: ['data-kind']});
 """
+PICTURED = {"cue": "Decide now"}
+"""The title a kind's picture must show (the cue also says "Your turn again")."""
+PICTURED_S = 1.5
+"""A screen's picture is the last frame painted in its first 1.5 s (a rest's countdown
+then shows most of its time)."""
 CLICK_FOUR = """(() => { const b = [...document.querySelectorAll('#answers button')]
     .find(b => b.innerText.trim().startsWith('4 ')); if (b) { b.click(); return true; }
     return false; })()"""
@@ -139,19 +144,19 @@ def _visit(browser: Browser, typist: Typist, seen: Tour, shots: Path,
         frames.take()
         kind = str(browser.evaluate("document.body && document.body.dataset.kind") or "")
         frames.shoot(list(browser.evaluate("window.__screens") or []), seen, shots)
-        if kind == "comfort":
-            browser.evaluate(CLICK_FOUR)  # every question is answered
+        if kind == "comfort" and "comfort" in seen.shots:
+            browser.evaluate(CLICK_FOUR)  # every question is answered (once pictured)
         steps = ("t the patient is tired", "g", "p a sip of water", "r", "x the arm slipped")
         step = next((line for line in steps if line not in typed), None)
         if step == steps[0] and kind in ("cue", "moving"):
             once(step)  # take the decisions over ...
-        elif step == "g" and kind == "taken":
+        elif step == "g" and "taken" in seen.shots:
             once(step)  # ... and give them back
         elif step == steps[2] and kind == "outcome":
             typed.add("outcome")  # the next reach is paused, resumed, then stopped
         elif (
             (step == steps[2] and "outcome" in typed and kind in ("cue", "moving"))
-            or (step == "r" and kind == "paused")
+            or (step == "r" and "paused" in seen.shots)
             or (step == steps[4] and kind in ("cue", "moving"))
         ):
             once(step)
@@ -159,6 +164,11 @@ def _visit(browser: Browser, typist: Typist, seen: Tour, shots: Path,
     time.sleep(1.0)  # the last screen painted
     frames.take()
     frames.shoot(list(browser.evaluate("window.__screens") or []), seen, shots, last=True)
+    kind = str(browser.evaluate("document.body.dataset.kind"))
+    if kind not in seen.shots:  # still now (the session is over): a plain screenshot
+        seen.shots[kind] = shots / f"display_{kind}.png"
+        browser.screenshot(seen.shots[kind])
+        seen.facts[kind] = (browser.evaluate("window.__screens") or [{}])[-1]
 
 
 class Frames:
@@ -187,10 +197,26 @@ class Frames:
         ends = [s["t"] for s in screens[1:]] + [float("inf") if last else -1.0]
         for screen, end in zip(screens, ends, strict=True):
             kind = screen["kind"]
-            if not kind or kind in seen.shots:
+            if (
+                not kind
+                or kind in seen.shots
+                or PICTURED.get(kind, screen["title"]) != screen["title"]
+            ):
                 continue
-            painted = [data for t, data in self.frames if screen["t"] <= t < end]
+            if end < 0 and time.time() * 1000 - screen["t"] > 500:
+                self._still(screen, len(screens), seen, shots)  # showing, painted once
+                continue
+            until = min(end, screen["t"] + 1000 * PICTURED_S)
+            painted = [data for t, data in self.frames if screen["t"] <= t < until]
             if painted:  # the last: a still screen paints once, a moving scene on and on
                 seen.shots[kind] = shots / f"display_{kind}.png"
                 seen.shots[kind].write_bytes(base64.b64decode(painted[-1]))
                 seen.facts[kind] = screen
+
+    def _still(self, screen: dict[str, Any], count: int, seen: Tour, shots: Path) -> None:
+        """A picture of the screen showing now, kept if no other came meanwhile."""
+        png = self.browser.screenshot()
+        if self.browser.evaluate("window.__screens.length") == count:
+            seen.shots[screen["kind"]] = shots / f"display_{screen['kind']}.png"
+            seen.shots[screen["kind"]].write_bytes(png)
+            seen.facts[screen["kind"]] = screen

@@ -32,6 +32,17 @@ def protocol_file(text: str) -> Path:
     raise argparse.ArgumentTypeError(f"no protocol file {text!r} (shipped: {names})")
 
 
+def display_port(text: str) -> int:
+    """A TCP port for the participant display (1-65535)."""
+    try:
+        port = int(text)
+    except ValueError:
+        port = -1
+    if not 1 <= port <= 65535:
+        raise argparse.ArgumentTypeError(f"{text!r}: a port is a whole number 1-65535")
+    return port
+
+
 def register(commands: Commands) -> None:
     """Add ``session run``, ``check``, ``withdraw`` and ``list``."""
     from dammrl.cli.catalogue import add_actions, add_root
@@ -90,7 +101,7 @@ def _add_run(actions: Commands) -> None:
                           "copied): a reason typed at the console is stored without any "
                           "name in it")  # fmt: skip
     run.add_argument("--bus-port", type=int, default=7447, help="the stack's loopback port")
-    run.add_argument("--display-port", type=int, default=8080,
+    run.add_argument("--display-port", type=display_port, default=8080,
                      help="the participant display: http://THIS-MACHINE:PORT in a browser "
                           "(default 8080)")  # fmt: skip
     run.add_argument("--display-host", default="0.0.0.0",

@@ -17,6 +17,7 @@ from dammrl.cli.common import (
     print_err,
     print_out,
 )
+from dammrl.cli.session import display_port
 from dammrl_core.errors import Exit
 from schemas import DEFAULT_NAMESPACE, TOPICS
 
@@ -100,7 +101,7 @@ def _add_up(commands: Commands) -> None:
     up.add_argument(
         "--record", type=Path, metavar="MCAP", help="also run the recorder into this file"
     )
-    up.add_argument("--display", type=int, nargs="?", const=8080, metavar="PORT",
+    up.add_argument("--display", type=display_port, nargs="?", const=8080, metavar="PORT",
                     help="serve the participant display at http://THIS-MACHINE:PORT "
                          "(default 8080)")  # fmt: skip
     up.set_defaults(handler=_up)

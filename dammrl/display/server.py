@@ -62,10 +62,11 @@ class PageServer:
             self.server: Server = serve(self._page, host, port, process_request=self._http,
                                         max_size=MAX_INCOMING, compression=None,
                                         ping_interval=None)  # fmt: skip
-        except OSError as exc:
+        except (OSError, OverflowError) as exc:
+            why = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
             raise ConfigurationError(
                 f"the participant display cannot listen on {host}:{port} "
-                f"({exc.strerror}): give another --display-port"
+                f"({why}): give another --display-port"
             ) from exc
         self.port: int = self.server.socket.getsockname()[1]
         for target in (self.server.serve_forever, self._send_loop):
