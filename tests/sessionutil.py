@@ -12,7 +12,16 @@ from typing import Any, ClassVar
 
 from dammrl.launch import StackOptions
 from dammrl_core.errors import JobFailedError
-from schemas import EmergencyStop, EpisodeResult, Header, TaskGoal, decode, encode, key
+from schemas import (
+    EmergencyStop,
+    EpisodeRecorded,
+    EpisodeResult,
+    Header,
+    TaskGoal,
+    decode,
+    encode,
+    key,
+)
 
 PROTOCOL = """\
 format: 1
@@ -67,6 +76,11 @@ class ScriptedStack:
     console: ClassVar[dict[int, list[str]]] = {}
     sent: ClassVar[list[Any]] = []
     posterior: ClassVar[tuple[float, float] | None] = None
+    ack_after_s: ClassVar[float | None] = None  # the recorder's acknowledgements (None: none)
+
+    def join(self, role: str) -> ScriptedStack:
+        """The display's session of its own role: the same scripted bus."""
+        return self
 
     def __init__(self, options: StackOptions, out: Any, info: Any, on_result: Any,
                  on_up: Any) -> None:  # fmt: skip
@@ -95,7 +109,9 @@ class ScriptedStack:
         assert self.options.episodes is not None and self.options.record is not None
         self.options.record.write_bytes(b"mcap")
         stack_run = self.on_up.__self__
+        stack_run.stack = self  # as the launcher is, when it calls on_up
         self.on_up(self)
+        stack_run.listening = ScriptedStack.ack_after_s is not None
         for episode in range(1, self.options.episodes + 1):
             if ScriptedStack.crash_after is not None and self.given >= self.crash_after:
                 raise JobFailedError("service controller exited unexpectedly with code -9")
@@ -115,15 +131,28 @@ class ScriptedStack:
                     break
             if ScriptedStack.posterior is not None:  # the policy spoke of the person
                 stack_run.posterior = ScriptedStack.posterior
+            if ScriptedStack.ack_after_s is not None:
+                _acknowledge(stack_run, episode, ScriptedStack.ack_after_s)
             self.on_result(result(episode, seed, outcome, reason))
             if self.finishing:
                 break
         return 0
 
 
+def _acknowledge(stack_run: Any, episode: int, after_s: float) -> None:
+    """The recorder's acknowledgement of ``episode``, ``after_s`` from now (on its own
+    thread, as the bus delivers it)."""
+    ack = EpisodeRecorded(header=Header(stamp_ns=1, seq=episode, source="recorder"),
+                          episode=episode, file=stack_run.part.name, result_seq=episode,
+                          states=100, complete=True)  # fmt: skip
+    later = threading.Timer(after_s, stack_run.recorded.take, args=(ack,))
+    later.daemon = True
+    later.start()
+
+
 def reset(stack: type[ScriptedStack]) -> type[ScriptedStack]:
     stack.runs, stack.crash_after, stack.given = [], None, 0
-    stack.console, stack.sent, stack.posterior = {}, [], None
+    stack.console, stack.sent, stack.posterior, stack.ack_after_s = {}, [], None, None
     return stack
 
 

@@ -35,7 +35,7 @@ import yaml
 from dammrl.recording import info, read_recording
 from dammrl_core.intent.pad.calibration import DEFAULT_CALIBRATION
 from schemas import Intent
-from services.common.security import create_credentials
+from services.common.certificates import create_credentials
 from tests.busutil import free_port, start_patient
 
 pytestmark = pytest.mark.slow  # builds an image and runs five containers

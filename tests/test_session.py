@@ -15,6 +15,7 @@ import pytest
 from dammrl.session import JsonLines, SessionRunner, SetUp, check_participant, session_table
 from dammrl_core.errors import ConfigurationError, DammrlError, UsageError
 from dammrl_core.protocol import balanced_latin_square, block_order, load_protocol, plan_trials
+from schemas import SessionControl, decode
 from tests.sessionutil import PROTOCOL, ScriptedStack, reset
 
 
@@ -260,3 +261,47 @@ def test_a_closed_console_waits_its_timeout_instead_of_spinning() -> None:
     assert lines.get(0.2) is None
     assert time.monotonic() - started >= 0.19
     assert lines.get(None) is None  # no timeout: at once, never for ever
+
+
+def _recorded_events(tmp_path: Path) -> list[dict[str, Any]]:
+    events = (tmp_path / "sessions/P001/ses-01/events.jsonl").read_text().splitlines()
+    return [e for e in map(json.loads, events) if e["what"] == "recorded"]
+
+
+def test_a_stack_run_stops_only_once_the_recorder_confirms_its_reaches_on_disk(
+    tmp_path: Path, scripted: type[ScriptedStack]
+) -> None:
+    """The acknowledgements come 0.3 s after each result: each run waits for its last."""
+    scripted.ack_after_s = 0.3
+    assert _runner(tmp_path).run() == 0
+    recorded = _recorded_events(tmp_path)
+    assert [e["confirmed"] for e in recorded] == [[1], [2, 3, 4], [5, 6, 7]]
+    assert all(e["unconfirmed"] == [] and e["waited_s"] >= 0.2 for e in recorded)
+
+
+def test_reaches_the_recorder_never_confirms_are_logged_and_said_after_a_bounded_wait(
+    tmp_path: Path, scripted: type[ScriptedStack]
+) -> None:
+    scripted.ack_after_s = 60.0  # later than the session waits
+    said: list[str] = []
+    runner = SessionRunner(tmp_path / "sessions", "P001", _protocol(tmp_path), SetUp(),
+                           say=said.append, wait_for_operator=False, console=io.StringIO(),
+                           recorded_wait_s=0.2)  # fmt: skip
+    started = time.monotonic()
+    assert runner.run() == 0
+    assert time.monotonic() - started < 10  # bounded: three runs, 0.2 s each
+    recorded = _recorded_events(tmp_path)
+    assert [e["unconfirmed"] for e in recorded] == [[1], [2, 3, 4], [5, 6, 7]]
+    assert [e["unconfirmed_episodes"] for e in recorded] == [[1], [1, 2, 3], [1, 2, 3]]
+    assert any("did not confirm trial(s) [2, 3, 4] on disk within 0.2 s" in line
+               for line in said)  # fmt: skip
+
+
+def test_the_consoles_again_and_end_of_block_go_on_the_bus_as_themselves(
+    tmp_path: Path, scripted: type[ScriptedStack]
+) -> None:
+    scripted.console = {2: ["a slipped"], 5: ["e tired"]}
+    assert _runner(tmp_path).run() == 0
+    actions = [decode(SessionControl, payload).action for k, payload in scripted.sent
+               if k == "dammrl/session/control"]  # fmt: skip
+    assert actions == ["again", "end-block"]

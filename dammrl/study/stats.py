@@ -1,6 +1,7 @@
 """Interval estimates and tests for a study: bootstrap means (plain and hierarchical),
-Wilson rates, paired differences, bootstrap p-values with Holm's correction, equivalence
-tests (TOST), and time to success with censoring (Kaplan-Meier, restricted mean).
+Student-t means, Wilson rates, paired differences, bootstrap p-values with Holm's
+correction, equivalence tests (TOST), and time to success with censoring (Kaplan-Meier,
+restricted mean).
 
 Every interval is 95 % and every bootstrap draws from a generator seeded by the caller,
 so a study's report is reproducible to the digit.
@@ -55,6 +56,21 @@ def bootstrap_mean(values: np.ndarray, rng: np.random.Generator) -> Estimate:
     low, high = np.percentile(draws, [2.5, 97.5])
     mean = float(data.mean())  # rounding can put a bound a hair past the mean: never past
     return Estimate(mean, min(mean, float(low)), max(mean, float(high)), int(data.size))
+
+
+def t_mean(values: np.ndarray) -> Estimate:
+    """Mean with its Student-t 95 % interval (NaNs dropped): exact for normal data at any
+    n, and deterministic (the same values give the same interval in any report). A single
+    value has no interval (NaN bounds)."""
+    data = np.asarray(values, dtype=float)
+    data = data[np.isfinite(data)]
+    if data.size == 0:
+        return NO_DATA
+    mean = float(data.mean())
+    if data.size < 2:
+        return Estimate(mean, math.nan, math.nan, 1)
+    half = float(scipy_stats.t.ppf(0.975, data.size - 1) * data.std(ddof=1) / math.sqrt(data.size))
+    return Estimate(mean, mean - half, mean + half, int(data.size))
 
 
 def wilson(successes: int, n: int) -> Estimate:
