@@ -113,8 +113,8 @@ class ParticipantDisplay:
         """A page's message: a comfort answer to the question on screen (any other, or a
         late one, changes nothing)."""
         question, value = message.get("question"), message.get("value")
-        if message.get("t") != "rating" or not isinstance(value, int) or not 1 <= value <= 5:
-            return
+        if message.get("t") != "rating" or type(value) is not int or not 1 <= value <= 5:
+            return  # (true is an int to isinstance: never a rating)
         with self._lock:
             if question == self.screens.question and not self._answered.is_set():
                 self._rating = (question, value)
