@@ -44,6 +44,7 @@ def test_every_screen_of_a_real_session_appears_on_the_page(tmp_path: Path) -> N
     around = [(a["kind"], a["title"], round(b["t"] - a["t"]), b["kind"], b["title"])
               for a, b in zip(seen.screens, seen.screens[1:], strict=False)
               if a["kind"] == "outcome"]  # fmt: skip
+    print(f"figure: outcomes held {sorted(round(h) for h in held)} ms (set {OUTCOME_S:g} s)")
     assert held and min(held) >= 1000 * OUTCOME_S - 300, around
     cue = seen.facts["cue"]
     assert "FORWARD" in cue["arrows"] and "Press firmly" in cue["arrows"]
@@ -103,7 +104,9 @@ def _reconnected(tmp_path: Path, connected: Any, run: int) -> float:
              f"display {run} up")  # fmt: skip
     up = time.monotonic()
     wait_for(connected, 30, f"the page connected to display {run}")
-    return time.monotonic() - up
+    took = time.monotonic() - up
+    print(f"figure: the open page reconnected {took:.2f} s after display {run} was up")
+    return took
 
 
 def test_a_page_reconnects_after_kills_during_the_comfort_question_and_the_rest(
