@@ -184,3 +184,27 @@ def test_a_torn_line_is_dropped_and_never_swallows_the_next_entry(tmp_path: Path
         handle.write('{"trial": 2, "res')
     log.add({"trial": 3})
     assert log.read() == ([{"trial": 1}, {"trial": 3}], 1)
+
+
+@pytest.mark.parametrize(
+    ("argv", "said"),
+    [
+        (["session", "run", "--participant", "P1", "--protocol", "event-vs-fixed",
+          "--outcome-s", "31"],
+         "argument --outcome-s: '31': the outcome is held 0 to 30 s"),
+        (["up", "--display", "--outcome-s", "nan"],
+         "argument --outcome-s: 'nan': the outcome is held 0 to 30 s"),
+        (["up", "--large-text"], "--large-text and --outcome-s are the participant display's"),
+        (["up", "--outcome-s", "1"], "give --display with them"),
+    ],
+)  # fmt: skip
+def test_the_display_settings_are_refused_in_one_line_out_of_range_or_without_a_display(
+    argv: list[str], said: str
+) -> None:
+    err = io.StringIO()
+    with redirect_stderr(err), redirect_stdout(io.StringIO()):
+        try:
+            code = main(argv)
+        except SystemExit as exit_:  # argparse's refusal
+            code = exit_.code  # type: ignore[assignment]
+    assert code != 0 and said in err.getvalue().splitlines()[-1], err.getvalue()

@@ -43,6 +43,20 @@ def display_port(text: str) -> int:
     return port
 
 
+def outcome_seconds(text: str) -> float:
+    """How long a reach's outcome stays on the display (0-30 s, the controller's range)."""
+    from dammrl.session_steps import MAX_OUTCOME_S
+
+    try:
+        seconds = float(text)
+    except ValueError:
+        seconds = -1.0
+    if not 0.0 <= seconds <= MAX_OUTCOME_S:  # (NaN fails too)
+        raise argparse.ArgumentTypeError(
+            f"{text!r}: the outcome is held 0 to {MAX_OUTCOME_S:g} s")  # fmt: skip
+    return seconds
+
+
 def register(commands: Commands) -> None:
     """Add ``session run``, ``check``, ``withdraw`` and ``list``."""
     from dammrl.cli.catalogue import add_actions, add_root
@@ -111,7 +125,7 @@ def _add_run(actions: Commands) -> None:
     run.add_argument("--large-text", action="store_true",
                      help="larger words on the participant display (they fill about 70%% "
                           "of the screen instead of 58%%)")  # fmt: skip
-    run.add_argument("--outcome-s", type=float, default=OUTCOME_S, metavar="S",
+    run.add_argument("--outcome-s", type=outcome_seconds, default=OUTCOME_S, metavar="S",
                      help=f"how long each reach's outcome stays on the display before the "
                           f"next reach begins [s] (0-30, default {OUTCOME_S:g})")  # fmt: skip
     run.add_argument("--comfort-timeout", type=float, default=120.0, metavar="S",
