@@ -31,7 +31,7 @@ from zenoh.handlers import RingChannel
 
 from dammrl_core.arm.settings import ArmSettings
 from dammrl_core.coadaptation import Targets
-from dammrl_core.control.settings import ControllerSettings, check_workspace
+from dammrl_core.control.settings import ControllerSettings, check_workspace, fault_hold
 from dammrl_core.errors import (
     ConfigurationError,
     DammrlError,
@@ -792,8 +792,14 @@ class PatientPrompts:
 
 
 def undecided(result: EpisodeResult) -> bool:
-    """An episode that ended (not skipped) without any decision: it could not be done."""
-    return result.n_decisions == 0 and result.outcome in ("hold", "timeout")
+    """An episode that ended (not skipped) without any decision: it could not be done. A
+    hold for a fault of the stack (a stale arm state, a starved controller) is not one: it
+    says nothing of the person's input."""
+    return (
+        result.n_decisions == 0
+        and result.outcome in ("hold", "timeout")
+        and not fault_hold(result.outcome, result.reason)
+    )
 
 
 def result_dict(result: EpisodeResult) -> dict[str, object]:
