@@ -533,6 +533,8 @@ class StackRun:
         outcome = "stopped: not counted" if stopped else result.outcome
         self.runner.say(f"trial {trial.number}/{self.total} ({trial.block} {trial.index}): "
                         f"{outcome} after {result.t_total_s:.1f} s"
+                        # why it held: the person, the plan or a fault of the stack
+                        + (f" ({result.reason})" if result.outcome == "hold" else "")
                         + (": it runs again" if self.again else ""))  # fmt: skip
         self.episode, self.actions, self.paused_s = result.episode + 1, [], 0.0
         last = trial.index == self.runner.blocks[trial.block].trials
