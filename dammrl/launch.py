@@ -31,7 +31,7 @@ from zenoh.handlers import RingChannel
 
 from dammrl_core.arm.settings import ArmSettings
 from dammrl_core.coadaptation import Targets
-from dammrl_core.control.settings import ControllerSettings, check_workspace, fault_hold
+from dammrl_core.control.settings import ControllerSettings, check_workspace
 from dammrl_core.errors import (
     ConfigurationError,
     DammrlError,
@@ -504,8 +504,10 @@ class Stack:
         credentials and namespace from the port; alone on this machine, they find it
         without one)."""
         at = f"--bus-port {self.options.port}"
-        return (f"inspect it: dammrl status {at} | dammrl echo robot/state {at} | dammrl view "
-                f"{at} | stop the arm: dammrl stop {at}")  # fmt: skip
+        commands = (f"status {at}", f"echo robot/state {at}", f"view {at}")
+        lines = [f"  dammrl {command}" for command in commands]
+        return "\n".join(["inspect it from another terminal:", *lines,
+                          f"stop the arm: dammrl stop {at}"])  # fmt: skip
 
     def _wait_alive(self, session: zenoh.Session, stop: SignalStop, quiet: bool = False) -> None:
         deadline = time.monotonic() + START_TIMEOUT_S
@@ -792,14 +794,10 @@ class PatientPrompts:
 
 
 def undecided(result: EpisodeResult) -> bool:
-    """An episode that ended (not skipped) without any decision: it could not be done. A
-    hold for a fault of the stack (a stale arm state, a starved controller) is not one: it
-    says nothing of the person's input."""
-    return (
-        result.n_decisions == 0
-        and result.outcome in ("hold", "timeout")
-        and not fault_hold(result.outcome, result.reason)
-    )
+    """An episode that timed out without any decision: the person's input could not do it.
+    A hold ends a reach for the arm's or the controller's reason (its own line says which),
+    however early: not the person's input, so not blamed on it."""
+    return result.n_decisions == 0 and result.outcome == "timeout"
 
 
 def result_dict(result: EpisodeResult) -> dict[str, object]:

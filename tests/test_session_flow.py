@@ -353,20 +353,20 @@ def _state_of_episode(node: ControllerNode, episode: int, t_s: float) -> RobotSt
 
 
 @pytest.mark.parametrize(
-    ("reason", "could_not_be_done"),
+    ("outcome", "reason", "could_not_be_done"),
     [
-        ("no trigger within 3.0 s", True),  # waited for a decision that never came
-        ("robot state stale: sim alive but silent for 0.10 s", False),  # a fault of the stack
-        ("the controller itself stalled for 0.31 s (the arm held)", False),
+        ("timeout", "no button press within 10 s", True),  # waited for decisions in vain
+        ("hold", "robot state stale: sim alive but silent for 0.10 s", False),  # the stack's
+        ("hold", "the controller itself stalled for 0.31 s (the arm held)", False),
     ],
 )
 def test_a_hold_for_a_fault_of_the_stack_is_not_blamed_on_the_persons_input(
-    reason: str, could_not_be_done: bool
+    outcome: str, reason: str, could_not_be_done: bool
 ) -> None:
     """A loaded PC once ended a session's one-reach block (a stale arm state 0.5 s in, no
     decision yet) with "no decision ever came from the pad": the session stopped, blaming
     the person's input for the stack's fault."""
     from dammrl.launch import undecided
 
-    ended = result(1, 7100100, "hold", reason).model_copy(update={"n_decisions": 0})
+    ended = result(1, 7100100, outcome, reason).model_copy(update={"n_decisions": 0})
     assert undecided(ended) is could_not_be_done

@@ -7,7 +7,7 @@ import json
 from pathlib import Path
 
 from dammrl.cli.common import (
-    DEFAULT_CONNECT,
+    CONNECT_HELP,
     Commands,
     add_bus_arguments,
     add_credentials,
@@ -22,7 +22,6 @@ from dammrl.display.screens import OUTCOME_S
 from dammrl_core.errors import Exit, UsageError
 from schemas import DEFAULT_NAMESPACE, TOPICS
 
-CONNECT_HELP = f"where the stack listens (default {DEFAULT_CONNECT})"
 LOCKSTEP_HELP = (
     "run on the robot clock: each state is answered before the next physics step and each "
     "decision before it is due (deterministic, the in-process runner's exact twin; faster "

@@ -18,18 +18,6 @@ Feedforward = Literal["inverse_dynamics", "resolved_acceleration"]
 _Weight = Annotated[float, Field(gt=0, le=100)]
 # the workspace box: in front of the shoulder (x, never behind its plane, towards the
 # person), within the reference arm's reach of 0.74 m
-STALE_STATE = "robot state stale"
-STALLED = "the controller itself stalled"
-FAULT_HOLDS = (STALE_STATE, STALLED)
-"""How the reason of a reach ended in a hold for a fault of the stack begins (no arm state
-in time, a starved controller): such a reach says nothing of the person's input."""
-
-
-def fault_hold(outcome: str, reason: str) -> bool:
-    """Whether a reach ended in a hold for a fault of the stack, not for want of a decision."""
-    return outcome == "hold" and reason.startswith(FAULT_HOLDS)
-
-
 REACH_M = 0.8
 _X = Annotated[float, Field(ge=0.05, le=REACH_M)]
 _Y = Annotated[float, Field(ge=-REACH_M, le=REACH_M)]

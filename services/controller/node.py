@@ -23,12 +23,7 @@ from collections.abc import Sequence
 from dammrl_core import state as core
 from dammrl_core.control.pause import Pause, hold_command
 from dammrl_core.control.reach import Plan, Reach, plan_reach
-from dammrl_core.control.settings import (
-    STALE_STATE,
-    STALLED,
-    ControllerSettings,
-    check_workspace,
-)
+from dammrl_core.control.settings import ControllerSettings, check_workspace
 from dammrl_core.dynamics import ArmModel
 from dammrl_core.ik import make_ik_solver
 from dammrl_core.metrics import episode_summary
@@ -144,7 +139,7 @@ class ControllerNode:
         silent, self.loop_s = now - self.loop_s, now
         if silent <= self.stale_s or self.reach is None or not self.started:
             return False
-        reason = f"{STALLED} for {silent:.2f} s (the arm held)"
+        reason = f"the controller itself stalled for {silent:.2f} s (the arm held)"
         log.warning("%s", reason)
         self.reach.end("hold", reason, self.last_t)
         self._finish()
@@ -391,8 +386,8 @@ class ControllerNode:
         arm = next((a for a in ("robot", "sim") if a in alive), None)
         silent = f"for {self.stale_s:.2f} s"
         if arm is None:
-            return f"{STALE_STATE}: no arm service alive (sim or robot gone) {silent}"
-        return f"{STALE_STATE}: {arm} alive but silent {silent}"
+            return f"robot state stale: no arm service alive (sim or robot gone) {silent}"
+        return f"robot state stale: {arm} alive but silent {silent}"
 
     def _next_episode(self) -> None:
         number = self.number + 1
