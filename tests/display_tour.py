@@ -161,7 +161,10 @@ def _visit(browser: Browser, typist: Typist, seen: Tour, shots: Path,
         ):
             once(step)
         time.sleep(0.05)
-    time.sleep(1.0)  # the last screen painted
+    # the last screen painted (under load the page may take a while to get it)
+    ended = "document.body && document.body.dataset.kind === 'end'"
+    wait_for(lambda: bool(browser.evaluate(ended)), 15, "the end screen")
+    time.sleep(0.5)
     frames.take()
     frames.shoot(list(browser.evaluate("window.__screens") or []), seen, shots, last=True)
     kind = str(browser.evaluate("document.body.dataset.kind"))
