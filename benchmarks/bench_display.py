@@ -1,119 +1,199 @@
-"""The participant display's state-to-frame latency, in a real browser (headless
-Chromium over the DevTools protocol, software WebGL on this machine), beside bare viser
-moving one box in the same page and the same run.
+"""The participant display's latency from a bus event to the words on the page, beside
+bare viser showing the same words from the same events, in one run, quiet and under load.
 
-    PYTHONPATH=. python benchmarks/bench_display.py [--moves 40]
+    PYTHONPATH=. python benchmarks/bench_display.py [--events 60] [--hogs 2]
 
-For each move: the wall time a RobotState is fed to the display (dammrl: forward
-kinematics, 8 shapes updated) or a box is moved (bare viser: one node), and the time of
-the first screencast frame (Page.screencastFrame's own timestamp) whose pixels show it.
-Also: the CPU cost of ``feed`` per state (no browser).
+One Zenoh bus (a router on loopback); a publisher alternates DecisionRequest and Intent
+(the page's title turns "Decide now", then "Moving forward"). The participant display
+takes them through its BusFeed (decode, its screens, its server, its WebSocket, its page);
+bare viser (the baseline) takes them through a Zenoh subscriber that sets an HTML element
+of viser's panel to the same words. Each page runs in its own headless Chromium (viser's
+with software WebGL, as it needs; the display's draws on the CPU) with a MutationObserver
+that stamps every change of the words with the page's clock (``performance.timeOrigin +
+performance.now()``, the machine's wall clock, as the publisher's ``time.time()`` is).
+Latency: the page's stamp minus the publisher's. Then the same again beside ``--hogs``
+CPU hogs (``yes > /dev/null``). Also: the CPU cost of ``feed`` per message (no browser).
 """
 
 from __future__ import annotations
 
 import argparse
-import base64
-import io
+import contextlib
+import os
 import statistics
+import subprocess
 import time
+from collections.abc import Iterator
+from typing import Any
 
 import numpy as np
-from PIL import Image
+import viser
+import zenoh
 
-from dammrl.display import ParticipantDisplay
+from dammrl.display import BusFeed, ParticipantDisplay, inputs_for
 from dammrl_core.robot import RobotSettings
 from dammrl_core.task import TaskSettings
-from schemas import Header, RobotState, TaskGoal
+from schemas import DecisionRequest, Header, Intent, TaskGoal, decode, encode, key
+from services.common.bus import zenoh_config
 from tests.browser import Browser
-from tests.busutil import free_port
+from tests.busutil import client_settings, free_port, listener_settings, wait_for
 
-HEADER = Header(stamp_ns=1, seq=0, source="sim")
-POSES = ((0.0, 0.3, 0.0, 0.8, 0.0, 0.0), (0.9, 0.1, 0.0, 0.4, 0.0, 0.0))
-VIEW = (slice(60, 600), slice(0, 880))
+NAMESPACE = "dammrl"
+TITLES = {DecisionRequest: "Decide now", Intent: "Moving forward"}
+WATCH = """
+window.__seen = [];
+new MutationObserver(() => {
+  const node = document.getElementById('%s');
+  const text = node ? node.textContent.trim() : '';
+  const last = window.__seen[window.__seen.length - 1];
+  if (text && (!last || last.text !== text))
+    window.__seen.push({t: performance.timeOrigin + performance.now(), text});
+}).observe(document, {subtree: true, childList: true, characterData: true});
+"""
 
 
-def _state(q: tuple[float, ...]) -> RobotState:
-    return RobotState.model_construct(episode=1, q_rad=q)
+def _messages(n: int) -> Iterator[DecisionRequest | Intent]:
+    header = Header(stamp_ns=1, seq=0, source="controller")
+    for k in range(n):
+        if k % 2 == 0:
+            yield DecisionRequest(header=header, episode=1, seed=0, request=k // 2 + 1,
+                                  t_s=float(k), ee_pos_m=(0.4, 0.0, 0.0), goal_m=(0.5, 0, -0.2),
+                                  primary_axis=0, human_model=1)  # fmt: skip
+        else:
+            yield Intent(header=header, episode=1, request=k // 2 + 1, u_h=1, human_model=1,
+                         radius_m=0.01, confidence=1.0, source="pad", person=True,
+                         decision_s=0.4)  # fmt: skip
 
 
-def _image(frame: dict[str, object]) -> np.ndarray:
-    png = base64.b64decode(str(frame["data"]))
-    return np.asarray(Image.open(io.BytesIO(png)).convert("L")).astype(int)[VIEW]
+class BareViser:
+    """The baseline: viser's own page, one HTML element set from the bus."""
+
+    def __init__(self, session: zenoh.Session) -> None:
+        with contextlib.redirect_stdout(open(os.devnull, "w")):
+            self.server = viser.ViserServer(host="127.0.0.1", port=free_port(), verbose=False)
+        self.html = self.server.gui.add_html('<div id="bench">Welcome</div>')
+        self.subscribers = [
+            session.declare_subscriber(key(NAMESPACE, kind), self._take(kind)) for kind in TITLES
+        ]
+
+    def _take(self, kind: type) -> Any:
+        def take(sample: zenoh.Sample) -> None:
+            decode(kind, sample.payload.to_bytes())  # the same work as the display's feed
+            self.html.content = f'<div id="bench">{TITLES[kind]}</div>'
+
+        return take
 
 
-def _latency(browser: Browser, change: object, before: np.ndarray) -> tuple[float, np.ndarray]:
-    """Seconds from ``change()`` to the first frame that differs from ``before``."""
-    while (old := browser.event("Page.screencastFrame", 0.05)) is not None:  # drain
-        browser.call("Page.screencastFrameAck", sessionId=old["sessionId"])  # or none come
-    fed = time.time()
-    change()  # type: ignore[operator]
-    deadline = time.monotonic() + 10
-    while time.monotonic() < deadline:
-        frame = browser.event("Page.screencastFrame", 1.0)
-        if frame is None:
+def _run(
+    events: int, browsers: dict[str, Browser], publisher: zenoh.Session
+) -> dict[str, list[float]]:
+    """Publish ``events`` alternating messages; each page's latency per event [ms]."""
+    for browser in browsers.values():
+        browser.evaluate("window.__seen = []")
+    sent: list[tuple[float, str]] = []
+    for message in _messages(events):
+        time.sleep(0.5)  # each change shown before the next, as a person reads it
+        title = TITLES[type(message)]
+        sent.append((time.time() * 1e3, title))
+        publisher.put(key(NAMESPACE, type(message)), encode(message))
+    time.sleep(2.0)
+    latencies: dict[str, list[float]] = {}
+    for name, browser in browsers.items():
+        seen = list(browser.evaluate("window.__seen") or [])
+        latencies[name] = _match(sent, seen)
+    return latencies
+
+
+def _match(sent: list[tuple[float, str]], seen: list[dict[str, Any]]) -> list[float]:
+    """For each event, the first change to its words after it was sent, if that came
+    before the next event's words (an event whose words never showed is not counted) [ms]."""
+    out = []
+    for k, (at, title) in enumerate(sent):
+        shown = next((s["t"] for s in seen if s["text"] == title and s["t"] >= at), None)
+        if shown is None:
             continue
-        browser.call("Page.screencastFrameAck", sessionId=frame["sessionId"])
-        image = _image(frame)
-        if np.count_nonzero(np.abs(image - before) > 40) > 200:
-            return float(frame["metadata"]["timestamp"]) - fed, image  # type: ignore[index]
-    raise RuntimeError("no frame showed the change within 10 s")
+        if k + 1 < len(sent):
+            after, following = sent[k + 1]
+            later = [s["t"] for s in seen if s["text"] == following and s["t"] >= after]
+            if later and shown > later[0]:
+                continue  # its words never showed: the next event's came first
+        out.append(shown - at)
+    return out
+
+
+def _report(label: str, latencies: dict[str, list[float]], events: int) -> None:
+    load = os.getloadavg()[0]
+    print(f"{label} (load average {load:.1f} on {os.cpu_count()} cores):")
+    for name, ms in latencies.items():
+        if not ms:
+            print(f"  {name}: no event shown")
+            continue
+        a = np.array(ms)
+        print(f"  {name}: n {len(a)} of {events}, p50 {np.percentile(a, 50):.1f} ms, "
+              f"p90 {np.percentile(a, 90):.1f} ms, max {a.max():.1f} ms")  # fmt: skip
+    ours, base = latencies.get("dammrl display", []), latencies.get("bare viser", [])
+    if ours and base:
+        print(f"  ratio of medians dammrl / bare viser: "
+              f"{statistics.median(ours) / statistics.median(base):.2f}")  # fmt: skip
+
+
+def _feed_cost(display: ParticipantDisplay) -> None:
+    display.feed(TaskGoal(header=Header(stamp_ns=1, seq=0, source="controller"), episode=1,
+                          seed=0, start_m=(0.3, 0, 0), goal_m=(0.5, 0, -0.2),
+                          q_start_rad=(0, 1, 0, 1.6, 0, 0.3)))  # fmt: skip
+    costs = []
+    for message in _messages(400):
+        started = time.perf_counter()
+        display.feed(message)
+        costs.append(time.perf_counter() - started)
+    print(f"feed() per message, CPU: median {statistics.median(costs) * 1e3:.3f} ms, "
+          f"p99 {np.percentile(costs, 99) * 1e3:.3f} ms")  # fmt: skip
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--moves", type=int, default=40)
+    parser.add_argument("--events", type=int, default=60)
+    parser.add_argument("--hogs", type=int, default=2)
     args = parser.parse_args()
-    display = ParticipantDisplay(RobotSettings().load(), TaskSettings(), "127.0.0.1",
-                                 free_port())  # fmt: skip
-    display.feed(TaskGoal(header=HEADER, episode=1, seed=0, start_m=(0.3, 0.0, 0.0),
-                          goal_m=(0.45, 0.08, -0.25), q_start_rad=POSES[0]))  # fmt: skip
-    box = display.server.scene.add_box("/bench_box", (40, 220, 40), (0.1, 0.1, 0.1),
-                                       position=(0.3, 0.3, 0.0))  # fmt: skip
-    browser = Browser(f"http://127.0.0.1:{display.port}/")
+    port = free_port()
+    hub = zenoh.open(zenoh_config(listener_settings(port, NAMESPACE, mode="router")))
+    publisher = zenoh.open(zenoh_config(client_settings(port, NAMESPACE)))
+    display = ParticipantDisplay(RobotSettings().load(), TaskSettings(), "127.0.0.1", free_port(),
+                                 inputs_for("pad"))  # fmt: skip
+    feed = BusFeed(display, NAMESPACE)
+    feed.attach(hub)
+    bare = BareViser(hub)
+    browsers: dict[str, Browser] = {}
+    hogs: list[subprocess.Popen[bytes]] = []
     try:
-        time.sleep(8)  # the page loads and draws
-        browser.call("Page.startScreencast", format="png", everyNthFrame=1)
-        first = browser.event("Page.screencastFrame", 10)
-        assert first is not None, "no screencast frame"
-        browser.call("Page.screencastFrameAck", sessionId=first["sessionId"])
-        image = _image(first)
-        dammrl_s, viser_s = [], []
-        for move in range(args.moves):
-            pose = POSES[(move + 1) % 2]
-            latency, image = _latency(browser, lambda p=pose: display.feed(_state(p)), image)
-            dammrl_s.append(latency)
-            time.sleep(1 / 15)  # the display's own rate limit (30 Hz) never drops a move
-            where = (0.3, 0.3 if move % 2 else -0.3, 0.0)
-            latency, image = _latency(browser, lambda w=where: setattr(box, "position", w),
-                                      image)  # fmt: skip
-            viser_s.append(latency)
-        browser.call("Page.stopScreencast")
+        browsers["dammrl display"] = Browser("about:blank")
+        browsers["bare viser"] = Browser("about:blank", webgl=True)
+        browsers["dammrl display"].before_each_page(WATCH % "title")
+        browsers["bare viser"].before_each_page(WATCH % "bench")
+        browsers["dammrl display"].open(display.url.replace("localhost", "127.0.0.1"))
+        browsers["bare viser"].open(f"http://127.0.0.1:{bare.server.get_port()}/")
+        for name, element in (("dammrl display", "title"), ("bare viser", "bench")):
+            shown = f"(document.getElementById('{element}') || {{}}).textContent"
+            wait_for(lambda b=browsers[name], s=shown: b.evaluate(s) == "Welcome", 120,
+                     f"the {name}'s page")  # fmt: skip
+        time.sleep(2)
+        _report("quiet", _run(args.events, browsers, publisher), args.events)
+        hogs = [subprocess.Popen(["yes"], stdout=subprocess.DEVNULL) for _ in range(args.hogs)]
+        time.sleep(2)
+        _report(f"beside {args.hogs} CPU hogs", _run(args.events, browsers, publisher),
+                args.events)  # fmt: skip
     finally:
-        browser.close()
-    feeds = []
-    for _ in range(500):
-        display._drawn_s = 0.0  # measure the drawing, not the rate limit
-        started = time.perf_counter()
-        display.feed(_state(POSES[len(feeds) % 2]))
-        feeds.append(time.perf_counter() - started)
+        for hog in hogs:
+            hog.kill()
+            hog.wait()
+        for browser in browsers.values():
+            browser.close()
+        with contextlib.redirect_stdout(open(os.devnull, "w")):
+            bare.server.stop()
+    _feed_cost(display)
     display.close()
-    _report("dammrl: RobotState -> arm drawn", dammrl_s)
-    _report("bare viser: one box moved (baseline)", viser_s)
-    ratio = statistics.median(dammrl_s) / statistics.median(viser_s)
-    print(f"ratio of medians dammrl / bare viser: {ratio:.2f}")
-    print(
-        f"feed() per state, CPU: median {statistics.median(feeds) * 1e3:.2f} ms, "
-        f"p99 {np.percentile(feeds, 99) * 1e3:.2f} ms"
-    )
-
-
-def _report(name: str, seconds: list[float]) -> None:
-    ms = np.array(seconds) * 1e3
-    print(
-        f"{name}: n {len(ms)}, p50 {np.percentile(ms, 50):.0f} ms, "
-        f"p90 {np.percentile(ms, 90):.0f} ms, max {ms.max():.0f} ms"
-    )
+    publisher.close()
+    hub.close()
 
 
 if __name__ == "__main__":

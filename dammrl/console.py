@@ -1,13 +1,24 @@
 """The therapist's console: one-letter commands typed in the session's terminal (a reason
-may follow), read on a thread so that the session never waits on the keyboard."""
+may follow), read on a thread so that the session never waits on the keyboard, and
+answered at once by whatever the session is doing (a reach, a rest, a question, a wait for
+Enter): a line is acted on or refused in one line when it is typed, never kept for later.
+
+Reasons are stored as typed (events, recordings, BIDS): with the lab's participant
+registry (``Names``), a reason that names a registered person is stored without the name.
+"""
 
 from __future__ import annotations
 
 import queue
+import re
 import threading
 import time
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
+from pathlib import Path
 from typing import TextIO
+
+from dammrl_core.errors import ConfigurationError
 
 COMMANDS = {
     "p": "pause",  # the arm holds; the reach's clock stops
@@ -75,3 +86,76 @@ class Lines:
         if line is None:
             self.closed = True
         return line
+
+
+Handler = Callable[[str], None]
+
+
+class Console:
+    """The terminal's lines, each handed at once to the handler in charge (``route``)."""
+
+    def __init__(self, stream: TextIO, handler: Handler, say: Callable[[str], None]) -> None:
+        self.lines = Lines(stream)
+        self._handler = handler
+        self._say = say
+        self._lock = threading.Lock()
+        threading.Thread(target=self._dispatch, daemon=True).start()
+
+    @property
+    def closed(self) -> bool:
+        """The terminal has ended (a script's stdin, a closed terminal)."""
+        return self.lines.closed
+
+    @property
+    def handler(self) -> Handler:
+        with self._lock:
+            return self._handler
+
+    def route(self, handler: Handler) -> None:
+        """Hand the next lines to ``handler``."""
+        with self._lock:
+            self._handler = handler
+
+    def _dispatch(self) -> None:
+        while True:
+            line = self.lines.get(0.5)
+            if line is None:
+                continue
+            try:
+                self.handler(line)
+            except Exception as exc:
+                self._say(f"console: {line.strip()!r} failed: {exc}")
+
+
+REDACTED = "[name removed]"
+
+
+class Names:
+    """The lab's participant registry (a file of names, one a line, never copied): a
+    reason typed at the console is stored without any name in it."""
+
+    def __init__(self, names: Iterable[str]) -> None:
+        words = sorted({n.strip() for n in names if len(n.strip()) >= 2}, key=len, reverse=True)
+        self.count = len(words)
+        self._pattern = (
+            re.compile(r"\b(" + "|".join(map(re.escape, words)) + r")\b", re.IGNORECASE)
+            if words else None
+        )  # fmt: skip
+
+    @classmethod
+    def read(cls, path: Path) -> Names:
+        try:
+            text = path.read_text(encoding="utf-8")
+        except (OSError, UnicodeDecodeError) as exc:
+            raise ConfigurationError(f"--names {path}: cannot read it ({exc})") from exc
+        names = cls(text.splitlines())
+        if not names.count:
+            raise ConfigurationError(f"--names {path}: no names in it (one a line)")
+        return names
+
+    def redact(self, why: str) -> tuple[str, bool]:
+        """``why`` without the registry's names, and whether one was there."""
+        if self._pattern is None:
+            return why, False
+        cleaned, found = self._pattern.subn(REDACTED, why)
+        return cleaned, found > 0

@@ -29,6 +29,7 @@ import zenoh
 from pydantic_settings import BaseSettings
 from zenoh.handlers import RingChannel
 
+from dammrl.stop import StopConsole
 from dammrl_core.arm.settings import ArmSettings
 from dammrl_core.coadaptation import Targets
 from dammrl_core.control.settings import ControllerSettings, check_workspace
@@ -107,6 +108,7 @@ class StackOptions:
     robot_port: str | None = None  # real: the arm driver's port setting
     robot_calibration: Path | None = None  # real: the arm driver's calibration file
     emulate_robot: bool = False  # real: serve the emulated (Dynamixel) arm at robot_port first
+    outcome_hold_s: float = 0.0  # a reach's outcome stays this long before the next goal [s]
 
 
 def check_port(port: int) -> int:
@@ -290,6 +292,76 @@ def _die_with_parent() -> None:
     libc.prctl(1, signal.SIGHUP)  # PR_SET_PDEATHSIG
 
 
+def check_stack(options: StackOptions) -> None:
+    """Everything ``Stack`` checks before it starts a service, but its port: a session
+    checks each block's run so, before anyone is enrolled."""
+    check_options(options)
+    env = dict(os.environ)
+    for settings in [BusSettings(namespace=options.namespace), *run_settings(options)]:
+        env.update(environment_of(settings))
+    check_settings(services_of(options), env)
+
+
+def services_of(options: StackOptions) -> tuple[str, ...]:
+    """The services a run of ``options`` starts, the recorder first (it sees everything)."""
+    recorder = ("recorder",) if options.record is not None else ()
+    return recorder + MODES[options.mode]
+
+
+def run_settings(o: StackOptions) -> list[BaseSettings]:
+    """What a run of ``o`` sets for its services (but the bus), from the command line."""
+    task = TaskSettings(seed=o.seed, episodes=o.episodes)
+    settings: list[BaseSettings] = [task]
+    chosen = {} if o.model is None else {"human_model": o.model[0], "robot_model": o.model[1]}
+    settings.append(ControllerSettings(trigger=o.trigger, outcome_hold_s=o.outcome_hold_s,
+                                       **chosen))  # type: ignore[arg-type]  # fmt: skip
+    if o.model is not None:
+        settings.append(PolicySettings(kind="fixed", **chosen))  # type: ignore[arg-type]
+    if o.prior is not None:
+        settings.append(PolicySettings(prior=o.prior))
+    if o.checkpoint is not None:
+        settings.append(PolicySettings(checkpoint=o.checkpoint.resolve()))
+    if o.adaptive is not None:
+        settings.append(PolicySettings(kind="adaptive", targets=o.adaptive))
+    settings += _intent_settings(o) + _arm_settings(o)
+    if o.record is not None:
+        settings.append(RecorderSettings(out=o.record, mode=o.mode, study=o.study))
+    return settings
+
+
+def _intent_settings(o: StackOptions) -> list[BaseSettings]:
+    """The pad when its port is given, a wearable when its stream is (semi-virtual, or
+    real with a person at it)."""
+    from dammrl_core.intent.lsl import LslSettings
+    from dammrl_core.intent.pad.source import PadSettings
+
+    calibration = {} if o.calibration is None else {"calibration_file": o.calibration.resolve()}
+    if o.lsl_stream is not None:
+        wearable = LslSettings(stream=o.lsl_stream, **calibration)  # type: ignore[arg-type]
+        return [IntentSettings(source="lsl"), wearable]
+    if o.pad_port is None:
+        return [] if o.intent is None else [IntentSettings(source=o.intent)]
+    pad = PadSettings(port=o.pad_port, **calibration)  # type: ignore[arg-type]
+    return [IntentSettings(source="pad"), pad]
+
+
+def _arm_settings(o: StackOptions) -> list[BaseSettings]:
+    """The arm driver's port and calibration, when given (real mode)."""
+    from dammrl_core.arm.driver import driver_plugin
+
+    if o.mode != "real":
+        return []
+    plugin = driver_plugin(ArmSettings().driver)
+    given = {"port": o.robot_port}
+    if o.robot_calibration is not None:
+        given["calibration_file"] = str(o.robot_calibration.resolve())
+    missing = [k for k, v in given.items() if v and k not in plugin.settings.model_fields]
+    if missing:
+        raise UsageError(f"the arm driver {plugin.name!r} has no {', '.join(missing)} "
+                         "setting: give its settings in its environment")  # fmt: skip
+    return [plugin.settings(**{k: v for k, v in given.items() if v})]
+
+
 class Stack:
     def __init__(
         self,
@@ -342,55 +414,7 @@ class Stack:
         lockstep: dict[str, Any] = {"lockstep": True} if o.lockstep else {}
         bus = BusSettings(connect=[self.endpoint], namespace=o.namespace, launcher_pid=os.getpid(),
                           credentials=credentials, **lockstep)  # fmt: skip
-        task = TaskSettings(seed=o.seed, episodes=o.episodes)
-        settings: list[BaseSettings] = [bus, task]
-        chosen = {} if o.model is None else {"human_model": o.model[0], "robot_model": o.model[1]}
-        settings.append(ControllerSettings(trigger=o.trigger, **chosen))  # type: ignore[arg-type]
-        if o.model is not None:
-            settings.append(PolicySettings(kind="fixed", **chosen))  # type: ignore[arg-type]
-        if o.prior is not None:
-            settings.append(PolicySettings(prior=o.prior))
-        if o.checkpoint is not None:
-            settings.append(PolicySettings(checkpoint=o.checkpoint.resolve()))
-        if o.adaptive is not None:
-            settings.append(PolicySettings(kind="adaptive", targets=o.adaptive))
-        settings += self._intent_settings() + self._arm_settings()
-        if o.record is not None:
-            settings.append(RecorderSettings(out=o.record, mode=o.mode, study=o.study))
-        return settings
-
-    def _intent_settings(self) -> list[BaseSettings]:
-        """The pad when its port is given, a wearable when its stream is (semi-virtual, or
-        real with a person at it)."""
-        from dammrl_core.intent.lsl import LslSettings
-        from dammrl_core.intent.pad.source import PadSettings
-
-        o = self.options
-        calibration = {} if o.calibration is None else {"calibration_file": o.calibration.resolve()}
-        if o.lsl_stream is not None:
-            wearable = LslSettings(stream=o.lsl_stream, **calibration)  # type: ignore[arg-type]
-            return [IntentSettings(source="lsl"), wearable]
-        if o.pad_port is None:
-            return [] if o.intent is None else [IntentSettings(source=o.intent)]
-        pad = PadSettings(port=o.pad_port, **calibration)  # type: ignore[arg-type]
-        return [IntentSettings(source="pad"), pad]
-
-    def _arm_settings(self) -> list[BaseSettings]:
-        """The arm driver's port and calibration, when given (real mode)."""
-        from dammrl_core.arm.driver import driver_plugin
-
-        o = self.options
-        if o.mode != "real":
-            return []
-        plugin = driver_plugin(ArmSettings().driver)
-        given = {"port": o.robot_port}
-        if o.robot_calibration is not None:
-            given["calibration_file"] = str(o.robot_calibration.resolve())
-        missing = [k for k, v in given.items() if v and k not in plugin.settings.model_fields]
-        if missing:
-            raise UsageError(f"the arm driver {plugin.name!r} has no {', '.join(missing)} "
-                             "setting: give its settings in its environment")  # fmt: skip
-        return [plugin.settings(**{k: v for k, v in given.items() if v})]
+        return [bus, *run_settings(o)]
 
     def run(self) -> int:
         """Run until done; the exit code of ``dammrl up``."""
@@ -447,13 +471,18 @@ class Stack:
         self.joined.append(session)
         return session
 
+    def stop_console(self) -> StopConsole:
+        """The operator's stop on the run's bus, its session opened now: a stop typed
+        later costs no start-up and is repeated until every arm confirms it."""
+        return StopConsole(BusSettings(connect=[self.endpoint], namespace=self.options.namespace,
+                                       credentials=self.credentials))  # fmt: skip
+
     def finish(self) -> None:
         """End the run before its last episode (a session ends a block early)."""
         self.finishing.set()
 
     def services(self) -> tuple[str, ...]:
-        recorder = ("recorder",) if self.options.record is not None else ()
-        return recorder + MODES[self.options.mode]  # the recorder first: it sees everything
+        return services_of(self.options)
 
     def _start_children(self, session: zenoh.Session, stop: SignalStop) -> None:
         env = self.environment()

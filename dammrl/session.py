@@ -1,60 +1,75 @@
-"""Sessions with people: pseudonymous participants, a folder per sitting, a protocol's
-trials run through the service stack, and resumption after any crash.
+"""Sessions with people: a protocol's trials run through the service stack for a
+pseudonymous participant, the therapist's console answered at every step, and
+resumption after any crash.
 
-A session folder holds everything a sitting produced::
+A session folder holds everything a sitting produced (``dammrl.participants``)::
 
-    <root>/<participant>/participant.json      id, Latin-square row, current calibration
     <root>/<participant>/ses-01/session.json   protocol (name, version, SHA-256), set-up
     <root>/<participant>/ses-01/protocol.yaml  the protocol as run
     <root>/<participant>/ses-01/trials.jsonl   one line per finished trial (fsync'd)
-    <root>/<participant>/ses-01/events.jsonl   who did what and why (start, interruptions,
-                                               resumption, rests, the end)
+    <root>/<participant>/ses-01/events.jsonl   who did what and why (start, blocks, rests,
+                                               comfort, stops, resumption, the end)
     <root>/<participant>/ses-01/recordings/    part-NN.mcap, one per stack run, never reused
     <root>/<participant>/ses-01/calibration.*  the calibration the session used
 
+The flow never surprises: everything that can fail is checked before anyone is enrolled
+(``session_problems``); nothing moves before the therapist presses Enter at a block's
+start, a resumption or after an emergency stop; a stop ends the reach under way (it is
+not counted: run again or marked stopped, the therapist's choice) and the stack with it;
+a console line is acted on or refused when it is typed, whatever the session is doing.
+
 A trial counts as done only once its line is in ``trials.jsonl``; whatever stopped a
 session (``kill -9`` of the runner or of a service, a lost cable, Ctrl-C), the next
-``dammrl session run`` for that participant resumes at the first trial without a line,
-after checking that the set-up is the one the session recorded. The recording of an
-interrupted run is kept as it is; its trial runs again in a new part.
+``dammrl session run`` for that participant completes what the end of the last block
+left undone (its comfort question, its rest) and resumes at the first trial without a
+line, after checking that the set-up is the one the session recorded. The recording of
+an interrupted run is kept as it is; its trial runs again in a new part.
 """
 
 from __future__ import annotations
 
 import contextlib
-import hashlib
-import json
-import os
-import re
 import shutil
 import sys
 import threading
 import time
 from collections import Counter
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, replace
-from datetime import UTC, datetime
+from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
 
-from dammrl import __version__
-from dammrl.console import HELP, Command, Lines, parse
-from dammrl.launch import Stack, StackOptions, recording_files, result_dict
+from dammrl.console import HELP, Command, Console
+from dammrl.launch import Stack, StackOptions, check_stack, recording_files, result_dict
+from dammrl.participants import (
+    JsonLines,
+    Participant,
+    SessionFolder,
+    check_participant,
+    differences,
+    now_utc,
+    session_table,
+    sha256_of,
+)
+from dammrl.session_steps import SessionSteps, SetUp, trial_line
 from dammrl.stop import StopConsole
 from dammrl_core.coadaptation import Targets
-from dammrl_core.errors import ConfigurationError, DammrlError, Exit, UsageError
+from dammrl_core.errors import DammrlError, Exit, UsageError
 from dammrl_core.protocol import (
-    PARTICIPANT_ID,
+    Condition,
     Protocol,
+    ProtocolError,
     StudyTag,
     Trial,
+    check_protocol,
     load_protocol,
     plan_trials,
 )
-from dammrl_core.robot import RobotSettings
+from dammrl_core.settings import error_line
 from schemas import (
     DEFAULT_NAMESPACE,
     ComfortRating,
+    DecisionRequest,
     DecodeError,
     EmergencyStop,
     EpisodeRecorded,
@@ -63,263 +78,66 @@ from schemas import (
     Message,
     ModelChoice,
     SessionControl,
+    TaskGoal,
     decode,
     encode,
     key,
 )
-from services.common.config import BusSettings
 from services.common.security import DISPLAY, OPERATOR
 
 if TYPE_CHECKING:
     from dammrl.display import ParticipantDisplay
 
+__all__ = [  # the session's folders live in dammrl.participants; callers import them here
+    "JsonLines", "Participant", "SessionFolder", "SessionRunner", "SetUp", "check_participant",
+    "session_problems", "session_table",
+]  # fmt: skip
+
 STOP_CONFIRM_S = 2.0
 """The console's stop (or release) is sent until every arm confirms it, this long at most."""
+PERSON = ("pad", "lsl")
+"""Intent sources through which a person decides (they need a device and a calibration)."""
+STOP_RESULT_WAIT_S = 3.0
+"""After a stop heard mid-reach, how long the stack waits for the controller to end the
+reach (``stopped``) before it stops anyway [s]."""
 
 
-def check_participant(participant: str) -> str:
-    """``participant`` if it is a pseudonymous id; a UsageError saying what is expected."""
-    if not re.match(PARTICIPANT_ID, participant):
-        raise UsageError(
-            f"participant {participant!r}: give a pseudonymous id such as P012 (1-4 letters, "
-            "1-6 digits); names and other personal data are never stored"
-        )
-    return participant.upper()
+def stack_options(setup: SetUp, condition: Condition, seed: int, episodes: int,
+                  calibration: Path | None, **run: Any) -> StackOptions:  # fmt: skip
+    """The stack run of ``episodes`` trials of a block from ``seed`` (``run``: what a
+    real run adds: its recording, the study tag, the person's prior and policy)."""
+    intent = condition.intent or setup.intent
+    person = intent in PERSON
+    return StackOptions(
+        mode=setup.mode, episodes=episodes, seed=seed, model=condition.model,
+        trigger=condition.trigger, port=setup.bus_port, intent=intent,
+        pad_port=setup.pad_port if intent == "pad" else None,
+        lsl_stream=setup.stream if intent == "lsl" else None,
+        calibration=calibration if person else None, lockstep=setup.lockstep,
+        adaptive=(condition.targets or Targets()) if condition.policy == "adaptive" else None,
+        outcome_hold_s=setup.outcome_s, **run,
+    )  # fmt: skip
 
 
-def now_utc() -> str:
-    return datetime.now(UTC).isoformat(timespec="milliseconds")
+def session_problems(protocol: Protocol, setup: SetUp, calibration: Path | None) -> list[str]:
+    """Everything a session of ``protocol`` under ``setup`` would fail on once it runs,
+    one plain line each ([] when none): the protocol's own checks (installed intent
+    sources, seed ranges), then each block's stack as the launcher checks it before it
+    starts (the device and calibration a person needs, every service's settings)."""
+    from dammrl_core.intent.source import source_plugins
 
-
-def sha256_of(path: Path) -> str:
-    return hashlib.sha256(path.read_bytes()).hexdigest()
-
-
-def write_json(path: Path, content: dict[str, Any]) -> None:
-    """Replace ``path`` atomically (a crash leaves the old file or the new one)."""
-    temporary = path.with_suffix(path.suffix + ".tmp")
-    temporary.write_text(json.dumps(content, indent=2) + "\n")
-    with open(temporary, "rb+") as handle:
-        os.fsync(handle.fileno())
-    temporary.replace(path)
-
-
-def read_json(path: Path) -> dict[str, Any]:
-    try:
-        content = json.loads(path.read_text())
-    except (OSError, ValueError) as exc:
-        raise ConfigurationError(f"{path}: unreadable ({exc})") from exc
-    if not isinstance(content, dict):
-        raise ConfigurationError(f"{path}: not a JSON object")
-    return content
-
-
-class JsonLines:
-    """An append-only log, one JSON object a line, each on disk before ``add`` returns. A
-    torn last line (a crash mid-write) is skipped when read, and counted."""
-
-    def __init__(self, path: Path):
-        self.path = path
-
-    def add(self, entry: dict[str, Any]) -> None:
-        with open(self.path, "a", encoding="utf-8") as handle:
-            handle.write(json.dumps(entry) + "\n")
-            handle.flush()
-            os.fsync(handle.fileno())
-
-    def read(self) -> tuple[list[dict[str, Any]], int]:
-        """The entries, and how many lines were unreadable."""
-        if not self.path.exists():
-            return [], 0
-        entries, torn = [], 0
-        for line in self.path.read_text(encoding="utf-8", errors="replace").splitlines():
-            try:
-                entry = json.loads(line)
-            except ValueError:
-                torn += 1
-                continue
-            if isinstance(entry, dict):
-                entries.append(entry)
-            else:
-                torn += 1
-        return entries, torn
-
-
-@dataclass(frozen=True)
-class SetUp:
-    """What a session runs with, from the command line (the protocol says the rest)."""
-
-    mode: str = "virtual"
-    intent: str = "simulated"
-    """Who decides where a block does not say: simulated, pad, lsl or an installed source."""
-    pad_port: str | None = None
-    stream: str | None = None
-    calibration: Path | None = None
-    bus_port: int = 7447
-    lockstep: bool = False
-    operator: str = "operator"
-    """Who runs the session (initials or a staff id), written beside every action."""
-
-    def fingerprint(self, protocol: Protocol, calibration_sha256: str | None) -> dict[str, Any]:
-        """What must not change between the start of a session and its resumption."""
-        urdf = RobotSettings().urdf_path
-        return {
-            "protocol": protocol.name,
-            "protocol_version": protocol.version,
-            "protocol_sha256": protocol.sha256,
-            "dammrl": __version__,
-            "mode": self.mode,
-            "intent": self.intent,
-            "calibration_sha256": calibration_sha256,
-            "arm_sha256": sha256_of(urdf),
-            "lockstep": self.lockstep,
-        }
-
-
-class Participant:
-    """A pseudonymous participant's folder: their Latin-square row (their enrolment
-    order), their current calibration and their sessions."""
-
-    def __init__(self, root: Path, participant: str):
-        self.id = check_participant(participant)
-        self.root = root
-        self.folder = root / self.id
-        self.file = self.folder / "participant.json"
-
-    def enrol(self) -> dict[str, Any]:
-        """Their record, enrolling them (the next row) on first sight."""
-        if self.file.exists():
-            return read_json(self.file)
-        self.root.mkdir(parents=True, exist_ok=True)
-        row = sum(1 for p in self.root.glob("*/participant.json"))
-        self.folder.mkdir(exist_ok=True)
-        record = {"id": self.id, "row": row, "enrolled": now_utc(), "calibration": None}
-        write_json(self.file, record)
-        return record
-
-    @property
-    def policy_folder(self) -> Path:
-        """Where ``dammrl adapt --participant`` puts the policy refined for them; their
-        sessions load it when it is there."""
-        return self.folder / "policy"
-
-    def refined_policy(self) -> Path | None:
-        folder = self.policy_folder
-        return folder if (folder / "checkpoint.pt").is_file() else None
-
-    def next_candidate_folder(self) -> Path:
-        """Where ``dammrl adapt --participant`` writes its next candidate policy."""
-        candidates = self.folder / "policy-candidates"
-        taken = [int(p.name) for p in candidates.glob("[0-9][0-9][0-9]") if p.is_dir()]
-        return candidates / f"{max(taken, default=0) + 1:03d}"
-
-    def deploy_policy(self, candidate: Path) -> Path:
-        """Make ``candidate`` (a run directory) their policy; the one it replaces is kept
-        beside the candidates as ``<n>-replaced``. Returns the policy folder."""
-        staged = self.folder / "policy.new"
-        shutil.rmtree(staged, ignore_errors=True)
-        shutil.copytree(candidate, staged)
-        if self.policy_folder.exists():
-            retired = self.folder / "policy-candidates" / f"{candidate.name}-replaced"
-            retired.parent.mkdir(parents=True, exist_ok=True)
-            shutil.rmtree(retired, ignore_errors=True)
-            self.policy_folder.rename(retired)
-        staged.rename(self.policy_folder)
-        return self.policy_folder
-
-    def sessions(self) -> list[Path]:
-        return sorted(p for p in self.folder.glob("ses-*") if (p / "session.json").exists())
-
-    def keep_calibration(self, calibration: Path) -> Path:
-        """Carry ``calibration`` to their later sessions: copied into their folder."""
-        kept = self.folder / f"calibration{calibration.suffix or '.json'}"
-        if calibration.resolve() != kept.resolve():
-            shutil.copyfile(calibration, kept)
-        record = read_json(self.file) | {"calibration": kept.name}
-        write_json(self.file, record)
-        return kept
-
-    def posterior(self) -> tuple[float, float] | None:
-        """The human-model posterior their earlier runs ended with (None: none yet)."""
-        path = self.folder / "posterior.json"
-        if not path.exists():
-            return None
-        p = read_json(path).get("probabilities")
-        if not (isinstance(p, list) and len(p) == 2 and all(isinstance(v, float) for v in p)):
-            raise ConfigurationError(f"{path}: no 'probabilities' of the two human models")
-        return (p[0], p[1])
-
-    def keep_posterior(self, probabilities: tuple[float, ...], session: str, trials: list[int]
-                       ) -> None:  # fmt: skip
-        """Carry the posterior a run ended with to the next run and session."""
-        write_json(self.folder / "posterior.json", {
-            "probabilities": [float(v) for v in probabilities], "session": session,
-            "after_trials": trials, "utc": now_utc(),
-        })  # fmt: skip
-
-    def calibration(self) -> Path | None:
-        """The calibration their last session kept, if any."""
-        name = read_json(self.file).get("calibration")
-        return None if not name else self.folder / str(name)
-
-
-@dataclass
-class Progress:
-    """What a session folder says about its trials."""
-
-    done: dict[int, dict[str, Any]]
-    torn: int
-    ended: bool
-
-
-class SessionFolder:
-    """One sitting's folder (see the module docstring)."""
-
-    def __init__(self, folder: Path):
-        self.folder = folder
-        self.manifest = folder / "session.json"
-        self.trials = JsonLines(folder / "trials.jsonl")
-        self.events = JsonLines(folder / "events.jsonl")
-        self.recordings = folder / "recordings"
-
-    @classmethod
-    def create(cls, participant: Participant, protocol: Protocol, protocol_file: Path,
-               manifest: dict[str, Any]) -> SessionFolder:  # fmt: skip
-        number = len(participant.sessions()) + 1
-        folder = participant.folder / f"ses-{number:02d}"
-        while folder.exists():  # a folder a crash left without its manifest: never reused
-            number += 1
-            folder = participant.folder / f"ses-{number:02d}"
-        folder.mkdir(parents=True)
-        session = cls(folder)
-        session.recordings.mkdir()
-        shutil.copyfile(protocol_file, folder / "protocol.yaml")
-        write_json(session.manifest, manifest | {"session": folder.name, "started": now_utc()})
-        return session
-
-    def read_manifest(self) -> dict[str, Any]:
-        return read_json(self.manifest)
-
-    def progress(self) -> Progress:
-        entries, torn = self.trials.read()
-        done = {int(e["trial"]): e for e in entries
-                if isinstance(e.get("trial"), int) and not e.get("repeat")}  # fmt: skip
-        return Progress(done, torn, "ended" in self.read_manifest())
-
-    def next_part(self) -> Path:
-        """A recording file no run has used."""
-        parts = [int(p.stem.split("-")[1]) for p in self.recordings.glob("part-*.mcap")]
-        return self.recordings / f"part-{max(parts, default=0) + 1:02d}.mcap"
-
-    def end(self) -> None:
-        write_json(self.manifest, self.read_manifest() | {"ended": now_utc()})
-
-
-def differences(recorded: dict[str, Any], now: dict[str, Any]) -> list[str]:
-    """What changed between the set-up a session recorded and this one."""
-    keys = sorted(set(recorded) | set(now))
-    return [f"{k}: {recorded.get(k)!r} then, {now.get(k)!r} now" for k in keys
-            if recorded.get(k) != now.get(k)]  # fmt: skip
+    problems = check_protocol(protocol, source_plugins())
+    if problems:
+        return problems
+    by_problem: dict[str, list[str]] = {}
+    for number, block in enumerate(protocol.blocks, start=1):
+        options = stack_options(setup, block.condition, block.seed, block.trials, calibration)
+        try:
+            check_stack(options)
+        except (DammrlError, ValueError) as exc:
+            by_problem.setdefault(error_line(exc), []).append(f"{number} ({block.name})")
+    return [f"block{'s' if len(blocks) > 1 else ''} {', '.join(blocks)}: {problem}"
+            for problem, blocks in by_problem.items()]  # fmt: skip
 
 
 def runs(trials: list[Trial]) -> Iterator[list[Trial]]:
@@ -375,7 +193,7 @@ class RecordedEpisodes:
             return {e: self.acks[e] for e in episodes if e in self.acks}
 
 
-class SessionRunner:
+class SessionRunner(SessionSteps):
     """Runs (or resumes) a participant's session of a protocol through the stack."""
 
     def __init__(
@@ -397,7 +215,6 @@ class SessionRunner:
         self.display = display
         self.comfort_timeout_s = comfort_timeout_s
         self.recorded_wait_s = recorded_wait_s
-        self.console = Lines(sys.stdin if console is None else console)
         self.protocol_file = protocol_file
         self.protocol = load_protocol(protocol_file)
         self.blocks = {b.name: b for b in self.protocol.blocks}
@@ -406,34 +223,54 @@ class SessionRunner:
         self.new = new
         self.accept_changes = accept_changes
         self.wait = sys.stdin.isatty() if wait_for_operator is None else wait_for_operator
+        self.console = Console(sys.stdin if console is None else console, self._idle, say)
+        self.session: SessionFolder | None = None
+        self.resumed = False
+        self.latched: str | None = (
+            None  # an emergency stop (the console's, the bus's) until released
+        )
+        self.warned_reasons = False
+        self.pending_comfort: list[tuple[Trial, int, float]] = []  # rated while no stack ran
+
+    def problems(self) -> list[str]:
+        """What this session would fail on once it runs (``session_problems``), with the
+        calibration given or the one the participant has."""
+        known = self.participant.calibration() if self.participant.file.exists() else None
+        return session_problems(self.protocol, self.setup, self.setup.calibration or known)
 
     def run(self) -> int:
-        """Run every trial not yet done; the exit code."""
-        record = self.participant.enrol()
+        """Check everything, then run every trial not yet done; the exit code."""
+        problems = self.problems()
+        if problems:  # before anyone is enrolled: nothing is written
+            raise ProtocolError(self.protocol_file, problems)
+        record = self.participant.enrol(self.setup.rehearsal)
         calibration = self._calibration()
         setup = replace(self.setup, calibration=calibration)
         fingerprint = setup.fingerprint(
             self.protocol, None if calibration is None else sha256_of(calibration)
         )
-        session = self._session(record, fingerprint)
+        session = self.session = self._session(record, fingerprint)
         if calibration is not None:
             kept = session.folder / f"calibration{calibration.suffix or '.json'}"
             if not kept.exists():
                 shutil.copyfile(calibration, kept)
         trials = plan_trials(self.protocol, int(record["row"]))
         self.say(HELP)
+        if self.setup.names is None:
+            self.say("console: reasons are stored as typed (events, recordings, BIDS): never "
+                     "type a name (--names checks them against your registry)")  # fmt: skip
         progress = session.progress()
-        remaining = [t for t in trials if t.number not in progress.done]
-        if not remaining:
+        if all(t.number in progress.done for t in trials):
             self.say(f"{session.folder}: all {len(trials)} trials are done")
             return Exit.OK
-        return self._run_trials(session, setup, trials)
+        with self._watching_the_page():
+            return self._run_trials(session, setup, trials)
 
     def _calibration(self) -> Path | None:
         """The calibration given now (kept for later sessions), else the participant's."""
         if self.setup.calibration is not None:
             return self.participant.keep_calibration(self.setup.calibration)
-        return self.participant.calibration() if self.setup.intent in ("pad", "lsl") else None
+        return self.participant.calibration() if self.setup.intent in PERSON else None
 
     def _session(self, record: dict[str, Any], fingerprint: dict[str, Any]) -> SessionFolder:
         """The unfinished session to resume (its set-up checked), or a new one."""
@@ -443,6 +280,7 @@ class SessionRunner:
             manifest = last.read_manifest()
             if "ended" not in manifest:
                 self._check_resumable(last, manifest, fingerprint)
+                self.resumed = True
                 return last
         if sessions and "ended" not in (last := SessionFolder(sessions[-1])).read_manifest():
             last.events.add(self.event("left unfinished: a new session started"))
@@ -469,34 +307,43 @@ class SessionRunner:
         torn = f" ({progress.torn} torn log line skipped)" if progress.torn else ""
         self.say(f"resuming {session.folder}: {len(progress.done)} trials done{torn}")
 
-    def event(self, what: str, **details: Any) -> dict[str, Any]:
-        return {"utc": now_utc(), "who": self.setup.operator, "what": what} | details
-
     def _run_trials(self, session: SessionFolder, setup: SetUp, trials: list[Trial]) -> int:
-        """Run stack after stack until every trial is done (a repeated one runs again)."""
+        """Run stack after stack until every trial is done (a repeated one runs again);
+        each block closed (comfort, its end, the rest) before the next begins."""
         total = len(trials)
+        self._close_interrupted_block(session, trials)
+        ready = self.resumed  # a resumption waits for the therapist's Enter
         while remaining := [t for t in trials if t.number not in session.progress().done]:
             group = next(runs(remaining))
             block = self.blocks[group[0].block]
-            if group[0].index == 1:
-                self._begin_block(session, group[0], block.instructions)
+            if (group[0].index == 1 or ready) and not self._begin(session, group[0], block):
+                self._stopped(session, group, "the console closed while the stop was latched")
+                return Exit.FAILED
+            ready = False
+            stack_run = StackRun(self, session, setup, group, total)
             try:
-                code = StackRun(self, session, setup, group, total).run()
+                code = stack_run.run()
             except DammrlError as exc:
                 self._stopped(session, group, str(exc))
                 raise
             if code != Exit.OK:
                 self._stopped(session, group, f"exit code {int(code)}")
                 return code
-            done = session.progress().done
-            if all(t.number in done for t in trials if t.block == block.name):
-                session.events.add(self.event("block-end", block=block.name))
-                if block.rest_s > 0 and len(done) < total:
-                    self._rest(session, block.rest_s)
+            if stack_run.stopping is not None or self.latched is not None:
+                reason = stack_run.stopping or self.latched or "emergency stop"
+                if not self._after_stop(session, stack_run.stopped_trial, reason):
+                    self._stopped(session, group, "the console closed while the stop was latched")
+                    return Exit.FAILED
+                ready = True
+            self._close_block(session, block, trials)
         session.events.add(self.event("end"))
         session.end()
         if self.display is not None:
-            self.display.say("Thank you", "The session is complete.", "good")
+            self.display.end()
+        unpublished = [f"{t.block}: {rating}" for t, rating, _ in self.pending_comfort]
+        if unpublished:
+            self.say(f"comfort ({', '.join(unpublished)}) asked after the last stack: kept in "
+                     "events.jsonl only (no recording runs to take it)")  # fmt: skip
         self.say(f"session complete: {total} trials in {session.folder}")
         return Exit.OK
 
@@ -511,28 +358,11 @@ class SessionRunner:
         done = session.progress().done
         return next((t.number for t in group if t.number not in done), None)
 
-    def _begin_block(self, session: SessionFolder, trial: Trial, instructions: str) -> None:
-        kind = "practice block" if trial.practice else "block"
-        self.say(f"{kind} {trial.block_position} ({trial.block}): {instructions}".rstrip(": "))
-        if self.display is not None:
-            self.display.say(f"{kind.capitalize()} {trial.block_position}", instructions)
-        session.events.add(self.event("block-start", block=trial.block))
-        if self.wait:
-            self.say("press Enter when the participant is ready")
-            self.console.get(None)
-
-    def _rest(self, session: SessionFolder, rest_s: float) -> None:
-        session.events.add(self.event("rest", seconds=rest_s))
-        self.say(f"rest for {rest_s:.0f} s (Ctrl-C ends the session here; it resumes later)")
-        if self.display is not None:
-            self.display.rest(rest_s)
-        else:
-            time.sleep(rest_s)
-
 
 class StackRun:
     """One stack run over trials of one block: each trial logged as its result comes,
-    the therapist's console obeyed meanwhile, the comfort asked at the block's end."""
+    the therapist's console obeyed meanwhile, the comfort asked at the block's end, and
+    the run ended by an emergency stop (after the stopped reach's result)."""
 
     def __init__(self, runner: SessionRunner, session: SessionFolder, setup: SetUp,
                  group: list[Trial], total: int) -> None:  # fmt: skip
@@ -543,14 +373,16 @@ class StackRun:
         self.display_bus: Any = None  # the participant display's own (its role), once up
         self.stopper: StopConsole | None = None  # the console's stop, once the stack is up
         self.stack: Stack | None = None
-        self.episode = 1  # the reach under way (this run counts from 1)
+        self.episode = 1  # the reach under way, or the next one (this run counts from 1)
+        self.announced = 0  # the last reach the controller announced (its TaskGoal)
         self.actions: list[dict[str, Any]] = []  # the console's, on the reach under way
         self.paused_since: float | None = None
         self.paused_s = 0.0
         self.again = False  # the reach under way runs again
         self.end_block = False  # the rest of the block is skipped...
         self.end_block_why = ""  # ... by whom and why
-        self.running = threading.Event()
+        self.stopping: str | None = None  # an emergency stop ends this run: why
+        self.stopped_trial: Trial | None = None  # the trial the stop interrupted
         self.sent: Counter[type[Message]] = Counter()  # per message type (its key): its seq
         self.posterior: tuple[float, float] | None = None  # the policy's, last heard
         self.subscribers: list[Any] = []
@@ -565,20 +397,12 @@ class StackRun:
                          sha256=runner.protocol.sha256, block=group[0].block,
                          practice=group[0].practice, condition=condition,
                          trials=[t.number for t in group]).model_dump_json()  # fmt: skip
-        setup = self.setup
         prior = runner.participant.posterior()  # what this person's earlier runs said
         checkpoint = runner.participant.refined_policy()  # dammrl adapt --participant
-        intent = condition.intent or setup.intent
-        person = intent in ("pad", "lsl")
-        options = StackOptions(
-            mode=setup.mode, episodes=len(group), seed=group[0].seed, model=condition.model,
-            trigger=condition.trigger, port=setup.bus_port, record=self.part, study=study,
-            intent=None if person else intent,
-            pad_port=setup.pad_port if intent == "pad" else None,
-            lsl_stream=setup.stream if intent == "lsl" else None,
-            calibration=setup.calibration if person else None, lockstep=setup.lockstep,
-            prior=prior, checkpoint=checkpoint if condition.model is None else None,
-            adaptive=(condition.targets or Targets()) if condition.policy == "adaptive" else None,
+        options = stack_options(
+            self.setup, condition, group[0].seed, len(group), self.setup.calibration,
+            record=self.part, study=study, prior=prior,
+            checkpoint=checkpoint if condition.model is None else None,
         )  # fmt: skip
         self.session.events.add(runner.event("run", block=group[0].block,
                                              recording=self.part.name,
@@ -590,7 +414,7 @@ class StackRun:
         try:
             return self.stack.run()
         finally:
-            self.running.clear()
+            runner.console.route(runner._idle)
             self.hub, self.display_bus, self.subscribers = None, None, []
             if self.stopper is not None:
                 self.stopper.close()
@@ -604,23 +428,41 @@ class StackRun:
         """The stack is up: the console acts on its bus as the operator; the display
         follows it with a session of its own role, which may send the participant's
         comfort rating and nothing else."""
+        runner = self.runner
         self.hub = hub
-        if self.runner.display is not None:
+        if runner.display is not None:
             from dammrl.display import BusFeed
 
             assert self.stack is not None
             self.display_bus = self.stack.join(DISPLAY)
-            BusFeed(self.runner.display, DEFAULT_NAMESPACE).attach(self.display_bus)
-        self.subscribers = [hub.declare_subscriber(key(DEFAULT_NAMESPACE, ModelChoice),
-                                                   self._choice),
-                            hub.declare_subscriber(key(DEFAULT_NAMESPACE, EpisodeRecorded),
-                                                   self._recorded)]  # fmt: skip
+            runner.display.expect_run(self.places(), condition_intent(self.group[0], self.setup))
+            BusFeed(runner.display, DEFAULT_NAMESPACE).attach(self.display_bus)
+        self.subscribers = [
+            hub.declare_subscriber(key(DEFAULT_NAMESPACE, ModelChoice), self._choice),
+            hub.declare_subscriber(key(DEFAULT_NAMESPACE, EpisodeRecorded), self._recorded),
+            hub.declare_subscriber(key(DEFAULT_NAMESPACE, EmergencyStop), self._stop_heard),
+            hub.declare_subscriber(key(DEFAULT_NAMESPACE, TaskGoal), self._goal_heard),
+            hub.declare_subscriber(key(DEFAULT_NAMESPACE, DecisionRequest), self._asked),
+        ]
         if self.stack is not None:  # the stop one key away: its session open from now on
-            self.stopper = StopConsole(BusSettings(connect=[self.stack.endpoint],
-                                                   credentials=self.stack.credentials))  # fmt: skip
+            self.stopper = self.stack.stop_console()
         self.listening = True
-        self.running.set()
-        threading.Thread(target=self._console, daemon=True).start()
+        for trial, rating, asked_s in runner.pending_comfort:  # asked while no stack ran
+            self._send(self._rating(trial, rating, asked_s), self.display_bus)
+        runner.pending_comfort = []
+        if runner.latched is not None:  # typed while the stack started: it holds the arm
+            self._send(EmergencyStop(header=self._header(EmergencyStop), engaged=True,
+                                     reason=runner.latched))  # fmt: skip
+        runner.console.route(self.line)
+
+    def places(self) -> dict[int, Any]:
+        """Each reach's place in the session, for the participant's page."""
+        from dammrl.display import Place
+
+        blocks = len(self.runner.protocol.blocks)
+        trials = self.runner.blocks[self.group[0].block].trials
+        return {episode: Place(t.index, trials, t.block_position, blocks, t.practice)
+                for episode, t in enumerate(self.group, start=1)}  # fmt: skip
 
     def _choice(self, sample: Any) -> None:
         """The policy's posterior of this person, as it learns (kept after the run)."""
@@ -633,37 +475,87 @@ class StackRun:
         with contextlib.suppress(DecodeError):
             self.recorded.take(decode(EpisodeRecorded, sample.payload.to_bytes()))
 
+    def _goal_heard(self, sample: Any) -> None:
+        with contextlib.suppress(DecodeError):
+            goal = decode(TaskGoal, sample.payload.to_bytes())
+            if goal.header.source == "controller":
+                self.announced = max(self.announced, goal.episode)
+
+    def _asked(self, sample: Any) -> None:
+        """A decision request: its reach runs (its goal may have gone out before the run
+        listened)."""
+        with contextlib.suppress(DecodeError):
+            request = decode(DecisionRequest, sample.payload.to_bytes())
+            if request.header.source == "controller":
+                self.announced = max(self.announced, request.episode)
+
+    def _stop_heard(self, sample: Any) -> None:
+        """An emergency stop (or its release) on the bus, from the console or anyone: the
+        session follows it; a stop ends this run (after the stopped reach's result)."""
+        try:
+            stop = decode(EmergencyStop, sample.payload.to_bytes())
+        except DecodeError:
+            return
+        reason = f"emergency stop from {stop.header.source}" + (
+            f": {stop.reason}" if stop.reason else "")  # fmt: skip
+        self.runner.heard_stop(stop.engaged, reason)
+        if not stop.engaged or self.stopping is not None:
+            return
+        self.stopping = reason
+        if self.under_way():  # the controller ends the reach: its result ends the run
+            later = threading.Timer(STOP_RESULT_WAIT_S, self._finish)  # or, without it, this
+            later.daemon = True
+            later.start()
+        else:
+            self._finish()
+
+    def under_way(self) -> bool:
+        """A reach of this run was announced and has no result yet."""
+        return self.announced >= self.episode
+
+    def _finish(self) -> None:
+        if self.stack is not None:
+            self.stack.finish()
+
     # ---- results --------------------------------------------------------------------
     def keep(self, result: EpisodeResult) -> None:
         trial = self.group[result.episode - 1]
         if self.paused_since is not None:  # skipped while paused
             self.paused_s += time.monotonic() - self.paused_since
             self.paused_since = None
-        entry = {"trial": trial.number, "block": trial.block,
-                 "block_position": trial.block_position, "index": trial.index,
-                 "seed": trial.seed, "practice": trial.practice,
-                 "condition": trial.condition.model_dump(mode="json"),
-                 "recording": f"recordings/{self._recording().name}", "episode": result.episode,
-                 "utc": now_utc(), "result": result_dict(result),
-                 "pauses": sum(a["action"] == "pause" for a in self.actions),
-                 "paused_s": round(self.paused_s, 2), "actions": self.actions}  # fmt: skip
-        if self.again:
+        stopped = result.outcome == "stopped"
+        entry = trial_line(trial) | {
+            "condition": trial.condition.model_dump(mode="json"),
+            "recording": f"recordings/{self._recording().name}", "episode": result.episode,
+            "result": result_dict(result),
+            "pauses": sum(a["action"] == "pause" for a in self.actions),
+            "paused_s": round(self.paused_s, 2), "actions": self.actions}  # fmt: skip
+        if self.again or stopped:
             entry["repeat"] = True  # an attempt: the trial is not done
+        if stopped:
+            entry["stopped"] = result.reason
+            self.stopping = self.stopping or result.reason
+            self.stopped_trial = trial
+            if self.runner.latched is None:  # its stop was not heard: the arm's latch holds
+                self.runner.heard_stop(True, result.reason)
         self.session.trials.add(entry)
+        outcome = "stopped: not counted" if stopped else result.outcome
         self.runner.say(f"trial {trial.number}/{self.total} ({trial.block} {trial.index}): "
-                        f"{result.outcome} in {result.t_total_s:.1f} s"
+                        f"{outcome} after {result.t_total_s:.1f} s"
+                        # why it held: the person, the plan or a fault of the stack
+                        + (f" ({result.reason})" if result.outcome == "hold" else "")
                         + (": it runs again" if self.again else ""))  # fmt: skip
         self.episode, self.actions, self.paused_s = result.episode + 1, [], 0.0
         last = trial.index == self.runner.blocks[trial.block].trials
         if self.end_block:
             self._skip_rest_of_block(trial)
-        if last or self.end_block:
+        if (last or self.end_block) and not stopped:
             self._ask_comfort(trial)
-        if result.episode == len(self.group) or self.again or self.end_block:
+        ends = self.again or self.end_block or self.stopping is not None
+        if result.episode == len(self.group) or ends:
             self._await_recorded()  # the stack stops next
-        if self.again or self.end_block:
-            assert self.stack is not None
-            self.stack.finish()
+        if ends:
+            self._finish()
 
     def _await_recorded(self) -> None:
         """Wait (bounded) until the recorder confirms every reach of this run on disk;
@@ -693,64 +585,69 @@ class StackRun:
         a restarted recorder (``part-NN-001.mcap``, ...)."""
         return recording_files(self.part)[-1]
 
-    def _skip_rest_of_block(self, after: Trial) -> None:
-        """Log the block's trials after ``after`` as skipped (the operator ended it)."""
-        why = self.end_block_why
-        for trial in self.group[self.group.index(after) + 1 :]:
-            self.session.trials.add({"trial": trial.number, "block": trial.block,
-                                     "block_position": trial.block_position,
-                                     "index": trial.index, "seed": trial.seed,
-                                     "practice": trial.practice, "utc": now_utc(),
-                                     "result": None, "skipped": why})  # fmt: skip
+    def _skip_rest_of_block(self, after: Trial | None) -> None:
+        """Log the block's trials after ``after`` (None: all of this run's) as skipped
+        (the operator ended the block)."""
+        first = 0 if after is None else self.group.index(after) + 1
+        for trial in self.group[first:]:
+            skipped = {"result": None, "skipped": self.end_block_why}
+            self.session.trials.add(trial_line(trial) | skipped)
 
     def _ask_comfort(self, trial: Trial) -> None:
         """The participant's comfort after the block, on the display: on the bus (the
         recording keeps it; the block's stack still runs) and in the events."""
         runner = self.runner
-        if runner.display is None or runner.protocol.comfort == "none":
+        if not runner._asks_comfort():
             return
-        answer = runner.display.ask_comfort(runner.comfort_timeout_s)
-        if answer is None:
-            self.session.events.add(runner.event("comfort", block=trial.block, rating=None))
-            runner.say(f"no comfort rating within {runner.comfort_timeout_s:.0f} s")
-            return
-        rating, asked_s = answer
-        rating_message = ComfortRating(header=self._header(ComfortRating, DISPLAY),
-                                       participant=runner.participant.id, block=trial.block,
-                                       trial=trial.number, rating=rating,
-                                       asked_s=asked_s)  # fmt: skip
-        self._send(rating_message, self.display_bus)
-        time.sleep(0.2)  # the recorder takes it before the stack stops
-        self.session.events.add(runner.event("comfort", block=trial.block, rating=rating,
-                                             asked_s=round(asked_s, 2)))  # fmt: skip
-        runner.say(f"comfort after {trial.block}: {rating} of 5")
+        time.sleep(self.setup.outcome_s)  # the block's last outcome shows as every other
+        answer = runner.ask_comfort(self.session, trial)
+        if answer is not None:
+            self._send(self._rating(trial, *answer), self.display_bus)
+            time.sleep(0.2)  # the recorder takes it before the stack stops
+
+    def _rating(self, trial: Trial, rating: int, asked_s: float) -> ComfortRating:
+        header = self._header(ComfortRating, DISPLAY)
+        return ComfortRating(header=header, participant=self.runner.participant.id,
+                             block=trial.block, trial=trial.number, rating=rating,
+                             asked_s=asked_s)  # fmt: skip
 
     # ---- the therapist's console ------------------------------------------------------
-    def _console(self) -> None:
-        while self.running.is_set():
-            line = self.runner.console.get(0.2)
-            if line is None or not line.strip():
-                continue
-            command = parse(line)
-            if isinstance(command, str):
-                self.runner.say(command)
-            else:
-                self.act(command)
+    def line(self, line: str) -> None:
+        """One console line while the stack runs."""
+        if not line.strip():
+            where = "reach under way" if self.under_way() else "between two reaches"
+            self.runner.say(f"console: trial {self.trial().number}, {where} (h for help)")
+            return
+        command = self.runner.command(line)
+        if command is not None:
+            self.act(command)
+
+    def trial(self) -> Trial:
+        """The trial under way, or the next one."""
+        return self.group[min(self.episode, len(self.group)) - 1]
 
     def act(self, command: Command) -> None:
-        """Carry out one console command on the reach under way, logged with who and why."""
+        """Carry out one console command on the reach under way, logged with who and why;
+        between two reaches, ending a trial is refused and ending the block acts at once."""
         runner, action = self.runner, command.action
         if action == "help":
             runner.say(HELP)
             return
-        trial = self.group[min(self.episode, len(self.group)) - 1]
+        trial = self.trial()
+        if action in ("skip", "again") and not self.under_way():
+            runner.say(f"console: {action} refused: no reach is under way (trial {trial.number} "
+                       "begins in a moment): type it again once it runs")  # fmt: skip
+            return
+        if action in ("pause", "resume", "skip", "again", "end-block") and self.stopping:
+            runner.say(f"console: {action} refused: the emergency stop ends this run")
+            return
         record = {"action": action, "who": runner.setup.operator, "why": command.why,
                   "utc": now_utc()}  # fmt: skip
         self.actions.append(record)
         self.session.events.add(runner.event("console", trial=trial.number, action=action,
                                              why=command.why))  # fmt: skip
         if action in ("stop", "release"):
-            self._stop(action, f"{runner.setup.operator}: {command.why}"[:200])
+            self._stop(action, f"{runner.setup.operator}: {command.why}"[:200].rstrip(": "))
         elif action == "pause" and self.paused_since is None:
             self.paused_since = time.monotonic()
             self._control("pause", command.why)
@@ -764,12 +661,43 @@ class StackRun:
             small = command.why.split()[:1] == ["small"]
             self._control("decide", command.why, u_h=1 if action == "forward" else -1,
                           human_model=2 if small else 1)  # fmt: skip
+        elif action == "end-block" and not self.under_way():
+            self._end_block_between(command)
         elif action in ("skip", "again", "end-block"):
             self.again = action == "again"
             if action == "end-block":
                 self.end_block, self.end_block_why = True, f"{runner.setup.operator}: {command.why}"
             self._control(action, command.why)  # each ends the reach; recorded as itself
         runner.say(f"console: {action} (trial {trial.number})")
+
+    def _end_block_between(self, command: Command) -> None:
+        """End the block between two reaches: the next reach is held (paused before it
+        begins), the block's remaining trials are logged skipped, the comfort question
+        asked (on a thread: the console answers meanwhile), then the run ends."""
+        self.end_block, self.end_block_why = True, f"{self.runner.setup.operator}: {command.why}"
+        self._control("pause", "the block ends")
+        done = self.group[self.episode - 2] if self.episode > 1 else None
+        self._skip_rest_of_block(done)
+
+        def close() -> None:
+            if done is not None or self.group[0].index > 1:  # a reach of the block was run
+                self._ask_comfort(self.group[-1])
+            self._await_recorded()
+            self._finish()
+
+        threading.Thread(target=close, daemon=True).start()
+
+    def _control(self, action: str, why: str, **decision: int) -> None:
+        self._send(SessionControl(header=self._header(SessionControl), episode=self.episode,
+                                  action=action, who=self.runner.setup.operator, why=why,
+                                  **decision))  # fmt: skip
+
+    def _header(self, message_type: type[Message], source: str = OPERATOR) -> Header:
+        """The next header of ``message_type``: one sequence per key and publisher, as
+        the recorder counts loss."""
+        self.sent[message_type] += 1
+        seq = self.sent[message_type] - 1
+        return Header(stamp_ns=time.time_ns(), seq=seq, source=source)
 
     def _stop(self, action: str, reason: str) -> None:
         """The emergency stop (or its release), sent until every arm confirms it (as
@@ -786,18 +714,6 @@ class StackRun:
             self.runner.say(f"console: {service} did not confirm the {action} within "
                             f"{STOP_CONFIRM_S:.0f} s: use the hardware stop")  # fmt: skip
 
-    def _control(self, action: str, why: str, **decision: int) -> None:
-        self._send(SessionControl(header=self._header(SessionControl), episode=self.episode,
-                                  action=action, who=self.runner.setup.operator, why=why,
-                                  **decision))  # fmt: skip
-
-    def _header(self, message_type: type[Message], source: str = OPERATOR) -> Header:
-        """The next header of ``message_type``: one sequence per key and publisher, as
-        the recorder counts loss."""
-        self.sent[message_type] += 1
-        seq = self.sent[message_type] - 1
-        return Header(stamp_ns=time.time_ns(), seq=seq, source=source)
-
     def _send(self, message: Message, session: Any = None) -> None:
         """Publish ``message`` on ``session`` (default: the operator's, the hub)."""
         session = self.hub if session is None else session
@@ -805,24 +721,6 @@ class StackRun:
             session.put(key(DEFAULT_NAMESPACE, type(message)), encode(message))
 
 
-def session_table(root: Path, participant: str | None = None) -> list[dict[str, Any]]:
-    """One row per session under ``root`` (one participant's, if given)."""
-    folders = [Participant(root, participant).folder] if participant else sorted(
-        p for p in root.glob("*") if (p / "participant.json").exists()
-    )  # fmt: skip
-    rows = []
-    for folder in folders:
-        for path in sorted(folder.glob("ses-*/session.json")):
-            session = SessionFolder(path.parent)
-            manifest, progress = session.read_manifest(), session.progress()
-            total = len(plan_trials(load_protocol(path.parent / "protocol.yaml"),
-                                    int(manifest.get("row", 0))))  # fmt: skip
-            successes = sum(bool((e.get("result") or {}).get("success"))
-                            for e in progress.done.values())  # fmt: skip
-            rows.append({"participant": folder.name, "session": path.parent.name,
-                         "protocol": manifest["setup"]["protocol"],
-                         "started": manifest.get("started", ""),
-                         "trials": f"{len(progress.done)}/{total}",
-                         "successes": successes,
-                         "state": "ended" if progress.ended else "unfinished"})  # fmt: skip
-    return rows
+def condition_intent(trial: Trial, setup: SetUp) -> str:
+    """Who decides ``trial``: its block's intent source, else the session's."""
+    return trial.condition.intent or setup.intent

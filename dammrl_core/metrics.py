@@ -28,7 +28,7 @@ class ReachMetrics:
 
     success: bool  # the button pressed and held for the dwell time (the task done)
     reached: bool  # the paper's criterion: ||x - x_g|| <= eps_g at some time before the end
-    outcome: str  # 'success', 'hold' or 'timeout'
+    outcome: str  # 'success', 'hold', 'timeout', or from outside: 'skipped', 'stopped'
     reason: str  # why the reach ended
     t_total_s: float  # start to goal acquisition (or to the end) [s]
     t_step_mean_s: float  # t_total / n_steps [s]

@@ -12,18 +12,26 @@ from __future__ import annotations
 
 import hashlib
 import json
+from collections.abc import Collection
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from types import UnionType
+from typing import Literal, Union, get_args, get_origin
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from dammrl_core.coadaptation import Targets
 from dammrl_core.errors import ConfigurationError
+from dammrl_core.models import HUMAN_MODELS, ROBOT_MODELS
 
 FORMAT: Literal[1] = 1
 """The protocol file format this version of dammrl reads."""
+MAX_TRIALS = 500
+"""Trials in a block at most: a stack run's trial numbers go into its recording's study
+tag, which fits the recorder's 4 KiB of metadata."""
+MAX_SEED = 2**31 - 1
+"""The largest task seed (the seed streams take 31 bits)."""
 
 
 class _Strict(BaseModel):
@@ -51,8 +59,13 @@ class Condition(_Strict):
             raise ValueError("a fixed policy needs its model [i, j], a learned one none")
         if self.targets is not None and self.policy != "adaptive":
             raise ValueError("targets are for an adaptive policy")
-        if self.model is not None and not all(1 <= m <= 9 for m in self.model):
-            raise ValueError(f"model {list(self.model)}: i and j count from 1")
+        if self.model is not None and (
+            self.model[0] not in HUMAN_MODELS or self.model[1] not in ROBOT_MODELS
+        ):
+            raise ValueError(
+                f"model {list(self.model)}: i (the human model) is one of "
+                f"{_listed(HUMAN_MODELS)}, j (the robot model) one of {_listed(ROBOT_MODELS)}"
+            )
         return self
 
 
@@ -77,7 +90,7 @@ class StudyTag(_Strict):
     block: str = Field(max_length=64, pattern=NAME)
     practice: bool = False
     condition: Condition | None = None  # None: recorded before the tag carried it
-    trials: list[int] = Field(min_length=1, max_length=500)  # the tag fits the recorder's 4 KiB
+    trials: list[int] = Field(min_length=1, max_length=MAX_TRIALS)
 
     @model_validator(mode="after")
     def _trial_numbers(self) -> StudyTag:
@@ -90,8 +103,8 @@ class Block(_Strict):
     """Trials under one condition, one reach each, seeds ``seed``, ``seed + 1``, ..."""
 
     name: str = Field(min_length=1, max_length=64, pattern=NAME)
-    trials: int = Field(ge=1, le=1000)
-    seed: int = Field(ge=0, lt=2**31)
+    trials: int = Field(ge=1, le=MAX_TRIALS)
+    seed: int = Field(ge=0, le=MAX_SEED)
     """The first trial's task seed (start and goal); held out from training by convention
     (the study's seeds start at 7,000,000)."""
     condition: Condition = Condition()
@@ -138,19 +151,170 @@ class Protocol(_Strict):
         return tuple(b for b in self.blocks if not b.practice)
 
 
+class ProtocolError(ConfigurationError):
+    """A protocol that cannot run: every problem found, one plain line each (``problems``),
+    each naming the field and what it allows."""
+
+    def __init__(self, source: Path | str, problems: list[str]) -> None:
+        self.problems = tuple(problems)
+        count = "1 problem" if len(problems) == 1 else f"{len(problems)} problems"
+        super().__init__(f"protocol {source}: {count}: " + "; ".join(problems))
+
+
 def load_protocol(path: Path) -> Protocol:
-    """Read and validate a protocol file (YAML or JSON); a ConfigurationError naming the
-    file and what is wrong."""
+    """Read and validate a protocol file (YAML or JSON); a ProtocolError listing every
+    problem of its structure (values out of range, unknown keys, bad names)."""
     try:
         raw = yaml.safe_load(path.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
-        raise ConfigurationError(f"protocol {path}: cannot read it: {_short(exc)}") from exc
+        raise ProtocolError(path, [f"cannot read it: {_short(exc)}"]) from exc
     if not isinstance(raw, dict):
-        raise ConfigurationError(f"protocol {path}: not a mapping of settings")
+        raise ProtocolError(path, ["not a mapping of settings (format, name, version, blocks)"])
     try:
         return Protocol.model_validate(raw)
-    except ValueError as exc:
-        raise ConfigurationError(f"protocol {path}: {_short(exc)}") from exc
+    except ValidationError as exc:
+        raise ProtocolError(path, plain_problems(exc, raw)) from exc
+
+
+def check_protocol(protocol: Protocol, intent_sources: Collection[str]) -> list[str]:
+    """What a valid protocol asks that cannot run here (one plain line each; [] when it
+    can): an intent source not installed, seeds past the largest."""
+    problems = []
+    for number, block in enumerate(protocol.blocks, start=1):
+        where = f"block {number} ({block.name})"
+        intent = block.condition.intent
+        if intent is not None and intent not in intent_sources:
+            problems.append(f"{where}: condition.intent {intent!r} is no installed intent "
+                            f"source; allowed: {', '.join(sorted(intent_sources))}")  # fmt: skip
+        last = block.seed + block.trials - 1
+        if last > MAX_SEED:
+            problems.append(f"{where}: seed {block.seed} with {block.trials} trials runs to "
+                            f"seed {last}; allowed: seeds up to {MAX_SEED}")  # fmt: skip
+    return problems
+
+
+def plain_problems(exc: ValidationError, raw: dict[str, object]) -> list[str]:
+    """A protocol's validation errors as plain lines: where (the block by number and
+    name, the field), what was given and what the field allows."""
+    lines = []
+    errors = exc.errors(include_url=False)
+    inner = {tuple(e["loc"])[:n] for e in errors for n in range(len(e["loc"]))}
+    for error in errors:
+        loc = tuple(error["loc"])
+        if error["type"] == "too_short" and loc in inner:
+            continue  # pydantic counts the items left after its own errors: no news
+        where = _where(loc, raw)
+        kind = error["type"]
+        if kind == "extra_forbidden":
+            allowed = ", ".join(_model_at(loc[:-1]).model_fields)
+            what = f"unknown key; allowed keys: {allowed}"
+        elif kind == "missing":
+            what = f"missing; it takes {_allowed(loc)}"
+        elif kind in ("value_error", "assertion_error") or not loc:
+            what = str(error["msg"]).removeprefix("Value error, ")
+        else:
+            what = f"{_shown(error.get('input'))} is not allowed; it takes {_allowed(loc)}"
+        lines.append(f"{where}: {what}" if where else what)
+    return lines
+
+
+def _where(loc: tuple[int | str, ...], raw: dict[str, object]) -> str:
+    """``block 2 (fixed): condition.trigger`` for ('blocks', 1, 'condition', 'trigger')."""
+    if len(loc) >= 2 and loc[0] == "blocks" and isinstance(loc[1], int):
+        blocks = raw.get("blocks")
+        entry = blocks[loc[1]] if isinstance(blocks, list) and loc[1] < len(blocks) else None
+        name = entry.get("name") if isinstance(entry, dict) else None
+        block = f"block {loc[1] + 1}" + (f" ({name})" if isinstance(name, str) else "")
+        rest = _dotted(loc[2:])
+        return f"{block}: {rest}" if rest else block
+    return _dotted(loc)
+
+
+def _dotted(loc: tuple[int | str, ...]) -> str:
+    text = ""
+    for part in loc:
+        text += f"[{part}]" if isinstance(part, int) else ("." if text else "") + part
+    return text
+
+
+def _field(loc: tuple[int | str, ...]) -> tuple[object, list[object]]:
+    """The annotation and the constraints of the protocol's field at ``loc``."""
+    annotation: object = Protocol
+    metadata: list[object] = []
+    for part in loc:
+        annotation = _optional(annotation)
+        if isinstance(part, str) and isinstance(annotation, type) and issubclass(
+            annotation, BaseModel
+        ):  # fmt: skip
+            info = annotation.model_fields.get(part)
+            if info is None:
+                return None, []
+            annotation, metadata = info.annotation, list(info.metadata)
+        elif isinstance(part, int) and get_origin(annotation) in (tuple, list):
+            args = get_args(annotation)
+            annotation = args[0] if args[-1] is Ellipsis or len(args) == 1 else args[part]
+            metadata = []
+    return _optional(annotation), metadata
+
+
+def _model_at(loc: tuple[int | str, ...]) -> type[BaseModel]:
+    annotation, _ = _field(loc)
+    return (
+        annotation
+        if isinstance(annotation, type) and issubclass(annotation, BaseModel)
+        else Protocol
+    )
+
+
+def _optional(annotation: object) -> object:
+    """``X`` for ``X | None``."""
+    if get_origin(annotation) in (Union, UnionType):
+        rest = [a for a in get_args(annotation) if a is not type(None)]
+        return rest[0] if len(rest) == 1 else annotation
+    return annotation
+
+
+def _allowed(loc: tuple[int | str, ...]) -> str:
+    """What the field at ``loc`` takes, in words."""
+    annotation, metadata = _field(loc)
+    bounds = {k: getattr(m, k) for m in metadata for k in ("ge", "gt", "le", "lt", "max_length")
+              if getattr(m, k, None) is not None}  # fmt: skip
+    origin, args = get_origin(annotation), get_args(annotation)
+    if origin is Literal:
+        return "one of " + ", ".join(str(a) for a in args)
+    if annotation is bool:
+        return "true or false"
+    if annotation in (int, float):
+        kind = "a whole number" if annotation is int else "a number"
+        low = bounds.get("ge", bounds.get("gt"))
+        high = bounds.get("le", bounds.get("lt"))
+        above = "" if "gt" not in bounds else " (above it)"
+        below = "" if "lt" not in bounds else " (below it)"
+        if low is not None and high is not None:
+            return f"{kind} from {low}{above} to {high}{below}"
+        return kind if low is None else f"{kind} of at least {low}{above}"
+    if annotation is str:
+        length = bounds.get("max_length")
+        pattern = next((getattr(m, "pattern", None) for m in metadata
+                        if getattr(m, "pattern", None)), None)  # fmt: skip
+        what = "letters, digits, '_', '.' and '-'" if pattern == NAME else "text"
+        return what + ("" if length is None else f" of at most {length} characters")
+    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+        return "a mapping of " + ", ".join(annotation.model_fields)
+    if origin in (tuple, list):
+        if args and args[-1] is not Ellipsis and len(args) > 1:
+            return f"a list of {len(args)} values"
+        return "a list"
+    return "another value"
+
+
+def _shown(value: object) -> str:
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def _listed(values: tuple[int, ...]) -> str:
+    return f"{values[0]}..{values[-1]}" if len(values) > 2 else ", ".join(map(str, values))
 
 
 def _short(exc: Exception) -> str:

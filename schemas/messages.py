@@ -176,7 +176,9 @@ class EpisodeResult(Message):
     model: tuple[HumanModel, RobotModel]
     success: bool = Field(description="the button pressed and held for the dwell time")
     reached: bool = Field(description="the paper's criterion ||x - x_g|| <= eps_g was met")
-    outcome: Literal["success", "hold", "timeout", "skipped"]
+    outcome: Literal["success", "hold", "timeout", "skipped", "stopped"] = Field(
+        description="stopped: an emergency stop ended the reach (a session does not count it)"
+    )
     reason: str = Field(max_length=500)
     t_total_s: Finite
     t_step_mean_s: Finite | None = Field(description="None when no step was taken")

@@ -24,21 +24,32 @@ CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 class Browser:
     """One headless Chromium showing ``url`` (software WebGL)."""
 
-    def __init__(self, url: str, width: int = 1280, height: int = 800) -> None:
+    def __init__(self, url: str, width: int = 1280, height: int = 800, webgl: bool = False
+                 ) -> None:  # fmt: skip
+        """``webgl``: software WebGL (SwiftShader: a core's worth of CPU, for a 3D page such
+        as viser's); without it the page draws on the CPU directly (the participant
+        display's 2D canvas: SwiftShader would make each of its frames cost tens of ms)."""
         assert CHROMIUM is not None, "chromium is not installed (apt-get install chromium)"
         self.port = free_port()
         self.profile = tempfile.mkdtemp(prefix="dammrl-chromium-")
+        graphics = (["--use-gl=angle", "--use-angle=swiftshader", "--enable-unsafe-swiftshader"]
+                    if webgl else ["--disable-gpu"])  # fmt: skip
         self.process = subprocess.Popen(
-            [CHROMIUM, "--headless", "--no-sandbox", "--use-gl=angle",
-             "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
+            [CHROMIUM, "--headless", "--no-sandbox", *graphics,
              f"--remote-debugging-port={self.port}", f"--user-data-dir={self.profile}",
-             f"--window-size={width},{height}", "--hide-scrollbars", url],
+             f"--window-size={width},{height}", "--hide-scrollbars",
+             # the page's timers as in a visible tab (a participant's screen is one)
+             "--disable-background-timer-throttling", "--disable-renderer-backgrounding",
+             "--disable-backgrounding-occluded-windows", url],
             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
         )  # fmt: skip
         self.ws = connect(self._page_socket(), max_size=None, open_timeout=10)
         self.next_id = 0
         self.events: list[dict[str, Any]] = []
         self.call("Page.enable")
+        # the page's viewport exactly: headless Chromium's window keeps some for itself
+        self.call("Emulation.setDeviceMetricsOverride", width=width, height=height,
+                  deviceScaleFactor=1, mobile=False)  # fmt: skip
 
     def _page_socket(self) -> str:
         deadline = time.monotonic() + 20
@@ -80,6 +91,14 @@ class Browser:
                 self.events.append(json.loads(self.ws.recv(timeout=left)))
             except TimeoutError:
                 return None
+
+    def open(self, url: str) -> None:
+        """Go to ``url`` (the scripts added before run in it from its first line)."""
+        self.call("Page.navigate", url=url)
+
+    def before_each_page(self, script: str) -> None:
+        """Run ``script`` in every page this browser loads, before the page's own."""
+        self.call("Page.addScriptToEvaluateOnNewDocument", source=script)
 
     def evaluate(self, expression: str) -> Any:
         result = self.call("Runtime.evaluate", expression=expression, returnByValue=True)

@@ -6,30 +6,17 @@ from __future__ import annotations
 import io
 import itertools
 import json
-import threading
 import time
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import Any
 
 import pytest
 
-from dammrl.console import parse
-from dammrl.launch import StackOptions
 from dammrl.session import JsonLines, SessionRunner, SetUp, check_participant, session_table
-from dammrl.stop import StopReport
-from dammrl_core.errors import ConfigurationError, DammrlError, JobFailedError, UsageError
+from dammrl_core.errors import ConfigurationError, DammrlError, UsageError
 from dammrl_core.protocol import balanced_latin_square, block_order, load_protocol, plan_trials
-from schemas import EpisodeRecorded, EpisodeResult, Header, SessionControl, decode
-
-PROTOCOL = """\
-format: 1
-name: two-blocks
-version: "1"
-blocks:
-  - {name: practice, practice: true, trials: 1, seed: 100}
-  - {name: event, trials: 3, seed: 200, condition: {trigger: event}}
-  - {name: fixed, trials: 3, seed: 200, condition: {trigger: fixed, policy: fixed, model: [2, 1]}}
-"""
+from schemas import SessionControl, decode
+from tests.sessionutil import PROTOCOL, ScriptedStack, ScriptedStopper, reset
 
 
 def _protocol(tmp_path: Path, text: str = PROTOCOL) -> Path:
@@ -106,84 +93,10 @@ def test_a_torn_last_log_line_is_skipped_and_counted(tmp_path: Path) -> None:
     assert log.read() == ([{"trial": 1}], 1)
 
 
-def _result(episode: int, seed: int, outcome: str = "success") -> EpisodeResult:
-    return EpisodeResult(  # type: ignore[arg-type]  # outcome: one of the Literal's
-        header=Header(stamp_ns=1, seq=episode, source="controller"), episode=episode,
-        seed=seed, trigger="event", model=(2, 1), success=outcome == "success", reached=True,
-        outcome=outcome, reason="button pressed", t_total_s=5.0, t_step_mean_s=0.5,
-        final_error_m=0.01, n_osc=1, n_osc_per_step=0.1, jerk_isj=1.0, sparc=-2.0, ldlj=-7.0,
-        human_error_rate=0.1, n_steps=10, n_decisions=10, button_pressed=True,
-        start_m=(0.3, 0, 0), goal_m=(0.5, 0, -0.2),
-    )  # fmt: skip
-
-
-class ScriptedStack:
-    """The launcher's part a session uses: episodes of the given seeds, results handed on;
-    ``crash_after`` results in all, it dies as a dead service makes it; ``console`` lines
-    are typed (to the run's console) before the reach of the given number in all."""
-
-    runs: ClassVar[list[StackOptions]] = []
-    crash_after: ClassVar[int | None] = None
-    given: ClassVar[int] = 0
-    console: ClassVar[dict[int, list[str]]] = {}
-    sent: ClassVar[list[Any]] = []
-    posterior: ClassVar[tuple[float, float] | None] = None
-    ack_after_s: ClassVar[float | None] = None  # the recorder's acknowledgements (None: none)
-
-    def __init__(self, options: StackOptions, out: Any, info: Any, on_result: Any,
-                 on_up: Any) -> None:  # fmt: skip
-        self.options, self.on_result, self.on_up = options, on_result, on_up
-        self.finishing = False
-
-    def put(self, key: str, payload: bytes) -> None:  # the hub session's
-        ScriptedStack.sent.append((key, payload))
-
-    def finish(self) -> None:
-        self.finishing = True
-
-    def run(self) -> int:
-        ScriptedStack.runs.append(self.options)
-        assert self.options.episodes is not None and self.options.record is not None
-        self.options.record.write_bytes(b"mcap")
-        stack_run = self.on_up.__self__
-        stack_run.hub = self  # as attach() does, without its console thread
-        stack_run.listening = ScriptedStack.ack_after_s is not None
-        for episode in range(1, self.options.episodes + 1):
-            if ScriptedStack.crash_after is not None and self.given >= self.crash_after:
-                raise JobFailedError("service controller exited unexpectedly with code -9")
-            ScriptedStack.given += 1
-            outcome = "success"
-            for line in ScriptedStack.console.get(ScriptedStack.given, []):
-                command = parse(line)
-                assert not isinstance(command, str)
-                stack_run.act(command)
-                outcome = "skipped" if command.action in ("skip", "again", "end-block") else outcome
-            if ScriptedStack.posterior is not None:  # the policy spoke of the person
-                stack_run.posterior = ScriptedStack.posterior
-            if ScriptedStack.ack_after_s is not None:
-                _acknowledge(stack_run, episode, ScriptedStack.ack_after_s)
-            self.on_result(_result(episode, self.options.seed + episode - 1, outcome))
-            if self.finishing:
-                break
-        return 0
-
-
-def _acknowledge(stack_run: Any, episode: int, after_s: float) -> None:
-    """The recorder's acknowledgement of ``episode``, ``after_s`` from now (on its own
-    thread, as the bus delivers it)."""
-    ack = EpisodeRecorded(header=Header(stamp_ns=1, seq=episode, source="recorder"),
-                          episode=episode, file=stack_run.part.name, result_seq=episode,
-                          states=100, complete=True)  # fmt: skip
-    threading.Timer(after_s, stack_run.recorded.take, args=(ack,)).start()
-
-
 @pytest.fixture
 def scripted(monkeypatch: pytest.MonkeyPatch) -> type[ScriptedStack]:
     monkeypatch.setattr("dammrl.session.Stack", ScriptedStack)
-    ScriptedStack.runs, ScriptedStack.crash_after, ScriptedStack.given = [], None, 0
-    ScriptedStack.console, ScriptedStack.sent, ScriptedStack.posterior = {}, [], None
-    ScriptedStack.ack_after_s = None
-    return ScriptedStack
+    return reset(ScriptedStack)
 
 
 def _runner(tmp_path: Path, **kwargs: Any) -> SessionRunner:
@@ -269,7 +182,7 @@ def test_a_calibration_given_once_is_kept_for_the_participants_next_sessions(
     tmp_path: Path, scripted: type[ScriptedStack]
 ) -> None:
     calibration = tmp_path / "pad.json"
-    calibration.write_text('{"threshold": 1}')
+    calibration.write_text('{"rest_raw": 400, "light_raw": 900, "firm_raw": 2000}')
     pad = SetUp(mode="semi-virtual", intent="pad", pad_port="/dev/ttyPAD",
                 calibration=calibration)  # fmt: skip
     assert _runner(tmp_path, setup=pad).run() == 0
@@ -277,7 +190,7 @@ def test_a_calibration_given_once_is_kept_for_the_participants_next_sessions(
     again = SetUp(mode="semi-virtual", intent="pad", pad_port="/dev/ttyPAD")
     assert _runner(tmp_path, setup=again, new=True).run() == 0
     used = scripted.runs[-1].calibration
-    assert used is not None and used.read_text() == '{"threshold": 1}'
+    assert used is not None and "light_raw" in used.read_text()
     assert (tmp_path / "sessions/P001/ses-02/calibration.json").exists()
 
 
@@ -285,9 +198,9 @@ def test_the_consoles_pause_skip_again_and_end_of_block_are_logged_and_counted(
     tmp_path: Path, scripted: type[ScriptedStack]
 ) -> None:
     """Reach 2 paused and resumed, reach 3 skipped, reach 4 run again, reach 6 ends its
-    block (the rest of it is skipped); the stop reaches the bus."""
+    block (the rest of it is skipped); tests/test_session_flow.py stops reaches."""
     scripted.console = {2: ["p the patient coughs", "r"], 3: ["s"], 4: ["a the arm slipped"],
-                        6: ["e tired", "x"]}  # fmt: skip
+                        6: ["e tired"]}  # fmt: skip
     assert _runner(tmp_path).run() == 0
     trials = _trials(tmp_path)
     by_trial: dict[int, list[dict[str, Any]]] = {}
@@ -304,47 +217,7 @@ def test_the_consoles_pause_skip_again_and_end_of_block_are_logged_and_counted(
     assert by_trial[6][0]["skipped"] == "operator: tired" and by_trial[6][0]["result"] is None
     assert sorted(by_trial) == list(range(1, 8))
     keys = [k for k, _ in scripted.sent]
-    assert "dammrl/safety/stop" in keys and keys.count("dammrl/session/control") == 5
-
-
-class _Stopper:
-    """The stop console a running stack gives the session's console."""
-
-    def __init__(self) -> None:
-        self.sent: list[tuple[bool, str]] = []
-        self.closed = False
-
-    def send(self, engaged: bool, reason: str, timeout_s: float) -> StopReport:
-        self.sent.append((engaged, reason))
-        return StopReport({"robot": 0.012}, [] if engaged else ["sim"])
-
-    def close(self) -> None:
-        self.closed = True
-
-
-def test_the_consoles_stop_is_sent_until_every_arm_confirms_it_and_says_so(
-    tmp_path: Path, scripted: type[ScriptedStack], monkeypatch: pytest.MonkeyPatch
-) -> None:
-    """x (one key) goes through the stop console opened with the stack (repeated until each
-    arm's Health confirms it, no start-up); what each arm said is told to the operator."""
-    said: list[str] = []
-    stopper = _Stopper()
-    original = ScriptedStack.run
-
-    def run_with_a_stopper(self: ScriptedStack) -> int:
-        self.on_up.__self__.stopper = stopper
-        return original(self)
-
-    monkeypatch.setattr(ScriptedStack, "run", run_with_a_stopper)
-    scripted.console = {2: ["x the patient is tired", "release"]}
-    runner = _runner(tmp_path)
-    runner.say = said.append
-    assert runner.run() == 0
-    assert stopper.sent == [(True, "operator: the patient is tired"), (False, "operator: ")]
-    assert "console: stop confirmed by robot after 12 ms" in said
-    assert "console: sim did not confirm the release within 2 s: use the hardware stop" in said
-    assert "dammrl/safety/stop" not in [k for k, _ in scripted.sent]  # not the one-off put
-    assert stopper.closed  # with the stack
+    assert keys.count("dammrl/session/control") == 5
 
 
 def test_the_persons_posterior_is_carried_to_the_next_run_and_session(
@@ -432,3 +305,22 @@ def test_the_consoles_again_and_end_of_block_go_on_the_bus_as_themselves(
     actions = [decode(SessionControl, payload).action for k, payload in scripted.sent
                if k == "dammrl/session/control"]  # fmt: skip
     assert actions == ["again", "end-block"]
+
+
+def test_the_consoles_stop_is_sent_until_every_arm_confirms_it_and_says_so(
+    tmp_path: Path, scripted: type[ScriptedStack]
+) -> None:
+    """x (one key) goes through the stop console opened with the stack (repeated until each
+    arm's Health confirms it, no start-up); what each arm said is told to the operator,
+    and an arm that did not confirm sends the operator to the hardware stop."""
+    said: list[str] = []
+    scripted.console = {2: ["x the patient is tired"]}
+    ScriptedStopper.silent = ["robot"]
+    runner = _runner(tmp_path)
+    runner.say = said.append
+    runner.run()
+    stopper = scripted.stopper
+    assert stopper is not None and stopper.sent[0] == (True, "operator: the patient is tired")
+    assert "console: stop confirmed by sim after 12 ms" in said
+    assert "console: robot did not confirm the stop within 2 s: use the hardware stop" in said
+    assert stopper.closed  # with the stack

@@ -17,7 +17,9 @@ from dammrl.cli.common import (
     print_err,
     print_out,
 )
-from dammrl_core.errors import Exit
+from dammrl.cli.session import display_port, outcome_seconds
+from dammrl.display.screens import OUTCOME_S
+from dammrl_core.errors import Exit, UsageError
 from schemas import DEFAULT_NAMESPACE, TOPICS
 
 LOCKSTEP_HELP = (
@@ -99,9 +101,16 @@ def _add_up(commands: Commands) -> None:
     up.add_argument("--record", type=Path, metavar="MCAP",
                     help="also run the recorder into this new file, in a folder that exists "
                          "(after a recorder restart: NAME-001.mcap, ...)")  # fmt: skip
-    up.add_argument("--display", type=int, nargs="?", const=8080, metavar="PORT",
+    up.add_argument("--display", type=display_port, nargs="?", const=8080, metavar="PORT",
                     help="serve the participant display at http://THIS-MACHINE:PORT "
                          "(default 8080)")  # fmt: skip
+    up.add_argument("--large-text", action="store_true",
+                    help="with --display: larger words on the participant display (they "
+                         "fill about 70%% of the screen instead of 58%%)")  # fmt: skip
+    up.add_argument("--outcome-s", type=outcome_seconds, metavar="S",
+                    help=f"with --display: how long each reach's outcome stays on the "
+                         f"display before the next reach begins [s] (0-30, default "
+                         f"{OUTCOME_S:g})")  # fmt: skip
     up.set_defaults(handler=_up)
 
 
@@ -109,6 +118,10 @@ def _up(args: argparse.Namespace) -> int:
     """Launch the stack; runs until the episodes are done, a signal, or a dead service."""
     from dammrl.launch import Stack, StackOptions, check_options
 
+    if args.display is None and (args.large_text or args.outcome_s is not None):
+        raise UsageError("--large-text and --outcome-s are the participant display's: "
+                         "give --display with them")  # fmt: skip
+    outcome_s = OUTCOME_S if args.outcome_s is None else args.outcome_s
     options = StackOptions(
         mode=args.mode, episodes=args.episodes, seed=args.seed, model=args.model,
         trigger=args.trigger, port=args.bus_port, namespace=args.namespace, json=args.json,
@@ -118,6 +131,7 @@ def _up(args: argparse.Namespace) -> int:
         lockstep=args.lockstep, credentials=args.credentials, insecure=args.insecure,
         robot_port=args.robot_port, robot_calibration=args.robot_calibration,
         emulate_robot=args.emulate_robot,
+        outcome_hold_s=0.0 if args.display is None else outcome_s,  # the page shows it
     )  # fmt: skip
     check_options(options)  # before anything starts, the display's server included
     if args.display is None:
@@ -127,7 +141,7 @@ def _up(args: argparse.Namespace) -> int:
     from services.common.security import DISPLAY
 
     intent = args.intent or ("pad" if args.port else "lsl" if args.stream else "simulated")
-    display = open_display("0.0.0.0", args.display, intent)
+    display = open_display("0.0.0.0", args.display, intent, args.large_text)
     try:
         feed = BusFeed(display, args.namespace)
         stack = Stack(options, out=print_out, info=print_err,

@@ -117,6 +117,9 @@ class ControllerSettings(Settings):
     service that joined late or restarted answers it [s]."""
     choice_wait_s: float = Field(0.2, gt=0, le=10)
     """How long the human's answer waits for the policy's choice of the same request [s]."""
+    outcome_hold_s: float = Field(0.0, ge=0, le=30)
+    """Between a reach's result and the next reach's goal [s] (0-30): the participant
+    display shows the outcome meanwhile (a session holds it 2 s by default)."""
     human_model: int = Field(1, ge=1, le=2)
     """Model used until the policy's first ModelChoice arrives (i: 1 = E_big)."""
     robot_model: int = Field(1, ge=1, le=8)

@@ -29,10 +29,12 @@ from dammrl_core.ik import make_ik_solver
 from dammrl_core.metrics import episode_summary
 from dammrl_core.models import ModelSet
 from dammrl_core.robot import RobotSettings
+from dammrl_core.safety import StopLatch
 from dammrl_core.task import TaskSettings
 from schemas import (
     ENDS_REACH,
     DecisionRequest,
+    EmergencyStop,
     EpisodeResult,
     Intent,
     JointCommand,
@@ -100,13 +102,17 @@ class ControllerNode:
         self.asks = bus.publisher(DecisionRequest)
         self.goals = bus.publisher(TaskGoal)
         self.results = bus.publisher(EpisodeResult)
-        bus.subscribe(RobotState, Intent, ModelChoice, SessionControl)
+        bus.subscribe(RobotState, Intent, ModelChoice, SessionControl, EmergencyStop)
         bus.expect(RobotState, "sim", "robot")  # the simulated or the real arm
         bus.expect(Intent, "intent")
         bus.expect(ModelChoice, "policy")
         bus.expect(SessionControl, OPERATOR)  # the session's console
+        bus.expect(EmergencyStop, OPERATOR)  # `dammrl stop`, the console's x
         self.pause = Pause()  # the therapist's pauses of the running reach
         self.last_command: core.JointCommand | None = None  # the last command sent
+        self.stop_latch = StopLatch()  # no reach runs, and no goal goes out, while stopped
+        self.next_due_s: float | None = None  # when the next reach may begin (its outcome held)
+        self.held_next = ""  # who paused the session between two reaches (the next waits)
 
     @property
     def reach(self) -> Reach | None:
@@ -114,12 +120,15 @@ class ControllerNode:
 
     def run(self, stop: threading.Event) -> None:
         self._wait_for_peers(stop)
-        self._next_episode()
+        self.next_due_s = time.monotonic()  # the first reach: at once, unless stopped
         while not stop.is_set():
             self._dispatch_all(self.bus.receive_all(0.02))
             self._watch()
-            holding = self.pause.paused or (
-                self.reach is not None and self.reach.controller.hold_reason is not None
+            holding = (
+                self.pause.paused
+                or self.stop_latch.engaged
+                or bool(self.held_next)
+                or (self.reach is not None and self.reach.controller.hold_reason is not None)
             )
             self.bus.report_health("holding" if holding else "ok", self._waiting_for())
 
@@ -140,6 +149,10 @@ class ControllerNode:
         """What the controller waits for, and since when; states it had to skip (Health
         detail)."""
         late = f"{self.superseded} states superseded before answered"
+        if self.stop_latch.reason is not None:
+            return f"{self.stop_latch.reason}: the next reach waits for its release; {late}"
+        if self.held_next:
+            return f"paused by {self.held_next} before reach {self.number + 1}; {late}"
         if self.pause.paused:
             return f"paused by the session's console; {late}"
         if self.reach is not None and self.reach.asked:
@@ -160,6 +173,8 @@ class ControllerNode:
             if isinstance(message, ModelChoice):
                 self.choice = (message.human_model, message.robot_model)
                 spoke = True
+            elif isinstance(message, EmergencyStop):
+                self._take_stop(message)
             human = "intent" in self.bus.alive_peers()
             if spoke and human:
                 return
@@ -192,6 +207,8 @@ class ControllerNode:
             self._take_answer(message)
         elif isinstance(message, SessionControl):
             self._take_control(message)
+        elif isinstance(message, EmergencyStop):
+            self._take_stop(message)
 
     def _take_answer(self, message: Intent | ModelChoice) -> None:
         asked = self.reach is not None and self.reach.asked
@@ -203,7 +220,11 @@ class ControllerNode:
 
     def _on_state(self, message: RobotState, answer: bool = True) -> None:
         plan = self.plan
-        if plan is None or message.episode != self.number:
+        if message.episode != self.number:
+            return
+        if plan is None:  # between reaches, or after the last: it holds where it was left
+            if answer and not self.stop_latch.engaged:
+                self._hold_paused(message.header.stamp_ns)
             return
         if (reason := self._implausible_time(message.t_s)) is not None:
             self.bus.reject(self.bus.key(RobotState), reason)
@@ -231,6 +252,8 @@ class ControllerNode:
                                               self.choice[0]))  # fmt: skip
             if self.bus.settings.lockstep:
                 self._await_answer()
+                if self.plan is not plan:
+                    return  # a stop ended the reach while it waited
         if tick.command is not None:
             self.last_command = tick.command
             self.commands.send(convert.command_message(
@@ -243,7 +266,7 @@ class ControllerNode:
             self._finish()
 
     def _hold_paused(self, state_stamp_ns: int) -> None:
-        """Paused: the arm holds the last reference at rest."""
+        """Paused (or between two reaches): the arm holds the last reference at rest."""
         self.last_state_s = time.monotonic()
         if self.last_command is None:
             return  # no reference yet: the arm holds its start as it does unasked
@@ -252,10 +275,27 @@ class ControllerNode:
             self.commands.stamp(), hold, self.number, state_stamp_ns
         ))  # fmt: skip
 
+    def _take_stop(self, stop: EmergencyStop) -> None:
+        """An emergency stop ends the running reach at once (outcome ``stopped``: the arm
+        may be moved by hand meanwhile, so the reach never goes on from its plan) and holds
+        back the next reach's goal until the release."""
+        if not self.stop_latch.take(stop.engaged, stop.header.source, stop.reason):
+            return
+        reach = self.reach
+        if self.stop_latch.reason is None:
+            log.warning("emergency stop released by %s", stop.header.source)
+        elif reach is not None and reach.ended is None:
+            log.warning("%s: reach %d ended", self.stop_latch.reason, self.number)
+            reach.end("stopped", self.stop_latch.reason, self.pause.reach_time(self.last_t))
+            self._finish()
+
     def _take_control(self, control: SessionControl) -> None:
         """The therapist's pause, resume or skip of the running reach (another episode's
-        is late: ignored)."""
+        is late: ignored); a pause between two reaches holds the next one back."""
         reach = self.reach
+        if reach is None and control.episode == self.number + 1 and self.next_due_s is not None:
+            self._hold_next(control)
+            return
         if reach is None or control.episode != self.number or reach.ended is not None:
             log.info("%s of episode %d ignored: not running", control.action, control.episode)
             return
@@ -268,6 +308,15 @@ class ControllerNode:
             self.pause.end(self.last_t)
             reach.end("skipped", f"skipped by {who}", self.pause.reach_time(self.last_t))
             self._finish()
+
+    def _hold_next(self, control: SessionControl) -> None:
+        """A pause or resume between two reaches: the next reach waits for the resume."""
+        if control.action == "pause" and not self.held_next:
+            self.held_next = control.who + (f": {control.why}" if control.why else "")
+            log.warning("paused by %s before reach %d", self.held_next, self.number + 1)
+        elif control.action == "resume" and self.held_next:
+            self.held_next = ""
+            log.warning("resumed by %s before reach %d", control.who, self.number + 1)
 
     def _implausible_time(self, t_s: float) -> str | None:
         """Why a state's robot time cannot follow the last one (a forged or stray state).
@@ -294,6 +343,8 @@ class ControllerNode:
             message = self.bus.receive(min(remaining, 0.01))
             if isinstance(message, Intent | ModelChoice):
                 self._take_answer(message)
+            elif isinstance(message, EmergencyStop):
+                self._take_stop(message)  # it may end the reach: the loop ends with it
             self._answer_if_complete()
             self._resend_if_unanswered()
 
@@ -310,10 +361,16 @@ class ControllerNode:
 
     # ---- episodes -----------------------------------------------------------------
     def _watch(self) -> None:
-        """Announce the running episode until it starts; end it when the state is stale."""
+        """Begin the next reach once its predecessor's outcome was held (not while stopped
+        or paused); announce the running episode until it starts; end it when the state
+        is stale."""
         now = time.monotonic()
         if self._stalled_itself(now):
             return
+        due = self.next_due_s is not None and now >= self.next_due_s
+        if due and not self.stop_latch.engaged and not self.held_next:
+            self.next_due_s = None
+            self._next_episode()
         self._answer_if_complete()
         self._resend_if_unanswered()
         if (
@@ -378,7 +435,8 @@ class ControllerNode:
             "episode %d: %s (%s) in %.1f s",
             self.number, metrics.outcome, metrics.reason, metrics.t_total_s,
         )  # fmt: skip
-        self._next_episode()
+        self.plan = None  # the next reach begins in _watch, once the outcome was held
+        self.next_due_s = time.monotonic() + self.settings.outcome_hold_s
 
 
 def main(argv: Sequence[str] | None = None) -> int:
