@@ -156,9 +156,10 @@ def test_seeds_train_in_parallel_with_the_numbers_of_one_process(tmp_path: Path)
     greedy = LearnedPolicy(ModelSet(), tmp_path / "seeds/seed-1/checkpoint.pt")  # a study's
     full = LearnedPolicy(ModelSet(), tmp_path / "two/seed-1/checkpoint.pt")
     observation = np.linspace(0.1, 0.5, 16, dtype=np.float32)
-    assert greedy.network.human(torch.from_numpy(observation)).tolist() == full.network.human(
-        torch.from_numpy(observation)
-    ).tolist()
+    assert (
+        greedy.network.human(torch.from_numpy(observation)).tolist()
+        == full.network.human(torch.from_numpy(observation)).tolist()
+    )
     shipped_size = (tmp_path / "seeds/seed-1/checkpoint.pt").stat().st_size
     assert shipped_size < (tmp_path / "two/seed-1/checkpoint.pt").stat().st_size
     assert {p.name for p in (tmp_path / "seeds/seed-1").iterdir()} == {

@@ -174,7 +174,8 @@ NOT_JUDGED = (
 class Check:
     key: str  # stable id
     quote: str  # the paper's words this check tests
-    text: str  # how they are tested, with the numbers
+    what: str  # how they are tested
+    text: str  # ... with the numbers
     side: Side
     bound: float
     test: SignTest
@@ -316,8 +317,9 @@ class Rule:
 
     @property
     def key(self) -> str:
-        against = self.b if self.metric_b is None else f"{self.b}:{self.metric_b}"
-        return f"{self.claim}/{self.metric}/{self.a}" + (f"-{against}" if self.b else "")
+        if self.metric_b is not None:  # two figures of one configuration
+            return f"{self.claim}/{self.metric}-{self.metric_b}/{self.a}"
+        return f"{self.claim}/{self.metric}/{self.a}" + (f"-{self.b}" if self.b else "")
 
 
 def _check(t: Table, rule: Rule) -> Check:
@@ -332,7 +334,7 @@ def _check(t: Table, rule: Rule) -> Check:
     bound = f"{rule.bound * rule.scale:g}{rule.unit}"
     text = (f"{rule.what}: {compared} {rule.side} {bound}: "
             f"{test.text(rule.scale, rule.digits, _unit_name(t, rule))}{rule.unit}")  # fmt: skip
-    return Check(rule.key, rule.quote, text, rule.side, rule.bound, test)
+    return Check(rule.key, rule.quote, rule.what, text, rule.side, rule.bound, test)
 
 
 def _unit_name(t: Table, rule: Rule) -> str:
@@ -442,10 +444,11 @@ def _settled(reward: str, agent: str, runs: list[dict[str, np.ndarray]]) -> Chec
     +-SETTLED_SHARE of the curve's fastest move."""
     moves = np.array([settling(run[f"q_{agent}"]) for run in runs])
     test = equivalence_test(moves, -SETTLED_SHARE, SETTLED_SHARE)
-    text = (f"{agent} agent settled in {reward}: last-tenth move / fastest move within "
-            f"+-{SETTLED_SHARE}: {test.text(1, 3, 'training runs')}")  # fmt: skip
-    return Check(f"C6/{reward}/{agent}", "both models have converged during training", text,
-                 "below", SETTLED_SHARE, test)  # fmt: skip
+    what = (f"the {agent} agent's Q-value curve settled in {reward}: its last-tenth move "
+            f"within +-{SETTLED_SHARE} of its fastest move")  # fmt: skip
+    text = f"{what}: {test.text(1, 3, 'training runs')}"
+    return Check(f"C6/{reward}/{agent}", "both models have converged during training", what,
+                 text, "below", SETTLED_SHARE, test)  # fmt: skip
 
 
 def settling(curve: np.ndarray, window: float = TRAINING_WINDOW) -> float:

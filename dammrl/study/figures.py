@@ -46,7 +46,9 @@ def describe(rows: list[dict[str, Any]], metric: str, rate: bool = False) -> Est
         return t_interval(np.empty(0))
     values = np.array([float(r[metric]) for r in kept])
     if max(int(r.get("runs") or 0) for r in kept) > 1:
-        return t_interval(unit_values(values, np.array([int(r.get("run") or 0) for r in kept])))
+        runs = np.array([int(r.get("run") or 0) for r in kept])
+        e = t_interval(unit_values(values, runs))
+        return Estimate(e.value, max(e.low, 0.0), min(e.high, 1.0), e.n) if rate else e
     if rate:
         return wilson(int(values.sum()), values.size)
     return t_interval(values)

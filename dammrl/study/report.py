@@ -186,30 +186,25 @@ def _verdict_cell(result: StudyResult, condition: str, criterion: Criterion, k: 
 
 
 def _flips(result: StudyResult) -> str:
-    """Every check that passes on some seed sets only, and every one whose median lies on
-    both sides of its bound (a reversal when intervals on both sides exclude it)."""
+    """Per condition and criterion: the checks that pass on some seed sets only (with each
+    set's mark), those whose median lies on both sides of the bound, and the reversals
+    among them (intervals on both sides excluding the bound)."""
     if result.options.sets < 2:
         return "One seed set: no stability to judge."
     lines = []
     for condition in result.options.conditions:
         for criterion in CRITERIA:
-            for k, claim in enumerate(result.claims(condition, criterion)):
+            flips, signs, reversals = [], [], []
+            for k in range(len(result.claims(condition, criterion))):
                 found = result.stability(condition, criterion, k)
-                for check in claim.checks:
-                    flags = []
-                    if check.key in found.flips:
-                        flags.append("flips (" + "".join(_mark(result, condition, criterion, k,
-                                                               check.key)) + ")")  # fmt: skip
-                    if check.key in found.reversals:
-                        flags.append("**reverses** (intervals on both sides of the bound)")
-                    elif check.key in found.sign_changes:
-                        flags.append("changes sign (the median crosses the bound)")
-                    if flags:
-                        lines.append(f"- {condition}, {criterion}, {check.key}: "
-                                     f"{'; '.join(flags)}")  # fmt: skip
-    if not lines:
-        return ("No check flips between the seed sets and none changes sign: every cell is "
-                "stable.")  # fmt: skip
+                flips += [f"{key} ({''.join(_mark(result, condition, criterion, k, key))})"
+                          for key in found.flips]  # fmt: skip
+                signs += [key for key in found.sign_changes if key not in found.reversals]
+                reversals += list(found.reversals)
+            parts = [f"flip: {', '.join(flips) or 'none'}",
+                     f"**reverse** (intervals on both sides): {', '.join(reversals) or 'none'}",
+                     f"median on both sides: {', '.join(signs) or 'none'}"]  # fmt: skip
+            lines.append(f"- {condition}, {criterion}: " + "; ".join(parts))
     return "\n".join(lines)
 
 
@@ -229,7 +224,7 @@ def _statements(result: StudyResult) -> str:
              "tested |", "|---|---|---|"]  # fmt: skip
     claims = result.claims(result.options.conditions[0])
     for claim in claims:
-        checks = "<br>".join(f'"{c.quote}" → {c.text.split(":")[0]}' for c in claim.checks)
+        checks = "<br>".join(f'"{c.quote}" → {c.what}' for c in claim.checks)
         lines.append(f"| {claim.key} | {STATEMENTS[claim.key][1]} | {checks or 'not tested'} |")
     lines += ["", f"Not judged: {NOT_JUDGED}", "", registry.identity(),
               " The thresholds and why each: `dammrl/study/claims.py`."]  # fmt: skip

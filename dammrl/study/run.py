@@ -55,7 +55,7 @@ class Job:
 @dataclass(frozen=True)
 class Record:
     """What a study keeps of one reach: a flat row of numbers, the decisions, and (a
-    measured condition) the IK latencies that entered its simulated time."""
+    condition that times each solve) the IK latencies that entered its simulated time."""
 
     row: dict[str, Any]
     steps: np.ndarray  # (n, 2) per micro-step: distance to the goal [m], mean step [m]
@@ -66,8 +66,8 @@ def run_job(job: Job) -> Record:
     """One reach, in whatever process this is (cores and policies built once per process)."""
     result = reach(job)
     tolerance = _runner(CONDITIONS[job.condition], job.configuration).settings.task.goal_tolerance_m
-    measured = CONDITIONS[job.condition].measured
-    latencies = tuple(result.ik_latencies_s) if measured else None
+    timed = CONDITIONS[job.condition].solves_timed  # each solve's own time: kept
+    latencies = tuple(result.ik_latencies_s) if timed else None
     return Record(reach_row(result, identity(job), job.configuration.policy.runs, tolerance),
                   steps_of(result), latencies)  # fmt: skip
 

@@ -144,8 +144,10 @@ class StudyResult:
 
     @property
     def latencies(self) -> dict[str, tuple[float, ...]]:
-        """The IK latencies of every reach of a measured condition (to save and replay)."""
-        return {_latency_key(r.row): r.ik_latencies for r in self.records
+        """The IK latencies of every reach of a condition measured on this computer (to
+        save and replay; the reference machine's are the same on any)."""
+        measured = [r for r in self.records if CONDITIONS[r.row["condition"]].measured]
+        return {_latency_key(r.row): r.ik_latencies for r in measured
                 if r.ik_latencies is not None}  # fmt: skip
 
 
