@@ -383,6 +383,14 @@ def test_dammrl_study_writes_the_report_the_table_and_the_generated_sections(
     saved = load_latencies(out / "ik_latencies.json.gz")
     assert load_latencies(tmp_path / "again" / "ik_latencies.json.gz") == saved
     assert sorted({key.split("/")[0] for key in saved}) == ["ikpy-measured"] and len(saved) == 8
+    from dammrl.cli import main
+    from dammrl.study.report import RANGES
+
+    results.write_text(f"# x\n{RANGES[0]}\nold\n{RANGES[1]}\n")
+    assert main(["verdicts", str(out), str(tmp_path / "again"), "--results", str(results)]) == 0
+    assert (
+        "| nominal | press | C1 |" in results.read_text() and "\nold\n" not in results.read_text()
+    )
 
 
 def test_the_reference_machines_ikpy_timing_does_not_depend_on_this_computer(
@@ -579,3 +587,36 @@ def test_a_killed_study_leaves_no_process(tmp_path: Path, how: str) -> None:
             if _running(pid):
                 os.kill(pid, signal.SIGKILL)
         study.wait(timeout=30)
+
+
+def _document(start: int, verdict: str, stable: bool) -> dict[str, Any]:
+    claim = {"claim": "C2", "statement": "s", "verdict": verdict,
+             "checks": [{"key": "C2/x", "passed": verdict == "holds"}]}  # fmt: skip
+    return {"seeds": [start, start + 300], "sets": 3, "command": f"dammrl study {start}",
+            "cells": [{"condition": "nominal", "criterion": "press", "stable": [stable],
+                       "all": [claim], "sets": []}]}  # fmt: skip
+
+
+def test_a_finding_is_the_same_verdict_on_every_range_and_stable_within_each() -> None:
+    from dammrl.study.report import side_by_side
+
+    agree = side_by_side([_document(7_300_000, "holds", True), _document(7_400_000, "holds", True)])
+    assert "holds (1/1), stable | holds (1/1), stable | **yes** |" in agree
+    assert "7,300,000-7,300,299" in agree and "dammrl study 7400000" in agree
+    differ = side_by_side([_document(7_300_000, "holds", True),
+                           _document(7_400_000, "does not hold", True)])  # fmt: skip
+    unstable = side_by_side([_document(7_300_000, "holds", True),
+                             _document(7_400_000, "holds", False)])  # fmt: skip
+    assert differ.rstrip().splitlines()[2].endswith("| no |")
+    assert unstable.splitlines()[2].endswith("| no |")
+
+
+def test_saved_verdicts_that_are_not_a_studys_fail_in_one_line(tmp_path: Path) -> None:
+    from dammrl.study.report import load_verdicts
+
+    bad = tmp_path / "verdicts.json"
+    bad.write_text('{"format": 1, "cells": [{"condition": "nominal"}]}')
+    with pytest.raises(UsageError, match="is not a study's saved verdicts: 'criterion'"):
+        load_verdicts(tmp_path)
+    with pytest.raises(UsageError, match="is not a study's saved verdicts"):
+        load_verdicts(tmp_path / "missing.json")

@@ -15,7 +15,20 @@ DEFAULT_SEEDS, DEFAULT_SETS = "120", 3  # 3 x 40 seeds: the default study in ~15
 
 
 def register(commands: Commands) -> None:
-    """Add ``study``."""
+    """Add ``study`` and ``verdicts``."""
+    verdicts = commands.add_parser(
+        "verdicts",
+        help="saved studies' verdicts side by side: which are findings",
+        description="Set the verdicts of studies on disjoint seed ranges side by side (each "
+        "study's verdicts.json, written by dammrl study): a verdict is a finding when it is "
+        "the same on every range and stable within each.",
+    )
+    verdicts.add_argument("studies", type=Path, nargs="+", metavar="STUDY",
+                          help="a study's folder (or its verdicts.json)")  # fmt: skip
+    verdicts.add_argument("--results", type=Path, action="append", default=[], metavar="PAGE",
+                          help="also regenerate this page's side-by-side section (the "
+                          "ranges markers)")  # fmt: skip
+    verdicts.set_defaults(handler=_verdicts)
     study = commands.add_parser(
         "study",
         help="the paper's comparison: every configuration, claims C1-C6, report",
@@ -178,4 +191,17 @@ def _study(args: argparse.Namespace) -> int:
             ]  # fmt: skip
             print(f"{condition} ({criterion}): " + ", ".join(verdicts))
     print(f"report: {report}")
+    return 0
+
+
+def _verdicts(args: argparse.Namespace) -> int:
+    from dammrl.study.report import RANGES, check_page, load_verdicts, side_by_side, update_ranges
+
+    for page in args.results:
+        check_page(page, (RANGES,))
+    table = side_by_side([load_verdicts(path) for path in args.studies])
+    for page in args.results:
+        update_ranges(page, table)
+        print_err(f"ranges section of {page} regenerated")
+    print(table)
     return 0
