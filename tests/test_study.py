@@ -503,6 +503,8 @@ def test_workers_return_in_order_and_progress_counts_whole_batches() -> None:
     results = list(map_jobs(_square, list(range(200)), 2, progress=ticks.append, batch=4))
     assert results == [x * x for x in range(200)]
     assert sum(ticks) == 200 and set(ticks) == {4}  # 200 // (2 * 16) = 6 -> batches of 4
+    finished = list(map_jobs(_square, list(range(40)), 2, batch=1, in_order=False))
+    assert sorted(finished) == [x * x for x in range(40)]  # as each finishes (training)
 
 
 def test_a_study_runs_its_reaches_in_a_mixed_order() -> None:

@@ -174,24 +174,31 @@ def map_jobs(
     ray: str | None = None,
     progress: Progress | None = None,
     batch: int = 16,
+    in_order: bool = True,
 ) -> Iterator[R]:
-    """``function`` of every job, in the jobs' order: on a Ray cluster when ``ray`` is an
-    address ("local": a local instance), else on ``workers`` processes of this machine (1:
-    in this process). ``progress`` hears of each batch as it finishes, in whatever order.
-    Jobs must be pure: the results do not depend on where they ran. A ``kill`` (SIGTERM)
-    or Ctrl-C ends every worker before this process ends; a worker whose parent died
-    ends itself."""
+    """``function`` of every job, in the jobs' order (``in_order=False``: as each batch
+    finishes): on a Ray cluster when ``ray`` is an address ("local": a local instance),
+    else on ``workers`` processes of this machine (1: in this process). ``progress`` hears
+    of each batch as it finishes. Jobs must be pure: the results do not depend on where
+    they ran. A ``kill`` (SIGTERM) or Ctrl-C ends every worker before this process ends;
+    a worker whose parent died ends itself."""
     if ray is not None:
-        yield from _map_ray(function, jobs, ray, progress, batch)
+        yield from _map_ray(function, jobs, ray, progress, batch, in_order)
     elif workers <= 1:
         for job in jobs:
             yield _tick(function(job), progress)
     else:
-        yield from _map_processes(function, jobs, workers, progress, batch)
+        yield from _map_processes(function, jobs, workers, progress, batch, in_order)
 
 
-def _map_processes(function: Callable[[J], R], jobs: Sequence[J], workers: int,
-                   progress: Progress | None, batch: int) -> Iterator[R]:  # fmt: skip
+def _map_processes(
+    function: Callable[[J], R],
+    jobs: Sequence[J],
+    workers: int,
+    progress: Progress | None,
+    batch: int,
+    in_order: bool,
+) -> Iterator[R]:
     # batches small enough that progress moves (a first estimate from one batch of 16 slow
     # reaches was hours off), large enough that a reach's process start-up is amortised
     size = max(1, min(batch, len(jobs) // (workers * 16)))
@@ -205,7 +212,7 @@ def _map_processes(function: Callable[[J], R], jobs: Sequence[J], workers: int,
         with _terminate_raises():
             futures = {pool.submit(_run_batch, function, list(chunk)): k
                        for k, chunk in enumerate(_batches(jobs, size))}  # fmt: skip
-            yield from _in_order(futures, lambda f: f.result(), _wait_first, progress)
+            yield from _collect(futures, lambda f: f.result(), _wait_first, progress, in_order)
     except BaseException:  # a kill, Ctrl-C, a failed job, or the caller stopped early
         _end_workers(pool)
         raise
@@ -217,13 +224,15 @@ def _wait_first(pending: set[Any]) -> tuple[set[Any], set[Any]]:
     return set(done), set(left)
 
 
-def _in_order(
+def _collect(
     futures: dict[Any, int],
     result: Callable[[Any], list[R]],
     wait_first: Callable[[set[Any]], tuple[set[Any], set[Any]]],
     progress: Progress | None,
+    in_order: bool,
 ) -> Iterator[R]:
-    """The batches' results in their order, each batch's progress told when it finishes."""
+    """The batches' results in their order (or as they finish), each batch's progress told
+    when it finishes."""
     finished: dict[int, list[R]] = {}
     pending, next_batch = set(futures), 0
     while pending:
@@ -232,6 +241,8 @@ def _in_order(
             finished[futures[future]] = results = result(future)
             if progress is not None:
                 progress(len(results))
+            if not in_order:
+                yield from finished.pop(futures[future])
         while next_batch in finished:
             yield from finished.pop(next_batch)
             next_batch += 1
@@ -305,7 +316,7 @@ def _tick(result: R, progress: Progress | None, n: int = 1) -> R:
 
 
 def _map_ray(function: Callable[[J], R], jobs: Sequence[J], address: str,
-             progress: Progress | None, batch: int) -> Iterator[R]:  # fmt: skip
+             progress: Progress | None, batch: int, in_order: bool) -> Iterator[R]:  # fmt: skip
     try:
         import ray
     except ImportError as exc:  # an optional dependency
@@ -326,7 +337,7 @@ def _map_ray(function: Callable[[J], R], jobs: Sequence[J], address: str,
             done, left = ray.wait(list(pending), num_returns=1)
             return set(done), set(left)
 
-        yield from _in_order(futures, ray.get, wait_first, progress)
+        yield from _collect(futures, ray.get, wait_first, progress, in_order)
     finally:
         if started:
             ray.shutdown()

@@ -145,7 +145,8 @@ def run_training(
         progress(len(done))
     todo = [job for job in jobs if job.out not in done]
     results = list(done.values())
-    for result in map_jobs(train_and_evaluate, todo, workers, ray, progress, batch=1):
+    for result in map_jobs(train_and_evaluate, todo, workers, ray, progress, batch=1,
+                           in_order=False):  # fmt: skip
         write_run(result)
         results.append(result)
     order = {job.out: k for k, job in enumerate(jobs)}
