@@ -7,11 +7,12 @@
 
 # ---- requirements: the dependencies of pyproject.toml, as a requirements file ----------
 # Its own stage: the install below is rebuilt only when this list changes, not when
-# anything else in pyproject.toml (tool settings, package data) does.
+# anything else in pyproject.toml (tool settings, package data) does. With the `view`
+# extra: `dammrl view` (Foxglove) runs in a container too, and every module imports.
 FROM python:3.11-slim AS requirements
 WORKDIR /src
 COPY pyproject.toml ./
-RUN python -c "import tomllib; print(*tomllib.load(open('pyproject.toml', 'rb'))['project']['dependencies'], sep='\n')" > requirements.txt
+RUN python -c "import tomllib; p = tomllib.load(open('pyproject.toml', 'rb'))['project']; print(*p['dependencies'], *p['optional-dependencies']['view'], sep='\n')" > requirements.txt
 
 # ---- build: a virtual environment with dammrl and its dependencies -------------------
 FROM python:3.11-slim AS build
@@ -42,19 +43,12 @@ RUN cd /opt/dammrl/lib/python3.11/site-packages \
  && find . -name '*.a' -delete
 
 # The package as a wheel, installed in the runtime stage: a code change rebuilds only that
-# small layer, not the copy of the environment. Every data file (URDF, policies) of the
-# source tree must be in the wheel, else the build stops here rather than a service later.
-COPY pyproject.toml README.md ./
-COPY schemas ./schemas
-COPY services ./services
-COPY dammrl ./dammrl
+# small layer, not the copy of the environment. The build context is .dockerignore's
+# allow-list, whose package folders are pyproject.toml's own package patterns; the check
+# stops the build, naming the file, if the wheel lacks anything of those folders.
+COPY . ./
 RUN pip wheel --no-deps --wheel-dir /wheels . \
- && python -c "import pathlib, sys, zipfile; \
-wheel = set(zipfile.ZipFile(next(pathlib.Path('/wheels').glob('*.whl'))).namelist()); \
-data = [p for d in ('dammrl', 'services', 'schemas') for p in pathlib.Path(d).rglob('*.*')]; \
-missing = [str(p) for p in data if p.suffix != '.py' and str(p) not in wheel]; \
-sys.exit('not in the wheel (pyproject.toml [tool.setuptools.package-data]): ' \
-         + ' '.join(missing) if missing else 0)"
+ && python docker/check_image.py wheel /wheels/*.whl
 
 # ---- runtime: the environment on a clean base, shared libraries, a non-root user -----
 FROM python:3.11-slim
@@ -71,6 +65,12 @@ RUN apt-get update \
 COPY --from=build /opt/dammrl /opt/dammrl
 COPY --from=build /wheels /tmp/wheels
 RUN pip install --no-deps --no-cache-dir /tmp/wheels/*.whl && rm -rf /tmp/wheels
+# Every module imports (shared libraries included), the URDF builds the scene, every
+# shipped policy loads: else the build stops here with one line each, not a service later.
+COPY --from=build /src/docker/check_image.py /tmp/check_image.py
+# (its own HOME: the libraries' caches written on import must not land in the services' /tmp)
+RUN HOME=/tmp/check-home python /tmp/check_image.py installed \
+ && rm -rf /tmp/check-home /tmp/check_image.py
 
 # The default user; compose runs the services as the host user instead (user: UID:GID),
 # so recordings in ./sessions belong to whoever started the stack.

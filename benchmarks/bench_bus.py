@@ -33,8 +33,8 @@ from dammrl_core.robot import RobotSettings
 from dammrl_core.sim.settings import SimSettings
 from dammrl_core.task import TaskSettings
 from services.common.bus import Bus, zenoh_config
+from services.common.certificates import create_credentials
 from services.common.config import BusSettings
-from services.common.security import create_credentials
 from services.sim.node import SimNode
 
 PAYLOAD_BYTES = 420  # about one msgpack RobotState

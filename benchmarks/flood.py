@@ -58,7 +58,7 @@ class Watch:
     filled by Zenoh without Python and drained every millisecond (what a service does)."""
 
     def __init__(self, port: int) -> None:
-        self.session = _session(port, "tool")
+        self.session = _session(port, "observer")
         self.arrivals: list[float] = []
         self.stamps: list[float] = []  # when the sim published each state (its clock)
         self.results: list[EpisodeResult] = []

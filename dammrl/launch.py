@@ -31,7 +31,7 @@ from zenoh.handlers import RingChannel
 
 from dammrl_core.arm.settings import ArmSettings
 from dammrl_core.coadaptation import Targets
-from dammrl_core.control.settings import ControllerSettings
+from dammrl_core.control.settings import ControllerSettings, check_workspace
 from dammrl_core.errors import (
     ConfigurationError,
     DammrlError,
@@ -55,13 +55,11 @@ from schemas import (
     key,
 )
 from services.common.bus import SESSION_CLOSE_WAIT_S, close_within, zenoh_config
+from services.common.certificates import create_credentials
 from services.common.config import BusSettings
+from services.common.runs import RunCard, remove_card, write_card
 from services.common.runtime import SignalStop, stopping_on_signals
-from services.common.security import (
-    claim_run_credentials,
-    create_credentials,
-    run_credentials,
-)
+from services.common.security import OPERATOR, claim_run_credentials, run_credentials
 from services.intent.config import IntentSettings
 from services.recorder.config import RecorderSettings
 
@@ -187,12 +185,27 @@ def check_options(options: StackOptions) -> None:
                          "dynamixel")  # fmt: skip
     if options.mode != "real" and (options.robot_port or options.emulate_robot):
         raise UsageError("--robot-port and --emulate-robot are for --mode real")
-    if options.record is not None and options.record.suffix != ".mcap":
-        raise UsageError(f"--record {options.record}: the file name must end in .mcap")
-    if options.record is not None and options.record.exists():
-        raise UsageError(f"--record {options.record} exists: choose another name (nothing "
-                         "is overwritten)")  # fmt: skip
+    if options.record is not None:
+        check_record(options.record)
     _check_calibration(options)
+
+
+def check_record(record: Path) -> None:
+    """A recording to make: its name ends in .mcap, its folder exists and may be written,
+    and neither it nor a continuation of it (``NAME-001.mcap``, ...) exists: checked before
+    anything starts, never created or overwritten behind the user's back."""
+    if record.suffix != ".mcap":
+        raise UsageError(f"--record {record}: the file name must end in .mcap")
+    folder = record.parent
+    if not folder.is_dir():
+        raise UsageError(f"--record {record}: no folder {folder} (make it first)")
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise UsageError(f"--record {record}: cannot write in {folder} (permission denied)")
+    existing = [p for p in recording_files(record) if p.exists()]
+    if existing:
+        raise UsageError(f"--record {record}: {existing[0]} exists: choose another name "
+                         "(nothing is overwritten, and a restarted recorder continues in "
+                         "NAME-001.mcap, ...)")  # fmt: skip
 
 
 def _check_calibration(options: StackOptions) -> None:
@@ -248,6 +261,8 @@ def check_settings(services: tuple[str, ...], env: dict[str, str]) -> None:
             source_plugin(IntentSettings().source).settings()
         if "robot" in services:
             driver_plugin(ArmSettings().driver).settings()
+        if "controller" in services:
+            check_workspace(ControllerSettings(), TaskSettings())
 
 
 @contextlib.contextmanager
@@ -279,8 +294,8 @@ class Stack:
     ) -> None:
         """``out`` receives the episode results, ``info`` the progress lines; ``on_result``
         each episode's result as it is counted (a session's trial log keeps it at once);
-        ``on_up`` the stack's hub session once every service is alive (a participant
-        display subscribes there)."""
+        ``on_up`` the stack's hub session once every service is alive: the operator's
+        (the launcher's role; a participant display joins with its own, :meth:`join`)."""
         check_options(options)
         self.options = options
         self.out = out
@@ -299,6 +314,7 @@ class Stack:
         self.prompts: PatientPrompts | None = None
         self.recorder_restarts = 0
         self.ignored = 0  # messages on task/result that were not an episode's result
+        self.joined: list[zenoh.Session] = []  # sessions of other roles (join), closed at the end
         check_settings(self.services(), self.environment())
         self.progress: Progress | None = None
 
@@ -384,8 +400,10 @@ class Stack:
             shutil.rmtree(self.credentials, ignore_errors=True)
             create_credentials(self.credentials)
             claim_run_credentials(self.credentials)  # its services remove it if we die
+        write_card(self.card())  # the tools and emulators beside it find it
         with stopping_on_signals() as stop:
-            session = zenoh.open(zenoh_config(settings, rate_limits=True))  # the services' hub
+            # the services' hub, and the operator's session (a session's console, a stop)
+            session = zenoh.open(zenoh_config(settings, OPERATOR, rate_limits=True))
             try:
                 results = session.declare_subscriber(key(self.options.namespace, EpisodeResult))
                 if self.options.pad_port is not None and not self.options.json:
@@ -398,9 +416,29 @@ class Stack:
                 return self._watch(results, stop)
             finally:
                 self._stop_children()
+                for joined in self.joined:
+                    close_within(joined, SESSION_CLOSE_WAIT_S)
                 close_within(session, SESSION_CLOSE_WAIT_S)  # a vanished peer can hold it
+                remove_card(self.options.port, os.getpid())
                 if self.own_credentials and self.credentials is not None:
                     shutil.rmtree(self.credentials, ignore_errors=True)
+
+    def card(self) -> RunCard:
+        """What a tool needs to join this run: where, how, and the person's input."""
+        o = self.options
+        credentials = None if self.credentials is None else str(self.credentials.resolve())
+        pad = None if o.pad_port is None else os.path.abspath(o.pad_port)
+        return RunCard(pid=os.getpid(), port=o.port, endpoint=self.endpoint, namespace=o.namespace,
+                       credentials=credentials, pad_port=pad, lsl_stream=o.lsl_stream)  # fmt: skip
+
+    def join(self, role: str) -> zenoh.Session:
+        """A session of this process on the run's bus with ``role``'s certificate (the
+        participant's display: its comfort rating and nothing else), closed with the run."""
+        settings = BusSettings(connect=[self.endpoint], namespace=self.options.namespace,
+                               credentials=self.credentials, role=role)  # fmt: skip
+        session = zenoh.open(zenoh_config(settings, role))
+        self.joined.append(session)
+        return session
 
     def finish(self) -> None:
         """End the run before its last episode (a session ends a block early)."""
@@ -441,13 +479,11 @@ class Stack:
 
     def inspect_commands(self) -> str:
         """What to type in another terminal to look at this run (clients find its
-        credentials from the port)."""
-        at = f"--connect {self.endpoint}"
-        namespace = "" if self.options.namespace == "dammrl" else (
-            f" --namespace {self.options.namespace}")  # fmt: skip
-        return (f"inspect it: dammrl status {at}{namespace} | dammrl echo robot/state {at}"
-                f"{namespace} | dammrl view {at}{namespace} | stop the arm: dammrl stop "
-                f"{at}{namespace}")  # fmt: skip
+        credentials and namespace from the port; alone on this machine, they find it
+        without one)."""
+        at = f"--bus-port {self.options.port}"
+        return (f"inspect it: dammrl status {at} | dammrl echo robot/state {at} | dammrl view "
+                f"{at} | stop the arm: dammrl stop {at}")  # fmt: skip
 
     def _wait_alive(self, session: zenoh.Session, stop: SignalStop, quiet: bool = False) -> None:
         deadline = time.monotonic() + START_TIMEOUT_S
@@ -475,7 +511,7 @@ class Stack:
         while not stop.is_set():
             if self.finishing.is_set():
                 self.info(summary(self.results))
-                return 0
+                return self._verdict()
             self._check_children()
             if self.prompts is not None:
                 self.prompts.show()
@@ -494,11 +530,45 @@ class Stack:
             if self.on_result is not None:
                 self.on_result(result)
             self._report(result)
+            self._say_if_undecided(result)
             if total is not None and len(self.results) >= total:
                 self.info(summary(self.results))
-                return 0
+                return self._verdict()
         self.info(f"stopping on signal {stop.signum}")
+        if (verdict := self._verdict()) != Exit.OK:
+            return verdict
         return Exit.OK if total is None else Exit.INTERRUPTED  # open-ended: a signal ends it
+
+    def _say_if_undecided(self, result: EpisodeResult) -> None:
+        """An episode that ended without a single decision could not be done: say at once
+        whose input never answered, and what to check."""
+        if undecided(result):
+            self.info(f"episode {result.episode} could not be done: in {result.t_total_s:.0f} s "
+                      f"no decision came from {self.input_of_the_person()}")  # fmt: skip
+
+    def _verdict(self) -> int:
+        """Exit FAILED when the person's input never joined: episodes ended without a
+        decision and no episode of the run had one (one line says so)."""
+        lacking = [r for r in self.results if undecided(r)]
+        if not lacking or any(r.n_decisions > 0 for r in self.results):
+            return Exit.OK
+        self.info(f"dammrl: {len(lacking)} of {len(self.results)} episodes could not be done: "
+                  f"no decision ever came from {self.input_of_the_person()}")  # fmt: skip
+        return Exit.FAILED
+
+    def input_of_the_person(self) -> str:
+        """Whose decisions the run waits for, and how that input joins this run."""
+        o, port = self.options, self.options.port
+        if o.pad_port is not None:
+            return (f"the pad at {o.pad_port} (is someone pressing it? an emulated patient "
+                    f"joins by itself: `dammrl sensor emulate --link {o.pad_port} --pattern "
+                    f"patient`, or give it --bus-port {port})")  # fmt: skip
+        if o.lsl_stream is not None:
+            return (f"the wearable's stream {o.lsl_stream!r} (is the person moving? an "
+                    "emulated armband joins by itself: `dammrl intent emulate --stream "
+                    f"{o.lsl_stream} --pattern patient`, or --bus-port {port})")  # fmt: skip
+        named = o.intent or IntentSettings().source
+        return f"the intent source {named!r} (what does `dammrl status --bus-port {port}` say?)"
 
     def _accept(self, payload: bytes) -> EpisodeResult | None:
         """An episode result to count, or None (logged): undecodable, not from the
@@ -699,6 +769,11 @@ class PatientPrompts:
                      f"{self.estimate}")  # fmt: skip
 
 
+def undecided(result: EpisodeResult) -> bool:
+    """An episode that ended (not skipped) without any decision: it could not be done."""
+    return result.n_decisions == 0 and result.outcome in ("hold", "timeout")
+
+
 def result_dict(result: EpisodeResult) -> dict[str, object]:
     """The JSON object of one episode: the keys of ``dammrl reach --json``."""
     fields = result.model_dump(mode="json", exclude={"header", "episode"})
@@ -707,6 +782,8 @@ def result_dict(result: EpisodeResult) -> dict[str, object]:
 
 def summary(results: list[EpisodeResult]) -> str:
     n = len(results)
+    if n == 0:
+        return "no episode ended"
     wins = sum(r.success for r in results)
     mean_t = sum(r.t_total_s for r in results) / n
     mean_osc = sum(r.n_osc for r in results) / n

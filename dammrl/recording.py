@@ -24,7 +24,7 @@ import numpy as np
 import zstandard
 from mcap.exceptions import McapError
 from mcap.opcode import Opcode
-from mcap.records import Channel, Chunk, Footer, Header, Message, Metadata, Schema
+from mcap.records import Channel, Chunk, DataEnd, Footer, Header, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.writer import CompressionType, Writer
 
@@ -43,7 +43,7 @@ from schemas import (
     type_of,
 )
 from schemas import Message as BusMessage
-from services.recorder.core import header_of
+from services.recorder.core import header_of, loss_record
 from services.recorder.gaps import SequenceAccount
 
 MAGIC = b"\x89MCAP0\r\n"
@@ -66,7 +66,8 @@ class Recording:
     messages: list[Message] = field(default_factory=list)
     metadata: dict[str, dict[str, str]] = field(default_factory=dict)
     started: bool = False  # the MCAP header record was read
-    complete: bool = False  # the footer was reached
+    data_end: bool = False  # the data section's end record was read
+    complete: bool = False  # the footer after the data section's end: finished by its writer
     truncated_reason: str = ""
     skipped: Counter[str] = field(default_factory=Counter)  # unreadable records, by kind
 
@@ -102,6 +103,9 @@ def read_recording(path: Path) -> Recording:
             resume_at = _read_from(recording, stream, size, resume_at)
     _drop_orphans(recording)
     recording.messages.sort(key=lambda m: m.log_time)
+    if recording.started and not recording.complete and not recording.truncated_reason:
+        recording.truncated_reason = ("not finished by its writer (a recorder killed): it ends "
+                                      "after its last complete chunk")  # fmt: skip
     return recording
 
 
@@ -142,8 +146,10 @@ def _collect(recording: Recording, record: object) -> None:
         recording.messages.append(record)
     elif isinstance(record, Metadata):
         recording.metadata[record.name] = dict(record.metadata)
+    elif isinstance(record, DataEnd):
+        recording.data_end = True
     elif isinstance(record, Footer):
-        recording.complete = True
+        recording.complete = recording.data_end
 
 
 def _chunk_records(recording: Recording, chunk: Chunk) -> list[object]:
@@ -242,8 +248,8 @@ def info(path: Path) -> dict[str, Any]:
 
 
 def sequence_account(recording: Recording) -> SequenceAccount:
-    """Each publisher's sequence numbers in receipt order, as the recorder counted them
-    (the header stamps are the publishers' say, the receipt times the recorder's)."""
+    """Each publisher's sequence numbers and stamps in receipt order, accounted as the
+    recorder accounted them: the same figures as its ``dammrl.loss`` metadata."""
     account = SequenceAccount(recording.namespace())
     for message in recording.messages:
         channel = recording.channels[message.channel_id]
@@ -253,8 +259,22 @@ def sequence_account(recording: Recording) -> SequenceAccount:
         if header is None:  # never written so by the recorder: a crafted or damaged file
             account.headerless[channel.topic] += 1
             continue
-        account.see(channel.topic, str(header.get("source")), header["seq"], message.log_time)
+        account.see(channel.topic, str(header.get("source")), header["seq"], message.log_time,
+                    stamp_ns=header["stamp_ns"])  # fmt: skip
     return account
+
+
+LOSS, SESSION = "dammrl.loss", "dammrl.session"
+"""The recorder's metadata records: its loss figures, and the session's description."""
+
+
+def loss_of(recording: Recording) -> dict[str, str]:
+    """The ``dammrl.loss`` figures of what ``recording`` holds, as its recorder counts."""
+    channels = recording.channels
+    invalid = Counter(channels[m.channel_id].topic.removeprefix("_invalid/")
+                      for m in recording.messages
+                      if channels[m.channel_id].metadata.get("dammrl.invalid"))  # fmt: skip
+    return loss_record(sequence_account(recording), invalid)
 
 
 def sequence_gaps(recording: Recording) -> dict[str, int]:
@@ -329,8 +349,12 @@ def _time_schema(schema: dict[str, Any]) -> dict[str, Any]:
 
 
 def repair(path: Path, out: Path) -> dict[str, Any]:
-    """Rewrite the readable part of ``path`` as a complete MCAP ``out``."""
+    """Rewrite the readable part of ``path`` as a complete MCAP ``out``; a file its
+    recorder could not finish gets the ``dammrl.loss`` figures of what it holds (marked
+    as recounted)."""
     recording = read_recording(path)
+    if LOSS not in recording.metadata and recording.metadata.get(SESSION) is not None:
+        recording.metadata[LOSS] = loss_of(recording) | {"recounted": "dammrl recording repair"}
     with open(out, "wb") as stream:
         writer = Writer(stream, compression=CompressionType.ZSTD)
         writer.start(profile="dammrl", library="dammrl recording repair")

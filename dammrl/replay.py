@@ -31,7 +31,7 @@ from schemas import (
 from schemas.keys import key, topic_of
 from services.common.bus import JOIN_S, linked, not_joined_line, zenoh_config
 from services.common.config import BusSettings
-from services.common.security import roles_publishing
+from services.common.security import OBSERVER, roles_publishing
 
 COMMAND_TOPICS = ("robot/command", "task/goal")
 ARM_SERVICES = ("sim", "robot")
@@ -131,7 +131,7 @@ def publishing_roles(topics: list[str], settings: BusSettings) -> dict[str, str]
     publish it, with that role's certificate from the credentials (``settings.role``
     when set), or the replay is refused before anything is sent: the ACL would drop it."""
     if settings.credentials is None:
-        return dict.fromkeys(topics, settings.role or "tool")
+        return dict.fromkeys(topics, settings.role or OBSERVER)
     folder = settings.credentials
     roles = {}
     for topic in topics:

@@ -15,9 +15,10 @@ from __future__ import annotations
 import math
 from collections.abc import Generator, Sequence
 from dataclasses import dataclass, field
+from typing import Self
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from dammrl_core.coadaptation import (
     DecisionEvidence,
@@ -27,7 +28,7 @@ from dammrl_core.coadaptation import (
 )
 from dammrl_core.control.controller import Controller, latency_model
 from dammrl_core.control.reach import HOLD_OBSERVATION_S, Answer, Reach, Trajectory
-from dammrl_core.control.settings import ControllerSettings
+from dammrl_core.control.settings import ControllerSettings, check_workspace
 from dammrl_core.dynamics import ArmModel
 from dammrl_core.human import HumanModel
 from dammrl_core.ik import IKSolver, make_ik_solver
@@ -63,6 +64,11 @@ class ReachSettings(BaseModel):
     models: ModelSet = Field(default_factory=ModelSet)
     robot: RobotSettings = Field(default_factory=RobotSettings)
     task: TaskSettings = Field(default_factory=TaskSettings)
+
+    @model_validator(mode="after")
+    def _workspace_above_the_table(self) -> Self:
+        check_workspace(self.controller, self.task)
+        return self
 
     def randomized(self, enabled: bool = True) -> ReachSettings:
         """These settings on a randomised arm (dynamics, kinematics, sensor noise) or not."""

@@ -30,6 +30,7 @@ import shutil
 import sys
 import threading
 import time
+from collections import Counter
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, replace
 from datetime import UTC, datetime
@@ -55,6 +56,7 @@ from schemas import (
     ComfortRating,
     DecodeError,
     EmergencyStop,
+    EpisodeRecorded,
     EpisodeResult,
     Header,
     Message,
@@ -64,6 +66,7 @@ from schemas import (
     encode,
     key,
 )
+from services.common.security import DISPLAY, OPERATOR
 
 if TYPE_CHECKING:
     from dammrl.display import ParticipantDisplay
@@ -309,6 +312,43 @@ def runs(trials: list[Trial]) -> Iterator[list[Trial]]:
 
 Say = Callable[[str], None]
 
+RECORDED_WAIT_S = 15.0
+"""How long a stack run waits at its end for the recorder to confirm that each of its
+reaches is on disk (``EpisodeRecorded``) before the stack stops [s]. A reach it does not
+confirm is logged in ``events.jsonl`` and said; the catalogue reports it."""
+
+
+class RecordedEpisodes:
+    """The recorder's acknowledgements of one stack run's episodes, as they come (a
+    complete one supersedes an incomplete one), and a bounded wait for them."""
+
+    def __init__(self, part: Path) -> None:
+        self.stem = part.stem  # part-NN: its continuations are part-NN-001.mcap, ...
+        self.acks: dict[int, EpisodeRecorded] = {}
+        self.changed = threading.Condition()
+
+    def take(self, ack: EpisodeRecorded) -> None:
+        """One acknowledgement heard (the recorder of another run's file is not ours)."""
+        if ack.header.source != "recorder" or not ack.file.startswith(self.stem):
+            return
+        with self.changed:
+            known = self.acks.get(ack.episode)
+            if known is None or not known.complete:
+                self.acks[ack.episode] = ack
+            self.changed.notify_all()
+
+    def wait(self, episodes: list[int], timeout_s: float) -> dict[int, EpisodeRecorded]:
+        """The acknowledgements of ``episodes`` once each is complete, or what came within
+        ``timeout_s``."""
+        deadline = time.monotonic() + timeout_s
+        with self.changed:
+            while not all(e in self.acks and self.acks[e].complete for e in episodes):
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    break
+                self.changed.wait(remaining)
+            return {e: self.acks[e] for e in episodes if e in self.acks}
+
 
 class SessionRunner:
     """Runs (or resumes) a participant's session of a protocol through the stack."""
@@ -326,10 +366,12 @@ class SessionRunner:
         display: ParticipantDisplay | None = None,
         comfort_timeout_s: float = 120.0,
         console: TextIO | None = None,
+        recorded_wait_s: float = RECORDED_WAIT_S,
     ) -> None:
         self.participant = Participant(root, participant)
         self.display = display
         self.comfort_timeout_s = comfort_timeout_s
+        self.recorded_wait_s = recorded_wait_s
         self.console = Lines(sys.stdin if console is None else console)
         self.protocol_file = protocol_file
         self.protocol = load_protocol(protocol_file)
@@ -472,7 +514,8 @@ class StackRun:
         self.runner, self.session, self.setup = runner, session, setup
         self.group, self.total = group, total
         self.part = session.next_part()
-        self.hub: Any = None  # the stack's bus session, once it is up
+        self.hub: Any = None  # the stack's bus session (the operator's), once it is up
+        self.display_bus: Any = None  # the participant display's own (its role), once up
         self.stack: Stack | None = None
         self.episode = 1  # the reach under way (this run counts from 1)
         self.actions: list[dict[str, Any]] = []  # the console's, on the reach under way
@@ -482,9 +525,11 @@ class StackRun:
         self.end_block = False  # the rest of the block is skipped...
         self.end_block_why = ""  # ... by whom and why
         self.running = threading.Event()
-        self.sent = 0  # messages this run sent (their sequence numbers)
+        self.sent: Counter[type[Message]] = Counter()  # per message type (its key): its seq
         self.posterior: tuple[float, float] | None = None  # the policy's, last heard
         self.subscribers: list[Any] = []
+        self.recorded = RecordedEpisodes(self.part)  # what the recorder holds on disk
+        self.listening = False  # to the recorder's acknowledgements
 
     def run(self) -> int:
         runner, group = self.runner, self.group
@@ -520,21 +565,28 @@ class StackRun:
             return self.stack.run()
         finally:
             self.running.clear()
-            self.hub, self.subscribers = None, []
+            self.hub, self.display_bus, self.subscribers = None, None, []
             if self.posterior is not None and self.posterior != prior:
                 runner.participant.keep_posterior(self.posterior, self.session.folder.name,
                                                   [t.number for t in self.group])  # fmt: skip
                 self.session.events.add(runner.event("posterior", p=list(self.posterior)))
 
     def attach(self, hub: Any) -> None:
-        """The stack is up: the display follows its bus, the console acts on it."""
+        """The stack is up: the console acts on its bus as the operator; the display
+        follows it with a session of its own role, which may send the participant's
+        comfort rating and nothing else."""
         self.hub = hub
         if self.runner.display is not None:
             from dammrl.display import BusFeed
 
-            BusFeed(self.runner.display, DEFAULT_NAMESPACE).attach(hub)
+            assert self.stack is not None
+            self.display_bus = self.stack.join(DISPLAY)
+            BusFeed(self.runner.display, DEFAULT_NAMESPACE).attach(self.display_bus)
         self.subscribers = [hub.declare_subscriber(key(DEFAULT_NAMESPACE, ModelChoice),
-                                                   self._choice)]  # fmt: skip
+                                                   self._choice),
+                            hub.declare_subscriber(key(DEFAULT_NAMESPACE, EpisodeRecorded),
+                                                   self._recorded)]  # fmt: skip
+        self.listening = True
         self.running.set()
         threading.Thread(target=self._console, daemon=True).start()
 
@@ -544,6 +596,10 @@ class StackRun:
             choice = decode(ModelChoice, sample.payload.to_bytes())
             if choice.posterior is not None and len(choice.posterior) == 2:
                 self.posterior = (choice.posterior[0], choice.posterior[1])
+
+    def _recorded(self, sample: Any) -> None:
+        with contextlib.suppress(DecodeError):
+            self.recorded.take(decode(EpisodeRecorded, sample.payload.to_bytes()))
 
     # ---- results --------------------------------------------------------------------
     def keep(self, result: EpisodeResult) -> None:
@@ -571,9 +627,34 @@ class StackRun:
             self._skip_rest_of_block(trial)
         if last or self.end_block:
             self._ask_comfort(trial)
+        if result.episode == len(self.group) or self.again or self.end_block:
+            self._await_recorded()  # the stack stops next
         if self.again or self.end_block:
             assert self.stack is not None
             self.stack.finish()
+
+    def _await_recorded(self) -> None:
+        """Wait (bounded) until the recorder confirms every reach of this run on disk;
+        log what it confirmed and say what it did not (the catalogue reports those)."""
+        if not self.listening:
+            return
+        runner, episodes = self.runner, list(range(1, self.episode))
+        started = time.monotonic()
+        acks = self.recorded.wait(episodes, runner.recorded_wait_s)
+        trial = {e: self.group[e - 1].number for e in episodes}
+        partial = {trial[e]: a.missing for e, a in acks.items() if not a.complete}
+        unconfirmed = [trial[e] for e in episodes if e not in acks]
+        self.session.events.add(runner.event(
+            "recorded", recording=self.part.name, episodes=episodes,
+            confirmed=[trial[e] for e, a in acks.items() if a.complete], partial=partial,
+            unconfirmed=unconfirmed, unconfirmed_episodes=[e for e in episodes if e not in acks],
+            waited_s=round(time.monotonic() - started, 3),
+        ))  # fmt: skip
+        if unconfirmed:
+            runner.say(f"the recorder did not confirm trial(s) {unconfirmed} on disk within "
+                       f"{runner.recorded_wait_s:g} s: the catalogue will report them")  # fmt: skip
+        for number, missing in partial.items():
+            runner.say(f"trial {number} is recorded without {missing}")
 
     def _recording(self) -> Path:
         """The file the recorder writes now: the part, or its newest continuation after
@@ -602,9 +683,11 @@ class StackRun:
             runner.say(f"no comfort rating within {runner.comfort_timeout_s:.0f} s")
             return
         rating, asked_s = answer
-        self._send(ComfortRating(header=self._header(), participant=runner.participant.id,
-                                 block=trial.block, trial=trial.number, rating=rating,
-                                 asked_s=asked_s))  # fmt: skip
+        rating_message = ComfortRating(header=self._header(ComfortRating, DISPLAY),
+                                       participant=runner.participant.id, block=trial.block,
+                                       trial=trial.number, rating=rating,
+                                       asked_s=asked_s)  # fmt: skip
+        self._send(rating_message, self.display_bus)
         time.sleep(0.2)  # the recorder takes it before the stack stops
         self.session.events.add(runner.event("comfort", block=trial.block, rating=rating,
                                              asked_s=round(asked_s, 2)))  # fmt: skip
@@ -636,7 +719,7 @@ class StackRun:
                                              why=command.why))  # fmt: skip
         if action in ("stop", "release"):
             reason = f"{runner.setup.operator}: {command.why}"[:200]
-            self._send(EmergencyStop(header=self._header(), engaged=action == "stop",
+            self._send(EmergencyStop(header=self._header(EmergencyStop), engaged=action == "stop",
                                      reason=reason))  # fmt: skip
         elif action == "pause" and self.paused_since is None:
             self.paused_since = time.monotonic()
@@ -655,21 +738,26 @@ class StackRun:
             self.again = action == "again"
             if action == "end-block":
                 self.end_block, self.end_block_why = True, f"{runner.setup.operator}: {command.why}"
-            self._control("skip", command.why)
+            self._control(action, command.why)  # each ends the reach; recorded as itself
         runner.say(f"console: {action} (trial {trial.number})")
 
     def _control(self, action: str, why: str, **decision: int) -> None:
-        self._send(SessionControl(header=self._header(), episode=self.episode, action=action,
-                                  who=self.runner.setup.operator, why=why,
+        self._send(SessionControl(header=self._header(SessionControl), episode=self.episode,
+                                  action=action, who=self.runner.setup.operator, why=why,
                                   **decision))  # fmt: skip
 
-    def _header(self) -> Header:
-        self.sent += 1
-        return Header(stamp_ns=time.time_ns(), seq=self.sent - 1, source="tool")
+    def _header(self, message_type: type[Message], source: str = OPERATOR) -> Header:
+        """The next header of ``message_type``: one sequence per key and publisher, as
+        the recorder counts loss."""
+        self.sent[message_type] += 1
+        seq = self.sent[message_type] - 1
+        return Header(stamp_ns=time.time_ns(), seq=seq, source=source)
 
-    def _send(self, message: Message) -> None:
-        if self.hub is not None:
-            self.hub.put(key(DEFAULT_NAMESPACE, type(message)), encode(message))
+    def _send(self, message: Message, session: Any = None) -> None:
+        """Publish ``message`` on ``session`` (default: the operator's, the hub)."""
+        session = self.hub if session is None else session
+        if session is not None:
+            session.put(key(DEFAULT_NAMESPACE, type(message)), encode(message))
 
 
 def session_table(root: Path, participant: str | None = None) -> list[dict[str, Any]]:

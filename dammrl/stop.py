@@ -8,6 +8,7 @@ from dataclasses import dataclass
 
 from schemas import EmergencyStop, Health
 from services.common.config import BusSettings
+from services.common.security import OPERATOR
 
 ARM_SERVICES = ("sim", "robot")
 
@@ -25,7 +26,7 @@ class StopConsole:
     def __init__(self, settings: BusSettings) -> None:
         from services.common.bus import Bus
 
-        self.bus = Bus(settings, "tool").__enter__()
+        self.bus = Bus(settings, OPERATOR).__enter__()
         self.bus.subscribe(Health)
         self.publisher = self.bus.publisher(EmergencyStop)
 

@@ -239,7 +239,9 @@ class Targets(BaseModel):
     """What the protocol asks of the last ``window`` reaches (S3's "task targets");
     a target left None is not asked."""
 
-    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
+    model_config = ConfigDict(
+        frozen=True, extra="forbid", allow_inf_nan=False, use_attribute_docstrings=True
+    )
 
     window: int = Field(5, ge=1, le=100)
     """Reaches the targets are judged over (and the fewest between two switches)."""
@@ -251,7 +253,7 @@ class Targets(BaseModel):
     """Median final error [m]."""
     comfort_min: float | None = Field(None, ge=1, le=5)
     """Mean comfort rating (1-5, from the participant display)."""
-    sparc_min: float | None = Field(None, le=0)
+    sparc_min: float | None = Field(None, ge=-50, le=0)
     """Mean SPARC of the reaches (the smoothness proxy; closer to 0 is smoother)."""
 
     def unmet(self, recent: list[ReachEvidence], ratings: list[float]) -> list[str]:

@@ -12,18 +12,19 @@ Indexing (1-based, as in the paper):
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Annotated, Literal, Self
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, model_validator
 from pydantic_settings import SettingsConfigDict
 
 from dammrl_core.errors import ConfigurationError
-from dammrl_core.settings import Settings
+from dammrl_core.settings import Settings, ordered
 
 HUMAN_MODELS = (1, 2)
 ROBOT_MODELS = tuple(range(1, 9))
 RadiusName = Literal["E_big", "E_small"]
+_Step = Annotated[float, Field(gt=0, le=0.1)]
 
 
 class ModelSet(Settings):
@@ -36,14 +37,22 @@ class ModelSet(Settings):
 
     model_config = SettingsConfigDict(env_prefix="DAMMRL_MODELS_")
 
-    e_big_m: float = Field(0.010, gt=0, description="admission radius E_big [m]")
-    e_small_m: float = Field(0.004, gt=0, description="admission radius E_small [m]")
-    step_small_m: tuple[float, float, float] = Field(
-        (0.010, 0.010, 0.010), description="small step (x_s, y_s, z_s) [m]"
+    e_big_m: float = Field(0.010, gt=0, le=0.05, description="admission radius E_big [m]")
+    e_small_m: float = Field(0.004, gt=0, le=0.05,
+                             description="admission radius E_small [m], below E_big")  # fmt: skip
+    step_small_m: tuple[_Step, _Step, _Step] = Field(
+        (0.010, 0.010, 0.010), description="small step (x_s, y_s, z_s) [m], each (0, 0.1]"
     )
-    step_large_m: tuple[float, float, float] = Field(
-        (0.030, 0.030, 0.030), description="large step (x_b, y_b, z_b) [m]"
+    step_large_m: tuple[_Step, _Step, _Step] = Field(
+        (0.030, 0.030, 0.030), description="large step (x_b, y_b, z_b) [m], each at least the small"
     )
+
+    @model_validator(mode="after")
+    def _consistent(self) -> Self:
+        """E_small below E_big, each small step at most its large one (the paper's set)."""
+        ordered(self, "e_small_m", "e_big_m")
+        ordered(self, "step_small_m", "step_large_m", strict=False)
+        return self
 
     def radius_m(self, i: int) -> float:
         """Admission radius epsilon of human model ``i`` [m]."""

@@ -1,47 +1,65 @@
 """The base of every ``DAMMRL_*`` settings class.
 
 A bad value is one line naming its variable, what was expected and what was given
-(never a traceback); numbers are finite (``inf`` or ``nan`` is no bound).
+(never a traceback); numbers are finite (``inf`` or ``nan`` is no bound). Every number
+has a documented range (both bounds: a limit must not be switched off by a large or tiny
+value, ``tests/test_settings_ranges.py``), and a value outside it is refused naming the
+range, e.g. ``DAMMRL_ARM_TORQUE_FRACTION=1e-9: outside its range [0.3, 1]``.
 """
 
 from __future__ import annotations
 
 import difflib
+import inspect
 import json
 import os
 import re
+import types
+import typing
+from collections.abc import Iterable
+from dataclasses import dataclass
 from typing import Annotated, Any, ClassVar, TypeAlias
 
+import annotated_types
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic.fields import FieldInfo
 from pydantic_settings import BaseSettings, SettingsConfigDict, SettingsError
 
 from dammrl_core.errors import ConfigurationError
 
-FINITE = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
+FINITE = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False, use_attribute_docstrings=True)
 """The configuration of a plain settings model nested in a ``Settings`` class."""
 
 _SHOWN_CHARS = 60
 
-_NonNegative = Annotated[float, Field(ge=0)]
-PerJoint: TypeAlias = tuple[float, float, float, float, float, float]
-"""One value per joint, base to wrist (six, no fewer, no more)."""
-PerJointNonNegative: TypeAlias = tuple[
-    _NonNegative, _NonNegative, _NonNegative, _NonNegative, _NonNegative, _NonNegative
-]
-_Gain = Annotated[float, Field(ge=0, le=2000)]
-_Damping = Annotated[float, Field(ge=0, le=200)]
+_Angle = Annotated[float, Field(ge=-3.2, le=3.2)]
+PerJoint: TypeAlias = tuple[_Angle, _Angle, _Angle, _Angle, _Angle, _Angle]
+"""One joint angle per joint, base to wrist (six, no fewer, no more), -3.2-3.2 rad."""
+_Armature = Annotated[float, Field(ge=0, le=1)]
+PerJointArmature: TypeAlias = tuple[_Armature, _Armature, _Armature, _Armature, _Armature,
+                                    _Armature]  # fmt: skip
+"""Reflected rotor inertia, one per joint, 0-1 kg m^2."""
+MIN_STIFFNESS_NM_PER_RAD = 5.0
+"""A hold, stop or command softer than this is no hold: a wrist with the reference arm's
+0.26 N m of gravity would sag 0.05 rad on it, a shoulder's 10 % model error 0.27 rad."""
+MIN_DAMPING_NMS_PER_RAD = 0.5
+"""Less damping lets a hold ring: about half the critical damping of the reference arm's
+wrist at the stop stiffness."""
+_Gain = Annotated[float, Field(ge=MIN_STIFFNESS_NM_PER_RAD, le=2000)]
+_Damping = Annotated[float, Field(ge=MIN_DAMPING_NMS_PER_RAD, le=200)]
 PerJointGain: TypeAlias = tuple[_Gain, _Gain, _Gain, _Gain, _Gain, _Gain]
-"""Joint stiffness, one per joint, 0-2000 N m/rad (the largest any arm side accepts)."""
+"""Joint stiffness, one per joint, 5-2000 N m/rad (the largest any arm side accepts)."""
 PerJointDamping: TypeAlias = tuple[_Damping, _Damping, _Damping, _Damping, _Damping, _Damping]
-"""Joint damping, one per joint, 0-200 N m s/rad."""
+"""Joint damping, one per joint, 0.5-200 N m s/rad."""
 
 
 class Settings(BaseSettings):
     """Frozen, no unknown fields, finite numbers, nested fields as ``PREFIX_A__B``."""
 
     model_config: ClassVar[SettingsConfigDict] = SettingsConfigDict(
-        frozen=True, extra="forbid", env_nested_delimiter="__", allow_inf_nan=False
-    )
+        frozen=True, extra="forbid", env_nested_delimiter="__", allow_inf_nan=False,
+        use_attribute_docstrings=True,
+    )  # fmt: skip
 
     def __init__(self, **values: Any) -> None:
         _refuse_unknown(type(self))
@@ -93,23 +111,205 @@ def variable(settings: type[BaseSettings], location: tuple[int | str, ...]) -> s
     return prefix + "__".join(names) + indices
 
 
+BOUND_ERRORS = ("greater_than", "greater_than_equal", "less_than", "less_than_equal")
+"""pydantic's error types of a number beyond one of its bounds."""
+
+
 def invalid_line(settings: type[BaseSettings], exc: ValidationError) -> str:
-    """Every error of ``exc`` on one line: ``VARIABLE=given: expected``."""
+    """Every error of ``exc`` on one line: ``VARIABLE=given: expected``; a number beyond a
+    bound with its whole range."""
     parts = []
     for error in exc.errors(include_url=False):
-        if not error["loc"]:  # a rule across fields: its message names them
-            parts.append(_named(settings, str(error["msg"]).removeprefix("Value error, ")))
+        location = tuple(error["loc"])
+        nested = _model_at(settings, location)
+        if nested is not None and error["type"] == "value_error":  # a rule across fields
+            message = str(error["msg"]).removeprefix("Value error, ")
+            parts.append(_named(settings, message, nested, location))
             continue
         given = _shown(error.get("input"))
-        parts.append(f"{variable(settings, tuple(error['loc']))}={given}: {error['msg']}")
+        expected = str(error["msg"])
+        bounds = field_range(settings, location) if error["type"] in BOUND_ERRORS else None
+        if bounds is not None:
+            expected = f"outside its range {bounds}"
+        parts.append(f"{variable(settings, location)}={given}: {expected}")
     return "invalid setting: " + "; ".join(parts)
 
 
-def _named(settings: type[BaseSettings], message: str) -> str:
-    """``message`` with each field name of ``settings`` as its environment variable."""
-    for name in sorted(settings.model_fields, key=len, reverse=True):
-        message = re.sub(rf"\b{name}\b", variable(settings, (name,)), message)
+# ---- documented ranges ------------------------------------------------------------------
+@dataclass(frozen=True)
+class Range:
+    """A number's documented range; each bound closed (``[``, ``]``) or open (None: none)."""
+
+    lower: float | None = None
+    upper: float | None = None
+    lower_open: bool = False
+    upper_open: bool = False
+
+    def __str__(self) -> str:
+        lower = "-inf" if self.lower is None else _number(self.lower)
+        upper = "inf" if self.upper is None else _number(self.upper)
+        opening = "(" if self.lower_open or self.lower is None else "["
+        closing = ")" if self.upper_open or self.upper is None else "]"
+        return f"{opening}{lower}, {upper}{closing}"
+
+    @property
+    def bounded(self) -> bool:
+        """Both bounds are documented."""
+        return self.lower is not None and self.upper is not None
+
+
+def _number(value: float) -> str:
+    return f"{value:,}" if isinstance(value, int) and abs(value) >= 10_000 else f"{value:g}"
+
+
+def range_of(metadata: Iterable[object]) -> Range:
+    """The range that pydantic metadata (``Field(ge=..., lt=...)``) declares."""
+    bounds: dict[str, Any] = {}
+    for item in metadata:
+        if isinstance(item, FieldInfo):
+            inner = range_of(item.metadata)
+            bounds |= {k: v for k, v in vars(inner).items() if v is not None and v is not False}
+        elif isinstance(item, annotated_types.Ge | annotated_types.Gt):
+            bounds["lower"] = item.ge if isinstance(item, annotated_types.Ge) else item.gt
+            bounds["lower_open"] = isinstance(item, annotated_types.Gt)
+        elif isinstance(item, annotated_types.Le | annotated_types.Lt):
+            bounds["upper"] = item.le if isinstance(item, annotated_types.Le) else item.lt
+            bounds["upper_open"] = isinstance(item, annotated_types.Lt)
+    return Range(**bounds)
+
+
+def field_range(model: type[BaseModel], location: tuple[int | str, ...]) -> Range | None:
+    """The documented range of the number at ``location`` (as pydantic reports an error:
+    field names, nested models' fields, tuple indices) in ``model``; None: not a number."""
+    annotation: Any = model
+    metadata: list[object] = []
+    for part in location:
+        current = _without_none(annotation)
+        if isinstance(part, str):
+            if not (inspect.isclass(current) and issubclass(current, BaseModel)):
+                continue  # a union member's tag (pydantic names the type it tried)
+            if part not in current.model_fields:
+                return None
+            info = current.model_fields[part]
+            annotation, metadata = info.annotation, list(info.metadata)
+        else:
+            annotation, metadata = _element(current, part), []
+        annotation, extra = _unannotated(annotation)
+        metadata += extra
+    if _without_none(annotation) not in (int, float):
+        return None
+    return range_of(metadata)
+
+
+def number_fields(model: type[BaseModel], prefix: str | None = None) -> list[tuple[str, Range]]:
+    """Every number a settings class reads (nested models' and tuples' elements too), as
+    (environment variable, documented range)."""
+    if prefix is None:
+        prefix = str(model.model_config.get("env_prefix", ""))
+    found = []
+    for name, info in model.model_fields.items():
+        found += numbers_of(info.annotation, list(info.metadata), prefix + name.upper())
+    return found
+
+
+def numbers_of(annotation: Any, metadata: list[object], where: str) -> list[tuple[str, Range]]:
+    """The numbers of a field of type ``annotation`` with pydantic ``metadata`` whose
+    variable is ``where`` (a tuple's elements ``where[i]``, a nested model's fields
+    ``where__NAME``), each with its documented range."""
+    annotation, extra = _unannotated(annotation)
+    metadata = metadata + extra
+    annotation = _without_none(annotation)
+    if annotation in (int, float):
+        return [(where, range_of(metadata))]
+    if inspect.isclass(annotation) and issubclass(annotation, BaseModel):
+        return number_fields(annotation, where + "__")
+    if typing.get_origin(annotation) is tuple:
+        elements = typing.get_args(annotation)
+        if len(elements) == 2 and elements[1] is Ellipsis:
+            return numbers_of(elements[0], [], f"{where}[i]")
+        return [n for i, e in enumerate(elements) for n in numbers_of(e, [], f"{where}[{i}]")]
+    return []
+
+
+def _element(annotation: Any, index: int) -> Any:
+    """The type of element ``index`` of a tuple type (None: not a tuple)."""
+    elements = typing.get_args(annotation) if typing.get_origin(annotation) is tuple else ()
+    if len(elements) == 2 and elements[1] is Ellipsis:
+        return elements[0]
+    return elements[index] if 0 <= index < len(elements) else None
+
+
+def _unannotated(annotation: Any) -> tuple[Any, list[object]]:
+    """``Annotated[T, ...]`` as T and its metadata."""
+    if typing.get_origin(annotation) is Annotated:
+        inner, *metadata = typing.get_args(annotation)
+        return inner, list(metadata)
+    return annotation, []
+
+
+def _without_none(annotation: Any) -> Any:
+    """``T | None`` as T (other unions as they are)."""
+    if typing.get_origin(annotation) in (typing.Union, types.UnionType):
+        members = [a for a in typing.get_args(annotation) if a is not type(None)]
+        if len(members) == 1:
+            return members[0]
+    return annotation
+
+
+def ordered(settings: BaseModel, low: str, high: str, *, strict: bool = True) -> None:
+    """Refuse a contradictory pair of fields (each a number or a tuple of numbers): every
+    element of ``low`` must be below (``strict``) or at most the same element of ``high``.
+    The ValueError names the low field's element, its range given the high one, its value
+    and the high one (as variables once ``invalid_line`` has named the fields)."""
+    lows, highs = getattr(settings, low), getattr(settings, high)
+    if not isinstance(lows, tuple):
+        pairs = [(lows, highs)]
+    else:  # element by element, or every element against one number
+        pairs = list(zip(lows, highs, strict=True) if isinstance(highs, tuple) else
+                     ((a, highs) for a in lows))  # fmt: skip
+    for index, (a, b) in enumerate(pairs):
+        if a < b or (a == b and not strict):
+            continue
+        at = f"[{index}]" if isinstance(lows, tuple) else ""
+        high_at = at if isinstance(highs, tuple) else ""
+        location = (low, index) if isinstance(lows, tuple) else (low,)
+        own = field_range(type(settings), location) or Range()
+        bounds = Range(own.lower, b, own.lower_open, strict)
+        relation = "below" if strict else "at most"
+        raise ValueError(f"{low}{at}={a:g}: outside its range {bounds} ({relation} "
+                         f"{high}{high_at}={b:g})")  # fmt: skip
+
+
+def at_least(settings: BaseModel, name: str, lowest: float, why: str) -> None:
+    """Refuse ``name`` below ``lowest``, which other fields set (``why`` says how): one
+    line with the variable, the range that follows and the value."""
+    value = getattr(settings, name)
+    if value < lowest:
+        own = field_range(type(settings), (name,)) or Range()
+        bounds = Range(lowest, own.upper, False, own.upper_open)
+        raise ValueError(f"{name}={value:g}: outside its range {bounds} ({why})")
+
+
+def _named(settings: type[BaseSettings], message: str, model: type[BaseModel] | None = None,
+           location: tuple[int | str, ...] = ()) -> str:  # fmt: skip
+    """``message`` with each field name of ``model`` (``settings`` itself, or the nested
+    model at ``location``) as its environment variable."""
+    model = settings if model is None else model
+    for name in sorted(model.model_fields, key=len, reverse=True):
+        named = variable(settings, (*location, name))
+        message = re.sub(rf"(?<![A-Za-z_\-])\b{name}\b", named, message)
     return message
+
+
+def _model_at(settings: type[BaseModel], location: tuple[int | str, ...]) -> type[BaseModel] | None:
+    """The model (``settings``, or one nested in it) at ``location``; None: a value."""
+    current: Any = settings
+    for part in location:
+        if not (isinstance(part, str) and inspect.isclass(current)
+                and issubclass(current, BaseModel) and part in current.model_fields):  # fmt: skip
+            return None
+        current = _without_none(_unannotated(current.model_fields[part].annotation)[0])
+    return current if inspect.isclass(current) and issubclass(current, BaseModel) else None
 
 
 def error_line(exc: Exception) -> str:
@@ -147,7 +347,9 @@ def _environment(name: str) -> str | None:
 
 
 def _shown(value: object) -> str:
-    text = repr(value)
+    """A given value as the user typed it (a variable's text unquoted), shortened."""
+    typed = isinstance(value, str) and value != "" and not any(c.isspace() for c in value)
+    text = str(value) if typed else repr(value)
     return text if len(text) <= _SHOWN_CHARS else text[: _SHOWN_CHARS - 3] + "..."
 
 

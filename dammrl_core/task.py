@@ -13,16 +13,17 @@ centre pressing the button cap 8 mm down (it registers a press at 3 mm; see
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Annotated, Self
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, model_validator
 from pydantic_settings import SettingsConfigDict
 
 from dammrl_core.dynamics import ArmModel
 from dammrl_core.errors import ConfigurationError, IKError
 from dammrl_core.ik import DampedLeastSquaresIK
 from dammrl_core.robot.scene import SceneLayout
-from dammrl_core.settings import PerJoint, Settings
+from dammrl_core.settings import PerJoint, Settings, ordered
 
 START_ACCEPT_ERROR_M = 1e-4  # a start posture farther than this from x_s is refused
 HELD_OUT_START = 7_000_000
@@ -30,6 +31,12 @@ HELD_OUT_START = 7_000_000
 sweeps and studies do (``held_out_seeds``), so every tool reports on the same unseen set."""
 TRAINING_SEEDS_PER_RUN = 100_000
 """Training run ``s`` draws the task seeds s * 100 000 + episode (``training_seed``)."""
+MAX_SEED = 2**32 - 1
+# positions in the task frame: in front of the shoulder, within the arm's reach (0.74 m)
+_X = Annotated[float, Field(ge=0.05, le=0.8)]
+_Y = Annotated[float, Field(ge=-0.8, le=0.8)]
+_Z = Annotated[float, Field(ge=-0.8, le=0.8)]
+_Distance = Annotated[float, Field(gt=0, le=0.8)]
 
 
 class TaskSettings(Settings):
@@ -37,33 +44,48 @@ class TaskSettings(Settings):
 
     model_config = SettingsConfigDict(env_prefix="DAMMRL_TASK_")
 
-    goal_tolerance_m: float = Field(0.042, gt=0)
+    goal_tolerance_m: float = Field(0.042, gt=0, le=0.1)
     """eps_g: the paper's criterion ||x - x_g|| <= eps_g, reported as ``reached`` beside
     success (the button pressed). The cap radius (30 mm) plus the fingertip's (12 mm): the
     farthest the fingertip's centre can be from x_g while it touches the cap, so a press
     is always within eps_g [m]."""
-    goal_dwell_s: float = Field(0.1, ge=0)
+    goal_dwell_s: float = Field(0.1, ge=0, le=10)
     """How long the button must stay pressed for success [s]."""
-    episode_timeout_s: float = Field(60.0, gt=0)
-    """A reach still running after this long ends as a timeout [s]."""
-    start_min_m: tuple[float, float, float] = (0.28, -0.15, -0.10)
-    start_max_m: tuple[float, float, float] = (0.38, 0.15, 0.0)
-    """Box of start positions x_s [m]."""
-    goal_min_xy_m: tuple[float, float] = (0.45, -0.15)
-    goal_max_xy_m: tuple[float, float] = (0.60, 0.15)
+    episode_timeout_s: float = Field(60.0, ge=1, le=3600)
+    """A reach still running after this long ends as a timeout [s] (1 s - 1 h)."""
+    start_min_m: tuple[_X, _Y, _Z] = (0.28, -0.15, -0.10)
+    """Lower corner of the box of start positions..."""
+    start_max_m: tuple[_X, _Y, _Z] = (0.38, 0.15, 0.0)
+    """Box of start positions x_s [m] (x 0.05-0.8, y and z -0.8-0.8; each minimum at most
+    its maximum)."""
+    goal_min_xy_m: tuple[_X, _Y] = (0.45, -0.15)
+    """Lower corner of the box of button positions..."""
+    goal_max_xy_m: tuple[_X, _Y] = (0.60, 0.15)
     """Box of button positions on the table [m]; the goal height follows the table."""
-    reach_distance_m: tuple[float, float] = (0.2, 0.4)
-    """Allowed ||x_g - x_s|| [m]."""
-    table_top_z_m: float = -0.25
-    """Table height in the robot base frame [m] (the shoulder is the origin)."""
+    reach_distance_m: tuple[_Distance, _Distance] = (0.2, 0.4)
+    """Allowed ||x_g - x_s|| [m] (shortest, longest)."""
+    table_top_z_m: float = Field(-0.25, ge=-0.8, le=0)
+    """Table height in the robot base frame [m] (the shoulder is the origin; -0.8-0)."""
     home_q_rad: PerJoint = (0.0, 1.0, 0.0, 1.6, 0.0, 0.3)
     """Posture from which the start posture is solved [rad]."""
     start_limit_margin_rad: float = Field(0.02, ge=0, le=0.2)
     """The start posture stays this far inside the joint limits [rad]."""
-    episodes: int | None = Field(None, ge=1)
+    episodes: int | None = Field(None, ge=1, le=1_000_000)
     """Episodes the bus supervisor runs (None: until stopped)."""
-    seed: int = Field(0, ge=0)
+    seed: int = Field(0, ge=0, le=MAX_SEED)
     """Seed of the first episode; episode k uses seed + k - 1 (same draws as `dammrl reach`)."""
+
+    @model_validator(mode="after")
+    def _consistent(self) -> Self:
+        """Boxes and the distance range whose minimum is not above their maximum."""
+        ordered(self, "start_min_m", "start_max_m", strict=False)
+        ordered(self, "goal_min_xy_m", "goal_max_xy_m", strict=False)
+        shortest, longest = self.reach_distance_m
+        if shortest > longest:
+            raise ValueError(f"reach_distance_m[0]={shortest:g}: outside its range (0, "
+                             f"{longest:g}] (the shortest reach, at most the longest, "
+                             f"reach_distance_m[1]={longest:g})")  # fmt: skip
+        return self
 
 
 @dataclass(frozen=True)

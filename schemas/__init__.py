@@ -3,9 +3,11 @@
 from schemas.codec import DecodeError, decode, encode
 from schemas.keys import DEFAULT_NAMESPACE, TOPICS, key, type_of
 from schemas.messages import (
+    ENDS_REACH,
     ComfortRating,
     DecisionRequest,
     EmergencyStop,
+    EpisodeRecorded,
     EpisodeResult,
     Header,
     Health,
@@ -24,11 +26,13 @@ from schemas.messages import (
 
 __all__ = [
     "DEFAULT_NAMESPACE",
+    "ENDS_REACH",
     "TOPICS",
     "ComfortRating",
     "DecisionRequest",
     "DecodeError",
     "EmergencyStop",
+    "EpisodeRecorded",
     "EpisodeResult",
     "Header",
     "Health",

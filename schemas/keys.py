@@ -11,6 +11,7 @@ from schemas.messages import (
     ComfortRating,
     DecisionRequest,
     EmergencyStop,
+    EpisodeRecorded,
     EpisodeResult,
     Health,
     Intent,
@@ -43,6 +44,7 @@ TOPICS: dict[str, type[Message]] = {
     "safety/stop": EmergencyStop,
     "session/comfort": ComfortRating,
     "session/control": SessionControl,
+    "recorder/episode": EpisodeRecorded,
     "health/*": Health,  # one key per service: health/<service>
 }
 
@@ -81,6 +83,7 @@ LIMITS: dict[str, KeyLimits] = {
     "sensor/chunk": KeyLimits(32_768, 500.0),
     "session/comfort": KeyLimits(1024, 100.0),  # one per block
     "session/control": KeyLimits(1024, 100.0),  # a therapist's keys
+    "recorder/episode": KeyLimits(2048, 1_000.0),  # one or two per episode
     "safety/stop": KeyLimits(1024, 1_000.0),  # per link: a flood never delays the console's
     "health/*": KeyLimits(32_768, 100.0),  # one a second per service
 }

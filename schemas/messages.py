@@ -200,6 +200,13 @@ class EpisodeResult(Message):
     )
     start_m: Vec3
     goal_m: Vec3
+    last_state_stamp_ns: int | None = Field(
+        None,
+        ge=0,
+        description="header stamp of the last robot state the reach took in (the arm's "
+        "clock): a recording holds the reach whole once it holds that state (None in "
+        "recordings made before it existed)",
+    )
 
 
 class SensorSample(Message):
@@ -334,16 +341,23 @@ OPERATOR = "operator"
 no person's evidence (the posterior skips it)."""
 
 
+ENDS_REACH = ("skip", "again", "end-block")
+"""The therapist's acts that end the running reach (as skipped): ``skip`` (the trial
+counts as skipped), ``again`` (it runs again), ``end-block`` (the rest of its block is
+skipped). Each is recorded as itself: the record says which the therapist chose."""
+
+
 class SessionControl(Message):
     """The therapist's hand on the running reach (the session console): ``pause`` holds
     the arm where its reference is and stops the reach's clock, ``resume`` goes on from
-    there, ``skip`` ends the reach; ``take`` hands the decisions to the therapist (the
-    participant's device is ignored), ``decide`` is the therapist's answer to the open
-    request, ``give`` hands the decisions back. Applies to ``episode`` only (a late one
-    changes nothing). The emergency stop is ``EmergencyStop``, apart."""
+    there, ``skip``, ``again`` and ``end-block`` end the reach (``ENDS_REACH``); ``take``
+    hands the decisions to the therapist (the participant's device is ignored),
+    ``decide`` is the therapist's answer to the open request, ``give`` hands the
+    decisions back. Applies to ``episode`` only (a late one changes nothing). The
+    emergency stop is ``EmergencyStop``, apart."""
 
     episode: int = Field(ge=1, description="the reach it applies to")
-    action: Literal["pause", "resume", "skip", "take", "give", "decide"]
+    action: Literal["pause", "resume", "skip", "again", "end-block", "take", "give", "decide"]
     who: str = Field(min_length=1, max_length=32, description="the operator's id")
     why: str = Field("", max_length=200, description="the reason, for the record")
     u_h: Literal[-1, 1] | None = Field(None, description="decide: the command")
@@ -357,3 +371,20 @@ class SessionControl(Message):
         ):
             raise ValueError("'decide' carries u_h and human_model, other actions neither")
         return self
+
+
+class EpisodeRecorded(Message):
+    """The recorder's acknowledgement that an episode is on disk: its result, and the
+    arm's states up to the one the result was decided from (``complete``), written to
+    ``file`` and synced. A session waits for it before it stops the episode's stack; a
+    later acknowledgement of the same episode supersedes an earlier, incomplete one."""
+
+    episode: int = Field(ge=1, description="the episode whose result is on disk")
+    file: str = Field(min_length=1, max_length=255, description="the recording's file name")
+    result_seq: int = Field(ge=0, description="the result's sequence number (its publisher's)")
+    states: int = Field(ge=0, description="the episode's robot states in the file so far")
+    complete: bool = Field(
+        description="the robot state the result was decided from is on disk too (or the "
+        "result names none)"
+    )
+    missing: str = Field("", max_length=500, description="what is not on disk (complete: empty)")

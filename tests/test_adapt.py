@@ -144,13 +144,13 @@ def test_a_participants_refined_policy_is_what_their_next_session_loads(tmp_path
     participant.policy_folder.mkdir(parents=True)
     (participant.policy_folder / "checkpoint.pt").write_bytes(b"")
     assert participant.refined_policy() == participant.policy_folder
-    env = Stack(StackOptions(checkpoint=participant.policy_folder)).environment()
+    env = Stack(StackOptions(checkpoint=participant.policy_folder, port=free_port())).environment()
     assert env["DAMMRL_POLICY_CHECKPOINT"] == str(participant.policy_folder.resolve())
 
 
 def test_a_protocol_block_can_ask_for_the_adaptive_policy_and_its_targets() -> None:
     block = Condition(policy="adaptive", targets=Targets(window=3, time_max_s=12.0))
-    env = Stack(StackOptions(adaptive=block.targets)).environment()
+    env = Stack(StackOptions(adaptive=block.targets, port=free_port())).environment()
     assert env["DAMMRL_POLICY_KIND"] == "adaptive"
     assert json.loads(env["DAMMRL_POLICY_TARGETS"])["time_max_s"] == 12.0
     with pytest.raises(ValueError, match="targets are for an adaptive policy"):

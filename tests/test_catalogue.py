@@ -23,6 +23,7 @@ from dammrl.outcomes import participant_report
 from dammrl.recording import read_recording
 from schemas import (
     ComfortRating,
+    EmergencyStop,
     EpisodeResult,
     Header,
     RobotState,
@@ -46,8 +47,13 @@ STATE = next(m for m in EXAMPLES if isinstance(m, RobotState))
 MS = 1_000_000
 
 
+SOURCES = {RobotState: "sim", SessionControl: "tool", ComfortRating: "tool",
+           EmergencyStop: "tool", SensorSample: "intent", SignalChunk: "intent"}  # fmt: skip
+"""Who publishes what (the rest: the controller)."""
+
+
 def _put(recorder: McapRecorder, message: Any, log_ns: int, seq: int) -> None:
-    header = Header(stamp_ns=log_ns, seq=seq, source="controller")
+    header = Header(stamp_ns=log_ns, seq=seq, source=SOURCES.get(type(message), "controller"))
     recorder.record(
         key("dammrl", type(message), "x"),
         encode(message.model_copy(update={"header": header})),
@@ -65,8 +71,8 @@ def write_run(
     goal_heard_late_ns: int = 0,
 ) -> None:
     """A stack run's recording: for each (episode, time) a goal, 20 states on a straight
-    line (``during`` messages among them) and its result; then ``extra`` messages. The goal
-    logged ``goal_heard_late_ns`` after the arm's reset state, if asked."""
+    line over that time (``during`` messages among them) and its result; then ``extra``
+    messages. The goal logged ``goal_heard_late_ns`` after the arm's reset state, if asked."""
     path.parent.mkdir(parents=True, exist_ok=True)
     recorder = McapRecorder(
         path, "dammrl", {"mode": "virtual", "study": json.dumps(study)}, chunk_bytes=4096
@@ -79,7 +85,7 @@ def write_run(
             state = STATE.model_copy(
                 update={
                     "episode": episode,
-                    "t_s": 0.01 * k,
+                    "t_s": t_total * k / 19,  # the reach's time on the robot's clock
                     "ee_pos_m": (0.3 + 0.001 * k, 0.0, 0.0),
                 }
             )
@@ -249,8 +255,7 @@ def test_the_bids_export_has_a_run_per_reach_and_never_deletes_a_folder_of_other
 ) -> None:
     build(root)
     out = tmp_path / "bids"
-    counts = export(root, out)
-    assert counts == {"participants": 1, "sessions": 2, "runs": 6}
+    assert export(root, out).counts() == {"participants": 1, "sessions": 2, "runs": 6}
     motion = sorted((out / "sub-P007" / "ses-01" / "motion").glob("*_motion.tsv"))
     assert len(motion) == 4 and len(motion[0].read_text().splitlines()) == 20
     assert (out / "participants.tsv").read_text() == "participant_id\nsub-P007\n"

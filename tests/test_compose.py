@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 import threading
@@ -18,9 +19,9 @@ import yaml
 from dammrl.emulators.pad import DEFAULT_CALIBRATION
 from schemas import EpisodeResult, Intent
 from services.common.bus import Bus
+from services.common.certificates import create_credentials
 from services.common.config import BusSettings
 from services.common.healthcheck import check
-from services.common.security import create_credentials
 from tests.busutil import Observer, endpoint, free_port, start_patient, wait_for
 
 pytestmark = pytest.mark.slow  # real processes on a real bus
@@ -92,13 +93,31 @@ def _bus_name(container: str) -> str:
 
 
 @pytest.mark.parametrize("profile", PROFILES)
-def test_every_container_joins_the_secured_bus_with_the_mounted_credentials(profile: str) -> None:
+def test_every_container_joins_the_secured_bus_with_its_own_roles_credentials_only(
+    profile: str,
+) -> None:
+    """The lab CA, the service's own certificate and the observer's (its health check):
+    never another role's, so no container holds the operator's key (a stop's release)."""
     for name, service in _profile(profile).items():
         env = service["environment"]
         endpoints = json.loads(env.get("DAMMRL_BUS_CONNECT") or env["DAMMRL_BUS_LISTEN"])
         assert all(e.startswith("tls/") for e in endpoints), name
-        bus = {"source": "./bus", "target": env["DAMMRL_BUS_CREDENTIALS"], "read_only": True}
-        assert any(bus.items() <= v.items() for v in service["volumes"]), name
+        role = _bus_name(name)
+        wanted = {"ca.pem", f"{role}.pem", f"{role}.key", "observer.pem", "observer.key"}
+        assert _credential_files(service) == wanted, name
+        for volume in service["volumes"]:
+            if volume["source"].startswith("./bus/"):
+                assert volume["read_only"], name
+                assert (
+                    volume["target"]
+                    == f"{env['DAMMRL_BUS_CREDENTIALS']}/" + Path(volume["source"]).name
+                ), name
+
+
+def _credential_files(service: dict[str, Any]) -> set[str]:
+    """The files of ./bus (from `dammrl bus init`) mounted into a container."""
+    sources = [Path(v["source"]) for v in service["volumes"]]
+    return {s.name for s in sources if s.parent == Path("bus")}
 
 
 def test_host_folders_are_mounted_only_when_they_exist_never_created_root_owned() -> None:
@@ -159,7 +178,7 @@ def _local(environment: dict[str, str], port: int, tmp_path: Path) -> dict[str, 
                 [endpoint(free_port() if own else port).replace("tcp/", f"{scheme}/")]
             )
         elif name == "DAMMRL_BUS_CREDENTIALS":
-            value = str(tmp_path / "bus")
+            value = str(tmp_path / "bus")  # replaced by the container's own files
         elif name in (
             "DAMMRL_PAD_PORT",
             "DAMMRL_PAD_CALIBRATION_FILE",
@@ -172,6 +191,14 @@ def _local(environment: dict[str, str], port: int, tmp_path: Path) -> dict[str, 
     return local
 
 
+def _mounted(service: dict[str, Any], credentials: Path, folder: Path) -> Path:
+    """A folder holding only the credential files compose mounts into the container."""
+    folder.mkdir(mode=0o700)
+    for name in _credential_files(service):
+        shutil.copy2(credentials / name, folder / name)  # keys stay 0600
+    return folder
+
+
 def _run_profile(profile: str, tmp_path: Path, patient: bool = False) -> Observer:
     """Start every container command of the profile as a process; run one episode (with a
     simulated patient at an emulated pad for the sensor); then every health check passes."""
@@ -182,6 +209,7 @@ def _run_profile(profile: str, tmp_path: Path, patient: bool = False) -> Observe
     try:
         for name, service in _profile(profile).items():
             env = _path_env() | _local(service["environment"], port, tmp_path)
+            env["DAMMRL_BUS_CREDENTIALS"] = str(_mounted(service, credentials, tmp_path / name))
             env["DAMMRL_TASK_EPISODES"] = "1"
             processes.append(subprocess.Popen(service["command"], env=env))
             checks[name] = (service["healthcheck"]["test"][1:], env)

@@ -9,18 +9,19 @@ import pytest
 
 from dammrl.cli.common import bus_settings
 from services.common.bus import zenoh_config
+from services.common.certificates import create_credentials
 from services.common.config import BusSettings
-from services.common.security import CredentialsError, create_credentials, run_credentials
+from services.common.security import CredentialsError, run_credentials
 
 
 def test_a_key_readable_by_others_is_refused_with_the_fix(tmp_path: Path) -> None:
     folder = tmp_path / "bus"
-    create_credentials(folder, roles=("tool",))
-    (folder / "tool.key").chmod(0o644)
+    create_credentials(folder, roles=("observer",))
+    (folder / "observer.key").chmod(0o644)
     settings = BusSettings(connect=["tls/127.0.0.1:7447"], credentials=folder)
     with pytest.raises(CredentialsError, match=r"readable by others.*chmod 600"):
         zenoh_config(settings)
-    (folder / "tool.key").chmod(0o600)
+    (folder / "observer.key").chmod(0o600)
     zenoh_config(settings)  # private again: accepted
 
 
@@ -44,3 +45,27 @@ def test_a_client_finds_the_local_runs_credentials_from_its_port(
     assert other.credentials is None and other.connect == ["tcp/127.0.0.1:7461"]
     remote = bus_settings(_args("tcp/192.168.1.10:7460"))  # not this machine's run
     assert remote.credentials is None
+
+
+def test_the_acl_shown_in_the_docs_is_the_one_every_session_loads() -> None:
+    import json
+
+    from services.common.security import access_control
+
+    docs = Path(__file__).resolve().parent.parent / "docs" / "zenoh_acl_example.json5"
+    text = "\n".join(line for line in docs.read_text().splitlines() if not line.startswith("//"))
+    assert json.loads(text) == access_control("dammrl")
+
+
+def test_credentials_made_before_the_peoples_roles_are_refused_with_what_to_do(
+    tmp_path: Path,
+) -> None:
+    folder = tmp_path / "bus"
+    create_credentials(folder, roles=("sim", "tool"))  # one 'tool' role for every person
+    settings = BusSettings(connect=["tls/127.0.0.1:7447"], credentials=folder)
+    with pytest.raises(CredentialsError, match=r"predates the roles observer, display, operator"
+                       r".*dammrl bus init --out NEW_FOLDER"):  # fmt: skip
+        zenoh_config(settings, "operator")
+    with pytest.raises(CredentialsError, match=r"holds no credentials for role 'controller'"):
+        zenoh_config(settings, "controller")
+    zenoh_config(settings, "sim")  # its own role is still there

@@ -149,7 +149,10 @@ def test_a_survival_series_starts_at_one_and_decays() -> None:
         ({"accuracy": 1.2}, "DAMMRL_HUMAN_PERSON__ACCURACY"),
         ({"accuracy": 0.0}, "DAMMRL_HUMAN_PERSON__ACCURACY"),
         ({"behaviour": "bayes"}, "DAMMRL_HUMAN_PERSON__BEHAVIOUR"),
-        ({"behaviour": "ddm", "accuracy": 0.85}, "accuracy cannot be set for behaviour 'ddm'"),
+        (
+            {"behaviour": "ddm", "accuracy": 0.85},
+            "DAMMRL_HUMAN_PERSON__ACCURACY cannot be set for DAMMRL_HUMAN_PERSON__BEHAVIOUR 'ddm'",
+        ),
     ],
 )
 def test_a_bad_person_setting_is_refused_naming_it(

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import pytest
 
-from services.common.security import create_credentials
+from services.common.certificates import create_credentials
 
 pytestmark = pytest.mark.slow
 SUBNET = "10.211.{tag}.{host}"  # addresses inside this test's own namespaces only
@@ -127,7 +127,7 @@ def test_a_secured_stack_across_hosts_runs_and_an_outsider_gets_nothing(
     for service in ("policy", "intent", "controller"):
         lab.run(2, ["-m", f"services.{service}"], joined)
     lab.run(3, ["-m", "services.recorder"], {**joined, "DAMMRL_RECORDER_OUT": str(tmp_path)})
-    tool = {**joined, "DAMMRL_BUS_ROLE": "tool"}
+    tool = {**joined, "DAMMRL_BUS_ROLE": "observer"}
     result = _echo(lab, 3, "task/result", tool, 120)
     elapsed = time.monotonic() - started
     assert result, "no episode result reached host 3"

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import shutil
+from collections.abc import Iterator
 from pathlib import Path
 
 import msgpack
@@ -22,7 +23,7 @@ MS = 1_000_000  # [ns]
 
 
 def _state(seq: int, source: str = "sim") -> bytes:
-    header = Header(stamp_ns=1_000 + seq, seq=seq, source=source)
+    header = Header(stamp_ns=1_000 + seq * MS, seq=seq, source=source)  # 1 kHz
     return encode(STATE.model_copy(update={"header": header}))
 
 
@@ -133,6 +134,108 @@ def test_streams_of_two_zenoh_sessions_are_kept_apart() -> None:
     assert account.gaps == {} and account.anomalies() == {}
 
 
+def test_a_loss_received_in_a_burst_after_a_stall_is_loss_not_a_jump() -> None:
+    """The re-test's 19 states: the recorder stalled, the backlog came in a burst and the
+    publisher had dropped 19 states meanwhile (their stamps tell; receipt times do not)."""
+    account = SequenceAccount("dammrl")
+    for seq in range(300):  # 100 Hz, received on time
+        account.see(KEY, "sim", seq, seq * 10 * MS, stamp_ns=seq * 10 * MS)
+    burst_ns = 3_400 * MS  # a stall of 0.4 s: 300-329 queued, 330-348 dropped, then on
+    for i, seq in enumerate([*range(300, 330), *range(349, 400)]):
+        account.see(KEY, "sim", seq, burst_ns + i * 10_000, stamp_ns=seq * 10 * MS)
+    assert account.gaps == {KEY: 19} and account.anomalies() == {}
+
+
+def test_messages_coming_late_by_another_route_fill_their_hole() -> None:
+    """A restarted recorder hears a state through the launcher's router first, then the
+    sim's own link is up and its newest states overtake the router's backlog: what the
+    backlog brings is not missing (the re-test: 1,463 counted, 148 missing)."""
+    account = SequenceAccount("dammrl")
+    sent = {seq: seq * 10 * MS for seq in range(5000, 7000)}
+    arrivals = [5000, *range(6463, 6600)]  # the router's first, then the direct link
+    arrivals += list(range(5001, 6316))  # the router's backlog, late (6316-6462 lost)
+    arrivals += list(range(6600, 7000))
+    for i, seq in enumerate(arrivals):
+        account.see(KEY, "sim", seq, 70_000 * MS + i * MS, stamp_ns=sent[seq])
+    assert account.gaps == {KEY: 6462 - 6316 + 1}
+    assert set(account.anomalies()) == {"late"}
+
+
+def test_the_same_message_by_two_routes_is_a_duplicate_not_a_restart() -> None:
+    account = SequenceAccount("dammrl")
+    for seq in range(200):
+        account.see(KEY, "sim", seq, seq * 10 * MS, stamp_ns=seq * 10 * MS)
+        account.see(KEY, "sim", seq, seq * 10 * MS + 3 * MS, stamp_ns=seq * 10 * MS)
+    assert account.gaps == {} and account.anomalies() == {"duplicates": {KEY: 200}}
+
+
+def test_a_restarted_publishers_numbers_never_fill_the_old_streams_holes() -> None:
+    account = SequenceAccount("dammrl")
+    for seq in (*range(0, 50), *range(60, 100)):  # 50-59 lost
+        account.see(KEY, "sim", seq, seq * 10 * MS, stamp_ns=seq * 10 * MS)
+    for seq in range(80):  # restarted 5 s later: 0, 1, ... sent anew
+        at = 6_000 * MS + seq * 10 * MS
+        account.see(KEY, "sim", seq, at, stamp_ns=at)
+    assert account.gaps == {KEY: 10}
+    assert account.anomalies() == {"restarts": {KEY: 1}}
+
+
+def test_forged_numbers_with_stamps_from_the_future_are_a_jump_not_loss() -> None:
+    account = SequenceAccount("dammrl")
+    goal = "dammrl/task/goal"
+    for seq in range(10):  # 2 Hz
+        account.see(goal, "controller", seq, seq * 500 * MS, stamp_ns=seq * 500 * MS)
+    for seq in (1000, 1001):  # stamped an hour ahead: clamped to their receipt
+        account.see(goal, "controller", seq, 6_000 * MS, stamp_ns=3_600_000 * MS)
+    account.see(goal, "controller", 10, 6_500 * MS, stamp_ns=6_500 * MS)
+    assert account.gaps == {}
+    assert account.anomalies() == {"implausible_jumps": {goal: 1}}
+
+
+def test_a_recording_that_ends_right_after_a_loss_counts_it() -> None:
+    account = SequenceAccount("dammrl")
+    for seq in (*range(100), 130):  # 100-129 lost, then the recorder was stopped
+        account.see(KEY, "sim", seq, seq * 10 * MS, stamp_ns=seq * 10 * MS)
+    assert account.gaps == {KEY: 30} and account.anomalies() == {}
+
+
+def test_a_plausible_forged_number_the_publisher_then_contradicts_is_no_loss() -> None:
+    """On a slow key, after a silence long enough to make it plausible, one number far
+    ahead: the real publisher then goes on from its own last number."""
+    account = SequenceAccount("dammrl")
+    goal = "dammrl/task/goal"
+    for seq in range(24):  # 2 Hz
+        account.see(goal, "controller", seq, seq * 500 * MS, stamp_ns=seq * 500 * MS)
+    account.see(goal, "controller", 74, 21_000 * MS, stamp_ns=21_000 * MS)  # 50 ahead
+    for seq in range(24, 40):
+        at = 21_500 * MS + seq * 500 * MS
+        account.see(goal, "controller", seq, at, stamp_ns=at)
+    assert account.gaps == {}
+    assert account.anomalies()["implausible_jumps"] == {goal: 1}
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_any_arrival_order_counts_what_the_sequence_numbers_lack(seed: int) -> None:
+    """A 100 Hz stream with random losses, each message delayed at random by up to
+    0.5 s (two routes, stalls): the account is exactly the numbers never received."""
+    import numpy as np
+
+    rng = np.random.default_rng(seed)
+    sent = np.arange(2000) * 10 * MS
+    kept = np.flatnonzero(rng.random(2000) > rng.uniform(0, 0.2))
+    for burst in rng.integers(0, 1900, 3):  # a few runs of consecutive losses
+        kept = kept[(kept < burst) | (kept > burst + rng.integers(1, 40))]
+    kept = np.union1d(kept, np.arange(1995, 2000))  # it goes on after its last loss
+    received = sent[kept] + rng.uniform(0, 500 * MS, len(kept)).astype(int)
+    account = SequenceAccount("dammrl")
+    for index in np.argsort(received, kind="stable"):
+        seq = int(kept[index])
+        account.see(KEY, "sim", seq, int(received[index]), stamp_ns=int(sent[seq]))
+    expected = int(kept[-1] - kept[0] + 1 - len(kept))
+    assert account.gaps.get(KEY, 0) == expected
+    assert "restarts" not in account.anomalies() and "implausible_jumps" not in account.anomalies()
+
+
 # ---- what reaches the disk -----------------------------------------------------------
 def test_the_chunk_age_bound_is_a_finite_setting_of_at_most_a_second_by_default() -> None:
     assert RecorderSettings().chunk_s <= 1.0
@@ -224,3 +327,103 @@ def test_a_file_that_is_no_recording_is_a_one_line_reason(
     assert reason in str(error.value) and "\n" not in str(error.value)
     with pytest.raises(RecordingError, match="does not exist"):
         info(tmp_path / "missing.mcap")
+
+
+# ---- a file any reader opens, whenever the recorder is killed ------------------------------
+class _Syscalls:
+    """The recorder's file writes, logged (and done) so that every moment a kill could pick
+    is replayed: before each call, and inside a write that spans pages (the kernel stops
+    a killed write only between pages)."""
+
+    def __init__(self) -> None:
+        import os
+
+        self.os = os
+        self.calls: list[tuple[str, object, int]] = []
+        self.committed: list[int] = []  # messages in the file after each commit
+
+    def pwrite(self, fd: int, data: bytes, offset: int) -> int:
+        self.calls.append(("pwrite", bytes(data), offset))
+        return self.os.pwrite(fd, data, offset)
+
+    def ftruncate(self, fd: int, length: int) -> None:
+        self.calls.append(("truncate", b"", length))
+        self.os.ftruncate(fd, length)
+
+    def rename(self, source: object, target: object) -> None:
+        self.calls.append(("rename", b"", 0))
+        self.os.rename(source, target)  # type: ignore[arg-type]
+
+    def __getattr__(self, name: str) -> object:
+        return getattr(self.os, name)
+
+    def moments(self) -> Iterator[tuple[bool, bytes, int]]:
+        """(the file exists, its bytes, calls completed) at every moment a kill could pick."""
+        from services.recorder.tail import PAGE
+
+        content, exists = bytearray(), False
+        for done, (kind, data, offset) in enumerate(self.calls):
+            yield exists, bytes(content), done
+            if kind == "pwrite":
+                assert isinstance(data, bytes)
+                cuts = range(PAGE - offset % PAGE, len(data), PAGE)
+                for cut in cuts:  # killed inside the write, between two pages
+                    yield exists, bytes(_written(content, data[:cut], offset)), done
+                content = _written(content, data, offset)
+            elif kind == "truncate":
+                del content[offset:]
+            else:
+                exists = True
+        yield exists, bytes(content), len(self.calls)
+
+
+def _written(content: bytearray, data: bytes, offset: int) -> bytearray:
+    out = bytearray(content)
+    if len(out) < offset + len(data):
+        out.extend(bytes(offset + len(data) - len(out)))
+    out[offset : offset + len(data)] = data
+    return out
+
+
+def test_a_recorder_killed_at_any_moment_leaves_a_file_mcaps_default_reader_opens(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Every moment of a recording (its start, chunks closed by size and by age, the rare
+    messages flushed at once, its finish), replayed: mcap's own reader opens the file, reads
+    every message of the last commit that began before, and nothing else."""
+    import io
+
+    from services.recorder.tail import CommittedFile
+
+    syscalls = _Syscalls()
+    monkeypatch.setattr("services.recorder.tail.os", syscalls)
+    recorded = [0]
+    commits: list[tuple[int, int]] = []  # (calls done when a commit ended, messages in it)
+    commit = CommittedFile.commit
+
+    def logged(self: CommittedFile) -> None:
+        commit(self)
+        commits.append((len(syscalls.calls), recorded[0]))
+
+    monkeypatch.setattr(CommittedFile, "commit", logged)
+    path = tmp_path / "r.mcap"
+    recorder = McapRecorder(path, "dammrl", {"mode": "virtual"}, chunk_bytes=4096)
+    for seq in range(400):
+        recorded[0] = seq + 1
+        recorder.record(KEY, _state(seq), seq * MS)
+        if seq % 97 == 96:
+            recorder.flush()  # by age
+    recorder.finish()
+    commits.append((len(syscalls.calls), 400))
+    assert len(commits) > 20  # many commits: by size, by age, the finish
+    checked = 0
+    for exists, content, calls in syscalls.moments():
+        if not exists:
+            continue  # killed before the first commit: no file at all, never a broken one
+        floor = max(n for done, n in commits if done <= calls)
+        messages = list(make_reader(io.BytesIO(content)).iter_messages())
+        assert len(messages) >= floor, (calls, len(messages), floor)
+        assert [m.sequence for _, _, m in messages] == list(range(len(messages)))
+        checked += 1
+    assert checked > 100
+    assert info(path)["complete"] and info(path)["messages"] == 400

@@ -53,10 +53,10 @@ def _valid(message: BusMessage, seq: int, source: str) -> bytes:
     return encode(message.model_copy(update={"header": header}))
 
 
-_SOURCES = {"EmergencyStop": "tool", "RobotState": "sim", "SensorSample": "intent",
+_SOURCES = {"EmergencyStop": "operator", "RobotState": "sim", "SensorSample": "intent",
             "Intent": "intent", "Health": "sim", "ModelChoice": "policy",
-            "SignalChunk": "intent", "IntentEvidence": "intent", "ComfortRating": "tool",
-            "SessionControl": "tool"}  # fmt: skip
+            "SignalChunk": "intent", "IntentEvidence": "intent", "ComfortRating": "display",
+            "SessionControl": "operator", "EpisodeRecorded": "recorder"}  # fmt: skip
 
 
 def _session(writer: Writer) -> dict[str, int]:

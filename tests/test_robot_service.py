@@ -290,7 +290,7 @@ def test_the_emergency_stop_holds_within_one_period_and_refuses_commands(rig: Ri
     _started(rig)
     rig.run(0.2, lambda r: _answer(r, np.array([0.3, 0, 0, 0, 0, 0])))  # moving away
     assert rig.fastest(len(rig.speeds) - 5) > 0.1
-    rig.bus.send(EmergencyStop(header=Header(stamp_ns=1, seq=0, source="tool"), engaged=True))
+    rig.bus.send(EmergencyStop(header=Header(stamp_ns=1, seq=0, source="operator"), engaged=True))
     rig.node.cycle()  # one period
     assert rig.last_health[0] == "stopped"
     assert rig.node.law.held is not None and rig.node.law.command is None
@@ -299,7 +299,7 @@ def test_the_emergency_stop_holds_within_one_period_and_refuses_commands(rig: Ri
     stopped_at = next(i for i, s in enumerate(rig.speeds[cycles:]) if s.max() < 0.02)
     assert stopped_at * 0.011 < 0.5, rig.speeds[cycles:]  # at rest within half a second
     assert any("emergency stop" in r for r in rig.bus.rejected)
-    rig.bus.send(EmergencyStop(header=Header(stamp_ns=2, seq=1, source="tool"), engaged=False))
+    rig.bus.send(EmergencyStop(header=Header(stamp_ns=2, seq=1, source="operator"), engaged=False))
     rig.run(0.3)
     assert rig.last_health[0] == "holding"  # released: it holds until commands resume
 

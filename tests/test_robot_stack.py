@@ -164,7 +164,7 @@ def test_the_sim_obeys_the_emergency_stop_too() -> None:
                               timeout=60)  # fmt: skip
         assert done.returncode == 0 and "sim: stop confirmed" in done.stdout, done.stderr
         stopped = [h for h in observer.of(Health) if isinstance(h, Health) and h.state == "stopped"]
-        assert stopped and "emergency stop from tool: test" in stopped[-1].detail
+        assert stopped and "emergency stop from operator: test" in stopped[-1].detail
         released = subprocess.run([*stop, "--release"], capture_output=True, text=True,
                                   timeout=60)  # fmt: skip
         assert released.returncode == 0 and "sim: release confirmed" in released.stdout

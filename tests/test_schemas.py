@@ -14,6 +14,7 @@ from schemas import (
     DecisionRequest,
     DecodeError,
     EmergencyStop,
+    EpisodeRecorded,
     EpisodeResult,
     Header,
     Health,
@@ -74,6 +75,8 @@ EXAMPLES: list[Message] = [
     ComfortRating(header=HEADER, participant="P012", block="event", trial=7, rating=4,
                   asked_s=3.2),
     SessionControl(header=HEADER, episode=3, action="pause", who="T1", why="the patient coughs"),
+    EpisodeRecorded(header=HEADER, episode=2, file="part-01.mcap", result_seq=7, states=512,
+                    complete=False, missing="the robot state the result was decided from"),
 ]  # fmt: skip
 
 
@@ -162,9 +165,10 @@ def test_an_episode_result_carries_exactly_the_metrics_of_a_reach() -> None:
     carries exactly its fields and what identifies the run, so a metric added to one is
     missing from the other only until this test runs."""
     from schemas import EpisodeResult
-    from services.common.convert import IDENTIFIES_A_RUN, METRICS
+    from services.common.convert import IDENTIFIES_A_RUN, LOCATES_ITS_END, METRICS
 
-    carried = set(EpisodeResult.model_fields) - {"header", "episode", *IDENTIFIES_A_RUN}
+    others = {"header", "episode", *IDENTIFIES_A_RUN, *LOCATES_ITS_END}
+    carried = set(EpisodeResult.model_fields) - others
     assert carried == set(METRICS)
 
 

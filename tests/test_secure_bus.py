@@ -18,8 +18,8 @@ import zenoh
 
 from schemas import Header, JointCommand, RobotState, TaskGoal, decode, encode, key
 from services.common.bus import zenoh_config
+from services.common.certificates import create_credentials
 from services.common.config import BusSettings
-from services.common.security import create_credentials
 from tests.busutil import free_port, start_service, wait_for
 
 pytestmark = pytest.mark.slow
@@ -34,12 +34,12 @@ def credentials(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 class Watcher:
-    """A 'tool' session listening on the stack's TLS endpoint, collecting RobotStates."""
+    """An observer's session listening on the stack's TLS endpoint, collecting RobotStates."""
 
     def __init__(self, port: int, credentials: Path) -> None:
         settings = BusSettings(listen=[f"tls/127.0.0.1:{port}"], mode="router",
                                credentials=credentials)  # fmt: skip
-        self.session = zenoh.open(zenoh_config(settings, "tool"))
+        self.session = zenoh.open(zenoh_config(settings, "observer"))
         self.states: list[RobotState] = []
         self._sub = self.session.declare_subscriber(key("dammrl", RobotState), self._on)
 
@@ -103,7 +103,7 @@ def test_another_role_cannot_move_the_arm(
     secured_sim: tuple[Watcher, int], credentials: Path
 ) -> None:
     watcher, port = secured_sim
-    for role in ("intent", "policy", "tool"):
+    for role in ("intent", "policy", "observer", "display", "operator"):
         with _session(port, credentials, role) as session:
             time.sleep(0.5)
             assert _drive(watcher, session) < 0.01, role
@@ -204,3 +204,136 @@ def test_spoofed_messages_from_another_role_leave_the_episode_exactly_as_in_proc
         stack.stop()
         sub.undeclare()  # type: ignore[no-untyped-call]
         watcher.session.close()  # type: ignore[no-untyped-call]
+
+
+# ---- the people's roles: observer, display, operator --------------------------------------
+def _every_topic_from(session: zenoh.Session, source: str) -> None:
+    """One well-formed message on every topic of the stack, its header naming ``source``
+    (the payload's say decides nothing: only the certificate does)."""
+    from tests.test_schemas import EXAMPLES
+
+    for example in EXAMPLES:
+        header = example.header.model_copy(update={"source": source})
+        message = example.model_copy(update={"header": header})
+        session.put(key("dammrl", type(message)), encode(message))
+
+
+def test_each_persons_role_reaches_only_its_own_keys(credentials: Path) -> None:
+    """On a real secured bus, a session with the observer's, the display's and the
+    operator's certificate each publishes on every key; a recorder's session receives only
+    what the role may send: nothing, the comfort rating, the stop and session control."""
+    from services.common.security import PUBLISHES
+
+    port = free_port()
+    hub = BusSettings(listen=[f"tls/127.0.0.1:{port}"], mode="router", credentials=credentials)
+    received: dict[str, set[str]] = {}  # header.source (the sending role) -> topics
+
+    def take(sample: zenoh.Sample) -> None:
+        topic = str(sample.key_expr).removeprefix("dammrl/")
+        received.setdefault(_source(sample), set()).add(topic)
+
+    with zenoh.open(zenoh_config(hub, "recorder")) as recorder:
+        recorder.declare_subscriber("dammrl/**", take)
+        for role in ("observer", "display", "operator"):
+            with _session(port, credentials, role) as person:
+                time.sleep(0.5)
+                _every_topic_from(person, role)
+                time.sleep(0.5)
+    assert received.get("observer", set()) == set()
+    assert received["display"] == set(PUBLISHES["display"]) == {"session/comfort"}
+    assert received["operator"] == set(PUBLISHES["operator"])
+    assert received["operator"] == {"safety/stop", "session/control"}
+
+
+def _source(sample: zenoh.Sample) -> str:
+    """The header's source of a received message (what the sending test put there)."""
+    import msgpack
+
+    return str(msgpack.unpackb(sample.payload.to_bytes())["header"]["source"])
+
+
+def test_only_the_operators_certificate_stops_and_releases_the_arm(
+    secured_sim: tuple[Watcher, int], credentials: Path
+) -> None:
+    """A viewer's or the participant display's session forging the operator's stop and
+    release (header and all) changes nothing; the operator's stops the sim, and only the
+    operator's release lets it go."""
+    from schemas import EmergencyStop, Health
+
+    watcher, port = secured_sim
+    health: list[Health] = []
+    sub = watcher.session.declare_subscriber(
+        key("dammrl", Health, "sim"), lambda s: health.append(decode(Health, s.payload.to_bytes()))
+    )
+    sessions = {role: _session(port, credentials, role) for role in ("observer", "display",
+                                                                       "operator")}  # fmt: skip
+    sent = {role: 0 for role in sessions}
+
+    def stop(role: str, engaged: bool) -> None:
+        for _ in range(5):  # as `dammrl stop` does: repeated
+            header = Header(stamp_ns=time.time_ns(), seq=sent[role], source="operator")
+            sent[role] += 1
+            message = EmergencyStop(header=header, engaged=engaged, reason=f"by {role}")
+            sessions[role].put(key("dammrl", EmergencyStop), encode(message))
+            time.sleep(0.02)
+
+    def state_after(seconds: float = 1.5) -> str:
+        health.clear()
+        time.sleep(seconds)  # the sim reports a change at once, and every second
+        assert health, "no Health from the sim"
+        return health[-1].state
+
+    try:
+        time.sleep(0.5)
+        for role in ("observer", "display"):
+            stop(role, engaged=True)
+            assert state_after() != "stopped", role
+        stop("operator", engaged=True)
+        assert state_after() == "stopped"
+        for role in ("observer", "display"):
+            stop(role, engaged=False)
+            assert state_after() == "stopped", role
+        stop("operator", engaged=False)
+        assert state_after() != "stopped"
+    finally:
+        sub.undeclare()  # type: ignore[no-untyped-call]
+        for session in sessions.values():
+            session.close()  # type: ignore[no-untyped-call]
+
+
+def test_the_participant_display_joins_a_run_with_its_own_certificate() -> None:
+    """On a real run (its own credentials): the display's session of the run
+    (``Stack.join``) reaches the recorder's key of the comfort rating, and the operator's
+    keys not (a participant's page cannot release a stop or take over), while the
+    launcher's own session, the operator's, sends a stop."""
+    from dammrl.launch import Stack, StackOptions
+    from schemas import ComfortRating, EmergencyStop, SessionControl
+    from tests.test_schemas import EXAMPLES
+
+    examples = {type(e): e for e in EXAMPLES}
+    heard: list[str] = []
+
+    def on_up(hub: zenoh.Session) -> None:
+        listener = stack.join("recorder")  # a peer that hears whoever sends
+        listener.declare_subscriber("dammrl/session/**",
+                                    lambda s: heard.append(str(s.key_expr)))  # fmt: skip
+        listener.declare_subscriber("dammrl/safety/**",
+                                    lambda s: heard.append(str(s.key_expr)))  # fmt: skip
+        display = stack.join("display")
+        time.sleep(1.0)
+        for message_type in (ComfortRating, SessionControl, EmergencyStop):
+            payload = encode(examples[message_type])
+            display.put(key("dammrl", message_type), payload)
+        time.sleep(1.0)
+        heard.append("--")
+        hub.put(key("dammrl", EmergencyStop), encode(examples[EmergencyStop]))
+        time.sleep(1.0)
+        stack.finish()
+
+    stack = Stack(StackOptions(episodes=1, seed=7_000_000, model=(2, 1), port=free_port(),
+                               lockstep=True), out=lambda _: None, info=lambda _: None,
+                  on_up=on_up)  # fmt: skip
+    stack.run()
+    display_sent = heard[: heard.index("--")]
+    assert display_sent == ["dammrl/session/comfort"], heard
+    assert "dammrl/safety/stop" in heard[heard.index("--") :]

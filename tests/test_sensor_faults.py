@@ -138,7 +138,8 @@ def test_a_stuck_sensor_is_flagged_after_the_set_time_gives_no_decision_and_reco
 
 
 def test_stuck_after_must_exceed_a_held_press() -> None:
-    with pytest.raises(ValidationError, match=r"stuck_after_s 0\.4 must be above long_press_s"):
+    with pytest.raises(ValidationError, match=r"long_press_s=0\.5: outside its range \(0, 0\.4\) "
+                       r"\(below stuck_after_s=0\.4\)"):  # fmt: skip
         DecoderSettings(stuck_after_s=0.4)
 
 

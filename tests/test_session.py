@@ -6,6 +6,7 @@ from __future__ import annotations
 import io
 import itertools
 import json
+import threading
 import time
 from pathlib import Path
 from typing import Any, ClassVar
@@ -17,7 +18,7 @@ from dammrl.launch import StackOptions
 from dammrl.session import JsonLines, SessionRunner, SetUp, check_participant, session_table
 from dammrl_core.errors import ConfigurationError, DammrlError, JobFailedError, UsageError
 from dammrl_core.protocol import balanced_latin_square, block_order, load_protocol, plan_trials
-from schemas import EpisodeResult, Header
+from schemas import EpisodeRecorded, EpisodeResult, Header, SessionControl, decode
 
 PROTOCOL = """\
 format: 1
@@ -126,6 +127,7 @@ class ScriptedStack:
     console: ClassVar[dict[int, list[str]]] = {}
     sent: ClassVar[list[Any]] = []
     posterior: ClassVar[tuple[float, float] | None] = None
+    ack_after_s: ClassVar[float | None] = None  # the recorder's acknowledgements (None: none)
 
     def __init__(self, options: StackOptions, out: Any, info: Any, on_result: Any,
                  on_up: Any) -> None:  # fmt: skip
@@ -144,6 +146,7 @@ class ScriptedStack:
         self.options.record.write_bytes(b"mcap")
         stack_run = self.on_up.__self__
         stack_run.hub = self  # as attach() does, without its console thread
+        stack_run.listening = ScriptedStack.ack_after_s is not None
         for episode in range(1, self.options.episodes + 1):
             if ScriptedStack.crash_after is not None and self.given >= self.crash_after:
                 raise JobFailedError("service controller exited unexpectedly with code -9")
@@ -156,10 +159,21 @@ class ScriptedStack:
                 outcome = "skipped" if command.action in ("skip", "again", "end-block") else outcome
             if ScriptedStack.posterior is not None:  # the policy spoke of the person
                 stack_run.posterior = ScriptedStack.posterior
+            if ScriptedStack.ack_after_s is not None:
+                _acknowledge(stack_run, episode, ScriptedStack.ack_after_s)
             self.on_result(_result(episode, self.options.seed + episode - 1, outcome))
             if self.finishing:
                 break
         return 0
+
+
+def _acknowledge(stack_run: Any, episode: int, after_s: float) -> None:
+    """The recorder's acknowledgement of ``episode``, ``after_s`` from now (on its own
+    thread, as the bus delivers it)."""
+    ack = EpisodeRecorded(header=Header(stamp_ns=1, seq=episode, source="recorder"),
+                          episode=episode, file=stack_run.part.name, result_seq=episode,
+                          states=100, complete=True)  # fmt: skip
+    threading.Timer(after_s, stack_run.recorded.take, args=(ack,)).start()
 
 
 @pytest.fixture
@@ -167,6 +181,7 @@ def scripted(monkeypatch: pytest.MonkeyPatch) -> type[ScriptedStack]:
     monkeypatch.setattr("dammrl.session.Stack", ScriptedStack)
     ScriptedStack.runs, ScriptedStack.crash_after, ScriptedStack.given = [], None, 0
     ScriptedStack.console, ScriptedStack.sent, ScriptedStack.posterior = {}, [], None
+    ScriptedStack.ack_after_s = None
     return ScriptedStack
 
 
@@ -332,3 +347,47 @@ def test_a_closed_console_waits_its_timeout_instead_of_spinning() -> None:
     assert lines.get(0.2) is None
     assert time.monotonic() - started >= 0.19
     assert lines.get(None) is None  # no timeout: at once, never for ever
+
+
+def _recorded_events(tmp_path: Path) -> list[dict[str, Any]]:
+    events = (tmp_path / "sessions/P001/ses-01/events.jsonl").read_text().splitlines()
+    return [e for e in map(json.loads, events) if e["what"] == "recorded"]
+
+
+def test_a_stack_run_stops_only_once_the_recorder_confirms_its_reaches_on_disk(
+    tmp_path: Path, scripted: type[ScriptedStack]
+) -> None:
+    """The acknowledgements come 0.3 s after each result: each run waits for its last."""
+    scripted.ack_after_s = 0.3
+    assert _runner(tmp_path).run() == 0
+    recorded = _recorded_events(tmp_path)
+    assert [e["confirmed"] for e in recorded] == [[1], [2, 3, 4], [5, 6, 7]]
+    assert all(e["unconfirmed"] == [] and e["waited_s"] >= 0.2 for e in recorded)
+
+
+def test_reaches_the_recorder_never_confirms_are_logged_and_said_after_a_bounded_wait(
+    tmp_path: Path, scripted: type[ScriptedStack]
+) -> None:
+    scripted.ack_after_s = 60.0  # later than the session waits
+    said: list[str] = []
+    runner = SessionRunner(tmp_path / "sessions", "P001", _protocol(tmp_path), SetUp(),
+                           say=said.append, wait_for_operator=False, console=io.StringIO(),
+                           recorded_wait_s=0.2)  # fmt: skip
+    started = time.monotonic()
+    assert runner.run() == 0
+    assert time.monotonic() - started < 10  # bounded: three runs, 0.2 s each
+    recorded = _recorded_events(tmp_path)
+    assert [e["unconfirmed"] for e in recorded] == [[1], [2, 3, 4], [5, 6, 7]]
+    assert [e["unconfirmed_episodes"] for e in recorded] == [[1], [1, 2, 3], [1, 2, 3]]
+    assert any("did not confirm trial(s) [2, 3, 4] on disk within 0.2 s" in line
+               for line in said)  # fmt: skip
+
+
+def test_the_consoles_again_and_end_of_block_go_on_the_bus_as_themselves(
+    tmp_path: Path, scripted: type[ScriptedStack]
+) -> None:
+    scripted.console = {2: ["a slipped"], 5: ["e tired"]}
+    assert _runner(tmp_path).run() == 0
+    actions = [decode(SessionControl, payload).action for k, payload in scripted.sent
+               if k == "dammrl/session/control"]  # fmt: skip
+    assert actions == ["again", "end-block"]

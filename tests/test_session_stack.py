@@ -134,10 +134,11 @@ def test_a_session_killed_again_and_again_resumes_and_runs_every_trial_exactly_o
         assert study["participant"] == "P001" and trial["trial"] in study["trials"]
 
 
-def test_a_pause_holds_the_arm_without_a_jump_and_a_skip_ends_the_reach() -> None:
-    """On the real stack: pause a reach under way for 2 s, resume it, then skip the next
-    one. The reference never steps further than in ordinary running; the paused reach
-    still succeeds and its time leaves the pause out."""
+def test_a_pause_holds_the_arm_without_a_jump_and_an_again_ends_the_reach() -> None:
+    """On the real stack: pause a reach under way for 2 s, resume it, then run the next
+    one again (it ends as a skip or an end of block does: ``ENDS_REACH``). The reference
+    never steps further than in ordinary running; the paused reach still succeeds and
+    its time leaves the pause out."""
     import threading
 
     from dammrl.launch import Stack, StackOptions
@@ -149,7 +150,7 @@ def test_a_pause_holds_the_arm_without_a_jump_and_a_skip_ends_the_reach() -> Non
     marks: dict[str, float] = {}
 
     def control(hub: object, episode: int, action: str) -> None:
-        header = Header(stamp_ns=time.time_ns(), seq=len(marks), source="tool")
+        header = Header(stamp_ns=time.time_ns(), seq=len(marks), source="operator")
         message = SessionControl(header=header, episode=episode, action=action, who="T1",
                                  why="a test")  # fmt: skip
         marks[f"{action}{episode}"] = time.monotonic()
@@ -165,7 +166,7 @@ def test_a_pause_holds_the_arm_without_a_jump_and_a_skip_ends_the_reach() -> Non
         while not results and time.monotonic() < deadline + 60:
             time.sleep(0.05)
         time.sleep(1.0)
-        control(hub, 2, "skip")
+        control(hub, 2, "again")
 
     def on_up(hub: object) -> None:
         def take(sample: object) -> None:
@@ -214,7 +215,7 @@ def test_the_therapist_takes_the_decisions_over_and_hands_them_back() -> None:
     sent = [0]
 
     def control(hub: object, action: str, **decision: int) -> None:
-        header = Header(stamp_ns=time.time_ns(), seq=sent[0], source="tool")
+        header = Header(stamp_ns=time.time_ns(), seq=sent[0], source="operator")
         sent[0] += 1
         message = SessionControl(header=header, episode=1, action=action, who="T1",
                                  **decision)  # type: ignore[arg-type]  # fmt: skip

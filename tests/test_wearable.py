@@ -184,7 +184,7 @@ def test_a_twitch_and_a_doubtful_contraction_are_not_acted_on(
     calibration: EmgCalibration,
 ) -> None:
     synth = EmgSynth(model_named("medium"), seed=12)
-    decoder = WindowDecoder(calibration, EmgDecoderSettings(min_contraction_s=0.5))
+    decoder = WindowDecoder(calibration, EmgDecoderSettings(min_contraction_s=0.4))
     synth.contract(1, 0.25, delay_s=0.5)
     twitch = stream_through(decoder, synth, 1.5)
     assert len(twitch) == 1 and not twitch[0].accepted and "twitch" in twitch[0].reason

@@ -25,6 +25,7 @@ from dammrl.cli import (
     robot,
     sensor,
     session,
+    settings,
     stack,
     study,
     view,
@@ -46,6 +47,7 @@ GROUPS = (
     coadapt.register_adapt,
     view.register,
     bus.register,
+    settings.register,
     robot.register_stop,
     stack.register_schemas,
 )

@@ -12,7 +12,10 @@ from dammrl_core.errors import Exit
 def register(commands: Commands) -> None:
     bus = commands.add_parser("bus", help="credentials for a secured bus (mutual TLS, ACL)")
     actions = bus.add_subparsers(dest="action", required=True, metavar="ACTION")
-    helptext = "create a lab CA and one certificate per role (sim, controller, intent, ...)"
+    helptext = (
+        "create a lab CA and one certificate per role: each service's, and observer "
+        "(read only), display (a comfort rating), operator (stop, release, session)"
+    )
     init = actions.add_parser("init", help=helptext, description=helptext)
     init.add_argument("--out", type=Path, required=True, metavar="DIR",
                       help="folder to create (keys readable by you only)")  # fmt: skip
@@ -23,7 +26,8 @@ def register(commands: Commands) -> None:
 
 
 def _init(args: argparse.Namespace) -> int:
-    from services.common.security import ROLES, create_credentials
+    from services.common.certificates import create_credentials
+    from services.common.security import ROLES
 
     if args.out.exists() and any(args.out.iterdir()):
         print_err(f"dammrl: error: {args.out} is not empty; choose a new folder")
@@ -31,5 +35,8 @@ def _init(args: argparse.Namespace) -> int:
     create_credentials(args.out, args.host)
     print_out(f"credentials for {', '.join(ROLES)} in {args.out}")
     print_out(f"every service and tool: DAMMRL_BUS_CREDENTIALS={args.out.resolve()} and tls/ "
-              "endpoints; give each machine only ca.pem and the roles it runs")  # fmt: skip
+              "endpoints; give each machine only ca.pem and the roles it runs: a service its "
+              "name, a viewer 'observer' (reads), the participant's display 'display' (their "
+              "comfort rating), the therapist's PC 'operator' (dammrl stop and its release, "
+              "dammrl up, the session console)")  # fmt: skip
     return 0

@@ -8,14 +8,23 @@ import argparse
 import json
 from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING, TypeVar
 
 from dammrl.cli.common import Commands, aligned, output_dir, print_err, print_out
-from dammrl_core.errors import Exit
+from dammrl_core.errors import Exit, UsageError
+
+if TYPE_CHECKING:
+    from dammrl.catalogue import Built
+
+T = TypeVar("T")
 
 
 def add_actions(actions: Commands) -> None:
     """Add ``catalogue``, ``trials`` and ``query`` to ``dammrl session``."""
-    helptext = "build the session catalogue afresh from the recordings (DuckDB and Parquet)"
+    helptext = (
+        "build the session catalogue afresh from the recordings (DuckDB and Parquet), "
+        "checking each session's trial log against them"
+    )
     build = actions.add_parser("catalogue", help=helptext, description=helptext)
     add_root(build)
     build.set_defaults(handler=_build)
@@ -28,14 +37,16 @@ def add_actions(actions: Commands) -> None:
     trials.add_argument(
         "--condition",
         metavar="NAME",
-        help="only this condition: a trigger (event, fixed) or a policy (learned, fixed)",
+        help="only this condition: a trigger (event, fixed) or a policy (learned, fixed); "
+        "its practice trials only with --practice",
     )
+    trials.add_argument("--practice", action="store_true", help="a condition's practice trials too")
     trials.add_argument("--json", action="store_true", help="JSON lines instead of a table")
     trials.set_defaults(handler=_trials)
 
     helptext = (
-        "ask the catalogue in SQL (read-only; tables participants, sessions, trials, "
-        "comfort, actions)"
+        "ask the catalogue in SQL (read-only, no file access; tables participants, "
+        "sessions, trials, comfort, actions, completeness, recordings)"
     )
     ask = actions.add_parser("query", help=helptext, description=helptext)
     ask.add_argument("sql", help='e.g. "SELECT trigger, avg(t_total_s) FROM trials GROUP BY 1"')
@@ -52,7 +63,10 @@ def _add_report(actions: Commands) -> None:
         "and one per session (every trial, each block), Markdown and HTML"
     )
     report = actions.add_parser("report", help=helptext, description=helptext)
-    report.add_argument("--participant", required=True, help="the participant's id")
+    who = report.add_mutually_exclusive_group(required=True)
+    who.add_argument("--participant", help="the participant's id")
+    who.add_argument("--all", action="store_true",
+                     help="every participant's, with an index (index.md, index.html)")  # fmt: skip
     report.add_argument("--session", help="only this session's report (e.g. ses-02)")
     report.add_argument("--out", type=output_dir, required=True, help="the reports' folder")
     add_root(report)
@@ -66,7 +80,10 @@ def _add_bids(actions: Commands) -> None:
     )
     bids = actions.add_parser("bids", help=helptext, description=helptext)
     bids.add_argument(
-        "--out", type=output_dir, required=True, help="the dataset's folder (replaced)"
+        "--out",
+        type=output_dir,
+        required=True,
+        help="the dataset's folder (an earlier export's files replaced, the lab's kept)",
     )
     bids.add_argument(
         "--author", action="append", default=[], help="an author of the dataset (repeat for each)"
@@ -87,66 +104,96 @@ def add_root(parser: argparse.ArgumentParser) -> None:
 
 
 def _fresh(root: Path) -> None:
-    """Rebuild the catalogue first when a recording is newer (a session just run is in
-    every answer without a step to remember)."""
-    from dammrl.catalogue import stale
+    """Rebuild the catalogue first when it is missing, stale or damaged (a session just
+    run is in every answer without a step to remember); one line says why."""
+    from dammrl.catalogue import ensure
 
-    if root.is_dir() and stale(root):
-        print_err("the catalogue is older than the recordings: rebuilding it")
-        _built(root, print_err)  # stdout is for the answer
+    if root.is_dir():
+        built = ensure(root, print_err)
+        if built is not None:
+            _tell(root, built, print_err)  # stdout is for the answer
+
+
+def _answer(root: Path, ask: Callable[[], T]) -> T:
+    """``ask`` on a fresh catalogue; rebuilt once if it turns out damaged meanwhile."""
+    from dammrl.catalogue import UnreadableCatalogueError, build
+
+    _fresh(root)
+    try:
+        return ask()
+    except UnreadableCatalogueError as exc:
+        print_err(f"{exc}: rebuilding it")
+        _tell(root, build(root, print_err), print_err)
+        return ask()
 
 
 def _build(args: argparse.Namespace) -> int:
-    _built(args.root, print_out)
+    from dammrl.catalogue import build
+
+    _tell(args.root, build(args.root, print_err), print_out)
     return Exit.OK
 
 
-def _built(root: Path, say: Callable[[str], None]) -> None:
-    """Build the catalogue, say what it passed over (stderr) and what it holds (``say``)."""
-    from dammrl.catalogue import build, query
+def _tell(root: Path, built: Built, say: Callable[[str], None]) -> None:
+    """Say on stderr every recording passed over or used although damaged, and every
+    trial of the logs missing or recorded in part; what the catalogue holds to ``say``."""
+    from dammrl.catalogue import query
 
-    built = build(root)
-    for why in built.passed_over[:10]:
-        print_err(f"passed over {why}")
-    if len(built.passed_over) > 10:
-        print_err(f"... and {len(built.passed_over) - 10} more recordings passed over")
+    for line in built.passed_over:
+        print_err(f"passed over {line}")
+    for line in built.damaged:
+        print_err(f"used in part {line}")
+    for line in built.incomplete:
+        print_err(line)
     counting = (
         "SELECT (SELECT count(*) FROM participants), (SELECT count(*) FROM sessions), "
-        "(SELECT count(*) FROM trials WHERE final)"
+        "(SELECT count(*) FROM trials WHERE final), sum(reaches_logged), "
+        "sum(recorded_whole), sum(recorded_in_part), sum(missing), sum(unlogged) FROM sessions"
     )
-    participants, sessions, trials = query(root, counting)[1][0]
+    participants, sessions, trials, *logged = query(root, counting)[1][0]
     say(
         f"catalogue: {participants} participants, {sessions} sessions, {trials} trials "
         f"-> {built.path}"
     )
+    if logged[0] is not None:
+        said = (
+            f"data completeness: {logged[0]} reaches in the trial logs, {logged[1]} recorded whole"
+        )
+        said += f", {logged[2]} in part, {logged[3]} missing from the recordings"
+        said += f"; {logged[4]} recorded reaches not in a log" if logged[4] else ""
+        say(said)
 
 
 def _trials(args: argparse.Namespace) -> int:
     from dammrl.catalogue import trials_of
 
-    _fresh(args.root)
-    names, rows = trials_of(args.root, args.participant, args.since, args.condition)
+    names, rows = _answer(args.root, lambda: trials_of(
+        args.root, args.participant, args.since, args.condition, args.practice))  # fmt: skip
     return _show(names, rows, args.json)
 
 
 def _query(args: argparse.Namespace) -> int:
     from dammrl.catalogue import query
 
-    _fresh(args.root)
-    names, rows = query(args.root, args.sql)
+    names, rows = _answer(args.root, lambda: query(args.root, args.sql))
     return _show(names, rows, args.json)
 
 
 def _report(args: argparse.Namespace) -> int:
-    from dammrl.outcomes import participant_report, session_report
+    from dammrl.outcomes import every_participant_report, participant_report, session_report
     from dammrl.session import check_participant
 
-    participant = check_participant(args.participant)
-    _fresh(args.root)
-    if args.session:
-        path = session_report(args.root, participant, args.session, args.out)
+    if args.all:
+        if args.session:
+            raise UsageError("--session goes with --participant, not --all")
+        path = _answer(args.root, lambda: every_participant_report(args.root, args.out))
+    elif args.session:
+        participant = check_participant(args.participant)
+        path = _answer(args.root, lambda: session_report(args.root, participant, args.session,
+                                                         args.out))  # fmt: skip
     else:
-        path = participant_report(args.root, participant, args.out)
+        participant = check_participant(args.participant)
+        path = _answer(args.root, lambda: participant_report(args.root, participant, args.out))
     print_out(f"report: {path} (and {path.with_suffix('.html').name})")
     return Exit.OK
 
@@ -154,11 +201,15 @@ def _report(args: argparse.Namespace) -> int:
 def _bids(args: argparse.Namespace) -> int:
     from dammrl.bids import export
 
-    _fresh(args.root)
-    counts = export(args.root, args.out, args.author, args.license)
+    done = _answer(args.root, lambda: export(args.root, args.out, args.author, args.license))
+    for line in done.kept.lines():
+        print_err(line)
+    if done.without_motion:
+        print_err(f"{done.without_motion} reaches hold fewer than two of the arm's states: "
+                  "no run of theirs (the catalogue's completeness says why)")  # fmt: skip
     print_out(
-        f"BIDS: {counts['participants']} participants, {counts['sessions']} sessions, "
-        f"{counts['runs']} runs -> {args.out}"
+        f"BIDS: {done.participants} participants, {done.sessions} sessions, "
+        f"{done.runs} runs -> {args.out}"
     )
     return Exit.OK
 

@@ -14,6 +14,7 @@ from schemas import DEFAULT_NAMESPACE
 
 if TYPE_CHECKING:
     from services.common.config import BusSettings
+    from services.common.runs import RunCard
 
 Commands: TypeAlias = "argparse._SubParsersAction[argparse.ArgumentParser]"
 """The ``COMMAND`` (or ``ACTION``) subparsers a group adds its parsers to."""
@@ -107,12 +108,16 @@ CREDENTIALS_HELP = (
 )
 
 
+BUS_PORT_HELP = "the loopback port of a local `dammrl up --bus-port N` (its credentials are found)"
+
+
 def add_bus_arguments(parser: argparse.ArgumentParser, connect_help: str) -> None:
-    """``--connect``, ``--namespace`` and ``--credentials``: where and how a client finds
-    the stack."""
+    """``--connect``, ``--bus-port``, ``--namespace`` and ``--credentials``: where and how
+    a client finds the stack (none of them: the local run there is, see ``bus_settings``)."""
     add_connect(parser, connect_help)
-    parser.add_argument("--namespace", default=DEFAULT_NAMESPACE,
-                        help=f"the stack's key prefix (default {DEFAULT_NAMESPACE})")  # fmt: skip
+    parser.add_argument("--bus-port", type=int, metavar="N", help=BUS_PORT_HELP)
+    parser.add_argument("--namespace", help="the stack's key prefix (default: the run's, or "
+                        f"{DEFAULT_NAMESPACE})")  # fmt: skip
     add_credentials(parser)
 
 
@@ -125,42 +130,94 @@ def add_connect(parser: argparse.ArgumentParser, helptext: str) -> None:
     parser.add_argument("--connect", action="append", metavar="ENDPOINT", help=helptext)
 
 
-def bus_settings(args: argparse.Namespace, namespace: str | None = None) -> BusSettings:
-    """A client's bus settings from the flags; ``namespace`` if ``--namespace`` is unset."""
+def bus_settings(
+    args: argparse.Namespace,
+    namespace: str | None = None,
+    beside: Callable[[], RunCard | None] | None = None,
+) -> BusSettings:
+    """A client's bus settings from the flags (``--connect``, ``--bus-port``), else the
+    environment's; where none says where, the local run ``beside`` finds (an emulator:
+    the run that reads it; by default: the only local run), else ``DEFAULT_CONNECT``.
+    ``namespace`` if ``--namespace`` is unset (else the run's, else the default)."""
     from services.common.config import BusSettings
+    from services.common.runs import local_runs, only_run
 
     environment = BusSettings()  # DAMMRL_BUS_* where the flags are silent
     credentials = getattr(args, "credentials", None) or environment.credentials
-    connect = list(args.connect or environment.connect or [DEFAULT_CONNECT])
+    connect = _endpoints(args) or list(environment.connect)
+    if not connect:
+        found = (beside or only_run)()
+        connect = [found.endpoint] if found is not None else [DEFAULT_CONNECT]
+    cards = {run.port: run for run in local_runs()}  # a local run there: its namespace too
+    run = next((cards[p] for p in map(_loopback_port, connect) if p in cards), None)
     if credentials is None:  # a local `dammrl up` on that port: its own credentials
-        credentials = _local_stack_credentials(connect)
+        credentials = _local_stack_credentials(connect, cards)
     if credentials is not None:  # a secured stack speaks TLS only
         connect = [e.replace("tcp/", "tls/", 1) if e.startswith("tcp/") else e for e in connect]
-    return BusSettings(
-        connect=connect,
-        namespace=args.namespace or namespace,
-        credentials=credentials,
-    )
+    else:
+        _refuse_tls_without_credentials(connect)
+    run_namespace = None if run is None else run.namespace
+    chosen = getattr(args, "namespace", None) or namespace or run_namespace or DEFAULT_NAMESPACE
+    return BusSettings(connect=connect, namespace=chosen, credentials=credentials)
+
+
+def _endpoints(args: argparse.Namespace) -> list[str]:
+    """The endpoints the flags name (``--connect`` or ``--bus-port``, not both)."""
+    from dammrl_core.errors import UsageError
+
+    connect, port = getattr(args, "connect", None), getattr(args, "bus_port", None)
+    if connect and port is not None:
+        raise UsageError("--connect and --bus-port both say where the stack is: one of them")
+    if port is not None:
+        if not 0 < port < 65_536:
+            raise UsageError(f"--bus-port {port}: a TCP port, 1-65535")
+        return [f"tcp/127.0.0.1:{port}"]
+    return list(connect or [])
 
 
 LOOPBACK = ("127.0.0.1", "localhost", "[::1]")
 
 
-def _local_stack_credentials(endpoints: list[str]) -> Path | None:
+def _loopback_port(endpoint: str) -> int | None:
+    _, _, address = endpoint.partition("/")
+    host, _, port = address.rpartition(":")
+    return int(port) if host in LOOPBACK and port.isdigit() else None
+
+
+def _local_stack_credentials(endpoints: list[str], cards: dict[int, RunCard]) -> Path | None:
     """The credentials of the `dammrl up` this machine runs on one of ``endpoints``' ports
-    (loopback endpoints only), if there is one."""
+    (loopback endpoints only), if there is one: its card's (a lab's, or its own), or its
+    own folder."""
     from services.common.security import CA_FILE, run_credentials, stale_run_credentials
 
     for endpoint in endpoints:
-        _, _, address = endpoint.partition("/")
-        host, _, port = address.rpartition(":")
-        if host in LOOPBACK and port.isdigit():
-            folder = run_credentials(int(port))
-            if stale_run_credentials(folder):  # its launcher is gone: useless, removed
-                shutil.rmtree(folder, ignore_errors=True)
-            if (folder / CA_FILE).is_file():
-                return folder
+        port = _loopback_port(endpoint)
+        if port is None:
+            continue
+        card = cards.get(port)
+        if card is not None and card.credentials is not None:
+            return Path(card.credentials)
+        folder = run_credentials(port)
+        if stale_run_credentials(folder):  # its launcher is gone: useless, removed
+            shutil.rmtree(folder, ignore_errors=True)
+        if (folder / CA_FILE).is_file():
+            return folder
     return None
+
+
+def _refuse_tls_without_credentials(endpoints: list[str]) -> None:
+    """A secured endpoint and no credentials found: say where a run's would be."""
+    from services.common.security import CredentialsError, run_credentials
+
+    for endpoint in (e for e in endpoints if e.startswith("tls/")):
+        port = _loopback_port(endpoint)
+        local = "" if port is None else (
+            f"a `dammrl up --bus-port {port}` of yours keeps its own in "
+            f"{run_credentials(port, create=False)} while it runs (is it running, as this "
+            "user?); ")  # fmt: skip
+        raise CredentialsError(f"{endpoint} is a secured stack's and no credentials were found: "
+                               f"{local}a lab's stack: --credentials DIR (or "
+                               "DAMMRL_BUS_CREDENTIALS)")  # fmt: skip
 
 
 def print_out(line: str) -> None:

@@ -93,7 +93,11 @@ def _add_emulate(actions: Commands) -> None:
                          help="patient: 1 hurried (quick contractions, E_big), 2 careful "
                          "(held, E_small)")  # fmt: skip
     emulate.add_argument("--seed", type=int, default=0, help="the signal and the patient")
-    add_bus_arguments(emulate, f"patient: the stack's endpoint (default {DEFAULT_CONNECT})")
+    add_bus_arguments(
+        emulate,
+        "patient: the stack's endpoint (default: the local `dammrl up` "
+        f"that reads this --stream, else {DEFAULT_CONNECT})",
+    )
     emulate.add_argument("--seconds", type=positive, help="stop after this long")
     emulate.set_defaults(handler=_emulate)
 
@@ -174,12 +178,14 @@ def _synth(args: argparse.Namespace) -> EmgSynth | ImuSynth:
 def _patient(args: argparse.Namespace, stream: EmgStream, stop: threading.Event) -> None:
     from dammrl.cli.sensor import answer_while_joined
     from dammrl.emulators.patient import SimulatedPatient
+    from services.common.runs import run_reading
 
     patient = SimulatedPatient(stream, args.patient_model, seed=args.seed)
     print_out(f"simulated patient (M_{args.patient_model}) answering decision requests")
     said = False
-    while not stop.is_set():
-        said = answer_while_joined(args, patient, stop, said)
+    while not stop.is_set():  # without --connect/--bus-port: the run that reads this stream
+        said = answer_while_joined(args, patient, stop, said,
+                                   lambda: run_reading(stream=args.stream))  # fmt: skip
     print_out(f"answered {patient.answered} requests")
 
 

@@ -21,10 +21,13 @@ from dammrl.cli.common import (
 from dammrl_core.errors import DammrlError
 
 if TYPE_CHECKING:
+    from collections.abc import Callable
+
     from dammrl.emulators.pad import SensorEmulator
     from dammrl.emulators.patient import SimulatedPatient
     from dammrl_core.intent.pad.decoder import Calibration
     from services.common.bus import Bus
+    from services.common.runs import RunCard
 
 PORT_HELP = "serial device, e.g. /dev/ttyUSB0"
 
@@ -92,7 +95,11 @@ def _add_emulate(actions: Commands) -> None:
                          help="patient: 1 hurried (quick presses, E_big), 2 careful (held, "
                          "E_small)")  # fmt: skip
     emulate.add_argument("--seed", type=int, default=0, help="patient's decisions, ADC noise")
-    add_bus_arguments(emulate, f"patient: the stack's endpoint (default {DEFAULT_CONNECT})")
+    add_bus_arguments(
+        emulate,
+        "patient: the stack's endpoint (default: the local `dammrl up` "
+        f"that reads this --link, else {DEFAULT_CONNECT})",
+    )
     emulate.add_argument("--rate", type=positive, default=100.0, help="frames per second")
     emulate.add_argument("--seconds", type=positive, help="stop after this long")
     emulate.set_defaults(handler=_emulate)
@@ -212,35 +219,43 @@ def stop_after(stop: threading.Event, seconds: float | None) -> None:
 
 def _patient(args: argparse.Namespace, pad: SensorEmulator, stop: threading.Event) -> None:
     """A simulated patient pressing the emulated pad to answer the stack's requests. It
-    may start before the stack: until a stack lets it in it says so once and tries again
-    (a local `dammrl up` on the port is found with its run's credentials once it runs), and
-    it rejoins a stack that went away and came back."""
+    may start before the stack: until a stack lets it in it says so once and tries again.
+    Without --connect or --bus-port it joins the local `dammrl up` that reads this pad
+    (``--port`` the same device), whatever its port, once it runs; it rejoins a stack that
+    went away and came back."""
     from dammrl.emulators.patient import SimulatedPatient
+    from services.common.runs import run_reading
 
     patient = SimulatedPatient(pad, args.patient_model, seed=args.seed)
     kind = "hurried: quick presses, E_big" if args.patient_model == 1 else "careful: held, E_small"
     print(f"simulated patient (M_{args.patient_model}, {kind}) answering decision requests")
     said = False
     while not stop.is_set():
-        said = answer_while_joined(args, patient, stop, said)
+        said = answer_while_joined(args, patient, stop, said, lambda: run_reading(args.link))
     print(f"answered {patient.answered} requests")
 
 
 def answer_while_joined(
-    args: argparse.Namespace, patient: SimulatedPatient, stop: threading.Event, said: bool
+    args: argparse.Namespace,
+    patient: SimulatedPatient,
+    stop: threading.Event,
+    said: bool,
+    beside: Callable[[], RunCard | None],
 ) -> bool:
-    """One session: answer requests while it reaches a stack; whether the patient has said
-    it is alone."""
+    """One session: answer requests while it reaches a stack (the flags', else the run
+    ``beside`` finds, else the default endpoint); whether the patient has said it is
+    alone."""
     from services.common.bus import JOIN_S, Bus, linked, not_joined_line
 
-    settings = bus_settings(args)  # a run's credentials may have appeared meanwhile
+    settings = bus_settings(args, beside=beside)  # the run may have come up meanwhile
     with Bus(settings, "patient") as bus:
         deadline = time.monotonic() + JOIN_S
         while not linked(bus.session) and time.monotonic() < deadline and not stop.is_set():
             stop.wait(0.1)
         if not linked(bus.session):
             if not said and not stop.is_set():
-                print_err(not_joined_line(settings) + "; still trying")
+                print_err(not_joined_line(settings) + "; still trying (a `dammrl up` that "
+                          "reads this input is joined, whatever its port)")  # fmt: skip
             return True
         print_err(f"joined the stack at {', '.join(settings.connect)}")
         session = threading.Event()  # ends when the patient stops or the stack is gone

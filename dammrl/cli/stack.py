@@ -97,9 +97,9 @@ def _add_up(commands: Commands) -> None:
                     help="plain tcp on loopback: any local process can join (default: this "
                          "run's own credentials, found by status/echo)")  # fmt: skip
     up.add_argument("--json", action="store_true", help="one JSON object per episode")
-    up.add_argument(
-        "--record", type=Path, metavar="MCAP", help="also run the recorder into this file"
-    )
+    up.add_argument("--record", type=Path, metavar="MCAP",
+                    help="also run the recorder into this new file, in a folder that exists "
+                         "(after a recorder restart: NAME-001.mcap, ...)")  # fmt: skip
     up.add_argument("--display", type=int, nargs="?", const=8080, metavar="PORT",
                     help="serve the participant display at http://THIS-MACHINE:PORT "
                          "(default 8080)")  # fmt: skip
@@ -108,7 +108,7 @@ def _add_up(commands: Commands) -> None:
 
 def _up(args: argparse.Namespace) -> int:
     """Launch the stack; runs until the episodes are done, a signal, or a dead service."""
-    from dammrl.launch import Stack, StackOptions
+    from dammrl.launch import Stack, StackOptions, check_options
 
     options = StackOptions(
         mode=args.mode, episodes=args.episodes, seed=args.seed, model=args.model,
@@ -120,16 +120,20 @@ def _up(args: argparse.Namespace) -> int:
         robot_port=args.robot_port, robot_calibration=args.robot_calibration,
         emulate_robot=args.emulate_robot,
     )  # fmt: skip
+    check_options(options)  # before anything starts, the display's server included
     if args.display is None:
         return Stack(options, out=print_out, info=print_err).run()
     from dammrl.cli.session import open_display
     from dammrl.display import BusFeed
+    from services.common.security import DISPLAY
 
     intent = args.intent or ("pad" if args.port else "lsl" if args.stream else "simulated")
     display = open_display("0.0.0.0", args.display, intent)
     try:
         feed = BusFeed(display, args.namespace)
-        return Stack(options, out=print_out, info=print_err, on_up=feed.attach).run()
+        stack = Stack(options, out=print_out, info=print_err,
+                      on_up=lambda hub: feed.attach(stack.join(DISPLAY)))  # fmt: skip
+        return stack.run()
     finally:
         display.close()
 

@@ -29,6 +29,7 @@ from dammrl_core.sim.simulation import Simulation
 from dammrl_core.state import JointCommand
 from dammrl_core.task import TaskSettings, scene_layout
 from services.common.config import BusSettings
+from services.common.security import OBSERVER
 
 
 class MujocoServos:
@@ -108,7 +109,7 @@ class EmulatedArm:
         from schemas import TaskGoal
         from services.common.bus import Bus
 
-        with Bus(settings, "tool") as bus:
+        with Bus(settings, OBSERVER) as bus:
             bus.subscribe(TaskGoal)
             bus.expect(TaskGoal, "controller")
             placed = -1

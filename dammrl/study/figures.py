@@ -19,7 +19,7 @@ from matplotlib.ticker import MaxNLocator
 from dammrl.study.configs import CONDITIONS, EVENT, FIXED, R1, R2, Configuration, checkpoint_file
 from dammrl.study.inference import unit_values
 from dammrl.study.run import Job, Record, reach
-from dammrl.study.stats import Estimate, t_interval, wilson
+from dammrl.study.stats import Estimate, t_mean, wilson
 from dammrl_core.robot.scene import SceneLayout
 
 MM = 1000.0
@@ -43,15 +43,15 @@ def describe(rows: list[dict[str, Any]], metric: str, rate: bool = False) -> Est
     configuration has several, else over reaches (a rate of one run: Wilson)."""
     kept = [r for r in rows if r.get(metric) is not None]
     if not kept:
-        return t_interval(np.empty(0))
+        return t_mean(np.empty(0))
     values = np.array([float(r[metric]) for r in kept])
     if max(int(r.get("runs") or 0) for r in kept) > 1:
         runs = np.array([int(r.get("run") or 0) for r in kept])
-        e = t_interval(unit_values(values, runs))
+        e = t_mean(unit_values(values, runs))
         return Estimate(e.value, max(e.low, 0.0), min(e.high, 1.0), e.n) if rate else e
     if rate:
         return wilson(int(values.sum()), values.size)
-    return t_interval(values)
+    return t_mean(values)
 
 
 def summary_chart(records: list[Record], configurations: list[Configuration],
@@ -151,7 +151,7 @@ def step_modulation_figure(records: list[Record], path: Path) -> Path:
                             for k in runs])  # (runs, bins)  # fmt: skip
         for curve in per_run:
             left.plot(centres, curve * MM, "-", color=color, lw=0.6, alpha=0.35)
-        stats = [t_interval(per_run[:, b]) for b in range(per_run.shape[1])]
+        stats = [t_mean(per_run[:, b]) for b in range(per_run.shape[1])]
         left.plot(centres, [s.value * MM for s in stats], "o-", color=color,
                   label=f"{label} ({len(runs)} training runs)")  # fmt: skip
         if len(runs) > 1:

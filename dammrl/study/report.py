@@ -43,7 +43,7 @@ from dammrl.study.configs import (
 )
 from dammrl.study.figures import describe
 from dammrl.study.inference import median_interval, unit_values
-from dammrl.study.stats import paired_difference, t_interval, time_to_success, wilson
+from dammrl.study.stats import paired_difference, t_mean, time_to_success, wilson
 from dammrl.study.study import StudyResult, save_latencies, save_search
 from dammrl_core.errors import UsageError
 from dammrl_core.ik import FITTED_LATENCY, REFERENCE_COST
@@ -535,7 +535,7 @@ def _paired_cells(result: StudyResult, a: tuple[str, str], b: tuple[str, str],
     learned = int(rows_a[seeds[0]].get("runs") or 0) > 1
     units = np.array([rows_a[s].get("run") or 0 if learned else s for s in seeds])
     return [
-        t_interval(unit_values(np.array([_figure(rows_a[s], name) - _figure(rows_b[s], name)
+        t_mean(unit_values(np.array([_figure(rows_a[s], name) - _figure(rows_b[s], name)
                                          for s in seeds]), units)).text(scale, 2)
         for name, scale in figures
     ]  # fmt: skip

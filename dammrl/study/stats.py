@@ -1,4 +1,4 @@
-"""Interval estimates for describing results: bootstrap means, t-intervals over
+"""Interval estimates for describing results: bootstrap means, Student-t means over
 independent units, Wilson rates, paired differences, rliable's stratified bootstrap and
 interquartile mean, intraclass correlation, and time to success with censoring
 (Kaplan-Meier, restricted mean). A study's checks are decided elsewhere, by exact tests
@@ -57,18 +57,19 @@ def bootstrap_mean(values: np.ndarray, rng: np.random.Generator) -> Estimate:
     return Estimate(mean, min(mean, float(low)), max(mean, float(high)), int(data.size))
 
 
-def t_interval(values: np.ndarray) -> Estimate:
-    """Mean with its 95 % t-interval over independent units (NaNs dropped; one unit: no
-    interval). For describing: a check's verdict comes from ``dammrl.study.inference``."""
-    x = np.asarray(values, dtype=float)
-    x = x[np.isfinite(x)]
-    if x.size == 0:
+def t_mean(values: np.ndarray) -> Estimate:
+    """Mean with its Student-t 95 % interval (NaNs dropped): exact for normal data at any
+    n, and deterministic (the same values give the same interval in any report). A single
+    value has no interval (NaN bounds)."""
+    data = np.asarray(values, dtype=float)
+    data = data[np.isfinite(data)]
+    if data.size == 0:
         return NO_DATA
-    mean = float(x.mean())
-    if x.size == 1:
-        return Estimate(mean, -math.inf, math.inf, 1)
-    half = float(scipy_stats.t.ppf(0.975, x.size - 1) * x.std(ddof=1) / math.sqrt(x.size))
-    return Estimate(mean, mean - half, mean + half, int(x.size))
+    mean = float(data.mean())
+    if data.size < 2:
+        return Estimate(mean, math.nan, math.nan, 1)
+    half = float(scipy_stats.t.ppf(0.975, data.size - 1) * data.std(ddof=1) / math.sqrt(data.size))
+    return Estimate(mean, mean - half, mean + half, int(data.size))
 
 
 def wilson(successes: int, n: int) -> Estimate:

@@ -3,16 +3,25 @@ controller service and by every in-process composition)."""
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Annotated, Literal, Self
 
-from pydantic import Field
+from pydantic import Field, model_validator
 from pydantic_settings import SettingsConfigDict
 
+from dammrl_core.errors import ConfigurationError
 from dammrl_core.ik import MAX_LATENCY_SCALE, IKSolverName, LatencyMode
-from dammrl_core.settings import PerJointDamping, PerJointGain, Settings
+from dammrl_core.settings import PerJointDamping, PerJointGain, Settings, ordered
+from dammrl_core.task import TaskSettings, scene_layout
 
 Trigger = Literal["event", "fixed"]
 Feedforward = Literal["inverse_dynamics", "resolved_acceleration"]
+_Weight = Annotated[float, Field(gt=0, le=100)]
+# the workspace box: in front of the shoulder (x, never behind its plane, towards the
+# person), within the reference arm's reach of 0.74 m
+REACH_M = 0.8
+_X = Annotated[float, Field(ge=0.05, le=REACH_M)]
+_Y = Annotated[float, Field(ge=-REACH_M, le=REACH_M)]
+_Z = Annotated[float, Field(ge=-REACH_M, le=REACH_M)]
 
 
 class ControllerSettings(Settings):
@@ -39,8 +48,9 @@ class ControllerSettings(Settings):
     """Task axis driven by the human's binary command (0 = x, 1 = y, 2 = z)."""
     orthogonal_deadband: bool = True
     """Skip an orthogonal step when |e| <= delta/2 (the step would increase |e|)."""
-    lyapunov_weights: tuple[float, float, float] = (1.0, 1.0, 1.0)
-    """Diagonal of W in V = 1/2 e^T W e, e = x_m - x."""
+    lyapunov_weights: tuple[_Weight, _Weight, _Weight] = (1.0, 1.0, 1.0)
+    """Diagonal of W in V = 1/2 e^T W e, e = x_m - x (each above 0, at most 100: W must be
+    positive definite)."""
 
     ik_solver: IKSolverName = "pinocchio"
     """'pinocchio' (damped least squares, fast) or 'ikpy' (bounded optimisation, the paper's)."""
@@ -52,9 +62,9 @@ class ControllerSettings(Settings):
     ik_latency_profile: IKSolverName = "ikpy"
     """Whose fitted compute-time distribution 'model' draws from. Default: the paper's solver,
     so results carry the paper's timing whichever solver computes the joint solution."""
-    ik_latency_median_s: float | None = Field(None, gt=0)
+    ik_latency_median_s: float | None = Field(None, gt=0, le=5)
     """Override of the latency model's median [s]."""
-    ik_latency_sigma: float | None = Field(None, ge=0)
+    ik_latency_sigma: float | None = Field(None, ge=0, le=3)
     """Override of the latency model's log-standard deviation."""
     ik_latency_scale: float = Field(1.0, gt=0, le=MAX_LATENCY_SCALE)
     """Every IK latency times this (0-100, exclusive of 0): a computer this many times
@@ -64,8 +74,9 @@ class ControllerSettings(Settings):
     nominal forward kinematics: without it, a calibration error of a few millimetres puts
     every step beside its subgoal and a small admission sphere is never entered. (Zero when
     the end-effector position is itself computed from the joint angles.)"""
-    ik_accept_error_m: float = Field(1e-3, gt=0)
-    """An IK solution farther than this from its target is a failure [m]."""
+    ik_accept_error_m: float = Field(1e-3, gt=0, le=0.01)
+    """An IK solution farther than this from its target is a failure [m] (at most 10 mm:
+    the smallest micro-step)."""
     max_joint_step_rad: float = Field(0.5, gt=0, le=1.0)
     """IK searches within the seed +- this per joint, so a micro-step never jumps [rad]."""
 
@@ -88,10 +99,13 @@ class ControllerSettings(Settings):
 
     joint_limit_margin_rad: float = Field(0.02, ge=0, le=0.3)
     """IK targets stay this far inside the joint limits [rad]."""
-    workspace_min_m: tuple[float, float, float] = (0.1, -0.45, -0.235)
-    """Lower corner of the allowed end-effector box in the task frame [m]."""
-    workspace_max_m: tuple[float, float, float] = (0.72, 0.45, 0.20)
-    """Upper corner of the allowed end-effector box [m]."""
+    workspace_min_m: tuple[_X, _Y, _Z] = (0.1, -0.45, -0.235)
+    """Lower corner of the allowed end-effector box in the task frame [m]: x 0.05-0.8 (in
+    front of the shoulder), y and z -0.8-0.8 (the arm's reach), each below its upper
+    corner; its floor (z) at least a fingertip's radius above the table
+    (``DAMMRL_TASK_TABLE_TOP_Z_M``)."""
+    workspace_max_m: tuple[_X, _Y, _Z] = (0.72, 0.45, 0.20)
+    """Upper corner of the allowed end-effector box [m] (ranges as the lower corner's)."""
     trigger_timeout_s: float = Field(3.0, ge=0.1, le=60)
     """A step whose trigger has not fired after this long ends in a hold [s]."""
 
@@ -111,3 +125,23 @@ class ControllerSettings(Settings):
     """Model used until the policy's first ModelChoice arrives (i: 1 = E_big)."""
     robot_model: int = Field(1, ge=1, le=8)
     """Model used until the policy's first ModelChoice arrives (j: step vector)."""
+
+    @model_validator(mode="after")
+    def _consistent(self) -> Self:
+        """A box whose lower corner lies below its upper corner on every axis."""
+        ordered(self, "workspace_min_m", "workspace_max_m")
+        return self
+
+
+def check_workspace(controller: ControllerSettings, task: TaskSettings) -> None:
+    """ConfigurationError unless the workspace's floor keeps the fingertip on the table
+    (its centre at least a fingertip's radius above the table top): the table margin the
+    box exists for. The controller and every composition check it before a reach."""
+    floor = task.table_top_z_m + scene_layout(task).fingertip_radius_m
+    given = controller.workspace_min_m[2]
+    if given < floor - 1e-9:
+        raise ConfigurationError(
+            f"invalid setting: DAMMRL_CONTROLLER_WORKSPACE_MIN_M[2]={given:g}: outside its "
+            f"range [{floor:g}, {REACH_M:g}] (the workspace's floor keeps the fingertip above "
+            f"the table, DAMMRL_TASK_TABLE_TOP_Z_M={task.table_top_z_m:g})"
+        )

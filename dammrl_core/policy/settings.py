@@ -40,6 +40,7 @@ class PolicySettings(Settings):
     robot_model: int = Field(1, ge=1, le=8)
     """j of the fixed policy (see dammrl_core.models)."""
     fallback_human_model: int = Field(2, ge=1, le=2)
+    """See ``fallback_robot_model``."""
     fallback_robot_model: int = Field(1, ge=1, le=8)
     """The safe fixed model used when the checkpoint cannot be loaded: M_2,1, the careful
     human's small sphere with all-small steps (the most accurate, never large moves)."""

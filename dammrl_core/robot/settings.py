@@ -7,7 +7,7 @@ from pathlib import Path
 from pydantic_settings import SettingsConfigDict
 
 from dammrl_core.robot.description import DEFAULT_URDF, RobotDescription
-from dammrl_core.settings import PerJointNonNegative, Settings
+from dammrl_core.settings import PerJointArmature, Settings
 
 
 class RobotSettings(Settings):
@@ -19,7 +19,7 @@ class RobotSettings(Settings):
     """Any 6-DoF URDF; the default is the dammrl reference rehabilitation arm."""
     ee_frame: str = "fingertip"
     """URDF link whose origin is the end-effector point x."""
-    armature_kgm2: PerJointNonNegative = (0.05, 0.05, 0.03, 0.03, 0.01, 0.01)
+    armature_kgm2: PerJointArmature = (0.05, 0.05, 0.03, 0.03, 0.01, 0.01)
     """Reflected rotor inertia per joint [kg m^2] (no URDF tag exists for it)."""
 
     def load(self) -> RobotDescription:

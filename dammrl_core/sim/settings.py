@@ -8,7 +8,14 @@ from typing import Self
 from pydantic import BaseModel, Field, model_validator
 from pydantic_settings import SettingsConfigDict
 
-from dammrl_core.settings import FINITE, Settings
+from dammrl_core.settings import (
+    FINITE,
+    MIN_DAMPING_NMS_PER_RAD,
+    MIN_STIFFNESS_NM_PER_RAD,
+    Settings,
+    at_least,
+    ordered,
+)
 
 
 class DomainRandomization(BaseModel):
@@ -17,11 +24,12 @@ class DomainRandomization(BaseModel):
     model_config = FINITE
 
     enabled: bool = False
+    """Randomise the arm (off: the nominal arm)."""
     mass_scale: float = Field(0.15, ge=0, lt=1)
     """Link masses (and inertias) scaled by U(1 - s, 1 + s)."""
     damping_scale: float = Field(0.3, ge=0, lt=1)
     """Joint damping scaled by U(1 - s, 1 + s)."""
-    friction_max_nm: float = Field(0.3, ge=0)
+    friction_max_nm: float = Field(0.3, ge=0, le=5)
     """Joint dry friction drawn from U(0, max) [N m]."""
     link_length_scale: float = Field(0.02, ge=0, lt=0.2)
     """Kinematics: each link's offset from its parent (its length) scaled by U(1 - s,
@@ -30,13 +38,13 @@ class DomainRandomization(BaseModel):
     joint_offset_rad: float = Field(0.005, ge=0, le=0.1)
     """Kinematics: encoder zero offsets drawn from U(-max, max) [rad]: the reported joint
     angle is the true one plus its offset, and the joint servo holds the reported angle."""
-    q_noise_rad: float = Field(2e-4, ge=0)
+    q_noise_rad: float = Field(2e-4, ge=0, le=0.05)
     """Standard deviation of joint-position sensor noise [rad]."""
-    dq_noise_rad_per_s: float = Field(2e-3, ge=0)
+    dq_noise_rad_per_s: float = Field(2e-3, ge=0, le=0.5)
     """Standard deviation of joint-velocity sensor noise [rad/s]."""
-    ee_noise_m: float = Field(2e-4, ge=0)
+    ee_noise_m: float = Field(2e-4, ge=0, le=0.01)
     """Standard deviation of end-effector position noise [m]."""
-    ee_vel_noise_m_per_s: float = Field(1e-3, ge=0)
+    ee_vel_noise_m_per_s: float = Field(1e-3, ge=0, le=0.1)
     """Standard deviation of end-effector velocity noise [m/s]: the joint-velocity noise
     through the arm's Jacobian (0.5-1.0 mm/s per axis at the start postures), as an arm
     that reports J(q) dq would measure it. The trigger's dV/dt <= 0 test reads it."""
@@ -50,7 +58,7 @@ class SimSettings(Settings):
 
     timestep_s: float = Field(0.001, ge=2e-4, le=0.005)
     """Physics step [s] (0.2-5 ms: shorter steps cannot keep real time on a PC)."""
-    button_press_travel_m: float = Field(0.003, gt=0)
+    button_press_travel_m: float = Field(0.003, gt=0, le=0.01)
     """Cap travel at which the button counts as pressed [m]."""
     randomization: DomainRandomization = DomainRandomization()
 
@@ -60,9 +68,10 @@ class SimSettings(Settings):
     command_stale_s: float = Field(0.1, ge=0.02, le=1.0)
     """No valid command for this long: hold position (gravity compensation + damping)
     [s] (0.02-1 s: the watchdog cannot be switched off by a large number)."""
-    hold_kp_nm_per_rad: float = Field(100.0, ge=0, le=2000)
-    """Stiffness of a hold before any command arrived (then: the last command's) [N m/rad]."""
-    hold_kd_nms_per_rad: float = Field(10.0, ge=0, le=200)
+    hold_kp_nm_per_rad: float = Field(100.0, ge=MIN_STIFFNESS_NM_PER_RAD, le=2000)
+    """Stiffness of a hold before any command arrived (then: the last command's) [N m/rad]
+    (5-2000: softer is no hold)."""
+    hold_kd_nms_per_rad: float = Field(10.0, ge=MIN_DAMPING_NMS_PER_RAD, le=200)
     """Damping of a hold before any command arrived (then: the last command's) [N m s/rad]."""
     max_kp_nm_per_rad: float = Field(2000.0, gt=0, le=10_000)
     """Commands asking for more stiffness are rejected [N m/rad]."""
@@ -92,14 +101,10 @@ class SimSettings(Settings):
     @model_validator(mode="after")
     def _consistent(self) -> Self:
         """A hold no stiffer than a command may be; a watchdog longer than two periods."""
-        if self.hold_kp_nm_per_rad > self.max_kp_nm_per_rad:
-            raise ValueError("hold_kp_nm_per_rad must not exceed max_kp_nm_per_rad")
-        if self.hold_kd_nms_per_rad > self.max_kd_nms_per_rad:
-            raise ValueError("hold_kd_nms_per_rad must not exceed max_kd_nms_per_rad")
-        if not self.reference_speed_fraction <= self.speed_governor_fraction:
-            raise ValueError("reference_speed_fraction must not exceed speed_governor_fraction")
-        if self.speed_governor_fraction >= self.overspeed_stop_fraction:
-            raise ValueError("speed_governor_fraction must stay below overspeed_stop_fraction")
-        if self.command_stale_s < 2 / self.state_rate_hz:
-            raise ValueError("command_stale_s must span at least two state periods")
+        ordered(self, "hold_kp_nm_per_rad", "max_kp_nm_per_rad", strict=False)
+        ordered(self, "hold_kd_nms_per_rad", "max_kd_nms_per_rad", strict=False)
+        ordered(self, "reference_speed_fraction", "speed_governor_fraction", strict=False)
+        ordered(self, "speed_governor_fraction", "overspeed_stop_fraction")
+        at_least(self, "command_stale_s", 2 / self.state_rate_hz,
+                 f"two periods of state_rate_hz={self.state_rate_hz:g}")  # fmt: skip
         return self

@@ -37,14 +37,14 @@ from schemas.keys import MAX_MESSAGE_BYTES, downsampling
 from schemas.messages import HealthState
 from services.common.admission import Admission
 from services.common.config import BusSettings
-from services.common.security import ROLES, secure_config_entries
+from services.common.security import OBSERVER, PEOPLE, ROLES, secure_config_entries
 
 M = TypeVar("M", bound=Message)
 MAX_NAME, MAX_PEERS = 64, 32
 ARM_LOOP: tuple[type[Message], ...] = (RobotState, JointCommand)
-UNLIMITED_ROLES = ("recorder", "tool")
+UNLIMITED_ROLES = ("recorder", *PEOPLE)
 """Sessions that take every message that comes (no per-link rate limit): the recorder
-keeps everything; the tools look (replay as fast as possible into a recorder works)."""
+keeps everything; people's tools look (replay as fast as possible into a recorder works)."""
 """The loop's messages (100 Hz each way): a late one stalls the arm, so they go first."""
 log = logging.getLogger("dammrl.bus")
 MAX_DETAIL, MAX_REJECTED = 2000, 63  # Health.detail's and .rejected's bounds (schemas)
@@ -58,7 +58,7 @@ def _priority(message_type: type[Message] | None) -> int:
 
 
 def zenoh_config(
-    settings: BusSettings, role: str = "tool", rate_limits: bool = False
+    settings: BusSettings, role: str = OBSERVER, rate_limits: bool = False
 ) -> zenoh.Config:
     """The session's Zenoh configuration; with ``settings.credentials``, mutual TLS as
     ``role`` (``settings.role`` wins) and the stack's access control; ``rate_limits``:
@@ -154,7 +154,7 @@ class Bus:
         self._sources: dict[type[Message], frozenset[str]] = {}
 
     def __enter__(self) -> Bus:
-        role = self.service if self.service in ROLES else "tool"
+        role = self.service if self.service in ROLES else OBSERVER
         limited = role not in UNLIMITED_ROLES
         self.session = zenoh.open(zenoh_config(self.settings, role, rate_limits=limited))
         self._roster = self.session.liveliness().declare_subscriber(

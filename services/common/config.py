@@ -42,7 +42,7 @@ class BusSettings(Settings):
     control. None: plain tcp, anyone who reaches the endpoint is on the bus."""
     role: str | None = None
     """Certificate role of this session (default: the service's name; tools: 'tool')."""
-    launcher_pid: int | None = Field(None, ge=1)
+    launcher_pid: int | None = Field(None, ge=1, le=4_194_304)  # Linux's largest pid_max
     """The ``dammrl up`` process that started this service (set by it): when that
     process is gone, even killed with -9, the service stops, and removes the run's own
     credentials (those marked with the launcher's pid), which nothing else may use."""
@@ -69,7 +69,17 @@ class BusSettings(Settings):
             if self.credentials is not None and not secure:
                 raise ValueError(f"endpoint {endpoint!r} must be tls/HOST:PORT with credentials")
             if self.credentials is None and secure:
-                raise ValueError(
-                    f"endpoint {endpoint!r} needs credentials (DAMMRL_BUS_CREDENTIALS)"
-                )
+                raise ValueError(f"endpoint {endpoint!r} needs credentials: {_where(endpoint)}")
         return self
+
+
+def _where(endpoint: str) -> str:
+    """Where the credentials of a stack at ``endpoint`` are (a local run's, or a lab's)."""
+    from services.common.security import run_credentials
+
+    host, _, port = endpoint.partition("/")[2].rpartition(":")
+    lab = "for a lab's stack, the folder from `dammrl bus init` (a tool's --credentials DIR)"
+    if host not in ("127.0.0.1", "localhost", "[::1]") or not port.isdigit():
+        return lab
+    folder = run_credentials(int(port), create=False)
+    return f"a local `dammrl up --bus-port {port}` keeps its own in {folder} while it runs; {lab}"

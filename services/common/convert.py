@@ -12,7 +12,9 @@ from dammrl_core.metrics import ReachMetrics
 from schemas import messages as wire
 
 IDENTIFIES_A_RUN = ("trigger", "model", "seed", "start_m", "goal_m")
-"""The fields of an EpisodeResult beyond the metrics (and its header and episode)."""
+"""The fields of an EpisodeResult beyond the metrics (and its header and episode)..."""
+LOCATES_ITS_END = ("last_state_stamp_ns",)
+"""... and the one that says where its reach ends in the record."""
 
 
 def _floats(array: np.ndarray) -> tuple[float, ...]:
@@ -103,13 +105,19 @@ def step_message(header: wire.Header, step: core.StepEvent, episode: int) -> wir
 
 
 def episode_result(
-    header: wire.Header, episode: int, summary: dict[str, Any]
+    header: wire.Header,
+    episode: int,
+    summary: dict[str, Any],
+    last_state_stamp_ns: int | None = None,
 ) -> wire.EpisodeResult:
     """An episode's result from ``metrics.episode_summary`` (the metrics of ReachMetrics,
-    one definition, and what identifies the run)."""
+    one definition, and what identifies the run); ``last_state_stamp_ns``: the header
+    stamp of the last robot state the reach took in."""
     return wire.EpisodeResult.model_validate(
-        summary | {"header": header, "episode": episode, "reason": str(summary["reason"])[:500]}
-    )
+        summary
+        | {"header": header, "episode": episode, "reason": str(summary["reason"])[:500],
+           "last_state_stamp_ns": last_state_stamp_ns}
+    )  # fmt: skip
 
 
 METRICS = tuple(ReachMetrics.__dataclass_fields__)

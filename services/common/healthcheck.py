@@ -3,7 +3,7 @@
 Healthy means SERVICE is alive on the bus (its liveliness token) and its own latest Health
 report names a working state. The check reads the service's bus settings from the same
 environment (DAMMRL_BUS_*, the mounted credentials) and joins as a read-only Zenoh
-*client* with the ``tool`` certificate at the service's own LISTEN endpoint on loopback:
+*client* with the ``observer`` certificate at the service's own LISTEN endpoint on loopback:
 the bus's access control accepts a service's token and Health only from that service's
 own link (a client of the sim would hear the others' through the sim, and drop them), and
 a client links to that one endpoint, so a check every few seconds adds no peer to the
@@ -29,6 +29,7 @@ from dammrl_core.settings import error_line
 from schemas import DecodeError, Health, decode, key
 from services.common.bus import tool_session
 from services.common.config import BusSettings
+from services.common.security import OBSERVER
 
 HEALTHY_STATES = ("ok", "holding")
 """Working states. "holding" is the arm's safe wait (gravity compensation until the
@@ -39,8 +40,8 @@ WILDCARD_HOSTS = {"0.0.0.0": "127.0.0.1", "[::]": "[::1]"}
 
 
 def probe_settings(settings: BusSettings) -> BusSettings:
-    """The check's own session: a client with the tool role, at the service's listening
-    endpoints on loopback."""
+    """The check's own session: a client with the observer role (read only), at the
+    service's listening endpoints on loopback."""
     if not settings.listen or any(e.endswith(":0") for e in settings.listen):
         raise ConfigurationError(
             f"the service listens on no fixed endpoint (DAMMRL_BUS_LISTEN={settings.listen}): "
@@ -48,7 +49,7 @@ def probe_settings(settings: BusSettings) -> BusSettings:
         )
     connect = [_on_loopback(e) for e in settings.listen]
     return settings.model_copy(
-        update={"mode": "client", "listen": [], "connect": connect, "role": "tool"}
+        update={"mode": "client", "listen": [], "connect": connect, "role": OBSERVER}
     )
 
 

@@ -7,26 +7,27 @@ certificate (mutual TLS: a peer without one from the lab CA cannot even connect)
 every session enforces the same ACL on what its peers send it (peer mode links services
 directly, so an ACL held only by a router would be bypassed). The payload's
 ``header.source`` stays as information; it decides nothing.
+
+Besides the services, three roles match the people around the arm: an *observer* reads
+(viewers, ``status``, ``echo``, health checks), the participant's *display* sends only
+their comfort rating, and the *operator* (``dammrl stop``, the launcher and its
+therapist's console) stops the arm, releases a stop and controls the session. Only the
+operator's certificate can release a stop or take the decisions over: give a viewer's or
+a display's machine only ``ca.pem`` and its own role's files.
 """
 
 from __future__ import annotations
 
-import datetime as dt
-import ipaddress
 import json
 import os
 import shutil
 import tempfile
-from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
-from cryptography import x509
-from cryptography.hazmat.primitives import hashes, serialization
-from cryptography.hazmat.primitives.asymmetric import ec
-from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
-
 from dammrl_core.errors import DammrlError
+
+OBSERVER, DISPLAY, OPERATOR = "observer", "display", "operator"
 
 # the keys (under the namespace) each role may publish, besides its health and liveliness
 PUBLISHES: dict[str, tuple[str, ...]] = {
@@ -37,12 +38,18 @@ PUBLISHES: dict[str, tuple[str, ...]] = {
     ),
     "intent": ("intent", "intent/evidence", "sensor/sample", "sensor/chunk"),
     "policy": ("policy/model",),
-    "recorder": (),
-    # status, echo, the launcher (a session's display and console), `dammrl stop`: read,
-    # stop, the participant's comfort ratings and the therapist's pause, resume and skip
-    "tool": ("safety/stop", "session/comfort", "session/control"),
+    "recorder": ("recorder/episode",),  # that an episode is on disk
+    OBSERVER: (),  # viewers, status, echo, health checks, emulators that only listen
+    DISPLAY: ("session/comfort",),  # the participant's display: their comfort rating
+    # `dammrl stop`, the launcher and its therapist's console: a stop and its release,
+    # pause, resume, skip and taking the decisions over
+    OPERATOR: ("safety/stop", "session/control"),
 }  # fmt: skip
 ROLES = tuple(PUBLISHES)
+PEOPLE = (OBSERVER, DISPLAY, OPERATOR)
+"""The roles of people's tools (every other role is a service's)."""
+RETIRED_ROLES = ("tool",)
+"""Roles of earlier credentials: one 'tool' certificate served every person's tool."""
 
 
 def roles_publishing(topic: str) -> tuple[str, ...]:
@@ -54,7 +61,6 @@ def roles_publishing(topic: str) -> tuple[str, ...]:
 
 
 CA_FILE = "ca.pem"
-VALID_DAYS = 825
 _EVERY_MESSAGE = [
     "put", "delete", "declare_subscriber", "query", "declare_queryable", "reply",
     "liveliness_token", "declare_liveliness_subscriber", "liveliness_query",
@@ -65,97 +71,25 @@ class CredentialsError(DammrlError):
     """Credentials that are missing or unusable (the message names the file)."""
 
 
-# ---- credentials --------------------------------------------------------------------
-def create_credentials(out: Path, hosts: Iterable[str] = (), roles: Iterable[str] = ROLES) -> None:
-    """A lab CA and one certificate per role in ``out`` (keys 0600, the folder 0700).
-
-    Each certificate names ``localhost``, 127.0.0.1 and ``hosts`` (the addresses or names
-    the services listen on when they run on separate machines).
-    """
-    out.mkdir(parents=True, exist_ok=True)
-    out.chmod(0o700)
-    ca_key = ec.generate_private_key(ec.SECP256R1())
-    ca = _certificate("dammrl lab CA", ca_key, ca_key, None, [])
-    (out / CA_FILE).write_bytes(ca.public_bytes(serialization.Encoding.PEM))
-    names = ["localhost", "127.0.0.1", *hosts]
-    for role in roles:
-        key = ec.generate_private_key(ec.SECP256R1())
-        cert = _certificate(role, key, ca_key, ca, names)
-        _write_key(out / f"{role}.key", key)
-        (out / f"{role}.pem").write_bytes(cert.public_bytes(serialization.Encoding.PEM))
-
-
-def _certificate(
-    common_name: str,
-    key: ec.EllipticCurvePrivateKey,
-    issuer_key: ec.EllipticCurvePrivateKey,
-    issuer: x509.Certificate | None,
-    names: list[str],
-) -> x509.Certificate:
-    """The CA (``issuer`` None) or a role's certificate, as rustls accepts them."""
-    subject = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, common_name)])
-    now = dt.datetime.now(dt.UTC)
-    is_ca = issuer is None
-    builder = (
-        x509.CertificateBuilder()
-        .subject_name(subject)
-        .issuer_name(subject if issuer is None else issuer.subject)
-        .public_key(key.public_key())
-        .serial_number(x509.random_serial_number())
-        .not_valid_before(now - dt.timedelta(minutes=5))
-        .not_valid_after(now + dt.timedelta(days=VALID_DAYS * (4 if is_ca else 1)))
-        .add_extension(x509.BasicConstraints(ca=is_ca, path_length=0 if is_ca else None), True)
-        .add_extension(_key_usage(is_ca), critical=True)
-        .add_extension(x509.SubjectKeyIdentifier.from_public_key(key.public_key()), False)
-    )
-    if not is_ca:
-        usages = [ExtendedKeyUsageOID.SERVER_AUTH, ExtendedKeyUsageOID.CLIENT_AUTH]
-        builder = builder.add_extension(x509.ExtendedKeyUsage(usages), critical=False)
-        builder = builder.add_extension(x509.SubjectAlternativeName(_alt_names(names)), False)
-    return builder.sign(issuer_key, hashes.SHA256())
-
-
-def _key_usage(is_ca: bool) -> x509.KeyUsage:
-    return x509.KeyUsage(
-        digital_signature=True, key_cert_sign=is_ca, crl_sign=is_ca, content_commitment=False,
-        key_encipherment=False, data_encipherment=False, key_agreement=False,
-        encipher_only=False, decipher_only=False,
-    )  # fmt: skip
-
-
-def _alt_names(names: list[str]) -> list[x509.GeneralName]:
-    """rustls checks the peer's name against these only (never the Common Name)."""
-    alt: list[x509.GeneralName] = []
-    for name in dict.fromkeys(names):
-        try:
-            alt.append(x509.IPAddress(ipaddress.ip_address(name)))
-        except ValueError:
-            alt.append(x509.DNSName(name))
-    return alt
-
-
-def _write_key(path: Path, key: ec.EllipticCurvePrivateKey) -> None:
-    pem = key.private_bytes(
-        serialization.Encoding.PEM,
-        serialization.PrivateFormat.PKCS8,
-        serialization.NoEncryption(),
-    )
-    descriptor = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-    with os.fdopen(descriptor, "wb") as handle:
-        handle.write(pem)
-
-
-def run_credentials(port: int) -> Path:
-    """Where ``dammrl up`` keeps the credentials of the stack on loopback ``port``: in the
-    user's private runtime folder, so only this user's tools find and read them."""
+# ---- credentials ---------------------------------------------------------------------
+def private_folder(create: bool = True) -> Path:
+    """This user's private runtime folder of dammrl (``$XDG_RUNTIME_DIR/dammrl``), where
+    local runs keep their credentials and cards; checked private (``create``: made so)."""
     base = os.environ.get("XDG_RUNTIME_DIR") or os.path.join(
         tempfile.gettempdir(), f"dammrl-{os.getuid()}"
     )
     private = Path(base) / "dammrl"
-    for folder in (Path(base), private):
-        folder.mkdir(exist_ok=True, mode=0o700)
-        _check_private(folder)
-    return private / f"bus-{port}"
+    if create:
+        for folder in (Path(base), private):
+            folder.mkdir(exist_ok=True, mode=0o700)
+            _check_private(folder)
+    return private
+
+
+def run_credentials(port: int, create: bool = True) -> Path:
+    """Where ``dammrl up`` keeps the credentials of the stack on loopback ``port``: in the
+    user's private runtime folder, so only this user's tools find and read them."""
+    return private_folder(create) / f"bus-{port}"
 
 
 OWNER_FILE = "launcher.pid"
@@ -219,16 +153,27 @@ def _check_key(path: Path) -> None:
         )
 
 
+def _missing(credentials: Path, role: str, name: str) -> str:
+    """Why ``credentials`` cannot serve ``role`` (its file ``name`` is missing), and what
+    to do."""
+    retired = [r for r in RETIRED_ROLES if (credentials / f"{r}.pem").is_file()]
+    if retired and role in PEOPLE:
+        return (f"{credentials} predates the roles {', '.join(PEOPLE)} (it holds one "
+                f"{retired[0]!r} certificate for every person's tool): create new "
+                "credentials with `dammrl bus init --out NEW_FOLDER`, give each machine its "
+                "roles")  # fmt: skip
+    return (f"{credentials / name} is missing: {credentials} holds no credentials for role "
+            f"{role!r}; create them with `dammrl bus init --out {credentials}`, or copy "
+            f"{role}.pem and {role}.key there from the lab's folder")  # fmt: skip
+
+
 # ---- Zenoh configuration ------------------------------------------------------------------
 def tls_settings(credentials: Path, role: str) -> dict[str, Any]:
     """``transport/link/tls`` for ``role``: its certificate both ways, mutual TLS."""
     files = {name: credentials / name for name in (CA_FILE, f"{role}.pem", f"{role}.key")}
     for name, path in files.items():
         if not path.is_file():
-            raise CredentialsError(
-                f"{path} is missing: {credentials} holds no credentials for role {role!r} "
-                f"({name}); create them with `dammrl bus init --out {credentials}`"
-            )
+            raise CredentialsError(_missing(credentials, role, name))
     _check_key(files[f"{role}.key"])
     cert, key = str(files[f"{role}.pem"]), str(files[f"{role}.key"])
     return {

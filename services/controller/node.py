@@ -23,7 +23,7 @@ from collections.abc import Sequence
 from dammrl_core import state as core
 from dammrl_core.control.pause import Pause, hold_command
 from dammrl_core.control.reach import Plan, Reach, plan_reach
-from dammrl_core.control.settings import ControllerSettings
+from dammrl_core.control.settings import ControllerSettings, check_workspace
 from dammrl_core.dynamics import ArmModel
 from dammrl_core.ik import make_ik_solver
 from dammrl_core.metrics import episode_summary
@@ -31,6 +31,7 @@ from dammrl_core.models import ModelSet
 from dammrl_core.robot import RobotSettings
 from dammrl_core.task import TaskSettings
 from schemas import (
+    ENDS_REACH,
     DecisionRequest,
     EpisodeResult,
     Intent,
@@ -45,6 +46,7 @@ from schemas import (
 from services.common import convert
 from services.common.bus import Bus
 from services.common.entry import run_service
+from services.common.security import OPERATOR
 from services.controller.requests import Requests, Timing
 
 log = logging.getLogger("dammrl.controller")
@@ -61,6 +63,7 @@ class ControllerNode:
         models: ModelSet,
         bus: Bus,
     ) -> None:
+        check_workspace(settings, task)
         self.settings = settings
         self.task_settings = task
         self.models = models
@@ -91,6 +94,7 @@ class ControllerNode:
         self.loop_s = time.monotonic()  # when the loop last ran
         self.superseded = 0  # states observed, not answered: a newer one was waiting
         self.last_t = 0.0
+        self.last_state_stamp_ns: int | None = None  # of the last state the reach took in
         self.commands = bus.publisher(JointCommand)
         self.steps = bus.publisher(StepEvent)
         self.asks = bus.publisher(DecisionRequest)
@@ -100,7 +104,7 @@ class ControllerNode:
         bus.expect(RobotState, "sim", "robot")  # the simulated or the real arm
         bus.expect(Intent, "intent")
         bus.expect(ModelChoice, "policy")
-        bus.expect(SessionControl, "tool")  # the session's console
+        bus.expect(SessionControl, OPERATOR)  # the session's console
         self.pause = Pause()  # the therapist's pauses of the running reach
         self.last_command: core.JointCommand | None = None  # the last command sent
 
@@ -202,6 +206,7 @@ class ControllerNode:
             return
         state = convert.robot_state(message)
         self.last_t = state.t_s
+        self.last_state_stamp_ns = message.header.stamp_ns  # the reach's result names it
         # the reach runs on its own clock, stopped while paused
         state = dataclasses.replace(state, t_s=self.pause.reach_time(state.t_s))
         if not self.started:
@@ -255,7 +260,7 @@ class ControllerNode:
             log.warning("paused by %s", who)
         elif control.action == "resume" and self.pause.end(self.last_t):
             log.warning("resumed by %s (paused %.1f s in all)", who, self.pause.total_s)
-        elif control.action == "skip":
+        elif control.action in ENDS_REACH:
             self.pause.end(self.last_t)
             reach.end("skipped", f"skipped by {who}", self.pause.reach_time(self.last_t))
             self._finish()
@@ -341,6 +346,7 @@ class ControllerNode:
         self.requests = Requests(number, seed, self.models, self.timing)
         self.started = False
         self.pause, self.last_command = Pause(), None
+        self.last_state_stamp_ns = None
         self._announce(self.plan)
         # planning is this process working, before the arm moves: the stall clock starts
         # here (a plan slower than the state's staleness ended the first reach at once)
@@ -362,7 +368,8 @@ class ControllerNode:
         assert plan is not None
         metrics = plan.reach.metrics()
         summary = episode_summary(metrics, self.settings.trigger, self.choice, plan.seed, plan.task)
-        self.results.send(convert.episode_result(self.results.stamp(), self.number, summary))
+        self.results.send(convert.episode_result(self.results.stamp(), self.number, summary,
+                                                 self.last_state_stamp_ns))  # fmt: skip
         log.info(
             "episode %d: %s (%s) in %.1f s",
             self.number, metrics.outcome, metrics.reason, metrics.t_total_s,

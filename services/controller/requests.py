@@ -18,6 +18,8 @@ from dammrl_core.state import Intent as CoreIntent
 from schemas import DecisionRequest, Header, Intent, ModelChoice
 
 log = logging.getLogger("dammrl.controller")
+RESENDS_SAID = 10
+"""An unanswered request's resends are warned about on the first and every tenth."""
 
 
 @dataclass(frozen=True)
@@ -37,6 +39,8 @@ class Requests:
         self.t_s = 0.0  # robot time it was made [s]
         self.open: DecisionRequest | None = None  # to send it again
         self.sent_s = 0.0  # when it was last sent (monotonic)
+        self.first_sent_s = 0.0  # when it was first sent (monotonic)
+        self.resent = 0  # how often the open request went out again
         self.choices: dict[int, ModelChoice] = {}  # the policy's answer per request
         self.intent: Intent | None = None  # the human's answer, until matched with a choice
         self.intent_wall_s = 0.0
@@ -51,7 +55,8 @@ class Requests:
             t_s=t_s, ee_pos_m=tuple(float(v) for v in ee_pos),
             goal_m=tuple(float(v) for v in goal), primary_axis=axis, human_model=human_model,
         )  # fmt: skip
-        self.sent_s = time.monotonic()
+        self.sent_s = self.first_sent_s = time.monotonic()
+        self.resent = 0
         return self.open
 
     def again(self, header_from: Callable[[], Header], asked: bool) -> DecisionRequest | None:
@@ -61,8 +66,12 @@ class Requests:
         if not waiting or time.monotonic() - self.sent_s <= self.timing.resend_s:
             return None
         assert self.open is not None
-        log.warning("request %d unanswered for %.1f s: sending it again", self.number,
-                    time.monotonic() - self.sent_s)  # fmt: skip
+        self.resent += 1
+        waited = time.monotonic() - self.first_sent_s
+        # said once, then every tenth time: a person who does not answer is no flood
+        level = logging.WARNING if self.resent % RESENDS_SAID == 1 else logging.INFO
+        log.log(level, "request %d unanswered for %.1f s: sending it again (sent %d times)",
+                self.number, waited, self.resent + 1)  # fmt: skip
         self.sent_s = time.monotonic()
         self.open = self.open.model_copy(update={"header": header_from()})
         return self.open

@@ -45,6 +45,7 @@ from schemas import (
     TaskGoal,
 )
 from schemas.messages import OPERATOR, HealthState, samples_per_chunk
+from services.common import security
 from services.common.bus import Bus
 from services.common.entry import run_service
 from services.intent.config import IntentSettings
@@ -85,7 +86,7 @@ class IntentNode:
         bus.expect(DecisionRequest, "controller")
         bus.expect(TaskGoal, "controller")
         bus.expect(ModelChoice, "policy")
-        bus.expect(SessionControl, "tool")  # the session's console: a takeover
+        bus.expect(SessionControl, security.OPERATOR)  # the session's console: a takeover
         self.taken_by: str | None = None  # the therapist deciding for the participant
         self.operator_early: tuple[SessionControl, float] | None = None  # before its request
         self.asked_s = 0.0  # when the open request was asked

@@ -17,11 +17,12 @@ class RecorderSettings(Settings):
 
     out: Path = Path("sessions")
     """A .mcap file, or a directory that receives session-<UTC time>.mcap files."""
-    max_bytes: int | None = Field(None, ge=1_000_000)
-    """Start a new file once the current one holds this many bytes (None: never)."""
-    max_duration_s: float | None = Field(None, ge=1.0)
-    """Start a new file after this long (None: never) [s] (at least 1 s)."""
-    chunk_bytes: int = Field(1_000_000, ge=4096)
+    max_bytes: int | None = Field(None, ge=1_000_000, le=10**12)
+    """Start a new file once the current one holds this many bytes (None: never; 1 MB -
+    1 TB)."""
+    max_duration_s: float | None = Field(None, ge=1.0, le=7 * 86_400)
+    """Start a new file after this long (None: never) [s] (1 s - a week)."""
+    chunk_bytes: int = Field(1_000_000, ge=4096, le=256 << 20)
     """A chunk is closed once it holds this many (uncompressed) bytes..."""
     chunk_s: float = Field(0.5, ge=0.05, le=60)
     """... or once it is this old, and closed chunks are handed to the OS at once: a

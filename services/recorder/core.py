@@ -9,8 +9,9 @@ into a ``dammrl.loss`` metadata record when the file is finished.
 
 A chunk is closed by size (the writer) or by age (:meth:`McapRecorder.flush_due`, the
 node calls :meth:`McapRecorder.flush`), and a closed chunk goes to the OS at once: a
-killed recorder loses at most the chunk in progress. Write errors (a full disk) are
-``OSError``; the node decides what to do with them.
+killed recorder loses at most the chunk in progress, and leaves a file that any MCAP
+reader opens as it is (``tail.CommittedFile``: it always ends with a footer). Write
+errors (a full disk) are ``OSError``; the node decides what to do with them.
 """
 
 from __future__ import annotations
@@ -19,9 +20,10 @@ import contextlib
 import json
 import logging
 import socket
+import struct
 from collections import Counter
 from pathlib import Path
-from typing import IO, Any
+from typing import IO, Any, cast
 
 import msgpack
 from mcap.writer import CompressionType, Writer
@@ -37,6 +39,7 @@ from schemas import (
     type_of,
 )
 from services.recorder.gaps import SequenceAccount
+from services.recorder.tail import FOOTER, MAGIC, TAIL_BYTES, CommittedFile
 
 PROFILE = "dammrl"
 AT_ONCE: tuple[type[Message], ...] = (EpisodeResult, ComfortRating, SessionControl, EmergencyStop)
@@ -44,23 +47,32 @@ AT_ONCE: tuple[type[Message], ...] = (EpisodeResult, ComfortRating, SessionContr
 therapist's acts): their chunk is closed and handed to the OS as each one comes, so even
 a recorder killed right after one keeps it."""
 log = logging.getLogger("dammrl.recorder")
-
-
-MCAP_MAGIC = b"\x89MCAP0\r\n"
+LOSS_WARNING_S = 10.0
+"""A key's lost messages are logged at most this often [s]."""
 
 
 def complete_mcap(path: Path) -> bool:
-    """Whether ``path`` ends as a finished MCAP file does (its closing magic bytes)."""
+    """Whether ``path`` was finished by its writer: it ends with a footer that points to
+    a summary (a recorder killed leaves a provisional footer, without one)."""
     try:
         with open(path, "rb") as stream:
-            stream.seek(-len(MCAP_MAGIC), 2)
-            return stream.read() == MCAP_MAGIC
+            stream.seek(-TAIL_BYTES, 2)
+            tail = stream.read()
     except OSError:
         return False
+    opcode, _, summary_start = struct.unpack_from("<BQQ", tail)
+    return tail.endswith(MAGIC) and opcode == FOOTER and summary_start > 0
 
 
 def header_of(payload: bytes) -> dict[str, Any] | None:
     """The header map of a msgpack message, without validating the rest (None if absent)."""
+    fields = message_map(payload)
+    return None if fields is None else fields["header"]
+
+
+def message_map(payload: bytes) -> dict[str, Any] | None:
+    """The map of a msgpack message whose header is well formed, the rest unvalidated
+    (None otherwise)."""
     try:
         obj = msgpack.unpackb(payload, raw=False)
     except (ValueError, TypeError, msgpack.ExtraData, msgpack.FormatError, msgpack.StackError):
@@ -70,7 +82,18 @@ def header_of(payload: bytes) -> dict[str, Any] | None:
         return None
     stamp, seq = header.get("stamp_ns"), header.get("seq")
     ok = type(stamp) is int and type(seq) is int and seq >= 0  # bool is no number here
-    return header if ok else None
+    return obj if ok else None
+
+
+def loss_record(account: SequenceAccount, invalid: Counter[str]) -> dict[str, str]:
+    """The ``dammrl.loss`` metadata: per key, the messages, what the file's sequence
+    numbers lack (``gaps``), the payloads without a valid header, and the anomalies."""
+    return {
+        "gaps": json.dumps(dict(account.gaps)),
+        "messages": json.dumps(dict(account.messages)),
+        "invalid": json.dumps(dict(invalid)),
+        "anomalies": json.dumps(account.anomalies()),
+    }
 
 
 class McapRecorder:
@@ -84,13 +107,15 @@ class McapRecorder:
         self.path = path
         self.namespace = namespace
         try:
-            self._stream: IO[bytes] = open(path, "wb")  # noqa: SIM115 - closed in finish()
+            self._stream = CommittedFile(path)  # closed in finish() or abandon()
         except OSError as exc:
             raise DammrlError(f"cannot record to {path}: {exc}") from exc
-        self.writer = Writer(self._stream, chunk_size=chunk_bytes, compression=CompressionType.ZSTD)
+        stream = cast("IO[bytes]", self._stream)  # the writer only writes, tells and flushes
+        self.writer = Writer(stream, chunk_size=chunk_bytes, compression=CompressionType.ZSTD)
         self._schemas: dict[type[Message], int] = {}
         self._channels: dict[str, int] = {}
         self.loss = SequenceAccount(namespace)
+        self._loss_said: dict[str, int] = {}  # key -> when its loss was last logged [ns]
         self.invalid: Counter[str] = Counter()
         self.first_ns: int | None = None
         self.unflushed_ns: int | None = None  # receipt time of the oldest unflushed message
@@ -102,7 +127,7 @@ class McapRecorder:
                 {"version": __version__, "host": socket.gethostname(), "namespace": namespace}
                 | metadata,
             )
-            self._stream.flush()
+            self._stream.commit()
         except OSError:
             self.abandon()
             raise
@@ -119,14 +144,25 @@ class McapRecorder:
             self.writer.add_message(channel, log_time_ns, payload, log_time_ns)
             return
         seq = header["seq"]
-        missing = self.loss.see(key, str(header.get("source")), seq, log_time_ns, session)
-        if missing:
-            log.warning("%d message(s) missing on %s before seq %d", missing, key, seq)
+        source, stamp = str(header.get("source")), header["stamp_ns"]
+        if self.loss.see(key, source, seq, log_time_ns, session, stamp):
+            self._say_loss(key, log_time_ns)
         channel = self._channel(key, message_type)
         publish_ns = header["stamp_ns"] if header["stamp_ns"] >= 0 else log_time_ns
         self.writer.add_message(channel, log_time_ns, payload, publish_ns, seq % 2**32)
         if message_type in AT_ONCE:
             self.flush()
+        elif self._stream.pending:  # the writer closed a chunk by size: to the OS at once
+            self._stream.commit()
+
+    def _say_loss(self, key: str, now_ns: int) -> None:
+        """A warning when ``key`` lost messages, at most every ``LOSS_WARNING_S`` per key
+        (a loaded machine must not flood the log; the file's figures are the account)."""
+        if now_ns - self._loss_said.get(key, -(2**62)) < LOSS_WARNING_S * 1e9:
+            return
+        self._loss_said[key] = now_ns
+        log.warning("%s: %d message(s) missing so far in %s", key, self.loss.gaps[key],
+                    self.path.name)  # fmt: skip
 
     def flush_due(self, now_ns: int, chunk_s: float) -> bool:
         """Whether the oldest message not yet handed to the OS is ``chunk_s`` old."""
@@ -136,7 +172,14 @@ class McapRecorder:
         """Close the chunk in progress and hand everything written to the OS (a process
         kill then loses nothing of it; a power cut may: no fsync)."""
         self.writer.flush()  # type: ignore[no-untyped-call]
+        self._stream.commit()
         self.unflushed_ns = None
+
+    def sync(self) -> None:
+        """Flush, and have the OS write the file to the disk (fsync): what an
+        acknowledgement promises survives a power cut too."""
+        self.flush()
+        self._stream.sync()
 
     def bytes_written(self) -> int:
         return self._stream.tell()
@@ -148,23 +191,18 @@ class McapRecorder:
         self.writer.add_metadata("dammrl.loss", self.loss_metadata())
         self.writer.finish()  # type: ignore[no-untyped-call]
         self.finished = True
-        self._stream.close()
+        self._stream.finish()
 
     def abandon(self) -> None:
         """Close the file after a write error: it stays readable up to its last chunk
-        that reached the disk (``dammrl recording repair``)."""
+        that reached the disk, by any MCAP reader (``dammrl recording repair`` adds the
+        summary)."""
         self.finished = True
-        with contextlib.suppress(OSError):  # the buffer's tail cannot be written either
+        with contextlib.suppress(OSError):
             self._stream.close()
 
     def loss_metadata(self) -> dict[str, str]:
-        loss = self.loss
-        return {
-            "gaps": json.dumps(dict(loss.gaps)),
-            "messages": json.dumps(dict(loss.messages)),
-            "invalid": json.dumps(dict(self.invalid)),
-            "anomalies": json.dumps(loss.anomalies()),
-        }
+        return loss_record(self.loss, self.invalid)
 
     def _channel(self, topic: str, message_type: type[Message] | None) -> int:
         if topic not in self._channels:

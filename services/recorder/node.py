@@ -6,6 +6,11 @@ writes, in slices of at most ``WRITE_SLICE_S`` so that it also closes chunks by 
 SIGINT/SIGTERM (in a ``finally``). After a ``kill -9`` the file is readable up to its
 last chunk, at most about ``chunk_s`` old (``dammrl recording repair`` completes it).
 
+Once an episode's result (and the arm's state it was decided from) is written, the file
+is synced and an ``EpisodeRecorded`` says so (``episodes.EpisodeLedger``): a session
+stops its stack only after that; a finished file's ``dammrl.episodes`` metadata lists
+the episodes it saw begin without their result.
+
 A write error (a full disk) never stops the robot session: one error line, Health
 "degraded" with the reason, the file left readable up to its last chunk, the messages
 received meanwhile counted as not recorded, and a new file tried every ``retry_s``.
@@ -15,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import logging
 import queue
 import threading
@@ -26,10 +32,13 @@ from pathlib import Path
 import zenoh
 
 from dammrl_core.errors import DammrlError
+from schemas import EpisodeRecorded
 from services.common.bus import Bus
 from services.common.entry import run_service
 from services.recorder.config import RecorderSettings
 from services.recorder.core import McapRecorder, complete_mcap
+from services.recorder.episodes import METADATA as EPISODES_METADATA
+from services.recorder.episodes import EpisodeLedger
 
 log = logging.getLogger("dammrl.recorder")
 
@@ -55,6 +64,8 @@ class RecorderNode:
         self.files: list[Path] = []
         self.took_over = ""  # what this recorder found of a predecessor's cut file
         self.recorder: McapRecorder | None = None
+        self.episodes = EpisodeLedger(bus.namespace)  # what a session waits to hear of
+        self.acks = bus.publisher(EpisodeRecorded)
         self._try_open(startup=True)
         self._subscriber = bus.session.declare_subscriber(f"{bus.namespace}/**", self._enqueue)
 
@@ -79,8 +90,10 @@ class RecorderNode:
             while not stop.is_set():
                 self._write_pending(timeout_s=0.1)
                 self._keep_up()
+                self._acknowledge()
                 self._report()
             self._write_pending(timeout_s=0.0)  # what arrived before the signal
+            self._acknowledge()
         finally:
             self._close()
 
@@ -105,6 +118,7 @@ class RecorderNode:
             return
         try:
             self.recorder.record(*item)
+            self.episodes.written(item[0], item[1], time.monotonic())
         except OSError as exc:
             self._degrade(exc)
             self.not_recorded += 1
@@ -226,7 +240,28 @@ class RecorderNode:
         log.warning("recording %s; the previous recorder's %s was cut (dammrl recording "
                     "repair completes it)", path.name, candidates[index - 1].name)  # fmt: skip
 
+    def _acknowledge(self) -> None:
+        """Say which episodes are on disk (synced first): a session stops its stack only
+        once its last episode is (``EpisodeLedger``)."""
+        recorder = self.recorder
+        if recorder is None:
+            return  # nothing reaches the disk now: nothing to promise
+        acks = self.episodes.due(time.monotonic())
+        if not acks:
+            return
+        try:
+            recorder.sync()
+        except OSError as exc:
+            self._degrade(exc)
+            return
+        for ack in acks:
+            if not ack.complete:
+                log.warning("episode %d recorded without %s", ack.episode, ack.missing)
+            self.acks.send(EpisodeRecorded(header=self.acks.stamp(), file=recorder.path.name,
+                                           **dataclasses.asdict(ack)))  # fmt: skip
+
     def _finish(self, recorder: McapRecorder) -> None:
+        recorder.writer.add_metadata(EPISODES_METADATA, self.episodes.metadata())
         recorder.finish()
         self.recorder = None
         log.info("finished %s", recorder.path)

@@ -30,6 +30,7 @@ from services.common import convert
 from services.common.bus import Bus
 from services.common.entry import run_service
 from services.common.runtime import Pacer
+from services.common.security import OPERATOR
 from services.robot.law import ArmLaw, Start
 from services.robot.link import DriveLink
 
@@ -67,7 +68,7 @@ class RobotNode:
         bus.subscribe(JointCommand, TaskGoal, EmergencyStop)
         bus.expect(JointCommand, "controller")
         bus.expect(TaskGoal, "controller")
-        bus.expect(EmergencyStop, "tool")  # `dammrl stop` (the operator)
+        bus.expect(EmergencyStop, OPERATOR)  # `dammrl stop` (the operator)
 
     @property
     def driver(self) -> Driver:

@@ -40,6 +40,7 @@ from services.common import convert
 from services.common.bus import Bus
 from services.common.entry import run_service
 from services.common.runtime import Pacer
+from services.common.security import OPERATOR
 
 log = logging.getLogger("dammrl.sim")
 
@@ -80,7 +81,7 @@ class SimNode:
         bus.subscribe(JointCommand, TaskGoal, EmergencyStop)
         bus.expect(JointCommand, "controller")
         bus.expect(TaskGoal, "controller")
-        bus.expect(EmergencyStop, "tool")  # `dammrl stop` (the operator)
+        bus.expect(EmergencyStop, OPERATOR)  # `dammrl stop` (the operator)
         state = self.sim.reset(np.array(task.home_q_rad), (0.45, 0.0))
         self._hold(state.q)
         self.state = state

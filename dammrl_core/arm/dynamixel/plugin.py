@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from pathlib import Path
+from typing import Annotated
 
 from pydantic import Field
 from pydantic_settings import SettingsConfigDict
@@ -16,6 +17,10 @@ from dammrl_core.arm.dynamixel.tools import MODEL_NAMES, guided_calibration, sca
 from dammrl_core.robot import RobotDescription
 from dammrl_core.settings import Settings
 
+_Id = Annotated[int, Field(ge=0, le=252)]
+_Gear = Annotated[float, Field(ge=0.1, le=1000)]
+_TorqueConstant = Annotated[float, Field(gt=0, le=1000)]
+
 
 class DynamixelSettings(Settings):
     """The servo bus and the arm's calibration (environment prefix ``DAMMRL_DYNAMIXEL_``)."""
@@ -24,17 +29,28 @@ class DynamixelSettings(Settings):
 
     port: str = Field("/dev/ttyUSB0", min_length=1)
     """The servo bus's serial device (a U2D2 or another USB adapter)."""
-    baud: int = Field(1_000_000, gt=0)
+    baud: int = Field(1_000_000, ge=9600, le=10_500_000)
+    """The bus's baud rate [bit/s] (the servos' range: 9600 bit/s - 10.5 Mbit/s)."""
     calibration_file: Path | None = None
     """From ``dammrl robot calibrate``; None: the default calibration (the emulated arm)."""
     watchdog_s: float = Field(0.1, ge=0.02, le=2.54)
     """The servos stop by themselves when the bus is silent this long [s]."""
 
-    ids: tuple[int, int, int, int, int, int] | None = None
+    ids: tuple[_Id, _Id, _Id, _Id, _Id, _Id] | None = None
     """Servo ids, base first, for a calibration to come (else the calibration file's)."""
-    gear_ratios: tuple[float, float, float, float, float, float] | None = None
+    gear_ratios: tuple[_Gear, _Gear, _Gear, _Gear, _Gear, _Gear] | None = None
     """Servo turns per joint turn, base first, for a calibration to come."""
-    torque_per_amp_nm: tuple[float, float, float, float, float, float] | None = None
+    torque_per_amp_nm: (
+        tuple[
+            _TorqueConstant,
+            _TorqueConstant,
+            _TorqueConstant,
+            _TorqueConstant,
+            _TorqueConstant,
+            _TorqueConstant,
+        ]
+        | None
+    ) = None
     """Servo output torque per ampere [N m/A], base first, for a calibration to come."""
     button_id: int | None = Field(None, ge=-1, le=252)
     """The goal button's board on the bus (-1: none), for a calibration to come."""

@@ -31,14 +31,15 @@ from __future__ import annotations
 
 from collections import deque
 from dataclasses import dataclass, field
+from typing import Self
 
 import numpy as np
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, Field, model_validator
 
 from dammrl_core.intent.emg.calibration import EmgCalibration
 from dammrl_core.intent.emg.classifier import REJECTED, majority
 from dammrl_core.intent.emg.features import features_of, window_samples
-from dammrl_core.settings import FINITE
+from dammrl_core.settings import FINITE, ordered
 
 FLAT_OF_REST = 0.05
 """A channel whose RMS over a window is below this fraction of its rest RMS is flat."""
@@ -71,6 +72,13 @@ class EmgDecoderSettings(BaseModel):
     """Timestamps stepping back by up to this are jitter, not a clock jump: an acquisition
     PC stamps each chunk when it pushes it (LSL back-dates its samples at the nominal
     rate), late when it is busy; a step back further resets the decoder [s]."""
+
+    @model_validator(mode="after")
+    def _consistent(self) -> Self:
+        """A twitch shorter than a held contraction, which is shorter than a stuck one."""
+        ordered(self, "min_contraction_s", "long_contraction_s")
+        ordered(self, "long_contraction_s", "max_contraction_s")
+        return self
 
 
 @dataclass(frozen=True)

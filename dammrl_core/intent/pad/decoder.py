@@ -31,7 +31,7 @@ from pydantic import BaseModel, Field, model_validator
 
 from dammrl_core.errors import ConfigurationError
 from dammrl_core.intent.pad.protocol import SAMPLE_RATE_HZ
-from dammrl_core.settings import FINITE
+from dammrl_core.settings import FINITE, ordered
 
 NOISE_MARGIN = 8.0  # calibrated levels are at least this many rest-noise deviations apart
 MIN_LEVEL_GAP_RAW = 40.0  # ... and at least this far apart (1 % of a 12-bit ADC) [counts]
@@ -91,31 +91,32 @@ class Calibration(BaseModel):
 class DecoderSettings(BaseModel):
     model_config = FINITE
 
-    filter_time_constant_s: float = Field(0.03, ge=0)
+    filter_time_constant_s: float = Field(0.03, ge=0, le=1)
+    """Low-pass filter of the normalised level (0: none) [s]."""
     on_level: float = Field(0.15, gt=0, lt=1)
+    """A press begins above this normalised level (0 rest, 1 firm)..."""
     off_level: float = Field(0.08, gt=0, lt=1)
-    min_press_s: float = Field(0.06, ge=0)
-    long_press_s: float = Field(0.5, gt=0)
+    """... and ends below this one (hysteresis: below ``on_level``)."""
+    min_press_s: float = Field(0.06, ge=0, le=2)
+    """Shorter presses are bumps, not decisions [s]."""
+    long_press_s: float = Field(0.5, gt=0, le=10)
+    """A press held this long chooses E_small (careful), a shorter one E_big [s]."""
     firm_level: float | None = Field(None, gt=0, lt=1.5)
     """Peak above which a press is firm; None: halfway between light and firm calibration."""
     glitch_frames: int = Field(6, ge=0, le=50)
     """Bursts of up to this many samples, of any amplitude, are ignored (a running median
     of 2n+1 samples; it delays the level by n samples)."""
-    max_gap_s: float = Field(0.25, gt=0)
+    max_gap_s: float = Field(0.25, gt=0, le=5)
     """Samples missing for longer (lost frames at the protocol's rate, or between arrivals):
     the press in progress is dropped and the pad must be at rest again [s]."""
-    stuck_after_s: float = Field(10.0, gt=0)
+    stuck_after_s: float = Field(10.0, gt=0, le=600)
     """Pressed for longer than this: a stuck sensor, reported; the press is dropped [s]."""
 
     @model_validator(mode="after")
     def _hysteresis(self) -> DecoderSettings:
-        if not self.off_level < self.on_level:
-            raise ValueError(f"off_level {self.off_level} must be below on_level {self.on_level}")
-        if not self.long_press_s < self.stuck_after_s:
-            raise ValueError(
-                f"stuck_after_s {self.stuck_after_s} must be above long_press_s "
-                f"{self.long_press_s}: a held press would be taken for a stuck sensor"
-            )
+        ordered(self, "off_level", "on_level")  # hysteresis
+        ordered(self, "min_press_s", "long_press_s")
+        ordered(self, "long_press_s", "stuck_after_s")  # else a held press would be "stuck"
         return self
 
 

@@ -31,7 +31,8 @@ class PadSettings(Settings):
 
     port: str | None = None
     """Serial device of the pad, e.g. /dev/ttyUSB0."""
-    baud_rate: int = Field(115_200, gt=0)
+    baud_rate: int = Field(115_200, ge=300, le=4_000_000)
+    """The pad's serial speed [bit/s]."""
     decoder: DecoderSettings = DecoderSettings()
     """Press thresholds, filter and timing, e.g. DAMMRL_PAD_DECODER__LONG_PRESS_S=0.7."""
     calibration_file: Path | None = None

@@ -1,0 +1,154 @@
+"""What the recorder holds of each episode, and when it may say so (pure: no bus, no clock).
+
+A session must not stop its stack before the recorder holds the episode it just logged:
+the result, and the arm's states up to the one the result was decided from (the result
+names it: ``EpisodeResult.last_state_stamp_ns``, a stamp on the arm's own clock). The
+recorder hears the controller and the arm on separate links, so the result may come
+before the arm's last states; and on a loaded machine the bus may drop either.
+
+:class:`EpisodeLedger` watches what is written. An episode is *due* an acknowledgement
+once its result is written and the arm's stream has reached that state (complete), or
+``wait_s`` after its result when it has not (incomplete, saying what is missing); a later
+complete acknowledgement supersedes an incomplete one. When a file is finished its
+metadata (``dammrl.episodes``) lists the episodes it holds a result of and the ones it
+saw begin without their result: a tail it never received.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from typing import Any
+
+from schemas import EpisodeResult, RobotState, TaskGoal, type_of
+from services.recorder.core import message_map
+from services.recorder.gaps import publishers_of
+
+LAST_STATE_WAIT_S = 5.0
+"""How long after an episode's result the recorder waits for the arm's state the result
+was decided from before it acknowledges the episode as incomplete [s]."""
+METADATA = "dammrl.episodes"
+"""The metadata record a finished file carries (see :meth:`EpisodeLedger.metadata`)."""
+
+
+@dataclass(frozen=True)
+class Ack:
+    """An acknowledgement due: the fields of ``EpisodeRecorded`` but its header and file."""
+
+    episode: int
+    result_seq: int
+    states: int
+    complete: bool
+    missing: str = ""
+
+
+@dataclass
+class _Episode:
+    states: int = 0  # its robot states written
+    last_t_s: float | None = None  # robot time of the newest of them
+    begun: bool = False  # its goal or a state of it was written
+    result_seq: int | None = None  # its result's sequence number, once written
+    last_state_ns: int | None = None  # the state its result names
+    result_at_s: float = 0.0  # when the result was written (the caller's clock) [s]
+    acked: bool | None = None  # None: not yet; False: as incomplete; True: complete
+
+
+@dataclass
+class EpisodeLedger:
+    """The episodes in the files being written (keys under ``namespace``)."""
+
+    namespace: str
+    wait_s: float = LAST_STATE_WAIT_S
+    episodes: dict[int, _Episode] = field(default_factory=dict)
+    arm_stamp_ns: int = -1  # the newest robot state's header stamp written (the arm's clock)
+    in_file: set[int] = field(default_factory=set)  # episodes with something in this file
+
+    def written(self, key: str, payload: bytes, now_s: float) -> None:
+        """A message written to the file (``now_s``: the caller's monotonic clock)."""
+        kind = type_of(self.namespace, key)
+        if kind not in (RobotState, TaskGoal, EpisodeResult):
+            return
+        fields = message_map(payload)
+        if fields is None or not _from_publisher(self.namespace, key, fields):
+            return
+        episode = fields.get("episode")
+        if type(episode) is not int or episode < (0 if kind is RobotState else 1):
+            return
+        if kind is RobotState:
+            self._state(episode, fields)
+        elif kind is TaskGoal:
+            self._episode(episode).begun = True
+        else:
+            self._result(episode, fields, now_s)
+
+    def due(self, now_s: float) -> list[Ack]:
+        """The acknowledgements due now (each episode's once, and once more when an
+        incomplete one becomes complete)."""
+        acks = []
+        for number, episode in sorted(self.episodes.items()):
+            if episode.result_seq is None or episode.acked:
+                continue
+            complete = self._whole(episode)
+            waited = now_s - episode.result_at_s >= self.wait_s
+            if complete or (waited and episode.acked is None):
+                episode.acked = complete
+                acks.append(self._ack(number, episode, complete))
+        return acks
+
+    def metadata(self) -> dict[str, str]:
+        """What a finished file holds of its episodes; then the next file starts afresh."""
+        with_result = [n for n in sorted(self.in_file) if self.episodes[n].result_seq is not None]
+        open_ = [n for n in sorted(self.in_file)
+                 if self.episodes[n].begun and self.episodes[n].result_seq is None]  # fmt: skip
+        partial = {str(n): self._missing(self.episodes[n]) for n in with_result
+                   if not self._whole(self.episodes[n])}  # fmt: skip
+        self.in_file = set()
+        return {
+            "results": json.dumps(with_result),
+            "open_at_close": json.dumps(open_),
+            "without_last_state": json.dumps(partial),
+        }
+
+    def _episode(self, number: int) -> _Episode:
+        self.in_file.add(number)
+        return self.episodes.setdefault(number, _Episode())
+
+    def _state(self, number: int, fields: dict[str, Any]) -> None:
+        self.arm_stamp_ns = max(self.arm_stamp_ns, fields["header"]["stamp_ns"])
+        if number == 0:
+            return  # the arm before the first episode
+        episode = self._episode(number)
+        episode.states += 1
+        episode.begun = True
+        t_s = fields.get("t_s")
+        if isinstance(t_s, int | float) and not isinstance(t_s, bool):
+            episode.last_t_s = float(t_s) if episode.last_t_s is None else max(
+                episode.last_t_s, float(t_s))  # fmt: skip
+
+    def _result(self, number: int, fields: dict[str, Any], now_s: float) -> None:
+        episode = self._episode(number)
+        if episode.result_seq is not None:
+            return  # a repeat: the first one counts
+        named = fields.get("last_state_stamp_ns")
+        episode.result_seq = fields["header"]["seq"]
+        episode.last_state_ns = named if type(named) is int and named >= 0 else None
+        episode.result_at_s = now_s
+
+    def _whole(self, episode: _Episode) -> bool:
+        return episode.last_state_ns is None or self.arm_stamp_ns >= episode.last_state_ns
+
+    def _missing(self, episode: _Episode) -> str:
+        reached = "none" if episode.last_t_s is None else f"robot time {episode.last_t_s:.3f} s"
+        return (f"the robot state its result was decided from (the arm's states written "
+                f"reach {reached})")  # fmt: skip
+
+    def _ack(self, number: int, episode: _Episode, complete: bool) -> Ack:
+        assert episode.result_seq is not None
+        missing = "" if complete else self._missing(episode)
+        return Ack(number, episode.result_seq, episode.states, complete, missing)
+
+
+def _from_publisher(namespace: str, key: str, fields: dict[str, Any]) -> bool:
+    """Only the key's own publisher (controller, arm) speaks for an episode."""
+    expected = publishers_of(namespace, key)
+    return expected is None or fields["header"].get("source") in expected
