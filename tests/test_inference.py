@@ -2,7 +2,8 @@
 
 The null simulation runs the study's own check (``claims._check`` on rows, through
 ``unit_values`` and ``sign_test``) on studies with no true effect, at the number of
-training runs shipped, and fails when any check passes more often than its nominal level.
+training runs shipped and at the design's twelve (docs/results.md; until all twelve are
+shipped the two differ), and fails when any check passes more often than its nominal level.
 Two positive controls show the simulation can fail: study v2's two-level bootstrap over
 four runs, and a t-test over run means when a few runs hover (skewed run effects).
 """
@@ -31,6 +32,8 @@ NOMINAL = 0.025  # a check passes on its claimed side at most this often under t
 REPEATS = 20_000
 REACHES_PER_RUN = 12  # a 150-seed set over twelve runs: 12 or 13 each
 RUNS_SHIPPED = len(checkpoint_files(SEED_RUNS[2]))
+RUNS_DESIGNED = 12  # training runs per reward in the published study's design
+RUNS = sorted({RUNS_SHIPPED, RUNS_DESIGNED})
 
 Draw = Callable[[np.random.Generator, int], np.ndarray]
 RUN_EFFECTS: dict[str, Draw] = {  # how training runs differ (centred below)
@@ -101,10 +104,10 @@ def _not_above_nominal(count: int, repeats: int) -> bool:
     return binomtest(count, repeats, NOMINAL, alternative="greater").pvalue > 0.001
 
 
-def _check_level(effect: Draw, noise: Draw, seed: int) -> None:
+def _check_level(effect: Draw, noise: Draw, seed: int, runs: int) -> None:
     """The study's own check (rows, units, the sign test) decides as the vectorised test
     on a hundred simulated studies; on thousands, neither side passes above nominal."""
-    effects, reach_noise = _draws(effect, noise, RUNS_SHIPPED, 100, seed)
+    effects, reach_noise = _draws(effect, noise, runs, 100, seed)
     rng = np.random.default_rng(seed)
     fast = _passes(effects, reach_noise)
     for k in range(100):
@@ -112,19 +115,21 @@ def _check_level(effect: Draw, noise: Draw, seed: int) -> None:
         for side in ("above", "below"):
             rule = Rule("X", "", "", R2, FIXED, "figure", side)  # type: ignore[arg-type]
             assert (_check(table, rule).p < 2 * NOMINAL) == fast[side][k]
-    effects, reach_noise = _draws(effect, noise, RUNS_SHIPPED, REPEATS, seed + 1)
+    effects, reach_noise = _draws(effect, noise, runs, REPEATS, seed + 1)
     for side, passed in _passes(effects, reach_noise).items():
         assert _not_above_nominal(int(passed.sum()), REPEATS), (side, int(passed.sum()))
 
 
+@pytest.mark.parametrize("runs", RUNS)
 @pytest.mark.parametrize("name", RUN_EFFECTS)
-def test_no_check_passes_more_often_than_nominal_without_an_effect(name: str) -> None:
-    _check_level(_null(RUN_EFFECTS[name], _normal_noise), _normal_noise, seed=1)
+def test_no_check_passes_more_often_than_nominal_without_an_effect(name: str, runs: int) -> None:
+    _check_level(_null(RUN_EFFECTS[name], _normal_noise), _normal_noise, 1, runs)
 
 
-def test_reach_noise_that_is_skewed_keeps_the_level_too() -> None:
+@pytest.mark.parametrize("runs", RUNS)
+def test_reach_noise_that_is_skewed_keeps_the_level_too(runs: int) -> None:
     """Each run's value is a mean of a dozen reaches with skewed noise."""
-    _check_level(_null(RUN_EFFECTS["skewed (lognormal)"], _skewed_noise), _skewed_noise, 2)
+    _check_level(_null(RUN_EFFECTS["skewed (lognormal)"], _skewed_noise), _skewed_noise, 2, runs)
 
 
 def test_reaches_as_units_keep_the_level_with_a_binary_figure() -> None:
