@@ -482,8 +482,10 @@ class Stack:
         credentials and namespace from the port; alone on this machine, they find it
         without one)."""
         at = f"--bus-port {self.options.port}"
-        return (f"inspect it: dammrl status {at} | dammrl echo robot/state {at} | dammrl view "
-                f"{at} | stop the arm: dammrl stop {at}")  # fmt: skip
+        commands = (f"status {at}", f"echo robot/state {at}", f"view {at}")
+        lines = [f"  dammrl {command}" for command in commands]
+        return "\n".join(["inspect it from another terminal:", *lines,
+                          f"stop the arm: dammrl stop {at}"])  # fmt: skip
 
     def _wait_alive(self, session: zenoh.Session, stop: SignalStop, quiet: bool = False) -> None:
         deadline = time.monotonic() + START_TIMEOUT_S
@@ -770,8 +772,10 @@ class PatientPrompts:
 
 
 def undecided(result: EpisodeResult) -> bool:
-    """An episode that ended (not skipped) without any decision: it could not be done."""
-    return result.n_decisions == 0 and result.outcome in ("hold", "timeout")
+    """An episode that timed out without any decision: the person's input could not do it.
+    A hold ends a reach for the arm's or the controller's reason (its own line says which),
+    however early: not the person's input, so not blamed on it."""
+    return result.n_decisions == 0 and result.outcome == "timeout"
 
 
 def result_dict(result: EpisodeResult) -> dict[str, object]:

@@ -39,8 +39,9 @@ def plot_reaches(results: list[ReachResult], goal_tolerance_m: float, path: Path
         (zoom_top, (0, 1), True),
         (zoom_side, (0, 2), True),
     ):
-        for result in results:
+        for n, result in enumerate(results):
             _plot_path(ax, result, plane, with_subgoals=zoom)
+            _mark_fingertip(ax, result, plane, layout.fingertip_radius_m, labelled=n == 0)
         _mark_button(ax, task.goal, layout, plane)
         _mark_task(ax, task.start, task.goal, goal_tolerance_m, plane, with_start=not zoom)
         if zoom:
@@ -155,6 +156,17 @@ def _plot_primary(ax: Axes, result: ReachResult) -> None:
     ax.plot(starts, subgoals, "o", color=color, ms=3, alpha=0.7)
 
 
+def _mark_fingertip(ax: Axes, result: ReachResult, plane: tuple[int, int], radius_m: float,
+                    labelled: bool) -> None:  # fmt: skip
+    """The fingertip where the reach ended: the path is its centre, so a press shows as the
+    fingertip's disc touching the cap, not as a path that stops short of it."""
+    i, j = plane
+    end = result.trajectory.x[-1] * MM
+    label = "fingertip at the end" if labelled else None
+    ax.add_patch(Circle((end[i], end[j]), radius_m * MM, color=COLORS[result.trigger],
+                        alpha=0.15, lw=1.2, label=label))  # fmt: skip
+
+
 def _mark_button(ax: Axes, goal: np.ndarray, layout: SceneLayout, plane: tuple[int, int]) -> None:
     """The cap the fingertip must press: a disc seen from above, a slab from the side (its
     top, and the fingertip's centre when it touches it, dotted)."""
@@ -237,9 +249,10 @@ def _label_episodes(ax: Axes, episodes: list[tuple[float, int]], gap: float = 0.
     for t, number in episodes:
         if (t - last) / span < gap:
             continue
+        # inside the axes, under its top: above it the label would run into the title
         ax.annotate(f"ep. {number}", (t, 1.0), xycoords=("data", "axes fraction"),
-                    xytext=(2, 2), textcoords="offset points", fontsize=7, color="0.35",
-                    va="bottom", ha="left")  # fmt: skip
+                    xytext=(2, -2), textcoords="offset points", fontsize=7, color="0.35",
+                    va="top", ha="left")  # fmt: skip
         last = t
 
 

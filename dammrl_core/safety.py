@@ -3,6 +3,7 @@ the arm side's checks of what arrives (commands, episode resets)."""
 
 from __future__ import annotations
 
+import logging
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -149,6 +150,12 @@ class ArmCaps:
     speed_fraction: float  # |dq_ref| and the rate of change of q_ref: <= this x URDF limit
 
 
+NOTABLE_CLAMP_RAD = 0.01
+"""A cap that changes a reference by less (0.57 deg, at most ~5 mm at the fingertip) is
+counted but not worth a person's attention: e.g. the first command after a hold moving the
+reference by the IK's tolerance in no robot time."""
+
+
 @dataclass(frozen=True)
 class Guarded:
     """The command the arm applies, or why none is applied."""
@@ -156,6 +163,12 @@ class Guarded:
     command: JointCommand | None  # None: rejected
     reason: str | None  # why it was rejected, or which cap changed it
     clamped: bool = False  # a cap changed the command (it is still applied)
+    change_rad: float = 0.0  # the largest change a cap made to the reference [rad or rad/s]
+
+    @property
+    def log_level(self) -> int:
+        """A clamp's log level: a warning when it changed the reference notably."""
+        return logging.WARNING if self.change_rad >= NOTABLE_CLAMP_RAD else logging.INFO
 
 
 def guard_command(
@@ -187,7 +200,8 @@ def guard_command(
     dq_ref = np.clip(command.dq_ref, -speed, speed)
     if np.array_equal(q_ref, command.q_ref) and np.array_equal(dq_ref, command.dq_ref):
         return Guarded(command, None)
-    i = int(np.argmax(np.abs(q_ref - command.q_ref) + np.abs(dq_ref - command.dq_ref)))
+    change = np.abs(q_ref - command.q_ref) + np.abs(dq_ref - command.dq_ref)
+    i = int(np.argmax(change))
     if dq_ref[i] != command.dq_ref[i]:
         cap = f"speed {command.dq_ref[i]:+.2f} rad/s beyond {speed[i]:.2f}"
     elif last_q_ref is not None and q_ref[i] != near[i]:  # the tighter cap, when both bind
@@ -198,7 +212,7 @@ def guard_command(
                f"{caps.max_relative_target_rad:.3f}")  # fmt: skip
     why = f"reference of {robot.joint_names[i]} clamped by the arm's caps ({cap})"
     applied = JointCommand(q_ref, dq_ref, command.tau_ff, command.kp, command.kd)
-    return Guarded(applied, why, clamped=True)
+    return Guarded(applied, why, clamped=True, change_rad=float(change[i]))
 
 
 # ---- the arm side's bookkeeping (sim and robot) -------------------------------------------

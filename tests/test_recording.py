@@ -229,7 +229,9 @@ def test_a_cut_recording_is_readable_and_repairable(tmp_path: Path) -> None:
                              DAMMRL_RECORDER_CHUNK_BYTES="8192")  # fmt: skip
     stack = [start_service(name, port, DAMMRL_TASK_EPISODES="1") for name in STACK]
     try:
-        wait_for(lambda: len(observer.of(StepEvent)) >= 4, 60, "a few steps")
+        wait_for(lambda: len(observer.of(StepEvent)) >= 4, 120, "a few steps")
+        # and a few chunks on disk: a loaded recorder writes behind what the bus carried
+        wait_for(lambda: path.exists() and path.stat().st_size > 4 * 8192, 60, "a few chunks")
         recorder.send_signal(signal.SIGKILL)
         recorder.wait(10)
     finally:

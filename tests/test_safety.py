@@ -47,6 +47,21 @@ def test_a_far_target_is_clamped_to_the_relative_cap_and_the_joint_speed(
     np.testing.assert_allclose(np.abs(unrated.command.q_ref - HOME_Q).max(), 0.15)
 
 
+def test_a_clamp_warns_only_when_it_changed_the_reference_notably(
+    robot: RobotDescription,
+) -> None:
+    """The first command after a hold, answering the state the hold began at, may move the
+    reference by the IK's tolerance in no robot time: clamped and counted, said at info
+    (it was a warning in every healthy run); a controller's jump stays a warning."""
+    import logging
+
+    tiny = guard_command(_command(HOME_Q + 0.001), HOME_Q, HOME_Q, 0.0, robot, CAPS)
+    assert tiny.clamped and tiny.change_rad == pytest.approx(0.001)
+    assert tiny.log_level == logging.INFO
+    jump = guard_command(_command(HOME_Q + 0.1), HOME_Q, HOME_Q, 0.01, robot, CAPS)
+    assert jump.clamped and jump.log_level == logging.WARNING
+
+
 def test_a_command_beyond_the_limits_or_the_gains_is_rejected(robot: RobotDescription) -> None:
     beyond = robot.q_max + 0.2
     assert guard_command(_command(beyond), HOME_Q, None, 0.01, robot, CAPS).command is None

@@ -70,7 +70,7 @@ def test_two_sessions_give_a_catalogue_reports_and_valid_bids(tmp_path: Path) ->
             str(free_port()),
         )
     built = _dammrl("sessions", "catalogue", "--root", str(root))
-    assert "1 participants, 2 sessions, 14 trials" in built.stdout
+    assert "1 participant, 2 sessions, 14 trials" in built.stdout
     # every trial logged is recorded: whole, or short of a few of the arm's states that the
     # bus dropped on a loaded machine (the recorder's own gap count says the same)
     assert "data completeness: 14 reaches in the trial logs, " in built.stdout

@@ -80,8 +80,8 @@ def parser() -> argparse.ArgumentParser:
     )
     top.add_argument("--version", action="version", version=f"dammrl {__version__}")
     shtab.add_argument_to(top, ["--print-completion"], help="print a shell completion script "
-                          "(bash, zsh or tcsh), e.g. dammrl --print-completion bash > "
-                          "/etc/bash_completion.d/dammrl")  # fmt: skip
+                          "(bash, zsh, tcsh, fish or powershell), e.g. dammrl "
+                          "--print-completion bash > /etc/bash_completion.d/dammrl")  # fmt: skip
     commands = top.add_subparsers(required=True, metavar="COMMAND")
     for register in GROUPS:
         register(commands)

@@ -10,7 +10,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, TypeVar
 
-from dammrl.cli.common import Commands, aligned, output_dir, print_err, print_out
+from dammrl.cli.common import Commands, aligned, counted, output_dir, print_err, print_out
 from dammrl_core.errors import Exit, UsageError
 
 if TYPE_CHECKING:
@@ -152,7 +152,8 @@ def _tell(root: Path, built: Built, say: Callable[[str], None]) -> None:
     )
     participants, sessions, trials, *logged = query(root, counting)[1][0]
     say(
-        f"catalogue: {participants} participants, {sessions} sessions, {trials} trials "
+        f"catalogue: {counted(participants, 'participant')}, {counted(sessions, 'session')}, "
+        f"{counted(trials, 'trial')} "
         f"-> {built.path}"
     )
     if logged[0] is not None:
@@ -208,8 +209,8 @@ def _bids(args: argparse.Namespace) -> int:
         print_err(f"{done.without_motion} reaches hold fewer than two of the arm's states: "
                   "no run of theirs (the catalogue's completeness says why)")  # fmt: skip
     print_out(
-        f"BIDS: {done.participants} participants, {done.sessions} sessions, "
-        f"{done.runs} runs -> {args.out}"
+        f"BIDS: {counted(done.participants, 'participant')}, {counted(done.sessions, 'session')}, "
+        f"{counted(done.runs, 'run')} -> {args.out}"
     )
     return Exit.OK
 

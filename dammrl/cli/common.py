@@ -21,6 +21,8 @@ Commands: TypeAlias = "argparse._SubParsersAction[argparse.ArgumentParser]"
 
 DEFAULT_CONNECT = "tcp/127.0.0.1:7447"
 """Where a client looks for the stack: the default endpoint of ``dammrl up``."""
+CONNECT_HELP = ("where the stack listens, e.g. tls/10.0.0.5:7447 (default: the local `dammrl up` "
+                f"there is, over tls with its credentials; else {DEFAULT_CONNECT})")  # fmt: skip
 
 
 UNITS = {"t_total_s": "s", "t_step_mean_s": "s", "final_error_m": "m", "jerk_isj": "m^2/s^5"}
@@ -343,3 +345,8 @@ def check_video_path(path: Path) -> None:
         raise UsageError(f"video {path}: the name must end in .mp4 or .gif")
     if suffix == ".mp4" and importlib.util.find_spec("av") is None:
         raise UsageError("MP4 needs PyAV: pip install 'dammrl[video]' (or write a .gif)")
+
+
+def counted(n: int, noun: str, plural: str | None = None) -> str:
+    """``n`` with its noun in the number it takes: 1 participant, 2 participants."""
+    return f"{n} {noun if n == 1 else plural or noun + 's'}"

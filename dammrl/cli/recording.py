@@ -8,7 +8,7 @@ import json
 from pathlib import Path
 
 from dammrl.cli.common import (
-    DEFAULT_CONNECT,
+    CONNECT_HELP,
     FIGURE_SUFFIXES,
     Commands,
     add_connect,
@@ -104,14 +104,15 @@ def _add_replay(commands: Commands) -> None:
     replay.add_argument("--end", type=float, help="offset where to stop [s]")
     replay.add_argument("--loop", action="store_true", help="start again at the end, until Ctrl-C")
     replay.add_argument("--namespace", help="publish under this namespace (default: recorded one)")
-    add_connect(replay, f"default {DEFAULT_CONNECT}")
+    add_connect(replay, CONNECT_HELP)
     replay.add_argument("--force", action="store_true", help="replay commands even to a live arm")
     replay.add_argument("--into-policy", type=Path, metavar="RUN",
                         help="offline, no bus: a trained policy's choice at every recorded "
                              "decision, next to the recorded one (a run directory, .pt, or a "
                              "shipped policy: reward1, reward2)")  # fmt: skip
-    replay.add_argument("-o", "--out", type=output_file(".csv"), default=Path("decisions.csv"),
-                        help="with --into-policy: the CSV of decisions")  # fmt: skip
+    replay.add_argument("-o", "--out", type=output_file(".csv"),
+                        help="with --into-policy: the CSV of decisions (default: beside the "
+                             "recording, <name>.decisions.csv)")  # fmt: skip
     replay.set_defaults(handler=_replay)
 
 
@@ -270,8 +271,9 @@ def _replay(args: argparse.Namespace) -> int:
 
     recording = read_recording(args.file)
     if args.into_policy is not None:
-        summary = write_decisions(into_policy(recording, args.into_policy), args.out)
-        print(json.dumps(summary | {"csv": str(args.out)}))
+        out = args.out or args.file.with_suffix(".decisions.csv")
+        summary = write_decisions(into_policy(recording, args.into_policy), out)
+        print(json.dumps(summary | {"csv": str(out)}))
         return 0
     options = ReplayOptions(
         rate=args.rate, topics=tuple(filter(None, (args.topics or "").split(","))),

@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from dammrl.cli.common import (
-    DEFAULT_CONNECT,
+    CONNECT_HELP,
     Commands,
     add_bus_arguments,
     bus_settings,
@@ -73,7 +73,7 @@ def register_stop(commands: Commands) -> None:
         "DAMMRL_ARM_STOP_ACTION=torque_off) and takes no command until released. Exit 0 "
         "once every arm on the bus confirmed, 1 otherwise.",
     )
-    add_bus_arguments(stop, f"where the stack listens (default {DEFAULT_CONNECT})")
+    add_bus_arguments(stop, CONNECT_HELP)
     stop.add_argument("--release", action="store_true",
                       help="release the stop: the arms hold until commands resume")  # fmt: skip
     stop.add_argument("--reason", default="", help="recorded with the stop")

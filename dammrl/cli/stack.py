@@ -7,7 +7,7 @@ import json
 from pathlib import Path
 
 from dammrl.cli.common import (
-    DEFAULT_CONNECT,
+    CONNECT_HELP,
     Commands,
     add_bus_arguments,
     add_credentials,
@@ -20,7 +20,6 @@ from dammrl.cli.common import (
 from dammrl_core.errors import Exit
 from schemas import DEFAULT_NAMESPACE, TOPICS
 
-CONNECT_HELP = f"where the stack listens (default {DEFAULT_CONNECT})"
 LOCKSTEP_HELP = (
     "run on the robot clock: each state is answered before the next physics step and each "
     "decision before it is due (deterministic, the in-process runner's exact twin; faster "

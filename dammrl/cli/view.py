@@ -9,7 +9,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from dammrl.cli.common import (
-    DEFAULT_CONNECT,
+    CONNECT_HELP,
     Commands,
     add_bus_arguments,
     bus_settings,
@@ -43,7 +43,7 @@ def register(commands: Commands) -> None:
                       help="messages per topic and second (default 30, max 60)")  # fmt: skip
     view.add_argument("--layout-out", type=output_file(".json"), metavar="JSON",
                       help="write the Foxglove layout to this file and exit")  # fmt: skip
-    add_bus_arguments(view, f"the stack's endpoint (default {DEFAULT_CONNECT})")
+    add_bus_arguments(view, CONNECT_HELP)
     view.set_defaults(handler=_view)
 
 

@@ -142,7 +142,7 @@ class ArmLaw:
         if reason is not None or guarded.command is None:
             return reason or "rejected"
         if guarded.clamped and (line := self.freshness.clamp(guarded.reason, state_stamp_ns)):
-            log.warning("%s", line)
+            log.log(guarded.log_level, "%s", line)
         if self.held is not None:
             log.info("commands resumed: leaving the hold")
         self.command, self.held = guarded.command, None

@@ -203,7 +203,7 @@ class SimNode:
         if guarded.clamped and (
             line := self.freshness.clamp(guarded.reason, message.state_stamp_ns)
         ):
-            log.warning("%s", line)
+            log.log(guarded.log_level, "%s", line)
         self.command = guarded.command
         self.freshness.applied(message.state_stamp_ns)
         self.in_force_answers_ns = message.state_stamp_ns
