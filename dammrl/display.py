@@ -6,8 +6,10 @@ decide, and nothing else.
   each robot state with pinocchio's forward kinematics; the table; the goal button.
 - The current subgoal with its admission sphere (its radius the chosen ε).
 - A large, high-contrast cue: "Decide now: forward or back", with the input to use,
-  while a decision request is open; the outcome after each reach; the instructions
-  before a block; the rest between blocks with its countdown.
+  while a decision request is open; when it is answered, or closes unanswered (the
+  reach ended), it says so; a movement begun before the question, or with none open,
+  is said to count for nothing; the outcome after each reach; the instructions before
+  a block; the rest between blocks with its countdown.
 - A comfort rating (1-5) after a block, returned to the caller (a session publishes it
   on the bus and logs it).
 
@@ -35,6 +37,7 @@ from schemas import (
     DecisionRequest,
     EpisodeResult,
     Intent,
+    IntentEvidence,
     Message,
     RobotState,
     SessionControl,
@@ -122,6 +125,7 @@ class ParticipantDisplay:
         self.frames = 0  # robot states drawn
         self.episode = 0
         self.guided = False  # the therapist has taken the decisions over
+        self.asking: tuple[int, int] | None = None  # the open request (episode, number)
         self._scene(task)
         self._panel()
         self.say("Welcome", "The session starts soon.")
@@ -237,15 +241,41 @@ class ParticipantDisplay:
             elif isinstance(message, SessionControl):
                 self._control(message)
             elif isinstance(message, DecisionRequest):
-                if self.guided:
-                    self.say("Your therapist decides", "Relax and watch the arm.")
-                else:
-                    self.say("Decide now", self.decide_with, "decide")
+                self._ask(message)
             elif isinstance(message, Intent):
-                way = "forward" if message.u_h > 0 else "back"
-                self.say("Moving", f"You chose {way}.")
+                self._show_answer(message)
+            elif isinstance(message, IntentEvidence):
+                self._not_counted(message)
             elif isinstance(message, EpisodeResult):
                 self._outcome(message)
+
+    def _ask(self, request: DecisionRequest) -> None:
+        if (request.episode, request.request) == self.asking:
+            return  # sent again: the same question
+        self.asking = (request.episode, request.request)
+        if self.guided:
+            self.say("Your therapist decides", "Relax and watch the arm.")
+        else:
+            self.say("Decide now", self.decide_with, "decide")
+
+    def _show_answer(self, intent: Intent) -> None:
+        if (intent.episode, intent.request) != self.asking:
+            return  # a repeat of an earlier answer
+        self.asking = None
+        way = "forward" if intent.u_h > 0 else "back"
+        who = "Your therapist chose" if not intent.person and self.guided else "You chose"
+        self.say("Answered: moving", f"{who} {way}.")
+
+    def _not_counted(self, evidence: IntentEvidence) -> None:
+        """A movement that answers no question: the person is told why."""
+        if evidence.acted or self.guided:
+            return
+        if "before the request opened" in evidence.reason:
+            self.say("Too early", "That movement began before the question. Relax, then "
+                     "answer.", "bad")  # fmt: skip
+        elif evidence.reason == "no request open":
+            self.say("No question now", "That movement counts for nothing. Wait for "
+                     "'Decide now'.", "bad")  # fmt: skip
 
     def _control(self, control: SessionControl) -> None:
         if control.action == "take":
@@ -268,13 +298,17 @@ class ParticipantDisplay:
         self.goal.wxyz = (1.0, 0.0, 0.0, 0.0)
         self.goal.visible = True
         self.subgoal.visible = self.subgoal_centre.visible = False
+        self.asking = None  # an earlier reach's question closed with it
         self.say("Get ready", "Reach for the red button.")
 
     def _outcome(self, result: EpisodeResult) -> None:
+        closed = " The question is closed: no need to answer it." if self.asking else ""
+        self.asking = None
         if result.success:
-            self.say("Well done!", f"Button pressed in {result.t_total_s:.0f} s.", "good")
+            self.say("Well done!", f"Button pressed in {result.t_total_s:.0f} s.{closed}", "good")
         else:
-            self.say("Reach ended", "That one did not reach the button. Next one soon.", "bad")
+            self.say("Reach ended", f"That one did not reach the button.{closed} Next one "
+                     "soon.", "bad")  # fmt: skip
 
     def close(self) -> None:
         with contextlib.redirect_stdout(io.StringIO()):
@@ -288,8 +322,8 @@ def _escape(text: str) -> str:
 Feed = Callable[[Message], None]
 
 
-DISPLAYED = (RobotState, TaskGoal, StepEvent, DecisionRequest, Intent, EpisodeResult,
-             SessionControl)  # fmt: skip
+DISPLAYED = (RobotState, TaskGoal, StepEvent, DecisionRequest, Intent, IntentEvidence,
+             EpisodeResult, SessionControl)  # fmt: skip
 
 
 class BusFeed:

@@ -7,6 +7,8 @@ import json
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import partial
+from typing import Any
 
 from dammrl_core.errors import DammrlError
 from schemas import DecodeError, Health, decode, type_of
@@ -93,6 +95,19 @@ def _service_lines(name: str, roll: Roll, listen_s: float) -> list[str]:
     return lines
 
 
+LOOK_AGAIN_S = 1.0
+"""A client alone this long looks again for the stack's settings (a run started since)."""
+
+
+@dataclass
+class _Heard:
+    """What ``echo`` heard so far (it may listen on several sessions in turn)."""
+
+    seen: int = 0
+    window: int = 0
+    window_start: float = field(default_factory=time.monotonic)
+
+
 def echo(
     settings: BusSettings,
     topic: str,
@@ -101,33 +116,73 @@ def echo(
     duration_s: float | None = None,
     out: Callable[[str], None] = print,
     say: Callable[[str], None] | None = None,
+    found_later: Callable[[], BusSettings] | None = None,
 ) -> int:
     """Print the decoded messages on ``<namespace>/<topic>`` (or their rate with ``hz``)
     until ``count``, ``duration_s``, Ctrl-C or a closed pipe; how many arrived. ``say``
-    hears within seconds if no stack let the session in."""
+    hears within seconds if no stack let the session in. ``found_later``: the settings
+    looked up again while no stack answers (a `dammrl up` started after this, or started
+    again, speaks TLS with credentials of its own): echo then listens to that run."""
     key_expr = f"{settings.namespace}/{topic.strip('/')}"
     if type_of(settings.namespace, key_expr.replace("*", "x")) is None and "*" not in topic:
         raise DammrlError(f"unknown topic {topic!r}: see `dammrl schemas` for the topics")
-    seen, window, window_start = 0, 0, time.monotonic()
+    heard = _Heard()
     end = None if duration_s is None else time.monotonic() + duration_s
-    with stopping_on_signals() as stop, tool_session(settings, say) as session:
-        subscriber = session.declare_subscriber(key_expr)
-        while not stop.is_set() and (count is None or seen < count):
-            if end is not None and time.monotonic() >= end:
-                break
-            sample = subscriber.try_recv()
+    with stopping_on_signals() as stop:
+        while True:
+            with tool_session(settings, say) as session:
+                listen = _Listen(session.declare_subscriber(key_expr), hz, out,
+                                 settings.namespace, key_expr)  # fmt: skip
+                moved = partial(_moved, session, settings, found_later)
+                again = listen.until(heard, stop, count, end, moved)
+            if again is None:
+                return heard.seen
+            if say is not None:
+                say(f"dammrl: a run answers at {', '.join(again.connect)} now: listening to it")
+            settings = again
+
+
+def _moved(session: Any, settings: BusSettings,
+           found_later: Callable[[], BusSettings] | None) -> BusSettings | None:  # fmt: skip
+    """Other settings to listen with, when nothing answers these and a run is found."""
+    if found_later is None or linked(session):
+        return None
+    now = found_later()
+    return now if now != settings else None
+
+
+@dataclass
+class _Listen:
+    subscriber: Any
+    hz: bool
+    out: Callable[[str], None]
+    namespace: str
+    key_expr: str
+
+    def until(self, heard: _Heard, stop: Any, count: int | None, end: float | None,
+              moved: Callable[[], BusSettings | None]) -> BusSettings | None:  # fmt: skip
+        """Print what comes until done (None) or other settings are due (them)."""
+        look_again = time.monotonic() + LOOK_AGAIN_S
+        while not stop.is_set() and (count is None or heard.seen < count):
             now = time.monotonic()
-            if hz and now - window_start >= 1.0:
-                out(f"{key_expr}: {window / (now - window_start):.1f} Hz")
-                window, window_start = 0, now
+            if end is not None and now >= end:
+                break
+            if now >= look_again:
+                look_again = now + LOOK_AGAIN_S
+                if (settings := moved()) is not None:
+                    return settings
+            sample = self.subscriber.try_recv()
+            if self.hz and now - heard.window_start >= 1.0:
+                self.out(f"{self.key_expr}: {heard.window / (now - heard.window_start):.1f} Hz")
+                heard.window, heard.window_start = 0, now
             if sample is None:
                 time.sleep(0.005)
                 continue
-            seen += 1
-            window += 1
-            if not hz:
-                out(_render(settings.namespace, str(sample.key_expr), sample.payload.to_bytes()))
-    return seen
+            heard.seen += 1
+            heard.window += 1
+            if not self.hz:
+                self.out(_render(self.namespace, str(sample.key_expr), sample.payload.to_bytes()))
+        return None
 
 
 def _render(namespace: str, key_expr: str, payload: bytes) -> str:

@@ -45,6 +45,7 @@ from schemas import (
 from schemas import Message as BusMessage
 from services.recorder.core import header_of, loss_record
 from services.recorder.gaps import SequenceAccount
+from services.recorder.raw import RawStreams
 
 MAGIC = b"\x89MCAP0\r\n"
 COMPRESSIONS = ("", "zstd", "lz4")
@@ -242,6 +243,7 @@ def info(path: Path) -> dict[str, Any]:
         "topics": topics,
         "sequence_gaps": dict(account.gaps),
         "sequence_anomalies": account.anomalies(),
+        "raw_streams": raw_streams_of(recording).counts(),
         "skipped": dict(recording.skipped),
         "metadata": recording.metadata,
     }
@@ -274,7 +276,15 @@ def loss_of(recording: Recording) -> dict[str, str]:
     invalid = Counter(channels[m.channel_id].topic.removeprefix("_invalid/")
                       for m in recording.messages
                       if channels[m.channel_id].metadata.get("dammrl.invalid"))  # fmt: skip
-    return loss_record(sequence_account(recording), invalid)
+    return loss_record(sequence_account(recording), invalid, raw_streams_of(recording))
+
+
+def raw_streams_of(recording: Recording) -> RawStreams:
+    """What its wearables' raw chunks say they lost, counted as its recorder counts."""
+    streams = RawStreams(recording.namespace())
+    for message in recording.messages:
+        streams.see(recording.topic(message), message.data)
+    return streams
 
 
 def sequence_gaps(recording: Recording) -> dict[str, int]:

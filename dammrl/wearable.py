@@ -21,11 +21,11 @@ import numpy as np
 
 from dammrl.emulators.emg import cue_stream
 from dammrl_core.errors import ConfigurationError, JobFailedError
-from dammrl_core.intent.emg.calibration import EmgCalibration, StreamDescription
+from dammrl_core.intent.emg.calibration import EmgCalibration
 from dammrl_core.intent.emg.classifier import CLASS_NAMES, CLASSES, REJECTED
 from dammrl_core.intent.emg.decoder import Contraction, EmgDecoderSettings, WindowDecoder
-from dammrl_core.intent.emg.training import Cue, refusal, train
-from dammrl_core.intent.lsl import QUIET_LSL
+from dammrl_core.intent.emg.training import Cue, default_conditioning, refusal, train
+from dammrl_core.intent.lsl import QUIET_LSL, describe
 
 CUE_WORDS = {0: "rest: relax your forearm", -1: "-1: open your hand (extend) and hold",
              1: "+1: close your hand (flex) and hold"}  # fmt: skip
@@ -62,13 +62,6 @@ def find_stream(name: str, source_id: str | None = None, timeout_s: float = 5.0)
     return found[0]
 
 
-def describe(info: Any) -> StreamDescription:
-    return StreamDescription(name=info.name(), type=info.type(),
-                             channel_count=info.channel_count(),
-                             nominal_srate_hz=info.nominal_srate(),
-                             source_id=info.source_id(), hostname=info.hostname())  # fmt: skip
-
-
 class Recorder:
     """Pulls a stream's chunks on a thread until stopped: (samples, times) on our clock."""
 
@@ -78,6 +71,7 @@ class Recorder:
         if info.nominal_srate() <= 0:
             raise ConfigurationError(f"stream {info.name()!r} has no regular rate")
         self.inlet = pylsl.StreamInlet(info, max_buflen=30, processing_flags=pylsl.proc_clocksync)
+        self.stream = describe(self.inlet.info(5.0))  # with its channels' labels and units
         self.inlet.open_stream(5.0)
         self.samples: list[np.ndarray] = []
         self.times: list[np.ndarray] = []
@@ -109,8 +103,9 @@ def feature_set_of(info: Any) -> Literal["emg", "imu"]:
 
 def calibrate(info: Any, protocol: Protocol, show: Callable[[str], None],
               participant: str | None = None, kind: Literal["emg", "imu"] = "emg",
-              ) -> tuple[EmgCalibration, str | None]:  # fmt: skip
-    """Cue the protocol, record, train: the calibration and why not to use it (or None)."""
+              mains_hz: Literal[0, 50, 60] = 50) -> tuple[EmgCalibration, str | None]:  # fmt: skip
+    """Cue the protocol, record, train: the calibration and why not to use it (or None).
+    ``mains_hz``: the notch of an EMG stream's conditioning (0: none)."""
     import pylsl
 
     name = cue_stream(info.name())
@@ -125,8 +120,11 @@ def calibrate(info: Any, protocol: Protocol, show: Callable[[str], None],
     cues = _cue_blocks(protocol, cues_out, show)
     cues_out.push_sample(["end"])
     samples, times = recorder.finish()
-    calibration = train(samples, times, cues, describe(info), participant=participant, kind=kind)
-    return calibration, refusal(calibration.cross_validation)
+    conditioning = default_conditioning(kind, mains_hz)
+    calibration = train(samples, times, cues, recorder.stream, participant=participant,
+                        kind=kind, conditioning=conditioning)  # fmt: skip
+    return calibration, refusal(calibration.cross_validation,
+                                following=calibration.cue_following)  # fmt: skip
 
 
 def _cue_blocks(protocol: Protocol, out: Any, show: Callable[[str], None]) -> list[Cue]:
@@ -159,9 +157,10 @@ def write_report(calibration: EmgCalibration, reason: str | None, path: Path) ->
         f"{calibration.created}; {stream.channel_count} channels at {stream.nominal_srate_hz:g} "
         f"Hz from {stream.hostname or '?'} ({stream.source_id or 'no source id'}); windows "
         f"{calibration.window_s * 1000:.0f} ms, hop {calibration.hop_s * 1000:.0f} ms; LDA "
-        + ("on Hudgins' time-domain features (MAV, WL, ZC, SSC per channel)."
+        + ("on Hudgins' time-domain features (MAV, WL, ZC, SSC per channel)"
            if calibration.features == "emg" else
-           "on IMU features (each channel's mean: the posture)."),
+           "on IMU features (each channel's mean: the posture)")
+        + f"; conditioning: {calibration.conditioning.describe()}.",
         "",
         f"**Verdict: {'refused: ' + reason if reason else 'usable'}**",
         "",
@@ -310,3 +309,33 @@ def write_csv(rows: list[dict[str, object]], path: Path) -> Path:
         writer.writeheader()
         writer.writerows(rows)
     return path
+
+
+REBASELINE_WAIT_S = 5.0
+"""How long `dammrl intent rebaseline` waits for the intent service to confirm [s]."""
+
+
+def rebaseline(settings: Any, who: str, timeout_s: float = REBASELINE_WAIT_S) -> str | None:
+    """Ask the intent service on the bus (``settings``: BusSettings) to measure the
+    participant's rest level afresh; its Health line confirming it, or None if none came.
+    The request is sent again every second until confirmed (a message may be lost)."""
+    from schemas import Health, SessionControl, TaskGoal
+    from services.common.bus import Bus
+    from services.common.security import OPERATOR
+
+    with Bus(settings, OPERATOR) as bus:  # the therapist's hand, as `dammrl stop`'s
+        bus.subscribe(Health, TaskGoal)
+        control = bus.publisher(SessionControl)
+        episode, start, next_send = 1, time.monotonic(), 0.0
+        while (now := time.monotonic()) - start < timeout_s:
+            if now >= next_send:
+                control.send(SessionControl(header=control.stamp(), episode=episode,
+                                            action="rebaseline", who=who))  # fmt: skip
+                next_send = now + 1.0
+            message = bus.receive(0.05)
+            if isinstance(message, TaskGoal):
+                episode = max(1, message.episode)  # for the record: the reach it came in
+            if (isinstance(message, Health) and message.service == "intent"
+                    and "measuring the rest level" in message.detail):  # fmt: skip
+                return message.detail
+    return None

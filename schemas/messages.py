@@ -254,6 +254,15 @@ class SignalChunk(Message):
         description="(samples, channels) in the stream's units; None where the stream sent "
         "a non-finite value",
     )  # fmt: skip
+    missing: int = Field(
+        0,
+        ge=0,
+        description="samples missing since the previous chunk of "
+        "the stream (a gap in its timestamps, or dropped before the bus)",
+    )
+    clock_corrected_s: Finite = Field(0.0, description="added to the stream's own (LSL "
+                                      "clock-synchronised) timestamps since they jumped [s]; "
+                                      "0 unless its sender's clock jumped")  # fmt: skip
 
     @model_validator(mode="after")
     def _rectangular(self) -> SignalChunk:
@@ -353,11 +362,15 @@ class SessionControl(Message):
     there, ``skip``, ``again`` and ``end-block`` end the reach (``ENDS_REACH``); ``take``
     hands the decisions to the therapist (the participant's device is ignored),
     ``decide`` is the therapist's answer to the open request, ``give`` hands the
-    decisions back. Applies to ``episode`` only (a late one changes nothing). The
-    emergency stop is ``EmergencyStop``, apart."""
+    decisions back. Applies to ``episode`` only (a late one changes nothing), but
+    ``rebaseline``: a wearable's rest level measured afresh (the participant rests
+    meanwhile; between blocks, whatever the episode). The emergency stop is
+    ``EmergencyStop``, apart."""
 
     episode: int = Field(ge=1, description="the reach it applies to")
-    action: Literal["pause", "resume", "skip", "again", "end-block", "take", "give", "decide"]
+    action: Literal[
+        "pause", "resume", "skip", "again", "end-block", "take", "give", "decide", "rebaseline"
+    ]
     who: str = Field(min_length=1, max_length=32, description="the operator's id")
     why: str = Field("", max_length=200, description="the reason, for the record")
     u_h: Literal[-1, 1] | None = Field(None, description="decide: the command")

@@ -110,7 +110,8 @@ def test_a_contraction_through_lsl_answers_the_open_request(armband: Harness) ->
 def test_a_lost_stream_decides_nothing_until_it_is_back(armband: Harness) -> None:
     armband.stream.lose(1.5)
     during = armband.contract(1)
-    assert during == [] and any("silent" in p for p in armband.problems), armband.problems[-3:]
+    said = ("silent", "lost", "no LSL stream named")
+    assert during == [] and any(w in p for p in armband.problems for w in said), armband.problems
     armband.connect()  # back: LSL reconnects by itself (in seconds, on a loaded machine)
     armband.run(0.5)  # and a rest after the gap
     assert armband.contract(1) != []
@@ -185,7 +186,7 @@ def test_calibrate_a_person_then_run_an_episode_through_lsl(tmp_path: Path) -> N
         patient.kill()
     assert up.returncode == 0, up.stderr[-3000:]
     result = json.loads(up.stdout.strip().splitlines()[-1])
-    assert result["success"], result
+    assert result["success"], (result, up.stderr[-2000:])
     info = _dammrl("recording", "info", str(tmp_path / "s.mcap")).stdout
     assert "SignalChunk" in info and "IntentEvidence" in info
     decode = _dammrl("recording", "decode", str(tmp_path / "s.mcap"),

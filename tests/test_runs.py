@@ -160,3 +160,17 @@ def test_dammrl_up_exits_non_zero_when_the_persons_input_never_joined(tmp_path: 
     assert "episode 1/1: timeout" in out
     assert "1 of 1 episodes could not be done: no decision ever came from the pad at ./pad" in err
     assert err.count("unanswered for") <= 1  # a warning, not one every 2 s
+
+
+def test_an_episode_ended_by_a_fault_is_not_blamed_on_the_persons_input() -> None:
+    """A hold 0.3 s into a reach (the sim's state stale on a loaded machine) said "in 0 s
+    no decision came from the wearable's stream"; only an episode that timed out without
+    a decision could not be done for want of the person's input."""
+    from dammrl.launch import undecided
+    from tests.test_session import _result
+
+    stalled = _result(1, 0, "hold").model_copy(update={"n_decisions": 0, "t_total_s": 0.3})
+    waited = _result(2, 0, "timeout").model_copy(update={"n_decisions": 0})
+    assert not undecided(stalled)
+    assert undecided(waited)
+    assert not undecided(waited.model_copy(update={"n_decisions": 1}))

@@ -122,10 +122,45 @@ def test_a_cooperative_participant_calibrates_well(calibration: EmgCalibration) 
     assert cv.accuracy > 0.95 and cv.active_error_rate < 0.05, cv
     assert len(cv.per_block_accuracy) == 3
     assert refusal(cv) is None
+    following = calibration.cue_following
+    assert following is not None and following.rest < 0.05 and following.commands > 0.9
+
+
+ALIKE = model_named("high", crosstalk=0.9)
+"""Electrodes that pick up both muscle groups nearly alike: -1 and +1 hardly separate."""
+
+
+def _sham_session(moves: bool, seed: int = 1) -> tuple[np.ndarray, np.ndarray, list[Cue]]:
+    """A calibration's cues, and a person who ignores them: contracting at random
+    (``moves``), or never."""
+    wearer, rng = EmgSynth(model_named("medium"), seed), np.random.default_rng(seed)
+    chunks, cues, t = [], [], 0.0
+    for block in range(3):
+        for label in rng.permutation([-1, 0, 1]):
+            if moves and (action := int(rng.choice([-1, 0, 1]))):
+                wearer.contract(action, 2.7, 0.3)
+            chunks += [wearer.generate(3000), wearer.generate(1500)]
+            cues.append(Cue(int(label), t, t + 3.0, block))
+            t += 4.5
+    samples = np.concatenate(chunks)
+    return samples, np.arange(len(samples)) / RATE, cues
+
+
+@pytest.mark.parametrize(("moves", "words"), [
+    (True, "the person did not follow the cues"),
+    (False, "no contraction seen during the -1/+1 cues"),
+])  # fmt: skip
+def test_a_person_who_ignores_the_cues_is_refused_saying_so(moves: bool, words: str) -> None:
+    """Refused before as "commands are confused with rest (contract more firmly...)",
+    beside an accuracy of 0.00 and an active error rate of 0.00 (over no window)."""
+    calibration = train(*_sham_session(moves), STREAM)
+    reason = str(refusal(calibration.cross_validation, following=calibration.cue_following))
+    assert words in reason, reason
+    assert "every window rejected" in reason and "0.00" not in reason
 
 
 def test_classes_that_do_not_separate_are_refused_with_the_reason() -> None:
-    samples, times, cues = cued_session("high")
+    samples, times, cues = movements.cued_session(EmgSynth(ALIKE, 1), RATE, 3, seed=1)
     reason = refusal(train(samples, times, cues, STREAM).cross_validation)
     assert reason is not None and "confused" in reason and "accuracy" in reason
 
@@ -189,10 +224,11 @@ def test_a_twitch_and_a_doubtful_contraction_are_not_acted_on(
     twitch = stream_through(decoder, synth, 1.5)
     assert len(twitch) == 1 and not twitch[0].accepted and "twitch" in twitch[0].reason
     # on a noisy arm the classifier's honest probabilities are lower (its temperature)
-    samples, times, cues = cued_session("high")
+    samples, times, cues = movements.cued_session(EmgSynth(ALIKE, 1), RATE, 3, seed=1)
     noisy = train(samples, times, cues, STREAM)
     decoder = WindowDecoder(noisy, EmgDecoderSettings(min_confidence=0.95))
-    synth = EmgSynth(model_named("high"), seed=4)
+    synth = EmgSynth(ALIKE, seed=4)
+    stream_through(decoder, synth, 1.0)  # at rest: the rest level
     synth.contract(1, 0.8, delay_s=0.2)
     doubtful = stream_through(decoder, synth, 1.5)
     assert len(doubtful) == 1, doubtful
@@ -254,6 +290,7 @@ def test_a_busy_senders_jittered_stamps_still_decide_and_a_step_back_is_a_jump(
 def test_a_contraction_held_too_long_is_a_stuck_signal(calibration: EmgCalibration) -> None:
     synth = EmgSynth(model_named("medium"), seed=14)
     decoder = WindowDecoder(calibration, EmgDecoderSettings(max_contraction_s=1.0))
+    stream_through(decoder, synth, 1.0)  # at rest: the rest level
     synth.contract(-1, 2.0, delay_s=0.1)
     found = stream_through(decoder, synth, 1.8)
     assert decoder.problem() is not None and "held" in str(decoder.problem())

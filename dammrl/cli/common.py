@@ -177,6 +177,17 @@ def _endpoints(args: argparse.Namespace) -> list[str]:
     return list(connect or [])
 
 
+def bus_settings_found_later(args: argparse.Namespace) -> Callable[[], BusSettings] | None:
+    """For a client that may start before its stack: the bus settings looked up again
+    (a local `dammrl up` started since, or started again, has its own credentials), or
+    None when the user named the credentials (nothing to find)."""
+    from services.common.config import BusSettings
+
+    if getattr(args, "credentials", None) or BusSettings().credentials:
+        return None
+    return lambda: bus_settings(args)
+
+
 LOOPBACK = ("127.0.0.1", "localhost", "[::1]")
 
 

@@ -40,6 +40,14 @@ def register(commands: Commands) -> None:
     sources.set_defaults(handler=_sources)
     _add_calibrate(actions)
     _add_emulate(actions)
+    helptext = (
+        "measure the participant's rest level afresh on the running stack's wearable "
+        "(they rest for DAMMRL_LSL_REBASELINE_S, 3 s; between blocks, no calibration)"
+    )
+    rebaseline = actions.add_parser("rebaseline", help=helptext, description=helptext)
+    add_bus_arguments(rebaseline, f"the stack's endpoint (default {DEFAULT_CONNECT})")
+    rebaseline.add_argument("--who", default="therapist", help="the operator's id (recorded)")
+    rebaseline.set_defaults(handler=_rebaseline)
 
 
 def _add_calibrate(actions: Commands) -> None:
@@ -65,6 +73,9 @@ def _add_calibrate(actions: Commands) -> None:
     calibrate.add_argument("--features", choices=["auto", "emg", "imu"], default="auto",
                            help="the feature set: EMG (Hudgins) or IMU (orientation and "
                            "movement); auto: from the stream's type")  # fmt: skip
+    calibrate.add_argument("--mains", choices=["50", "60", "off"], default="50",
+                           help="EMG: the mains frequency notched out before the features "
+                           "(50 Hz: Europe, Asia, Africa; 60 Hz: the Americas)")  # fmt: skip
     calibrate.add_argument("--force", action="store_true", help="save a refused calibration")
     calibrate.set_defaults(handler=_calibrate)
 
@@ -73,10 +84,14 @@ def _add_emulate(actions: Commands) -> None:
     emulate = actions.add_parser(
         "emulate",
         help="an emulated EMG armband on LSL (until Ctrl-C)",
-        description="A synthetic forearm's EMG streamed on LSL in real time. Faults from "
-        "stdin, one per line: flat CH, clip CH, back CH, lose S, nan S, jump S, twin, untwin.",
+        description="A synthetic forearm's EMG (microvolts) streamed on LSL in real time. "
+        "Faults from stdin, one per line: flat CH, clip CH, back CH, lose S, nan S, jump S, "
+        "twin, untwin, dc MICROVOLTS, gain FACTOR.",
     )
     emulate.add_argument("--stream", default=EMULATED_STREAM, help="the LSL stream's name")
+    emulate.add_argument("--source-id", default="dammrl-emulated-emg",
+                         help="the stream's LSL source id ('' for none, as many amplifier "
+                         "programs send it)")  # fmt: skip
     emulate.add_argument("--pattern", choices=["patient", "cued", "rest"], default="patient",
                          help="patient: answers the stack's decision requests; cued: follows "
                          "`dammrl intent calibrate`; rest: nobody moves")  # fmt: skip
@@ -121,7 +136,9 @@ def _calibrate(args: argparse.Namespace) -> int:
               f"{info.nominal_srate():g} Hz from {info.hostname()}")  # fmt: skip
     protocol = Protocol(args.blocks, args.trial_s, args.relax_s)
     kind = args.features if args.features != "auto" else feature_set_of(info)
-    calibration, refused = calibrate(info, protocol, print_out, args.participant, kind)
+    mains = 0 if args.mains == "off" else int(args.mains)
+    calibration, refused = calibrate(info, protocol, print_out, args.participant, kind,
+                                     mains)  # type: ignore[arg-type]  # fmt: skip
     cv = calibration.cross_validation
     print_out(f"leave-one-block-out: accuracy {cv.accuracy:.3f}, active error rate "
               f"{cv.active_error_rate:.3f}, instability {cv.instability:.3f}, rejection rate "
@@ -136,6 +153,21 @@ def _calibrate(args: argparse.Namespace) -> int:
     return Exit.OK
 
 
+def _rebaseline(args: argparse.Namespace) -> int:
+    from dammrl.cli.common import bus_settings
+    from dammrl.wearable import REBASELINE_WAIT_S, rebaseline
+
+    if not 1 <= len(args.who) <= 32:
+        raise ConfigurationError(f"--who {args.who!r}: 1-32 characters")
+    said = rebaseline(bus_settings(args), args.who)
+    if said is None:
+        print_err(f"dammrl: no intent service measuring a rest level confirmed within "
+                  f"{REBASELINE_WAIT_S:g} s (is the stack up, with a wearable?)")  # fmt: skip
+        return Exit.FAILED
+    print_out(f"intent: {said}")
+    return Exit.OK
+
+
 def _emulate(args: argparse.Namespace) -> int:
     from dammrl.cli.sensor import stop_after
     from dammrl.emulators.emg import EmgStream
@@ -143,11 +175,15 @@ def _emulate(args: argparse.Namespace) -> int:
 
     if not 1 <= args.channels <= 64:
         raise ConfigurationError(f"--channels {args.channels}: 1-64")
+    if len(args.source_id) > 200:
+        raise ConfigurationError(
+            f"--source-id: at most 200 characters, {len(args.source_id)} given"
+        )
     stop = stop_on_signals()
     stop_after(stop, args.seconds)
     synth = _synth(args)
     model = synth.model
-    with EmgStream(args.stream, synth) as stream:
+    with EmgStream(args.stream, synth, args.source_id) as stream:
         print_out(f"emulated {stream.stream_type} on LSL stream {args.stream!r}: "
                   f"{model.channels} channels at {model.rate_hz:g} Hz, {args.noise} noise; "
                   "Ctrl-C stops")  # fmt: skip

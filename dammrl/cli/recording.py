@@ -134,6 +134,11 @@ def _info(args: argparse.Namespace) -> int:
     print("  sequence gaps: " + (", ".join(f"{k} {v}" for k, v in gaps.items()) or "none"))
     for kind, counts in summary["sequence_anomalies"].items():
         print(f"  {kind.replace('_', ' ')}: " + ", ".join(f"{k} {v}" for k, v in counts.items()))
+    for stream, raw in summary["raw_streams"].items():
+        print(
+            f"  raw stream {stream!r}: {raw['samples']} samples, {raw['missing_samples']} "
+            f"missing in {raw['gaps']} gaps, {raw['clock_jumps']} clock jumps corrected"
+        )
     if summary["skipped"]:
         print("  skipped (unreadable): " + _counts(summary["skipped"]))
     for name, data in summary["metadata"].items():

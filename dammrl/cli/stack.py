@@ -149,10 +149,11 @@ def _status(args: argparse.Namespace) -> int:
 def _echo(args: argparse.Namespace) -> int:
     """Print one topic's messages (or its rate) until a count, a duration or Ctrl-C; exit 1
     if nothing arrived."""
+    from dammrl.cli.common import bus_settings_found_later
     from dammrl.inspect import echo
 
     seen = echo(bus_settings(args), args.topic, args.hz, args.count, args.duration, print_out,
-                say=print_err)  # fmt: skip
+                say=print_err, found_later=bus_settings_found_later(args))  # fmt: skip
     if seen == 0:
         print_err(f"dammrl: nothing received on {args.topic}")
     return Exit.OK if seen else Exit.FAILED

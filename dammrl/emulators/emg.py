@@ -13,13 +13,15 @@ as an amplifier's software sends them. Who moves the forearm:
 
 Faults on demand (methods, or lines on stdin from ``dammrl intent emulate``): an
 electrode off (flat) or clipping, the stream lost for a while, non-finite samples, a
-jump of the timestamps, and a second stream of the same name (another device).
+jump of the timestamps, a second stream of the same name (another device), and the
+amplifier's own: a DC offset added to every channel, another gain.
 """
 
 from __future__ import annotations
 
 import logging
 import threading
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -57,7 +59,10 @@ class EmgStream:
         self.lock = threading.Lock()
         self.stop = threading.Event()
         self.thread = threading.Thread(target=self._run, name="emg-stream", daemon=True)
+        self.started_s = 0.0  # LSL's clock when the first sample was acquired
         self.clock_offset_s = 0.0
+        self.dc_offset = 0.0  # added to every sample (the stream's units)
+        self.gain = 1.0  # every sample multiplied
         self.nan_until = 0.0
         self.silent_until = 0.0
         self.sent = 0
@@ -94,20 +99,20 @@ class EmgStream:
         """(label, unit) per channel, as LSL's metadata convention has them."""
         if self.stream_type == "IMU":
             return [(f"accel_{a}", "g") for a in "xyz"] + [(f"gyro_{a}", "rad/s") for a in "xyz"]
-        return [(f"EMG{k + 1}", "normalised") for k in range(self.synth.model.channels)]
+        return [(f"EMG{k + 1}", "microvolts") for k in range(self.synth.model.channels)]
 
     # ---- the stream ------------------------------------------------------------------------
     def _run(self) -> None:
         import pylsl
 
         rate = self.synth.model.rate_hz
-        start = pylsl.local_clock()
+        start = self.started_s = pylsl.local_clock()
         while not self.stop.wait(CHUNK_S / 2):
             due = int((pylsl.local_clock() - start) * rate) - self.sent
             if due <= 0:
                 continue
             with self.lock:
-                samples = self.synth.generate(due).astype(np.float32)
+                samples = (self.gain * self.synth.generate(due) + self.dc_offset).astype(np.float32)
                 self.sent += due
                 now = pylsl.local_clock()
                 if now < self.silent_until:
@@ -142,6 +147,12 @@ class EmgStream:
         with self.lock:
             self.clock_offset_s += seconds
 
+    def amplifier(self, dc_offset: float | None = None, gain: float | None = None) -> None:
+        """The amplifier's DC offset (added, the stream's units) or gain from now on."""
+        with self.lock:
+            self.dc_offset = self.dc_offset if dc_offset is None else dc_offset
+            self.gain = self.gain if gain is None else gain
+
     def add_twin(self) -> None:
         """A second stream of the same name (another device or machine)."""
         with self.lock:
@@ -157,7 +168,7 @@ class EmgStream:
         if not words:
             return ""
         what, arg = words[0], float(words[1]) if len(words) > 1 else 1.0
-        actions = {
+        actions: dict[str, Callable[[], None]] = {
             "flat": lambda: self.synth.lift(int(arg), "flat"),
             "clip": lambda: self.synth.lift(int(arg), "clip"),
             "back": lambda: self.synth.put_back(int(arg)),
@@ -166,17 +177,31 @@ class EmgStream:
             "jump": lambda: self.jump_clock(arg),
             "twin": self.add_twin,
             "untwin": self.remove_twin,
+            "dc": lambda: self.amplifier(dc_offset=arg),
+            "gain": lambda: self.amplifier(gain=arg),
         }
         if what not in actions:
-            return f"unknown fault {what!r}: {', '.join(actions)} (with a channel or seconds)"
+            return (f"unknown fault {what!r}: {', '.join(actions)} (with a channel, seconds, "
+                    "an offset or a gain)")  # fmt: skip
         actions[what]()
         return f"{line.strip()}: done"
 
     # ---- who moves ---------------------------------------------------------------------------
+    def contract(self, u_h: int, duration_s: float, delay_s: float) -> float:
+        """A contraction ``delay_s`` from now; its onset as stamped (LSL's clock, this
+        machine's monotonic one) [s]. The samples may lag real time (a busy machine): the
+        contraction is placed at now + ``delay_s`` on their timeline, never in its past."""
+        import pylsl
+
+        with self.lock:
+            behind = pylsl.local_clock() - (self.started_s + self.synth.t_s)
+            self.synth.contract(u_h, duration_s, delay_s + max(0.0, behind))
+            onset = self.synth.contractions[-1].start_s
+        return self.started_s + onset + 1.0 / self.synth.model.rate_hz
+
     def act(self, u_h: int, held: bool, delay_s: float) -> str:
         """The simulated patient's contraction (``dammrl.emulators.patient.Body``)."""
-        with self.lock:
-            self.synth.contract(u_h, HELD_S if held else QUICK_S, delay_s)
+        self.contract(u_h, HELD_S if held else QUICK_S, delay_s)
         return f"{'held' if held else 'quick'} contraction {u_h:+d}"
 
     def follow_cues(self, stop: threading.Event, reaction_s: float = 0.3) -> int:

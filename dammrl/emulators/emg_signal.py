@@ -15,7 +15,10 @@ the emulated sensor is a model, seeded and documented:
 * electrode lift-off on demand: one channel flat (or clipping) until put back.
 
 The sample rate and channel count are those of a typical 8-channel armband (Myo: 200 Hz;
-research amplifiers: 1-2 kHz); default 1 kHz, 8 channels.
+research amplifiers: 1-2 kHz); default 1 kHz, 8 channels. Samples are in microvolts, a
+full contraction's RMS ``full_uv`` (surface EMG of the forearm: a few hundred µV), as
+many amplifier programs stream them; an amplifier's own faults (a DC offset, another
+gain) are the stream's (``dammrl.emulators.emg.EmgStream``).
 """
 
 from __future__ import annotations
@@ -42,6 +45,7 @@ class EmgModel:
     artefact_per_min: float = 2.0  # motion artefacts per minute
     artefact_size: float = 0.6  # their peak, relative to a full contraction
     drift_per_min: float = 0.1  # log-sd of each channel's gain after a minute
+    full_uv: float = 500.0  # a full contraction's RMS [µV]: the unit of the levels above
 
 
 NOISE_LEVELS: dict[str, EmgModel] = {
@@ -90,7 +94,7 @@ class EmgSynth(Wearer):
         out *= np.exp(self._drift(n))
         self._apply_lifted(out)
         self._advance(t, m.rate_hz)
-        return np.asarray(out)
+        return np.asarray(out * m.full_uv)
 
     def _activity(self, n: int, t: np.ndarray) -> np.ndarray:
         """Band-limited noise of each muscle group under its envelope (n, 2)."""

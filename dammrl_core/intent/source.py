@@ -69,6 +69,8 @@ class Chunk:
     rate_hz: float  # its nominal rate
     samples: np.ndarray  # (n, channels), the stream's units
     times_s: np.ndarray  # (n,) on this machine's monotonic clock [s]
+    missing: int = 0  # samples missing just before these (a gap in the stream)
+    clock_corrected_s: float = 0.0  # added to the stream's stamps since they jumped [s]
 
 
 @dataclass(frozen=True)
@@ -86,6 +88,29 @@ class Evidence:
     features: tuple[float, ...]
     acted: bool
     reason: str  # why it was not acted on
+
+
+def belongs_to_request(onset_s: float, opened_s: float | None, tolerance_s: float) -> str:
+    """Why a decision whose action began at ``onset_s`` does not answer the request open
+    since ``opened_s`` (None: none open), or "" when it does. A press or a contraction
+    that began before the request opened was meant for another moment (a closed request,
+    or none): it answers nothing, even if it ends while one is open. ``tolerance_s``:
+    the onset estimate's error [s]; clocks: this machine's monotonic one."""
+    if opened_s is None:
+        return "no request open"
+    early = opened_s - onset_s
+    if early > tolerance_s:
+        return f"began {early:.2f} s before the request opened"
+    return ""
+
+
+@runtime_checkable
+class Rebaselining(Protocol):
+    """A source whose decoder tracks a rest level, measured afresh when asked."""
+
+    def rebaseline(self) -> str:
+        """Start measuring (the participant rests); what is done, in a few words."""
+        ...
 
 
 @runtime_checkable

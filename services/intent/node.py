@@ -3,21 +3,28 @@
 The source is a plug-in (``DAMMRL_INTENT_SOURCE``: ``simulated``, ``pad``, or an installed
 package's), made from its own settings. The bookkeeping is here, once, whatever decides:
 a request is asked of the source once (a re-sent request gets the answer already given,
-never a new decision); a source that decides with the policy's radius (the simulated
-human) waits for the policy's ModelChoice of the same request, at most ``policy_wait_s``
-(then the request's own radius); a new episode (its TaskGoal, or a request of a later
-episode whose announcement was missed) closes an older episode's open request and tells
-the source. Raw samples go out as SensorSample; what keeps the source from deciding goes
-into Health ("degraded").
+never a new decision), a person's source with the time its controller opened it (its
+stamp: a late delivery here does not make a prompt contraction early); a source that
+decides with the policy's radius (the simulated human) waits for the policy's
+ModelChoice of the same request, at most ``policy_wait_s`` (then the request's own
+radius); a new episode (its TaskGoal, or a request of a later episode whose announcement
+was missed) closes an older episode's open request and tells the source. Raw samples go
+out as SensorSample; what keeps the source from deciding goes into Health ("degraded"),
+and stays in its detail for ``PROBLEM_HOLD_S`` after it cleared (a fault of a tenth of a
+second is seen by `dammrl status` too). A source that fails (an error it did not catch)
+is reported so and retried: the service lives, nothing is decided.
 """
 
 from __future__ import annotations
 
 import logging
+import re
 import threading
 import time
-from collections import OrderedDict
-from collections.abc import Sequence
+from collections import OrderedDict, deque
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, replace
+from typing import TypeVar
 
 import numpy as np
 
@@ -28,6 +35,7 @@ from dammrl_core.intent.source import (
     Decided,
     Evidence,
     IntentSource,
+    Rebaselining,
     SourceContext,
     StreamingSource,
     source_plugin,
@@ -56,6 +64,7 @@ OPERATOR_HOLD_S = 2.0
 [s] (later, it is dropped: it was meant for a moment that has passed)."""
 log = logging.getLogger("dammrl.intent")
 Key = tuple[int, int]  # (episode, request)
+T = TypeVar("T")
 
 
 class IntentNode:
@@ -90,21 +99,47 @@ class IntentNode:
         self.taken_by: str | None = None  # the therapist deciding for the participant
         self.operator_early: tuple[SessionControl, float] | None = None  # before its request
         self.asked_s = 0.0  # when the open request was asked
+        self.failures: dict[str, str] = {}  # the source's errors, per call, while they last
+        self.retry_at: dict[str, float] = {}  # when a failed call is tried again
+        self.problems = RecentProblems()
 
     def run(self, stop: threading.Event) -> None:
-        self.source.open()
+        self._guarded("opening", self.source.open)
         try:
             while not stop.is_set():
                 for message in self.bus.receive_all(0.005):
                     self._dispatch(message)
-                self._ask_unanswered_by_the_policy()
-                if (decided := self.source.poll(time.monotonic())) is not None:
-                    self._answer(decided)
-                self._publish_readings()
-                self._publish_stream()
-                self._report()
+                self.step()
         finally:
-            self.source.close()
+            self._guarded("closing", self.source.close)
+
+    def step(self) -> None:
+        """One turn after the messages: the source read, its decision answered, its
+        samples and evidence published, Health."""
+        self._ask_unanswered_by_the_policy()
+        decided = self._guarded("reading", lambda: self.source.poll(time.monotonic()))
+        if decided is not None:
+            self._answer(decided)
+        self._publish_readings()
+        self._publish_stream()
+        self._report()
+
+    def _guarded(self, what: str, call: Callable[[], T]) -> T | None:
+        """``call()``, a source's error stated (once per kind, in the log and in Health)
+        instead of ending the service: nothing is decided, the arm holds at its request."""
+        if what in self.failures and time.monotonic() < self.retry_at.get(what, 0.0):
+            return None  # retried later: meanwhile the loop serves the bus (a takeover)
+        try:
+            result = call()
+        except Exception as exc:  # a plug-in's bug or a device's: the service lives
+            problem = f"the source failed {what}: {type(exc).__name__}: {exc}"
+            if problem != self.failures.get(what):
+                log.exception("%s (retrying)", problem)
+            self.failures[what] = problem
+            self.retry_at[what] = time.monotonic() + SOURCE_RETRY_S
+            return None
+        self.failures.pop(what, None)
+        return result
 
     # ---- requests ------------------------------------------------------------------------
     def _dispatch(self, message: Message) -> None:
@@ -123,7 +158,9 @@ class IntentNode:
         """``take``: the therapist decides (the source is not asked, its decisions are
         dropped); ``decide``: their answer to the open request; ``give``: back to the
         participant, who is asked the open request afresh."""
-        if control.action == "take" and self.taken_by is None:
+        if control.action == "rebaseline":
+            self._rebaseline(control.who)
+        elif control.action == "take" and self.taken_by is None:
             self.taken_by = control.who
             self.source.cancel()
             log.warning("decisions taken over by %s", control.who)
@@ -134,6 +171,12 @@ class IntentNode:
                 self._ask(self.open, self.open.human_model)
         elif control.action == "decide":
             self._decide_for(control)
+
+    def _rebaseline(self, who: str) -> None:
+        if isinstance(self.source, Rebaselining):
+            log.warning("%s, asked by %s", self.source.rebaseline(), who)
+        else:
+            log.warning("a rest level asked by %s: %s tracks none", who, self.name)
 
     def _decide_for(self, control: SessionControl) -> None:
         """The therapist's answer to the open request; one that comes before its request
@@ -166,7 +209,7 @@ class IntentNode:
             self.waiting[key] = (time.monotonic(), request)
             self._ask_if_chosen(key)
         else:
-            self._ask(request, request.human_model)
+            self._ask(request, request.human_model, opened_s(request.header.stamp_ns))
 
     def _new_episode(self, episode: int, seed: int) -> None:
         """Once per episode (repeats of the announcement change nothing; a restarted
@@ -197,7 +240,10 @@ class IntentNode:
                 del self.waiting[key]
                 self._ask(request, request.human_model)
 
-    def _ask(self, request: DecisionRequest, human_model: int) -> None:
+    def _ask(self, request: DecisionRequest, human_model: int,
+             since_s: float | None = None) -> None:  # fmt: skip
+        """Ask the source ``request`` (open since ``since_s``, this machine's monotonic
+        clock; default now: a request handed back to the participant is asked afresh)."""
         self.open, self.asked_s = request, time.monotonic()
         if self.taken_by is not None:  # the therapist answers it
             early = self.operator_early
@@ -207,7 +253,7 @@ class IntentNode:
         ask = Ask(request.episode, request.request, request.seed, request.t_s,
                   np.array(request.ee_pos_m), np.array(request.goal_m), request.primary_axis,
                   human_model)  # fmt: skip
-        self.source.ask(ask, time.monotonic())
+        self.source.ask(ask, time.monotonic() if since_s is None else since_s)
 
     # ---- answers -------------------------------------------------------------------------
     def _answer(self, decided: Decided) -> None:
@@ -264,8 +310,9 @@ class IntentNode:
     def _chunk(self, chunk: Chunk) -> SignalChunk:
         rows = [[float(v) if np.isfinite(v) else None for v in row] for row in chunk.samples]
         return SignalChunk(header=self.chunks.stamp(), stream=chunk.stream, rate_hz=chunk.rate_hz,
-                           stamps_ns=[bus_ns(t) for t in chunk.times_s],
-                           samples=rows)  # fmt: skip
+                           stamps_ns=[bus_ns(t) for t in chunk.times_s], samples=rows,
+                           missing=chunk.missing,
+                           clock_corrected_s=chunk.clock_corrected_s)  # fmt: skip
 
     def _evidence(self, e: Evidence) -> IntentEvidence:
         return IntentEvidence(
@@ -278,12 +325,69 @@ class IntentNode:
         )  # fmt: skip
 
     def _report(self) -> None:
-        problem = self.source.problem()
+        problem = self._guarded("stating its problem", self.source.problem)
+        problem = next(iter(self.failures.values()), None) or problem
+        now = time.monotonic()
+        self.problems.see(problem, now)
         state: HealthState = "ok" if problem is None else "degraded"
         dropped = f"{self.raw.dropped} raw samples dropped" if self.raw.dropped else None
-        detail = "; ".join(filter(None, (self.source.detail(), problem, dropped)))
-        self.bus.report_health(state, detail, force=state != self.health_state)
+        detail = self._guarded("stating its detail", self.source.detail)
+        lines = (detail, problem, dropped, self.problems.recent(now))
+        self.bus.report_health(state, "; ".join(filter(None, lines)),
+                               force=state != self.health_state)  # fmt: skip
         self.health_state = state
+
+
+SOURCE_RETRY_S = 0.5
+"""A source that failed is called again after this long [s]."""
+PROBLEM_HOLD_S = 15.0
+"""A problem stays in Health's detail this long after it cleared [s]: a status query
+takes 2.5 s and a fault may last a tenth of one."""
+HELD_PROBLEMS = 3
+
+
+@dataclass
+class _Problem:
+    text: str
+    since_s: float
+    until_s: float
+
+
+class RecentProblems:
+    """The problems a source stated, each from when it began to when it cleared: logged
+    as they begin and end, and the recent ones said in Health for ``PROBLEM_HOLD_S``."""
+
+    def __init__(self) -> None:
+        self.current: _Problem | None = None
+        self.ended: deque[_Problem] = deque(maxlen=HELD_PROBLEMS)
+
+    def see(self, problem: str | None, now_s: float) -> None:
+        current = self.current
+        if current is not None and problem is not None and _kind(problem) == _kind(current.text):
+            current.text, current.until_s = problem, now_s  # the same, its numbers updated
+            return
+        if current is not None:
+            current.until_s = now_s
+            self.ended.append(current)
+            log.info("cleared after %.1f s: %s", now_s - current.since_s, current.text)
+        self.current = None if problem is None else _Problem(problem, now_s, now_s)
+        if problem is not None:
+            log.warning("%s", problem)
+
+    def recent(self, now_s: float) -> str | None:
+        """The problems that cleared in the last PROBLEM_HOLD_S, newest first."""
+        held = [p for p in reversed(self.ended) if now_s - p.until_s <= PROBLEM_HOLD_S]
+        if not held:
+            return None
+        return "recently: " + "; ".join(
+            f"{p.text} (for {p.until_s - p.since_s:.1f} s, {now_s - p.until_s:.0f} s ago)"
+            for p in held
+        )
+
+
+def _kind(problem: str) -> str:
+    """A problem without its numbers ("silent for 1.2 s" is one problem as it grows)."""
+    return re.sub(r"[-+]?\d[\d.]*", "#", problem)
 
 
 CHUNK_PERIOD_S = 0.02
@@ -297,7 +401,8 @@ dropped, oldest first, and counted in Health."""
 
 class RawBacklog:
     """A streaming source's raw samples waiting for the bus: one message at most every
-    ``CHUNK_PERIOD_S`` with at most ``samples_per_chunk`` samples."""
+    ``CHUNK_PERIOD_S`` with at most ``samples_per_chunk`` samples; samples dropped here
+    count as missing before the next ones (the recording's loss metadata)."""
 
     def __init__(self) -> None:
         self.waiting: list[Chunk] = []
@@ -307,7 +412,11 @@ class RawBacklog:
     def add(self, chunk: Chunk) -> None:
         self.waiting.append(chunk)
         while sum(len(c.times_s) for c in self.waiting) > MAX_BACKLOG_S * chunk.rate_hz:
-            self.dropped += len(self.waiting.pop(0).times_s)
+            oldest = self.waiting.pop(0)
+            self.dropped += len(oldest.times_s)
+            after = next(k for k, c in enumerate(self.waiting) if c.stream == oldest.stream)
+            missing = self.waiting[after].missing + oldest.missing + len(oldest.times_s)
+            self.waiting[after] = replace(self.waiting[after], missing=missing)
 
     def take(self, now_s: float) -> Chunk | None:
         """The next message's samples, when one is due."""
@@ -315,15 +424,39 @@ class RawBacklog:
             return None
         self.last_s = now_s
         first = self.waiting[0]
-        stream = [c for c in self.waiting if c.stream == first.stream]
-        samples = np.concatenate([c.samples for c in stream])
-        times = np.concatenate([c.times_s for c in stream])
-        size = samples_per_chunk(samples.shape[1])
-        now, later = slice(0, size), slice(size, None)
-        self.waiting = [c for c in self.waiting if c.stream != first.stream]
-        if len(times) > size:
-            self.waiting.insert(0, Chunk(first.stream, first.rate_hz, samples[later], times[later]))
-        return Chunk(first.stream, first.rate_hz, samples[now], times[now])
+        room = samples_per_chunk(first.samples.shape[1])
+        taken, left = [], []
+        for chunk in self.waiting:
+            if chunk.stream != first.stream or room <= 0:
+                left.append(chunk)
+            elif len(chunk.times_s) <= room:
+                taken.append(chunk)
+                room -= len(chunk.times_s)
+            else:
+                taken.append(replace(chunk, samples=chunk.samples[:room],
+                                     times_s=chunk.times_s[:room]))  # fmt: skip
+                left.append(replace(chunk, samples=chunk.samples[room:],
+                                    times_s=chunk.times_s[room:], missing=0))  # fmt: skip
+                room = 0
+        self.waiting = left
+        return Chunk(first.stream, first.rate_hz, np.concatenate([c.samples for c in taken]),
+                     np.concatenate([c.times_s for c in taken]),
+                     sum(c.missing for c in taken), taken[-1].clock_corrected_s)  # fmt: skip
+
+
+MAX_TRANSIT_S = 1.0
+"""A request's publisher stamp counts as its opening at most this long before it arrived
+(beyond, the two machines' clocks disagree) [s]."""
+
+
+def opened_s(stamp_ns: int) -> float:
+    """When a request opened, on this machine's monotonic clock: its publisher's stamp (the
+    participant may see it from then on: a loaded machine delivers it here later, and a
+    contraction begun in between is theirs), never after its arrival, nor more than
+    ``MAX_TRANSIT_S`` before it."""
+    now = time.monotonic()
+    stamped = now - (time.time_ns() - stamp_ns) / 1e9
+    return min(now, max(stamped, now - MAX_TRANSIT_S))
 
 
 def bus_ns(monotonic_s: float) -> int:

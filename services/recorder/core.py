@@ -4,8 +4,9 @@ One channel per key expression, message encoding ``msgpack``, schema encoding
 ``jsonschema`` from the pydantic models; ``log_time`` is the receipt time and
 ``publish_time`` the header stamp. Payloads that do not decode are still written, on a
 channel ``_invalid/<key>`` (schema-less), so nothing that crossed the bus is dropped.
-Sequence numbers are accounted per publisher (``gaps.SequenceAccount``); the counts go
-into a ``dammrl.loss`` metadata record when the file is finished.
+Sequence numbers are accounted per publisher (``gaps.SequenceAccount``), and the samples
+a wearable's raw stream lost as its chunks say (``raw.RawStreams``); the counts go into a
+``dammrl.loss`` metadata record when the file is finished.
 
 A chunk is closed by size (the writer) or by age (:meth:`McapRecorder.flush_due`, the
 node calls :meth:`McapRecorder.flush`), and a closed chunk goes to the OS at once: a
@@ -39,6 +40,7 @@ from schemas import (
     type_of,
 )
 from services.recorder.gaps import SequenceAccount
+from services.recorder.raw import RawStreams
 from services.recorder.tail import FOOTER, MAGIC, TAIL_BYTES, CommittedFile
 
 PROFILE = "dammrl"
@@ -85,14 +87,17 @@ def message_map(payload: bytes) -> dict[str, Any] | None:
     return obj if ok else None
 
 
-def loss_record(account: SequenceAccount, invalid: Counter[str]) -> dict[str, str]:
+def loss_record(account: SequenceAccount, invalid: Counter[str],
+                raw_streams: RawStreams) -> dict[str, str]:  # fmt: skip
     """The ``dammrl.loss`` metadata: per key, the messages, what the file's sequence
-    numbers lack (``gaps``), the payloads without a valid header, and the anomalies."""
+    numbers lack (``gaps``), the payloads without a valid header, and the anomalies; per
+    wearable stream, the samples its chunks say were missing (``raw_streams``)."""
     return {
         "gaps": json.dumps(dict(account.gaps)),
         "messages": json.dumps(dict(account.messages)),
         "invalid": json.dumps(dict(invalid)),
         "anomalies": json.dumps(account.anomalies()),
+        "raw_streams": raw_streams.metadata(),
     }
 
 
@@ -115,6 +120,7 @@ class McapRecorder:
         self._schemas: dict[type[Message], int] = {}
         self._channels: dict[str, int] = {}
         self.loss = SequenceAccount(namespace)
+        self.raw_streams = RawStreams(namespace)
         self._loss_said: dict[str, int] = {}  # key -> when its loss was last logged [ns]
         self.invalid: Counter[str] = Counter()
         self.first_ns: int | None = None
@@ -147,6 +153,7 @@ class McapRecorder:
         source, stamp = str(header.get("source")), header["stamp_ns"]
         if self.loss.see(key, source, seq, log_time_ns, session, stamp):
             self._say_loss(key, log_time_ns)
+        self.raw_streams.see(key, payload)
         channel = self._channel(key, message_type)
         publish_ns = header["stamp_ns"] if header["stamp_ns"] >= 0 else log_time_ns
         self.writer.add_message(channel, log_time_ns, payload, publish_ns, seq % 2**32)
@@ -202,7 +209,7 @@ class McapRecorder:
             self._stream.close()
 
     def loss_metadata(self) -> dict[str, str]:
-        return loss_record(self.loss, self.invalid)
+        return loss_record(self.loss, self.invalid, self.raw_streams)
 
     def _channel(self, topic: str, message_type: type[Message] | None) -> int:
         if topic not in self._channels:

@@ -17,14 +17,21 @@ voted commands between rests; it becomes one decision when it ends:
   the pad and the wearable means one instruction for the participant.
 
 Windows count samples, not timestamps, so jittered stamps (a step back of a few ms when
-the sender is busy) only blur a contraction's onset by that much.
+the sender is busy) only blur a contraction's onset by that much. Each chunk is
+conditioned first (high-pass, mains notch) and each window's amplitude features taken
+relative to the tracked rest level, as the calibration says
+(:mod:`dammrl_core.intent.emg.conditioning`): a DC offset or a gain change leaves the
+decisions as they were. A channel whose rest level strays outside ``LEVEL_RANGE`` of the
+calibration's is a problem (an electrode's contact, not a person's gain);
+``rebaseline`` measures the rest level afresh (the participant rests meanwhile).
 
 A decision below ``min_confidence``, or shorter than ``min_contraction_s`` (a twitch),
 is not acted on; one held longer than ``max_contraction_s`` is a stuck signal, not a
-decision. Bad signal (non-finite samples, a flat or clipping channel, a gap or a jump in
-the timestamps) drops the contraction in progress, and nothing counts until the signal
-is clean and the person has rested: no decision ever spans it, and ``problem`` says what
-is wrong until the signal is clean again.
+decision. Bad signal (non-finite samples, a flat or clipping channel, a step of a
+channel's baseline, a gap or a jump in the timestamps) drops the contraction in
+progress, and nothing counts until the signal is clean and the person has rested: no
+decision ever spans it, and ``problem`` says what is wrong until the signal is clean
+again.
 """
 
 from __future__ import annotations
@@ -38,6 +45,7 @@ from pydantic import BaseModel, Field, model_validator
 
 from dammrl_core.intent.emg.calibration import EmgCalibration
 from dammrl_core.intent.emg.classifier import REJECTED, majority
+from dammrl_core.intent.emg.conditioning import Filters, Normaliser, baseline_step
 from dammrl_core.intent.emg.features import features_of, window_samples
 from dammrl_core.settings import FINITE, ordered
 
@@ -47,6 +55,9 @@ CLIPPED_SHARE = 0.05
 CLIPPED_MIN = 3
 """A channel with this share of a window's samples (and this many at least) at its
 extreme value is clipping: a signal's own peak is one sample."""
+LEVEL_RANGE = (0.1, 10.0)
+"""A channel's rest level outside this multiple of the calibration's is a problem: no
+gain drift goes so far (a tenth: an electrode nearly off; ten times: noise picked up)."""
 
 
 class EmgDecoderSettings(BaseModel):
@@ -68,6 +79,10 @@ class EmgDecoderSettings(BaseModel):
     """A contraction longer than this is a stuck signal: no decision until rest [s]."""
     max_gap_s: float = Field(0.25, ge=0.01, le=5.0)
     """A gap between timestamps longer than this resets the decoder [s]."""
+    onset_tolerance_s: float = Field(0.1, ge=0.0, le=0.5)
+    """A contraction whose onset is estimated up to this long before its request opened
+    still answers it (the onset's estimate: half a window back from the first voted
+    window); one that began earlier answers nothing [s]."""
     max_step_back_s: float = Field(0.05, ge=0.0, le=1.0)
     """Timestamps stepping back by up to this are jitter, not a clock jump: an acquisition
     PC stamps each chunk when it pushes it (LSL back-dates its samples at the nominal
@@ -122,14 +137,20 @@ class WindowDecoder:
         self.hop = window_samples(self.rate_hz, calibration.hop_s)
         self.classes = np.array(calibration.classifier.classes)
         self.rest_rms = np.array(calibration.rest_rms)
-        self.buffer = np.zeros((0, self.channels))
-        self.times = np.zeros(0)
+        self.rest_level = np.array(calibration.rest_level)
+        self.filters = Filters(calibration.conditioning, self.rate_hz)
+        self.normaliser = Normaliser(calibration.conditioning, calibration.hop_s,
+                                     calibration.features)  # fmt: skip
+        self.buffer = np.zeros((0, self.channels))  # raw: clipping is the amplifier's rail
+        self.conditioned = np.zeros((0, self.channels))  # what the features see
+        self.measuring = 0  # samples left of a rest level measured afresh (rebaseline)
         self.since_window = 0
         self.labels: deque[int] = deque(maxlen=settings.vote_windows)
         self.run: _Run | None = None
         self.stuck = False
         self.need_rest = False
         self.signal_problem: str | None = None
+        self.interrupted: str | None = None  # why a rest is awaited (a clock jump)
         self.last_t: float | None = None
         self.windows = 0
         self.voted = 0  # the last voted label (0: rest)
@@ -149,7 +170,7 @@ class WindowDecoder:
         if (jump := self._time_problem(np.asarray(times, dtype=float))) is not None:
             self._bad(jump)  # the chunk starts a new stretch of signal
         self.last_t = float(times[-1])
-        return self._windows(samples, np.asarray(times, dtype=float))
+        return self._windows(samples, self.filters(samples), np.asarray(times, dtype=float))
 
     def _time_problem(self, times: np.ndarray) -> str | None:
         steps = np.diff(times, prepend=self.last_t if self.last_t is not None else times[0])
@@ -158,26 +179,33 @@ class WindowDecoder:
             return f"the samples' clock jumped by {worst:+.3f} s"
         return None
 
-    def _windows(self, samples: np.ndarray, times: np.ndarray) -> list[Contraction]:
+    def _windows(self, samples: np.ndarray, conditioned: np.ndarray,
+                 times: np.ndarray) -> list[Contraction]:  # fmt: skip
         decided: list[Contraction] = []
         for k in range(len(samples)):  # a window every hop, wherever the chunks end
             self.since_window += 1
+            self.measuring = max(0, self.measuring - 1)
             if self.since_window >= self.hop and len(self.buffer) + k + 1 >= self.size:
                 self.since_window = 0
-                window = np.concatenate([self.buffer, samples[: k + 1]])[-self.size :]
-                if (ended := self._window(window, float(times[k]))) is not None:
+                raw = np.concatenate([self.buffer, samples[: k + 1]])[-self.size :]
+                window = np.concatenate([self.conditioned, conditioned[: k + 1]])[-self.size :]
+                if (ended := self._window(raw, window, float(times[k]))) is not None:
                     decided.append(ended)
         self.buffer = np.concatenate([self.buffer, samples])[-self.size :]
+        self.conditioned = np.concatenate([self.conditioned, conditioned])[-self.size :]
         return decided
 
     # ---- one window ----------------------------------------------------------------------
-    def _window(self, window: np.ndarray, end_s: float) -> Contraction | None:
+    def _window(self, raw: np.ndarray, window: np.ndarray, end_s: float) -> Contraction | None:
         self.windows += 1
-        if (problem := self._channel_problem(window)) is not None:
+        if (problem := self._channel_problem(raw)) is not None:
             self._bad(problem, keep_buffer=True)
             return None
         self.signal_problem = None
-        features = features_of(window, self.rate_hz, self.calibration.features)
+        features = self.normaliser(features_of(window, self.rate_hz, self.calibration.features))
+        if self.measuring or self.level_problem() is not None:
+            self._drop_run()  # the rest level is being measured, or not to be trusted
+            return None
         p = self.calibration.classifier.probabilities(features)[0]
         best = int(np.argmax(p))
         self.labels.append(int(self.classes[best]) if p[best] >= self.settings.reject_below
@@ -187,15 +215,21 @@ class WindowDecoder:
             self.voted = majority(accepted)
         return self._follow(self.voted, p, features, end_s)
 
-    def _channel_problem(self, window: np.ndarray) -> str | None:
-        rms = window.std(axis=0)
+    def _channel_problem(self, raw: np.ndarray) -> str | None:
+        """A flat or clipping channel, on the raw samples: the filters' transients (the
+        notch rings for a few hundred ms) would hide a channel that just went flat."""
+        rms = raw.std(axis=0)
         if np.any(flat := rms < FLAT_OF_REST * self.rest_rms):
             return f"channel {int(np.argmax(flat))} flat (an electrode off?)"
-        extreme = np.abs(window).max(axis=0)
-        at_extreme = np.sum(np.abs(window) >= extreme * (1 - 1e-9), axis=0)
-        clipped = at_extreme >= max(CLIPPED_MIN, CLIPPED_SHARE * len(window))
+        extreme = np.abs(raw).max(axis=0)
+        at_extreme = np.sum(np.abs(raw) >= extreme * (1 - 1e-9), axis=0)
+        clipped = at_extreme >= max(CLIPPED_MIN, CLIPPED_SHARE * len(raw))
         if np.any(clipped & (extreme > 0)):
             return f"channel {int(np.argmax(clipped))} clipping (saturated amplifier?)"
+        if self.calibration.conditioning.high_pass_hz and (
+            step := baseline_step(raw, self.rate_hz)
+        ):  # the high-pass rings after it: the burst is no contraction
+            return f"channel {step[0]}'s baseline stepped by {step[1]:+.4g} (an electrode moved?)"
         return None
 
     def _follow(self, label: int, p: np.ndarray, features: np.ndarray,
@@ -203,6 +237,7 @@ class WindowDecoder:
         """Grow the contraction in progress, start one, or end it into a decision."""
         if self.need_rest:  # after bad signal: nothing counts until the person rests
             self.need_rest = label != 0
+            self.interrupted = self.interrupted if self.need_rest else None
             return None
         if label in (-1, 1):
             if self.run is None:
@@ -242,28 +277,79 @@ class WindowDecoder:
                            len(minus), tuple(np.mean(run.features, axis=0).tolist()),
                            not reason, reason)  # fmt: skip
 
+    # ---- the rest level ------------------------------------------------------------------
+    def level_ratio(self) -> np.ndarray | None:
+        """Each channel's rest level now over the calibration's (None: not tracked)."""
+        level = self.normaliser.level_log()
+        if level is None or not len(self.rest_level):
+            return None
+        return np.asarray(np.exp(level) / np.maximum(self.rest_level, 1e-12))
+
+    def level_problem(self) -> str | None:
+        """A channel's rest level far from the calibration's, once a full history tells
+        (at first the level may be a contraction's: one under way when the stream came)."""
+        ratio = self.level_ratio()
+        low, high = LEVEL_RANGE
+        if ratio is None or not self.normaliser.rest.full():
+            return None
+        if np.all((ratio >= low) & (ratio <= high)):
+            return None
+        channel = int(np.argmax(np.abs(np.log(ratio))))
+        return (f"channel {channel}'s rest level is {ratio[channel]:.2g} x the calibration's "
+                f"(not {low:g}-{high:g} x): check its electrode, or calibrate again")  # fmt: skip
+
+    def rebaseline(self, seconds: float) -> None:
+        """Measure the rest level afresh over the next ``seconds`` of signal (the person
+        rests); nothing is decided meanwhile."""
+        self.normaliser.reset()
+        self._drop_run()
+        self.need_rest = True
+        self.measuring = max(1, round(seconds * self.rate_hz))
+
     # ---- faults --------------------------------------------------------------------------
-    def _bad(self, problem: str, keep_buffer: bool = False) -> None:
-        """Drop the contraction in progress (no decision spans bad signal)."""
-        self.signal_problem = problem
+    def _drop_run(self) -> None:
         self.run = None
         self.stuck = False
-        self.need_rest = True
         self.labels.clear()
         self.voted = 0
+
+    def _bad(self, problem: str, keep_buffer: bool = False) -> None:
+        """Drop the contraction in progress (no decision spans bad signal); unless
+        ``keep_buffer``, the signal starts afresh (filters, rest level: a gap)."""
+        self.signal_problem = problem
+        self._drop_run()
+        self.need_rest = True
         if not keep_buffer:
             self.buffer = np.zeros((0, self.channels))
+            self.conditioned = np.zeros((0, self.channels))
+            self.filters.reset()
+            self.normaliser.reset()
             self.since_window = 0
             self.last_t = None
+
+    def interrupt(self, problem: str) -> None:
+        """Something happened to the stream (its clock jumped): drop the contraction in
+        progress; decide again after a rest, saying why until then."""
+        self._drop_run()
+        self.need_rest = True
+        self.interrupted = problem
 
     def reset(self) -> None:
         """Forget everything (the stream was lost)."""
         self._bad("", keep_buffer=False)
-        self.signal_problem = None
+        self.signal_problem = self.interrupted = None
+        self.measuring = 0
 
     def problem(self) -> str | None:
         if self.signal_problem:
             return self.signal_problem
+        if self.interrupted:
+            return f"{self.interrupted}: a rest, then decisions again"
+        if self.measuring:
+            return (f"measuring the rest level: {self.measuring / self.rate_hz:.1f} s left "
+                    "(the participant rests)")  # fmt: skip
+        if (level := self.level_problem()) is not None:
+            return level
         if self.stuck and self.run is not None:
             return (f"a contraction held for {self.run.last_end_s - self.run.first_end_s:.1f} s: "
                     "no decision until rest")  # fmt: skip

@@ -111,6 +111,10 @@ class DecoderSettings(BaseModel):
     the press in progress is dropped and the pad must be at rest again [s]."""
     stuck_after_s: float = Field(10.0, gt=0, le=600)
     """Pressed for longer than this: a stuck sensor, reported; the press is dropped [s]."""
+    onset_tolerance_s: float = Field(0.05, ge=0.0, le=0.5)
+    """A press that began up to this long before its request opened still answers it (the
+    request reaches the display and the intent service at slightly different times);
+    one that began earlier answers nothing [s]."""
 
     @model_validator(mode="after")
     def _hysteresis(self) -> DecoderSettings:

@@ -3,7 +3,8 @@
 It reads the pad's frames from the serial port (reopening it with back-off when it
 disappears), passes every sample on as a reading, decodes presses into decisions (firm =
 +1, light = -1; quick = E_big, held = E_small) and answers the open request with each. A
-press with no open request is not a decision (the arm only moves when asked). While the
+press with no open request, or one that began before the open request did (meant for
+another moment), is not a decision (the arm only moves when asked). While the
 pad is silent, unplugged or stuck pressed it says so; a press the decoder did not see
 whole (the pad was lost, frames went missing) never becomes a decision.
 """
@@ -20,7 +21,7 @@ from dammrl_core.errors import ConfigurationError
 from dammrl_core.intent.pad.calibration import load_calibration
 from dammrl_core.intent.pad.decoder import DecoderSettings, PressDecoder
 from dammrl_core.intent.pad.serial import SerialSensor
-from dammrl_core.intent.source import Ask, Decided, Reading, SourceContext
+from dammrl_core.intent.source import Ask, Decided, Reading, SourceContext, belongs_to_request
 from dammrl_core.settings import Settings
 
 
@@ -80,10 +81,13 @@ class PadSource:
                                           self.decoder.pressing_since is not None))  # fmt: skip
             if decision is None:
                 continue
-            if self.open_since_s is None:
+            onset_s = decision.t_s - decision.duration_s  # decided when pressing starts
+            tolerance = self.settings.decoder.onset_tolerance_s
+            if belongs_to_request(onset_s, self.open_since_s, tolerance) or (
+                self.open_since_s is None
+            ):  # a press meant for another moment (none open, or one that closed)
                 self.ignored_presses += 1
                 continue
-            onset_s = decision.t_s - decision.duration_s  # decided when pressing starts
             decided = Decided(decision.u_h, decision.human_model, decision.confidence,
                               max(0.0, onset_s - self.open_since_s))  # fmt: skip
             self.open_since_s = None
