@@ -105,6 +105,7 @@ class ReachResult:
     decisions: list[Decision] = field(default_factory=list)
     choices: list[ModelChoice] = field(default_factory=list)
     ik_latencies_s: list[float] = field(default_factory=list)  # every solve's, in order
+    ik_evaluations: list[int] = field(default_factory=list)  # and its work (see IKLatency)
 
     def summary(self) -> dict[str, object]:
         """The metrics plus what identifies the run (the ``--json`` object)."""
@@ -189,6 +190,7 @@ class ReachRunner:
             decisions=episode.decisions,
             choices=episode.choices,
             ik_latencies_s=list(episode.controller.latency.spent_s),
+            ik_evaluations=list(episode.controller.latency.evaluations),
         )
 
     def episode(

@@ -6,11 +6,16 @@ within ``ik_accept_error_m`` of its target and does not jump away from the seed.
 
 The latency model turns the solvers' compute time into simulated time: the processor time
 of each solve actually run ('measured', the paper's mechanism produced rather than
-injected; processor time, not wall time, so other work on a shared machine leaves it be),
-or a lognormal draw independent of the solve ('model', defaults fitted to solves timed by
-``benchmarks/bench_core.py`` on the 2-core development machine), or none. Every latency
-that entered simulated time is kept (``IKLatency.spent_s``), and a list of them replays a
-measured run exactly (``replay``): same solves, same latencies, byte-identical reach.
+injected; processor time, not wall time, so other work on a shared machine leaves it be,
+but a faster processor does not), the time the same solve took on the reference machine
+('reference': the solve's work, its forward-kinematics evaluations, times the reference's
+cost per evaluation, with the reference's spread drawn from the seed: the mechanism of
+'measured' without this computer's speed in the result), a lognormal draw independent of
+the solve ('model', defaults fitted to solves timed by ``benchmarks/bench_core.py`` on the
+2-core development machine), or none. Any of them can be scaled (a slower or faster
+computer). Every latency that entered simulated time is kept (``IKLatency.spent_s``), and
+a list of them replays a run exactly (``replay``): same solves, same latencies,
+byte-identical reach.
 """
 
 from __future__ import annotations
@@ -19,7 +24,7 @@ import time
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Literal, Protocol
+from typing import Any, Literal, Protocol
 
 import numpy as np
 
@@ -27,12 +32,35 @@ from dammrl_core.dynamics import ArmModel
 from dammrl_core.errors import ConfigurationError
 
 IKSolverName = Literal["ikpy", "pinocchio"]
-LatencyMode = Literal["model", "measured", "zero"]
+MAX_LATENCY_SCALE = 100.0  # a computer 100 times slower than the reference at most
+LatencyMode = Literal["model", "measured", "reference", "zero"]
 
 # (median [s], log-sigma) of solve times fitted by benchmarks/bench_core.py
 FITTED_LATENCY: dict[IKSolverName, tuple[float, float]] = {
     "ikpy": (0.055, 0.57),
     "pinocchio": (0.00015, 0.7),
+}
+
+
+@dataclass(frozen=True)
+class ReferenceCost:
+    """What one forward-kinematics evaluation of a solve cost on the reference machine:
+    a solve of n evaluations took n * per_evaluation_s * exp(sigma * z) there (z standard
+    normal: the spread of its measured times about that line)."""
+
+    per_evaluation_s: float
+    sigma: float
+    machine: str  # where the reference times were measured, and which solves
+
+
+# Fitted by ``python -m dammrl.study.latency`` on the processor times study v2 measured
+# and saved (git show 20e3687:docs/study/ik_latencies.json.gz), 40 reaches of each paper
+# configuration replayed with each solve's evaluations counted (every replay matched):
+# ikpy 4107 solves, log time on log evaluations R^2 0.78; damped least squares 3905
+# solves, R^2 0.05 (a few iterations each: the time is mostly overhead, ~0.3 ms).
+REFERENCE_COST: dict[IKSolverName, ReferenceCost] = {
+    "ikpy": ReferenceCost(2.2226e-4, 0.265, "study v2's machine (2 cores)"),
+    "pinocchio": ReferenceCost(9.057e-5, 0.326, "study v2's machine (2 cores)"),
 }
 
 
@@ -43,6 +71,8 @@ class IKResult:
     compute_s: float  # wall time spent solving [s]
     cpu_s: float  # processor time this thread spent solving [s]: what another process's
     # load on the machine leaves unchanged (the 'measured' latency)
+    evaluations: int = 0  # forward-kinematics evaluations: the solve's work, whatever the
+    # machine (the 'reference' latency)
 
 
 class IKSolver(Protocol):
@@ -115,8 +145,10 @@ class DampedLeastSquaresIK:
         start, start_cpu = time.perf_counter(), time.thread_time()
         lo, hi = _search_box(q_seed, self.q_lo, self.q_hi, self.max_step_rad)
         q = np.minimum(np.maximum(q_seed, lo), hi)
+        evaluations = 0
         for _ in range(self.max_iterations):
             x, J = self.arm.ee_position_and_jacobian(q)
+            evaluations += 1
             error = target - x
             if error @ error < self.tolerance_m**2:
                 break
@@ -128,7 +160,7 @@ class DampedLeastSquaresIK:
                 dq[blocked] = 0.0
             q = np.minimum(np.maximum(q + dq, lo), hi)
         error_m = float(np.linalg.norm(target - self.arm.ee_position(q)))
-        return _result(q, error_m, start, start_cpu)
+        return _result(q, error_m, start, start_cpu, evaluations)
 
     def _step(self, J: np.ndarray, error: np.ndarray, q: np.ndarray) -> np.ndarray:
         J_pinv = J.T @ _inverse3(J @ J.T + self.damping**2 * np.eye(3))  # (6, 3)
@@ -152,6 +184,14 @@ class IkpyIK:
         self.q_lo = arm.robot.q_min + limit_margin_rad
         self.q_hi = arm.robot.q_max - limit_margin_rad
         self.max_step_rad = max_step_rad
+        self.evaluations = 0
+        forward = self.chain.forward_kinematics
+
+        def counted(*args: Any, **kwargs: Any) -> Any:
+            self.evaluations += 1  # ikpy's optimiser evaluates the chain once per call
+            return forward(*args, **kwargs)
+
+        self.chain.forward_kinematics = counted
 
     def solve(self, target: np.ndarray, q_seed: np.ndarray) -> IKResult:
         start, start_cpu = time.perf_counter(), time.thread_time()
@@ -160,16 +200,20 @@ class IkpyIK:
             link.bounds = (float(low), float(high))
         full = np.zeros(len(self.chain.links))
         full[self.active] = np.clip(q_seed, lo, hi)
+        self.evaluations = 0
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # ikpy warns about its own URDF conventions
             solution = self.chain.inverse_kinematics(target_position=target, initial_position=full)
         q = np.asarray(solution)[self.active]
+        evaluations = self.evaluations
         error_m = float(np.linalg.norm(target - self.arm.ee_position(q)))
-        return _result(q, error_m, start, start_cpu)
+        return _result(q, error_m, start, start_cpu, evaluations)
 
 
-def _result(q: np.ndarray, error_m: float, start: float, start_cpu: float) -> IKResult:
-    return IKResult(q, error_m, time.perf_counter() - start, time.thread_time() - start_cpu)
+def _result(q: np.ndarray, error_m: float, start: float, start_cpu: float,
+            evaluations: int) -> IKResult:  # fmt: skip
+    return IKResult(q, error_m, time.perf_counter() - start, time.thread_time() - start_cpu,
+                    evaluations)  # fmt: skip
 
 
 def make_ik_solver(
@@ -192,23 +236,37 @@ class IKLatency:
         median_s: float | None = None,
         sigma: float | None = None,
         replay: Sequence[float] | None = None,
+        scale: float = 1.0,
     ) -> None:
-        """``replay``: the latencies [s] a run spent (its ``spent_s``), handed out again in
-        order instead of the mode's; the solves still run (their joint solutions)."""
+        """``solver``: whose fitted distribution 'model' draws from, whose reference cost
+        'reference' charges; ``replay``: the latencies [s] a run spent (its ``spent_s``),
+        handed out again in order instead of the mode's (the solves still run: their joint
+        solutions); ``scale``: every latency of the mode times this (a computer this many
+        times slower; a replay is not scaled)."""
+        if not 0.0 < scale <= MAX_LATENCY_SCALE:
+            raise ConfigurationError(
+                f"ik_latency_scale must be in (0, {MAX_LATENCY_SCALE:g}], got {scale!r}"
+            )
         fitted_median, fitted_sigma = FITTED_LATENCY[solver]
         self.mode = mode
+        self.solver = solver
+        self.scale = scale
         self.median_s = fitted_median if median_s is None else median_s
         self.sigma = fitted_sigma if sigma is None else sigma
         self.rng = rng
         self.replay = None if replay is None else [_latency(v) for v in replay]
         self.spent_s: list[float] = []
+        self.evaluations: list[int] = []  # each solve's work, beside what it cost
 
-    def __call__(self, measured_s: float) -> float:
-        latency = self._next(measured_s)
+    def __call__(self, measured_s: float, evaluations: int = 0) -> float:
+        """The simulated time of a solve that took ``measured_s`` of processor time here
+        and ``evaluations`` forward-kinematics evaluations."""
+        latency = self._next(measured_s, evaluations)
         self.spent_s.append(latency)
+        self.evaluations.append(int(evaluations))
         return latency
 
-    def _next(self, measured_s: float) -> float:
+    def _next(self, measured_s: float, evaluations: int) -> float:
         if self.replay is not None:
             if len(self.spent_s) >= len(self.replay):
                 raise ConfigurationError(
@@ -219,8 +277,12 @@ class IKLatency:
         if self.mode == "zero":
             return 0.0
         if self.mode == "measured":
-            return measured_s
-        return float(self.median_s * np.exp(self.sigma * self.rng.standard_normal()))
+            return self.scale * measured_s
+        if self.mode == "reference":
+            cost = REFERENCE_COST[self.solver]
+            spread = np.exp(cost.sigma * self.rng.standard_normal())
+            return float(self.scale * evaluations * cost.per_evaluation_s * spread)
+        return float(self.scale * self.median_s * np.exp(self.sigma * self.rng.standard_normal()))
 
 
 def _latency(value: float) -> float:

@@ -303,6 +303,16 @@ def jerk(t: np.ndarray, v: np.ndarray) -> np.ndarray:
     return np.asarray(np.gradient(np.gradient(v, dt, axis=0), dt, axis=0))
 
 
+def mechanical_work_j(q: np.ndarray, tau: np.ndarray, dt_s: float) -> float:
+    """The effort E_effort of the paper's reward: the mechanical work sum |tau . dq/dt| dt
+    [J] over a stretch of joint positions ``q`` (N, 6) [rad] and torques ``tau`` (N, 6)
+    [N m] sampled every ``dt_s``; 0 for fewer than three samples."""
+    if len(q) < 3:
+        return 0.0
+    dq = np.gradient(q, dt_s, axis=0)
+    return float(np.sum(np.abs(np.sum(tau * dq, axis=1))) * dt_s)
+
+
 def integrated_squared_jerk(t: np.ndarray, v: np.ndarray) -> float:
     """ISJ = integral of ||d^3x/dt^3||^2 dt [m^2/s^5]."""
     if len(t) < 3:

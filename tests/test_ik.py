@@ -81,3 +81,45 @@ def test_solves_report_their_processor_time_beside_their_wall_time(arm: ArmModel
     for solver in (DampedLeastSquaresIK(arm), IkpyIK(arm)):
         result = solver.solve(target, HOME_Q)
         assert 0.0 < result.cpu_s <= result.compute_s + 1e-3, solver.name
+
+
+def test_solves_count_their_work_in_forward_kinematics_evaluations(arm: ArmModel) -> None:
+    """ikpy's optimiser evaluates the chain once per forward-kinematics call (counted on
+    the chain it is given), damped least squares once per iteration; the same solve is the
+    same work, whatever the clock."""
+    near = arm.ee_position(HOME_Q) + np.array([0.005, 0.0, 0.0])
+    far = arm.ee_position(HOME_Q) + np.array([0.05, 0.03, 0.0])
+    ikpy, dls = IkpyIK(arm), DampedLeastSquaresIK(arm)
+    assert ikpy.solve(near, HOME_Q).evaluations > 6  # at least a gradient's worth
+    assert ikpy.solve(far, HOME_Q).evaluations == ikpy.solve(far, HOME_Q).evaluations
+    assert 0 < dls.solve(near, HOME_Q).evaluations <= dls.max_iterations
+
+
+def test_reference_latency_is_the_work_at_the_reference_cost_whatever_the_clock() -> None:
+    """'reference': evaluations x the reference machine's cost per evaluation x its
+    lognormal spread drawn from the seed, so this computer's speed never enters; scaled
+    by ``scale``; a measured latency is scaled too, a replay is not."""
+    from dammrl_core.ik import REFERENCE_COST
+
+    cost = REFERENCE_COST["ikpy"]
+    first = IKLatency("reference", "ikpy", np.random.default_rng(7))
+    again = IKLatency("reference", "ikpy", np.random.default_rng(7), scale=2.0)
+    times = [first(measured, 300) for measured in (0.001, 5.0, 0.2)]  # the clock is ignored
+    assert [again(0.0, 300) for _ in range(3)] == pytest.approx([2 * t for t in times])
+    z = np.random.default_rng(7).standard_normal(3)
+    assert times == pytest.approx(list(300 * cost.per_evaluation_s * np.exp(cost.sigma * z)))
+    assert first.evaluations == [300, 300, 300]
+    assert IKLatency("measured", "ikpy", np.random.default_rng(0), scale=3.0)(0.01) == 0.03
+    replay = IKLatency("reference", "ikpy", np.random.default_rng(0), replay=[0.02], scale=5.0)
+    assert replay(1.0, 10) == 0.02
+
+
+@pytest.mark.parametrize("scale", [0.0, -1.0, 101.0, float("nan")])
+def test_a_latency_scale_outside_its_range_is_refused_in_one_line(scale: float) -> None:
+    from dammrl_core.control.settings import ControllerSettings
+    from dammrl_core.errors import ConfigurationError
+
+    with pytest.raises(ConfigurationError, match="ik_latency_scale must be in"):
+        IKLatency("model", "ikpy", np.random.default_rng(0), scale=scale)
+    with pytest.raises(ValueError, match=r"(?i)ik_latency_scale"):
+        ControllerSettings(ik_latency_scale=scale)

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 from scipy.stats import trim_mean
 
 from dammrl.study.configs import checkpoint_files
@@ -30,9 +31,12 @@ from dammrl.study.training import (
     group_jobs,
     run_training,
     ship,
+    ship_seeds,
     summarize,
     write_group_report,
 )
+from dammrl_core.models import ModelSet
+from dammrl_core.policy.learned import LearnedPolicy
 from dammrl_core.task import held_out_seeds
 
 
@@ -146,6 +150,20 @@ def test_seeds_train_in_parallel_with_the_numbers_of_one_process(tmp_path: Path)
     assert record["shipped_seed"] == best and len(record["seeds"]) == 2
     assert (tmp_path / "shipped/checkpoint.pt").is_file()
     assert any((tmp_path / "shipped/tensorboard").iterdir())
+    (tmp_path / "seeds/seed-7").mkdir(parents=True)  # an older run: removed
+    assert ship_seeds(tmp_path / "two", tmp_path / "seeds") == [0, 1]
+    assert sorted(p.name for p in (tmp_path / "seeds").iterdir()) == ["seed-0", "seed-1"]
+    greedy = LearnedPolicy(ModelSet(), tmp_path / "seeds/seed-1/checkpoint.pt")  # a study's
+    full = LearnedPolicy(ModelSet(), tmp_path / "two/seed-1/checkpoint.pt")
+    observation = np.linspace(0.1, 0.5, 16, dtype=np.float32)
+    assert (
+        greedy.network.human(torch.from_numpy(observation)).tolist()
+        == full.network.human(torch.from_numpy(observation)).tolist()
+    )
+    shipped_size = (tmp_path / "seeds/seed-1/checkpoint.pt").stat().st_size
+    assert shipped_size < (tmp_path / "two/seed-1/checkpoint.pt").stat().st_size
+    assert {p.name for p in (tmp_path / "seeds/seed-1").iterdir()} == {
+        "checkpoint.pt", "training.csv", "settings.json", EVALUATION}  # fmt: skip
 
 
 @pytest.mark.slow

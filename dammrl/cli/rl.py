@@ -29,6 +29,10 @@ def register(commands: Commands) -> None:
     train.add_argument("--ship", type=output_dir, metavar="DIR",
                        help="with --seeds: copy the best run on the validation seeds to DIR "
                        "(checkpoint, curves, TensorBoard log, every seed's results)")  # fmt: skip
+    train.add_argument("--ship-seeds", type=output_dir, metavar="DIR",
+                       help="with --seeds: copy every run to DIR/seed-K as a study reads them "
+                       "(greedy networks, training log, settings, evaluation; e.g. "
+                       "dammrl_core/policies/reward1/seeds)")  # fmt: skip
     train.add_argument("--beta", type=float, help="the time weight (default: the reward's)")
     train.add_argument("--no-randomize", dest="randomize", action="store_false",
                        help="train on the nominal arm (default: randomised arms, S1)")  # fmt: skip
@@ -95,6 +99,8 @@ def _train(args: argparse.Namespace) -> int:
         return _train_seeds(args)
     if args.ship is not None:
         raise UsageError("--ship needs --seeds (it picks the best of several runs)")
+    if args.ship_seeds is not None:
+        raise UsageError("--ship-seeds needs --seeds (it ships every run of them)")
     overrides = {k: v for k in ("episodes", "seed") if (v := getattr(args, k)) is not None}
     settings = TrainSettings(**overrides, randomize=args.randomize)
     weights = RewardWeights.preset(args.reward)
@@ -119,7 +125,13 @@ def _train(args: argparse.Namespace) -> int:
 
 
 def _train_seeds(args: argparse.Namespace) -> int:
-    from dammrl.study.training import check_seeds, group_jobs, ship, write_group_report
+    from dammrl.study.training import (
+        check_seeds,
+        group_jobs,
+        ship,
+        ship_seeds,
+        write_group_report,
+    )
     from dammrl_core.errors import UsageError
 
     if not 1 <= args.seeds <= 70 or args.seed is not None:
@@ -132,6 +144,9 @@ def _train_seeds(args: argparse.Namespace) -> int:
     print(write_group_report(args.out, f"Reward {args.reward}", _command(), wall_s))
     if args.ship is not None:
         print(f"shipped seed-{ship(args.out, args.ship)} to {args.ship}")
+    if args.ship_seeds is not None:
+        seeds = ship_seeds(args.out, args.ship_seeds)
+        print(f"shipped {len(seeds)} runs (seed-0 ... seed-{seeds[-1]}) to {args.ship_seeds}")
     return 0
 
 

@@ -15,7 +15,20 @@ DEFAULT_SEEDS, DEFAULT_SETS = "120", 3  # 3 x 40 seeds: the default study in ~15
 
 
 def register(commands: Commands) -> None:
-    """Add ``study``."""
+    """Add ``study`` and ``verdicts``."""
+    verdicts = commands.add_parser(
+        "verdicts",
+        help="saved studies' verdicts side by side: which are findings",
+        description="Set the verdicts of studies on disjoint seed ranges side by side (each "
+        "study's verdicts.json, written by dammrl study): a verdict is a finding when it is "
+        "the same on every range and stable within each.",
+    )
+    verdicts.add_argument("studies", type=Path, nargs="+", metavar="STUDY",
+                          help="a study's folder (or its verdicts.json)")  # fmt: skip
+    verdicts.add_argument("--results", type=Path, action="append", default=[], metavar="PAGE",
+                          help="also regenerate this page's side-by-side section (the "
+                          "ranges markers)")  # fmt: skip
+    verdicts.set_defaults(handler=_verdicts)
     study = commands.add_parser(
         "study",
         help="the paper's comparison: every configuration, claims C1-C6, report",
@@ -32,12 +45,16 @@ def register(commands: Commands) -> None:
     study.add_argument("--sets", type=int, default=DEFAULT_SETS, metavar="K",
                        help="disjoint seed sets: every verdict is judged on each, and called "
                        f"unstable when they differ (default {DEFAULT_SETS})")  # fmt: skip
-    study.add_argument("--tuning-seeds", type=int, default=20, metavar="N",
-                       help="seeds of the best-fixed search (from 7,900,000; never evaluated "
-                       "on; default 20)")  # fmt: skip
+    study.add_argument("--tuning-seeds", type=int, default=None, metavar="N",
+                       help="search the best fixed models on N tuning seeds (from 7,900,000; "
+                       "never evaluated on; 1-10000). Default: the shipped search when it was "
+                       "made with these settings, else one on as many tuning seeds as "
+                       "evaluation seeds, at most 20")  # fmt: skip
     study.add_argument("--conditions", type=_conditions, default=None, metavar="A,B",
                        help="arm and IK timing, comma-separated from: " + ", ".join(CONDITIONS)
-                       + " (default: " + ",".join(DEFAULT_CONDITIONS) + ")")  # fmt: skip
+                       + " (default: " + ",".join(DEFAULT_CONDITIONS) + "; ikpy-real times "
+                       "each solve as the reference machine did, ikpy-measured as this "
+                       "computer does)")  # fmt: skip
     study.add_argument("--ik-latencies", type=Path, metavar="FILE",
                        help="replay a study's measured IK latencies (its ik_latencies.json.gz) "
                        "instead of measuring: the same reaches, byte for byte")  # fmt: skip
@@ -52,6 +69,10 @@ def register(commands: Commands) -> None:
         metavar="RUN",
         help="Reward 2 runs or checkpoints (default: every shipped training seed of Reward 2)",
     )
+    study.add_argument("--rows", choices=["all", "paper"], default="all",
+                       help="all: the paper's configurations, our variants and the reviewer's "
+                       "rows (default); paper: configurations 1-4 only, which every verdict "
+                       "needs (a third of the reaches, no best-fixed search)")  # fmt: skip
     study.add_argument("--jobs", type=int, default=os.cpu_count() or 1,
                        help="processes on this machine (default: every core)")  # fmt: skip
     study.add_argument(
@@ -100,7 +121,7 @@ def _study(args: argparse.Namespace) -> int:
     if not 1 <= args.sets <= len(args.seeds):
         raise UsageError(f"--sets must be 1 to the number of seeds ({len(args.seeds)}), "
                          f"got {args.sets}")  # fmt: skip
-    if not 1 <= args.tuning_seeds <= 10_000:
+    if args.tuning_seeds is not None and not 1 <= args.tuning_seeds <= 10_000:
         raise UsageError(f"--tuning-seeds must be 1 to 10000, got {args.tuning_seeds}")
     from dammrl_core.policy.learned import resolve_run
 
@@ -118,24 +139,28 @@ def _study(args: argparse.Namespace) -> int:
     for page in args.results:
         check_page(page)  # before hours of reaches, not after
     latencies = None if args.ik_latencies is None else load_latencies(args.ik_latencies)
+    tuning = None
+    if args.tuning_seeds is not None:
+        tuning = range(TUNING_START, TUNING_START + args.tuning_seeds)
     options = StudyOptions(
         seeds=args.seeds,
         sets=args.sets,
         conditions=DEFAULT_CONDITIONS if args.conditions is None else args.conditions,
         ik_latencies=latencies,
-        tuning_seeds=range(TUNING_START, TUNING_START + args.tuning_seeds),
+        tuning_seeds=tuning,
         reward1=tuple(args.reward1),
         reward2=tuple(args.reward2),
         workers=args.jobs,
         ray=args.ray,
         recording=args.recording,
         adaptive=args.adaptive,
+        rows=args.rows,
     )
     options.check()  # every refusal before the note, so a refusal is one line
     if len(args.seeds) < 20 * args.sets:
         print_err(
-            f"note: {len(args.seeds) // args.sets} seeds per set: a bootstrap interval "
-            "wants 20 or more, so verdicts this small are a smoke test, not a finding"
+            f"note: {len(args.seeds) // args.sets} seeds per set: with a handful of reaches "
+            "per training run, verdicts this small are a smoke test, not a finding"
         )
     closers = []
 
@@ -144,8 +169,10 @@ def _study(args: argparse.Namespace) -> int:
         closers.append(close)
         return update
 
+    from dammrl.study.report import SEARCH_FILE
+
     try:
-        result = run_study(options, progress)
+        result = run_study(options, progress, (args.out / SEARCH_FILE,))
     finally:
         for close in closers:
             close()
@@ -158,10 +185,23 @@ def _study(args: argparse.Namespace) -> int:
         for criterion in ("press", "eps_g"):
             claims = result.claims(condition, criterion)
             verdicts = [
-                f"{c.key} {c.verdict}" + ("" if result.stable(condition, criterion, k)
-                                          else " (unstable)")
+                f"{c.key} {c.verdict}" + ("" if options.sets < 2 or result.stable(
+                    condition, criterion, k) else " (unstable)")
                 for k, c in enumerate(claims)
             ]  # fmt: skip
             print(f"{condition} ({criterion}): " + ", ".join(verdicts))
     print(f"report: {report}")
+    return 0
+
+
+def _verdicts(args: argparse.Namespace) -> int:
+    from dammrl.study.report import RANGES, check_page, load_verdicts, side_by_side, update_ranges
+
+    for page in args.results:
+        check_page(page, (RANGES,))
+    table = side_by_side([load_verdicts(path) for path in args.studies])
+    for page in args.results:
+        update_ranges(page, table)
+        print_err(f"ranges section of {page} regenerated")
+    print(table)
     return 0

@@ -16,7 +16,7 @@ import numpy as np
 from dammrl.rl.config import RewardWeights
 from dammrl.runner import Episode, ReachRunner
 from dammrl_core.human import HumanModel
-from dammrl_core.metrics import n_oscillations
+from dammrl_core.metrics import mechanical_work_j, n_oscillations
 from dammrl_core.policy import ModelChoice, model_choice
 from dammrl_core.policy.learned import ACTIONS, OBSERVATION_SIZE, observe
 from dammrl_core.state import RobotState
@@ -100,8 +100,7 @@ class ReachEnv:
         effort, oscillations = 0.0, 0
         if len(segment.t) > 2:
             dt = episode.runner.control_dt_s
-            dq = np.gradient(segment.q, dt, axis=0)
-            effort = float(np.sum(np.abs(np.sum(segment.tau * dq, axis=1))) * dt)
+            effort = mechanical_work_j(segment.q, segment.tau, dt)
             oscillations = n_oscillations(
                 segment.x,
                 np.array([s.subgoal for s in episode.steps]).reshape(-1, 3),

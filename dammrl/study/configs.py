@@ -21,8 +21,14 @@ uniformly random choice of (i, j). Which rows differ shows which modelling choic
 each claim.
 
 A condition is the arm and the IK timing every configuration runs on: the nominal or the
-randomised arm with IK latency drawn from the ikpy-fitted lognormal (the default), or the
-paper's solver in the loop with each solve's measured compute time entering simulated time.
+randomised arm with IK latency drawn from the ikpy-fitted lognormal, or the paper's solver
+in the loop with each solve's own time entering simulated time. That time is the
+reference machine's by default (``ikpy-real``: each solve's work, its forward-kinematics
+evaluations, at the reference's measured cost per evaluation), so no verdict depends on
+the computer that runs the study; ``ikpy-measured`` uses this computer's processor time
+instead (an explicit choice, labelled with the machine in the report), and the
+``ikpy-real-xS`` conditions scale the reference time by S: how the verdicts depend on
+solve time.
 """
 
 from __future__ import annotations
@@ -60,6 +66,12 @@ class PolicySpec:
     kind: Literal["fixed", "learned", "random", "adaptive"]
     model: tuple[int, int] = PAPER_MODEL
     checkpoints: tuple[Path, ...] = ()
+
+    @property
+    def runs(self) -> int:
+        """Training runs behind the policy (0: it learns nothing): the units its
+        comparisons are judged over when several."""
+        return len(self.checkpoints) if self.kind == "learned" else 0
 
     def text(self) -> str:
         if self.kind == "fixed":
@@ -111,27 +123,43 @@ class Condition:
 
     @property
     def measured(self) -> bool:
-        """Its IK latencies are measured (saved with the study, to be replayed)."""
+        """Its IK latencies are measured on this computer (saved with the study, to be
+        replayed: nothing else about a reach depends on where it ran)."""
         return self.controller.get("ik_latency") == "measured"
+
+    @property
+    def solves_timed(self) -> bool:
+        """Each IK solve's own time enters simulated time (measured or the reference's)."""
+        return self.controller.get("ik_latency") in ("measured", "reference")
 
     def runs(self, configuration: Configuration) -> bool:
         return self.configurations is None or configuration.key in self.configurations
 
 
-IKPY_REAL = {"ik_solver": "ikpy", "ik_latency": "measured"}
+IKPY_REAL = {"ik_solver": "ikpy", "ik_latency": "reference"}
+LATENCY_SCALES = (0.25, 0.5, 2.0, 4.0)  # the reference machine's solve times times these
 CONDITIONS = {
     c.key: c
     for c in (
         Condition("nominal", "nominal arm; IK latency drawn from the ikpy-fitted lognormal", False),
         Condition("randomised", "randomised arm and sensor noise; IK latency drawn", True),
-        Condition("ikpy-real", "nominal arm; ikpy solves in the loop, each one's measured "
-                  "compute time in simulated time", False, IKPY_REAL, {}, PAPER_KEYS),
-        Condition("ikpy-drawn", "nominal arm; ikpy solves, latency drawn (not measured)", False,
-                  {"ik_solver": "ikpy"}, {}, PAPER_KEYS),
-        Condition("dls-real", "nominal arm; damped-least-squares solves, each one's measured "
-                  "compute time (~0.2 ms)", False, {"ik_latency": "measured"}, {}, PAPER_KEYS),
+        Condition("ikpy-real", "nominal arm; ikpy solves in the loop, each one's time on the "
+                  "reference machine (its work at the reference's measured cost) in simulated "
+                  "time", False, IKPY_REAL, {}, PAPER_KEYS),
+        Condition("ikpy-measured", "nominal arm; ikpy solves in the loop, each one's processor "
+                  "time on this computer in simulated time", False,
+                  {"ik_solver": "ikpy", "ik_latency": "measured"}, {}, PAPER_KEYS),
+        Condition("ikpy-drawn", "nominal arm; ikpy solves, latency drawn (not the solve's)",
+                  False, {"ik_solver": "ikpy"}, {}, PAPER_KEYS),
+        Condition("dls-real", "nominal arm; damped-least-squares solves, each one's time on the "
+                  "reference machine (~0.2 ms)", False, {"ik_latency": "reference"}, {},
+                  PAPER_KEYS),
         Condition("randomised-quiet-velocity", "randomised arm without end-effector velocity "
                   "noise", True, {}, {"ee_vel_noise_m_per_s": 0.0}, PAPER_KEYS),
+        *(Condition(f"ikpy-real-x{scale:g}", f"as ikpy-real, every solve {scale:g} times as "
+                    "long (a slower or faster computer)", False,
+                    {**IKPY_REAL, "ik_latency_scale": scale}, {}, PAPER_KEYS)
+          for scale in LATENCY_SCALES),
     )
 }  # fmt: skip
 DEFAULT_CONDITIONS = ("nominal", "randomised", "ikpy-real")

@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import itertools
 from pathlib import Path
+from typing import Any
 
 import matplotlib
 
@@ -15,9 +16,10 @@ from matplotlib.axes import Axes
 from matplotlib.patches import Rectangle
 from matplotlib.ticker import MaxNLocator
 
-from dammrl.study.configs import FIXED, R1, R2, Configuration, checkpoint_file
+from dammrl.study.configs import CONDITIONS, EVENT, FIXED, R1, R2, Configuration, checkpoint_file
+from dammrl.study.inference import unit_values
 from dammrl.study.run import Job, Record, reach
-from dammrl.study.stats import bootstrap_mean, wilson
+from dammrl.study.stats import Estimate, t_mean, wilson
 from dammrl_core.robot.scene import SceneLayout
 
 MM = 1000.0
@@ -35,10 +37,27 @@ SUMMARY_METRICS = (
 DISTANCE_BINS_M = np.array([0.0, 0.01, 0.02, 0.04, 0.08, 0.16, 0.5])
 
 
+def describe(rows: list[dict[str, Any]], metric: str, rate: bool = False) -> Estimate:
+    """The mean of ``metric`` over ``rows`` (one configuration) with a 95 % interval that
+    respects where it varies: a t-interval over training runs (each run's mean) when the
+    configuration has several, else over reaches (a rate of one run: Wilson)."""
+    kept = [r for r in rows if r.get(metric) is not None]
+    if not kept:
+        return t_mean(np.empty(0))
+    values = np.array([float(r[metric]) for r in kept])
+    if max(int(r.get("runs") or 0) for r in kept) > 1:
+        runs = np.array([int(r.get("run") or 0) for r in kept])
+        e = t_mean(unit_values(values, runs))
+        return Estimate(e.value, max(e.low, 0.0), min(e.high, 1.0), e.n) if rate else e
+    if rate:
+        return wilson(int(values.sum()), values.size)
+    return t_mean(values)
+
+
 def summary_chart(records: list[Record], configurations: list[Configuration],
                   conditions: tuple[str, ...], path: Path) -> Path:  # fmt: skip
-    """Every metric per configuration with its 95 % interval, the conditions side by side."""
-    rng = np.random.default_rng(0)
+    """Every metric per configuration with its 95 % interval (over training runs for a
+    learned configuration), the conditions side by side."""
     keys = [c.key for c in configurations]
     fig, axes = plt.subplots(3, 3, figsize=(15, 12), constrained_layout=True)
     width = 0.8 / len(conditions)
@@ -47,13 +66,12 @@ def summary_chart(records: list[Record], configurations: list[Configuration],
             offset = (k - (len(conditions) - 1) / 2) * width
             means, lows, highs = [], [], []
             for key in keys:
-                values = [r.row[metric] for r in records
-                          if r.row["configuration"] == key and r.row["condition"] == condition
-                          and r.row[metric] is not None]  # fmt: skip
-                if rate:
-                    e = wilson(int(sum(values)), len(values))
-                else:
-                    e = bootstrap_mean(np.array(values, dtype=float), rng)
+                rows = [
+                    r.row
+                    for r in records
+                    if r.row["configuration"] == key and r.row["condition"] == condition
+                ]
+                e = describe(rows, metric, rate)
                 means.append(e.value * scale)
                 lows.append((e.value - e.low) * scale)
                 highs.append((e.high - e.value) * scale)
@@ -64,7 +82,10 @@ def summary_chart(records: list[Record], configurations: list[Configuration],
         ax.set_xticks(range(len(keys)), keys, rotation=60, ha="right", fontsize=8)
     handles, labels = axes.flat[0].get_legend_handles_labels()  # above the panels, on no bar
     fig.legend(handles, labels, loc="upper right", ncols=len(conditions), fontsize=9)
-    fig.suptitle("Every configuration on the held-out seeds (95 % intervals)")
+    fig.suptitle(
+        "Every configuration on the held-out seeds (95 % intervals: t over training "
+        "runs for a learned configuration, over reaches otherwise)"
+    )
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
@@ -116,8 +137,8 @@ def _button_side_view(ax: Axes) -> None:
 
 def step_modulation_figure(records: list[Record], path: Path) -> Path:
     """Reward 1 vs Reward 2: the step magnitude the robot agent chose against the distance
-    to the goal, and the number of steps planned per reach."""
-    rng = np.random.default_rng(0)
+    to the goal (each training run's mean, thin, and their mean with a t-interval over
+    runs), and the number of steps planned per reach."""
     fig, (left, right) = plt.subplots(1, 2, figsize=(12, 4.5), constrained_layout=True)
     centres = (DISTANCE_BINS_M[:-1] + DISTANCE_BINS_M[1:]) / 2 * 100
     for key, label, color in ((R1, "Reward 1", "tab:blue"), (R2, "Reward 2", "tab:orange")):
@@ -125,21 +146,87 @@ def step_modulation_figure(records: list[Record], path: Path) -> Path:
                 if r.row["configuration"] == key and r.row["condition"] == "nominal"]  # fmt: skip
         if not mine:
             continue
-        steps = np.concatenate([r.steps for r in mine])
-        stats = [bootstrap_mean(steps[(steps[:, 0] >= a) & (steps[:, 0] < b), 1], rng)
-                 for a, b in itertools.pairwise(DISTANCE_BINS_M)]  # fmt: skip
-        left.plot(centres, [s.value * MM for s in stats], "o-", color=color, label=label)
-        left.fill_between(centres, [s.low * MM for s in stats], [s.high * MM for s in stats],
-                          color=color, alpha=0.2)  # fmt: skip
+        runs = sorted({int(r.row.get("run") or 0) for r in mine})
+        per_run = np.array([_binned_steps([r for r in mine if (r.row.get("run") or 0) == k])
+                            for k in runs])  # (runs, bins)  # fmt: skip
+        for curve in per_run:
+            left.plot(centres, curve * MM, "-", color=color, lw=0.6, alpha=0.35)
+        stats = [t_mean(per_run[:, b]) for b in range(per_run.shape[1])]
+        left.plot(centres, [s.value * MM for s in stats], "o-", color=color,
+                  label=f"{label} ({len(runs)} training runs)")  # fmt: skip
+        if len(runs) > 1:
+            left.fill_between(centres, [s.low * MM for s in stats],
+                              [s.high * MM for s in stats], color=color, alpha=0.2)  # fmt: skip
         counts = [r.row["n_steps"] for r in mine]
         right.hist(counts, bins=range(0, max(counts) + 2), color=color, alpha=0.5, label=label)
     left.set(xscale="log", xlabel="distance to the goal when planned [cm]",
-             ylabel="mean step magnitude [mm]", title="learned step-size modulation")  # fmt: skip
+             ylabel="mean step magnitude [mm]",
+             title="learned step-size modulation (band: 95 % t over runs)")  # fmt: skip
     right.set(xlabel="micro-steps planned in a reach", ylabel="reaches",
               title="planned step counts")  # fmt: skip
     right.yaxis.set_major_locator(MaxNLocator(integer=True))  # counts of reaches
     left.legend()
     right.legend()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def _binned_steps(records: list[Record]) -> np.ndarray:
+    """The mean step [m] planned in each distance bin over ``records`` (NaN: none)."""
+    steps = np.concatenate([r.steps for r in records]) if records else np.empty((0, 2))
+    means = []
+    for a, b in itertools.pairwise(DISTANCE_BINS_M):
+        chosen = steps[(steps[:, 0] >= a) & (steps[:, 0] < b), 1]
+        means.append(float(chosen.mean()) if chosen.size else np.nan)
+    return np.array(means)
+
+
+def latency_figure(records: list[Record], conditions: tuple[str, ...], path: Path
+                   ) -> Path | None:  # fmt: skip
+    """How configurations 1 and 2 depend on solve time: N_osc per reach and final error
+    against the median IK latency of each ikpy condition that ran (the reference machine's
+    times, scaled, and this computer's when measured), 95 % t-intervals over reaches."""
+    timed = [c for c in conditions if c.startswith("ikpy-") and c != "ikpy-drawn"]
+    if len(timed) < 2:
+        return None
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4.2), constrained_layout=True)
+    panels = (("n_osc", "N_osc per reach", 1.0), ("final_error_m", "final error [mm]", MM),
+              ("success", "success (pressed) [%]", 100.0))  # fmt: skip
+    for key, color in ((FIXED, "black"), (EVENT, "tab:red")):
+        points = []
+        for condition in timed:
+            rows = [
+                r.row
+                for r in records
+                if r.row["configuration"] == key and r.row["condition"] == condition
+            ]
+            median = [r["ik_latency_median_s"] for r in rows if r.get("ik_latency_median_s")]
+            if rows and median:
+                points.append((float(np.median(median)) * MM, condition, rows))
+        points.sort(key=lambda p: p[0])
+        for ax, (metric, title, scale) in zip(axes, panels, strict=True):
+            estimates = [describe(rows, metric, metric == "success") for _, _, rows in points]
+            x = [p[0] for p in points]
+            ax.errorbar(x, [e.value * scale for e in estimates],
+                        yerr=[[(e.value - e.low) * scale for e in estimates],
+                              [(e.high - e.value) * scale for e in estimates]],
+                        fmt="o-", color=color, capsize=3, label=key)  # fmt: skip
+            for xi, e, (_, condition, _) in zip(x, estimates, points, strict=True):
+                if condition == "ikpy-measured":
+                    ax.annotate(
+                        "this computer",
+                        (xi, e.value * scale),
+                        fontsize=7,
+                        textcoords="offset points",
+                        xytext=(4, -10),
+                    )
+            ax.set(xscale="log", xlabel="median IK solve time [ms]", title=title)
+    axes[0].legend()
+    fig.suptitle(
+        "Configurations 1 (fixed-frequency) and 2 (event trigger) against solve time "
+        "(ikpy in the loop; " + ", ".join(CONDITIONS[c].key for c in timed) + ")"
+    )
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path

@@ -10,19 +10,23 @@ replays them, and is pure again.
 from __future__ import annotations
 
 import os
+import signal
 import socket
+import sys
+import threading
+import time
 from collections.abc import Callable, Iterable, Iterator, Sequence
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any, TypeVar
 
 import numpy as np
 
 from dammrl.runner import ReachResult, ReachRunner, ReachSettings
-from dammrl.study.claims import step_windows
 from dammrl.study.configs import CONDITIONS, Condition, Configuration
+from dammrl.study.rows import reach_row, steps_of
 from dammrl_core.errors import JobFailedError
-from dammrl_core.metrics import decisions_until_stable, n_oscillations
 from dammrl_core.policy import FixedPolicy, Policy, RandomPolicy
 from dammrl_core.task import seed_streams
 
@@ -51,7 +55,7 @@ class Job:
 @dataclass(frozen=True)
 class Record:
     """What a study keeps of one reach: a flat row of numbers, the decisions, and (a
-    measured condition) the IK latencies that entered its simulated time."""
+    condition that times each solve) the IK latencies that entered its simulated time."""
 
     row: dict[str, Any]
     steps: np.ndarray  # (n, 2) per micro-step: distance to the goal [m], mean step [m]
@@ -62,9 +66,22 @@ def run_job(job: Job) -> Record:
     """One reach, in whatever process this is (cores and policies built once per process)."""
     result = reach(job)
     tolerance = _runner(CONDITIONS[job.condition], job.configuration).settings.task.goal_tolerance_m
-    measured = CONDITIONS[job.condition].measured
-    latencies = tuple(result.ik_latencies_s) if measured else None
-    return Record(_row(job, result, tolerance), _steps(result), latencies)
+    timed = CONDITIONS[job.condition].solves_timed  # each solve's own time: kept
+    latencies = tuple(result.ik_latencies_s) if timed else None
+    return Record(reach_row(result, identity(job), job.configuration.policy.runs, tolerance),
+                  steps_of(result), latencies)  # fmt: skip
+
+
+def identity(job: Job) -> dict[str, Any]:
+    """What names a reach in a study's rows."""
+    return {
+        "configuration": job.configuration.key,
+        "condition": job.condition,
+        "seed_set": job.seed_set,
+        "seed": job.seed,
+        "randomize": CONDITIONS[job.condition].randomize,
+        "run": _run_index(job),
+    }
 
 
 def reach(job: Job) -> ReachResult:
@@ -127,81 +144,15 @@ def run_session(job: tuple[Configuration, tuple[int, ...], str]) -> list[Record]
         result = runner.run(seed, trigger=configuration.trigger, policy=policy)
         policy.observe(evidence_of(result, models))
         reach_job = Job(configuration, seed, condition, index)
-        records.append(Record(_row(reach_job, result, tolerance), _steps(result)))
+        row = reach_row(result, identity(reach_job), 0, tolerance)  # one adapting policy
+        records.append(Record(row, steps_of(result)))
     return records
-
-
-def _row(job: Job, result: ReachResult, tolerance_m: float) -> dict[str, Any]:
-    """The reach as a flat row; ``tolerance_m``: the paper's eps_g."""
-    metrics = result.metrics.as_dict()
-    human = [c.human_model for c in result.choices]
-    robot = [c.robot_model for c in result.choices]
-    n = len(result.choices)
-    windows = step_windows(tolerance_m, float(np.linalg.norm(result.task.goal - result.task.start)))
-    return {
-        "configuration": job.configuration.key,
-        "condition": job.condition,
-        "seed_set": job.seed_set,
-        "seed": job.seed,
-        "randomize": CONDITIONS[job.condition].randomize,
-        "run": _run_index(job),
-        "model": f"{result.model[0]},{result.model[1]}",  # in force at the end
-        **metrics,
-        "t_success_s": metrics["t_total_s"] if metrics["success"] else None,
-        "t_reached_s": _first_within(result, tolerance_m),
-        "n_osc_true": _n_osc_true(result),
-        "human_stable_after": decisions_until_stable(human),
-        "robot_stable_after": decisions_until_stable(robot),
-        "stable_share": 1 - decisions_until_stable(list(zip(human, robot, strict=True))) / n
-        if n
-        else None,
-        "step_mean_m": _mean_step(result, 0.0, np.inf),
-        "near_step_m": _mean_step(result, *windows["near"]),
-        "mid_step_m": _mean_step(result, *windows["mid"]),
-        "ik_latency_median_s": float(np.median(result.ik_latencies_s))
-        if result.ik_latencies_s
-        else None,
-    }
 
 
 def _run_index(job: Job) -> int:
     """Which of a learned configuration's training runs chose (0 for any other)."""
     checkpoints = job.configuration.policy.checkpoints
     return job.index % len(checkpoints) if job.configuration.policy.kind == "learned" else 0
-
-
-def _first_within(result: ReachResult, tolerance_m: float) -> float | None:
-    """When the measured end-effector first came within ``tolerance_m`` of the goal (the
-    paper's success criterion), before the reach ended; None if it never did."""
-    traj = result.trajectory
-    kept = traj.t <= result.metrics.t_total_s + 1e-9
-    within = np.linalg.norm(traj.x[kept] - result.task.goal, axis=1) <= tolerance_m
-    return float(traj.t[kept][np.argmax(within)]) if within.any() else None
-
-
-def _n_osc_true(result: ReachResult) -> int | None:
-    """N_osc on the noise-free path (simulation's ground truth), beside N_osc on the
-    measured one: how much of the count is motion."""
-    traj = result.trajectory
-    kept = traj.t <= result.metrics.t_total_s + 1e-9
-    x = traj.x_true[kept]
-    if len(x) == 0 or not np.all(np.isfinite(x)):
-        return None
-    subgoals = np.array([s.subgoal for s in result.steps]).reshape(-1, 3)
-    radii = np.array([s.radius_m for s in result.steps])
-    rate = 1.0 / float(traj.t[1] - traj.t[0]) if len(traj.t) > 1 else 1.0
-    return n_oscillations(x, subgoals, radii, rate)
-
-
-def _mean_step(result: ReachResult, nearest_m: float, farthest_m: float) -> float | None:
-    """Mean step magnitude [m] of the steps planned at a goal distance in the range."""
-    sizes = [s.steps_m.mean() for s in result.steps if nearest_m <= s.goal_error_m < farthest_m]
-    return float(np.mean(sizes)) if sizes else None
-
-
-def _steps(result: ReachResult) -> np.ndarray:
-    rows = [(s.goal_error_m, float(s.steps_m.mean())) for s in result.steps]
-    return np.array(rows, dtype=float).reshape(-1, 2)
 
 
 def run_local(jobs: Sequence[Job], workers: int, progress: Progress | None = None) -> list[Record]:
@@ -223,37 +174,139 @@ def map_jobs(
     ray: str | None = None,
     progress: Progress | None = None,
     batch: int = 16,
+    in_order: bool = True,
 ) -> Iterator[R]:
-    """``function`` of every job, as each finishes: on a Ray cluster when ``ray`` is an
-    address ("local": a local instance), else on ``workers`` processes of this machine (1:
-    in this process). Jobs must be pure: the results do not depend on where they ran."""
+    """``function`` of every job, in the jobs' order (``in_order=False``: as each batch
+    finishes): on a Ray cluster when ``ray`` is an address ("local": a local instance),
+    else on ``workers`` processes of this machine (1: in this process). ``progress`` hears
+    of each batch as it finishes. Jobs must be pure: the results do not depend on where
+    they ran. A ``kill`` (SIGTERM) or Ctrl-C ends every worker before this process ends;
+    a worker whose parent died ends itself."""
     if ray is not None:
-        yield from _map_ray(function, jobs, ray, progress, batch)
+        yield from _map_ray(function, jobs, ray, progress, batch, in_order)
     elif workers <= 1:
         for job in jobs:
             yield _tick(function(job), progress)
     else:
-        yield from _map_processes(function, jobs, workers, progress, batch)
+        yield from _map_processes(function, jobs, workers, progress, batch, in_order)
 
 
-def _map_processes(function: Callable[[J], R], jobs: Sequence[J], workers: int,
-                   progress: Progress | None, batch: int) -> Iterator[R]:  # fmt: skip
-    chunk = max(1, min(batch, len(jobs) // (workers * 8)))
+def _map_processes(
+    function: Callable[[J], R],
+    jobs: Sequence[J],
+    workers: int,
+    progress: Progress | None,
+    batch: int,
+    in_order: bool,
+) -> Iterator[R]:
+    # batches small enough that progress moves (a first estimate from one batch of 16 slow
+    # reaches was hours off), large enough that a reach's process start-up is amortised
+    size = max(1, min(batch, len(jobs) // (workers * 16)))
     # spawn, not fork: a forked child would inherit torch's and MuJoCo's thread state
     import multiprocessing
 
     context = multiprocessing.get_context("spawn")
-    with ProcessPoolExecutor(workers, mp_context=context, initializer=_quiet_worker) as pool:
-        for result in pool.map(function, jobs, chunksize=chunk):
-            yield _tick(result, progress)
+    pool = ProcessPoolExecutor(workers, mp_context=context, initializer=_worker_start,
+                               initargs=(os.getpid(),))  # fmt: skip
+    try:
+        with _terminate_raises():
+            futures = {pool.submit(_run_batch, function, list(chunk)): k
+                       for k, chunk in enumerate(_batches(jobs, size))}  # fmt: skip
+            yield from _collect(futures, lambda f: f.result(), _wait_first, progress, in_order)
+    except BaseException:  # a kill, Ctrl-C, a failed job, or the caller stopped early
+        _end_workers(pool)
+        raise
+    pool.shutdown(wait=True)
 
 
-def _quiet_worker() -> None:
-    """One thread per worker process: the workers are the parallelism."""
+def _wait_first(pending: set[Any]) -> tuple[set[Any], set[Any]]:
+    done, left = wait(pending, return_when=FIRST_COMPLETED)
+    return set(done), set(left)
+
+
+def _collect(
+    futures: dict[Any, int],
+    result: Callable[[Any], list[R]],
+    wait_first: Callable[[set[Any]], tuple[set[Any], set[Any]]],
+    progress: Progress | None,
+    in_order: bool,
+) -> Iterator[R]:
+    """The batches' results in their order (or as they finish), each batch's progress told
+    when it finishes."""
+    finished: dict[int, list[R]] = {}
+    pending, next_batch = set(futures), 0
+    while pending:
+        done, pending = wait_first(pending)
+        for future in done:
+            finished[futures[future]] = results = result(future)
+            if progress is not None:
+                progress(len(results))
+            if not in_order:
+                yield from finished.pop(futures[future])
+        while next_batch in finished:
+            yield from finished.pop(next_batch)
+            next_batch += 1
+
+
+@contextmanager
+def _terminate_raises() -> Iterator[None]:
+    """A ``kill`` (SIGTERM) raises SystemExit in the main thread while workers run, so they
+    are ended first: its default action would end this process alone and leave them
+    running, adopted by init."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def stop(signum: int, _frame: object) -> None:
+        raise SystemExit(128 + signum)
+
+    previous = signal.signal(signal.SIGTERM, stop)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _end_workers(pool: ProcessPoolExecutor) -> None:
+    """Terminate every worker now, running jobs included (shutdown alone waits for them)."""
+    processes = list((getattr(pool, "_processes", None) or {}).values())  # the pool's own
+    for process in processes:
+        process.terminate()
+    for process in processes:
+        process.join(timeout=5)
+        if process.is_alive():
+            process.kill()
+    pool.shutdown(wait=False, cancel_futures=True)
+
+
+def _worker_start(parent: int) -> None:
+    """A worker: one thread (the workers are the parallelism), Ctrl-C left to the parent
+    (the terminal sends it to the whole group; the parent ends the workers), and ended with
+    its parent however that ends (kill -9 included)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    _end_with_parent(parent)
     os.environ["OMP_NUM_THREADS"] = "1"
     import torch
 
     torch.set_num_threads(1)
+
+
+def _end_with_parent(parent: int) -> None:
+    if sys.platform == "linux":
+        import ctypes
+
+        pr_set_pdeathsig = 1
+        ctypes.CDLL(None, use_errno=True).prctl(pr_set_pdeathsig, signal.SIGKILL)
+    else:  # no parent-death signal: watch for being adopted
+
+        def watch() -> None:
+            while os.getppid() == parent:
+                time.sleep(1.0)
+            os._exit(1)
+
+        threading.Thread(target=watch, daemon=True).start()
+    if os.getppid() != parent:  # the parent died before the signal was asked for
+        os._exit(1)
 
 
 def _tick(result: R, progress: Progress | None, n: int = 1) -> R:
@@ -263,7 +316,7 @@ def _tick(result: R, progress: Progress | None, n: int = 1) -> R:
 
 
 def _map_ray(function: Callable[[J], R], jobs: Sequence[J], address: str,
-             progress: Progress | None, batch: int) -> Iterator[R]:  # fmt: skip
+             progress: Progress | None, batch: int, in_order: bool) -> Iterator[R]:  # fmt: skip
     try:
         import ray
     except ImportError as exc:  # an optional dependency
@@ -277,13 +330,14 @@ def _map_ray(function: Callable[[J], R], jobs: Sequence[J], address: str,
                  runtime_env={"env_vars": {"OMP_NUM_THREADS": "1"}})  # fmt: skip
     try:
         remote: Any = ray.remote(num_cpus=1)(_run_batch)
-        pending = [remote.remote(function, list(chunk)) for chunk in _batches(jobs, batch)]
-        while pending:
-            done, pending = ray.wait(pending, num_returns=1)
-            results = ray.get(done[0])
-            if progress is not None:
-                progress(len(results))
-            yield from results
+        futures = {remote.remote(function, list(chunk)): k
+                   for k, chunk in enumerate(_batches(jobs, batch))}  # fmt: skip
+
+        def wait_first(pending: set[Any]) -> tuple[set[Any], set[Any]]:
+            done, left = ray.wait(list(pending), num_returns=1)
+            return set(done), set(left)
+
+        yield from _collect(futures, ray.get, wait_first, progress, in_order)
     finally:
         if started:
             ray.shutdown()

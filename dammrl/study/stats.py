@@ -1,26 +1,25 @@
-"""Interval estimates and tests for a study: bootstrap means (plain and hierarchical),
-Student-t means, Wilson rates, paired differences, bootstrap p-values with Holm's
-correction, equivalence tests (TOST), and time to success with censoring (Kaplan-Meier,
-restricted mean).
+"""Interval estimates for describing results: bootstrap means, Student-t means over
+independent units, Wilson rates, paired differences, rliable's stratified bootstrap and
+interquartile mean, intraclass correlation, and time to success with censoring
+(Kaplan-Meier, restricted mean). A study's checks are decided elsewhere, by exact tests
+over the units results vary at (``dammrl.study.inference``).
 
 Every interval is 95 % and every bootstrap draws from a generator seeded by the caller,
-so a study's report is reproducible to the digit.
+so a report is reproducible to the digit.
 """
 
 from __future__ import annotations
 
 import math
 import warnings
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Literal
 
 import numpy as np
 from scipy import stats as scipy_stats
 from scipy.stats import binomtest
 
 BOOTSTRAP_DRAWS = 2000
-TEST_DRAWS = 10_000  # a check's p-value: fine enough for Holm's smallest level (0.05 / 8)
 
 
 @dataclass(frozen=True)
@@ -201,93 +200,6 @@ def _icc_agreement(msr: float, msc: float, mse: float, n: int, k: int) -> Estima
     low = n * (msr - f_low * mse) / (f_low * spread + n * msr)
     high = n * (f_high * msr - mse) / (spread + n * f_high * msr)
     return Estimate(value, min(value, low), max(value, high), n)
-
-
-# ---- hierarchical bootstrap and tests ---------------------------------------------------
-
-
-def hierarchical_draws(
-    values: np.ndarray,
-    clusters: np.ndarray,
-    rng: np.random.Generator,
-    draws: int = TEST_DRAWS,
-) -> np.ndarray:
-    """Bootstrap means of ``values`` (n,) grouped by ``clusters`` (n,): each draw resamples
-    the clusters with replacement, then the members of each drawn cluster with replacement
-    (a two-level bootstrap: training seeds, then the reaches each one ran). One cluster is
-    the plain bootstrap. NaN values are left out; (draws,), empty without data."""
-    x = np.asarray(values, dtype=float)
-    labels = np.asarray(clusters)
-    keep = np.isfinite(x)
-    x, labels = x[keep], labels[keep]
-    if x.size == 0:
-        return np.empty(0)
-    groups = [x[labels == g] for g in np.unique(labels)]
-    picks = rng.integers(0, len(groups), size=(draws, len(groups)))
-    sums, counts = np.zeros(draws), np.zeros(draws)
-    for g, members in enumerate(groups):
-        slots = picks == g  # (draws, slots): where cluster g was drawn
-        n_slots = int(slots.sum())
-        if n_slots == 0:
-            continue
-        resampled = members[rng.integers(0, members.size, size=(n_slots, members.size))]
-        rows = np.nonzero(slots)[0]
-        np.add.at(sums, rows, resampled.sum(axis=1))
-        np.add.at(counts, rows, members.size)
-    return sums / counts
-
-
-def estimate_of(point: float, draws: np.ndarray) -> Estimate:
-    """``point`` with the percentile 95 % interval of its bootstrap ``draws``."""
-    if draws.size == 0 or not math.isfinite(point):
-        return NO_DATA
-    low, high = np.percentile(draws, [2.5, 97.5])
-    return Estimate(point, min(point, float(low)), max(point, float(high)), int(draws.size))
-
-
-Side = Literal["above", "below"]
-
-
-def bootstrap_p(draws: np.ndarray, side: Side, bound: float = 0.0) -> float:
-    """Two-sided-equivalent p-value that the statistic lies ``side`` of ``bound``: twice
-    the share of bootstrap draws on the other side, (k + 1) / (B + 1) so never 0, at most
-    1. p < 0.05 exactly when the 95 % percentile interval lies wholly on ``side``."""
-    if draws.size == 0:
-        return 1.0
-    wrong = np.count_nonzero(draws <= bound if side == "above" else draws >= bound)
-    return min(1.0, 2.0 * (wrong + 1) / (draws.size + 1))
-
-
-def holm(p_values: Sequence[float]) -> list[float]:
-    """Holm's (1979) step-down adjusted p-values: a family's checks compared with one
-    level keep its family-wise error rate at that level."""
-    order = np.argsort(p_values, kind="stable")
-    m = len(p_values)
-    adjusted = [0.0] * m
-    running = 0.0
-    for rank, index in enumerate(order):
-        running = max(running, min(1.0, (m - rank) * float(p_values[index])))
-        adjusted[index] = running
-    return adjusted
-
-
-def tost_mean(values: np.ndarray, low: float, high: float) -> tuple[float, Estimate]:
-    """Two one-sided t-tests (Schuirmann 1987) that the mean of ``values`` lies within
-    (``low``, ``high``): the larger one-sided p, doubled as ``bootstrap_p`` does (p < 0.05
-    exactly when the 95 % t interval lies inside the margins), and the mean with that
-    interval. For a handful of units (training seeds), where a bootstrap is too narrow."""
-    x = np.asarray(values, dtype=float)
-    x = x[np.isfinite(x)]
-    if x.size < 2:
-        return 1.0, NO_DATA if x.size == 0 else Estimate(float(x[0]), -math.inf, math.inf, 1)
-    above = scipy_stats.ttest_1samp(x, low, alternative="greater").pvalue
-    below = scipy_stats.ttest_1samp(x, high, alternative="less").pvalue
-    interval = scipy_stats.ttest_1samp(x, 0.0).confidence_interval(0.95)
-    mean = float(x.mean())
-    p = 1.0 if not np.isfinite([above, below]).all() else min(1.0, 2 * max(above, below))
-    low_ci = float(interval.low) if np.isfinite(interval.low) else mean
-    high_ci = float(interval.high) if np.isfinite(interval.high) else mean
-    return float(p), Estimate(mean, low_ci, high_ci, int(x.size))
 
 
 # ---- time to success ------------------------------------------------------------------

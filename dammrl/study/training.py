@@ -145,7 +145,8 @@ def run_training(
         progress(len(done))
     todo = [job for job in jobs if job.out not in done]
     results = list(done.values())
-    for result in map_jobs(train_and_evaluate, todo, workers, ray, progress, batch=1):
+    for result in map_jobs(train_and_evaluate, todo, workers, ray, progress, batch=1,
+                           in_order=False):  # fmt: skip
         write_run(result)
         results.append(result)
     order = {job.out: k for k, job in enumerate(jobs)}
@@ -324,6 +325,34 @@ def ship(group: Path, destination: Path) -> int:
     if (group / "curves.png").exists():
         shutil.copy(group / "curves.png", destination / "curves.png")
     return int(best)
+
+
+SHIPPED_FILES = ("training.csv", "settings.json", EVALUATION)
+
+
+def ship_seeds(group: Path, destination: Path) -> list[int]:
+    """Every run of a folder of seeds into ``destination/seed-k``, as a study reads them:
+    each checkpoint with its greedy networks alone (no target networks, optimiser or
+    counters: a quarter of the size, nothing to resume from), its training log, settings
+    and evaluation; runs already there are replaced, others removed. The seeds shipped."""
+    import shutil
+
+    import torch
+
+    evaluations = load_evaluations(group)  # every run finished and evaluated
+    seeds = [int(e["seed"]) for e in evaluations]
+    for old in destination.glob("seed-*"):
+        shutil.rmtree(old)
+    for seed in seeds:
+        source, target = group / f"seed-{seed}", destination / f"seed-{seed}"
+        target.mkdir(parents=True)
+        checkpoint = torch.load(source / "checkpoint.pt", map_location="cpu", weights_only=False)
+        agent = checkpoint["agent"]
+        checkpoint["agent"] = {"q_human": agent["q_human"], "q_robot": agent["q_robot"]}
+        torch.save(checkpoint, target / "checkpoint.pt")
+        for name in SHIPPED_FILES:
+            shutil.copy(source / name, target / name)
+    return seeds
 
 
 def _seed_record(evaluation: dict[str, Any]) -> dict[str, Any]:

@@ -58,14 +58,19 @@ class _PlannedStep:
 def latency_model(
     settings: ControllerSettings, rng: np.random.Generator, replay: Sequence[float] | None = None
 ) -> IKLatency:
-    """The IK latency the settings ask for (``replay``: a measured run's, again)."""
+    """The IK latency the settings ask for (``replay``: a run's, again). A drawn latency
+    ('model') follows the profile's distribution; a reference one charges the solver that
+    runs (its work is what the reference machine timed)."""
+    charged = settings.ik_solver if settings.ik_latency == "reference" else (
+        settings.ik_latency_profile)  # fmt: skip
     return IKLatency(
         settings.ik_latency,
-        settings.ik_latency_profile,
+        charged,
         rng,
         settings.ik_latency_median_s,
         settings.ik_latency_sigma,
         replay,
+        settings.ik_latency_scale,
     )
 
 
@@ -253,7 +258,7 @@ class Controller:
         if reason is not None:
             self.hold(reason, t)
             return
-        latency = self.latency(result.cpu_s)
+        latency = self.latency(result.cpu_s, result.evaluations)
         self.index += 1
         event = StepEvent(
             index=self.index,

@@ -9,7 +9,7 @@ from pydantic import Field, model_validator
 from pydantic_settings import SettingsConfigDict
 
 from dammrl_core.errors import ConfigurationError
-from dammrl_core.ik import IKSolverName, LatencyMode
+from dammrl_core.ik import MAX_LATENCY_SCALE, IKSolverName, LatencyMode
 from dammrl_core.settings import PerJointDamping, PerJointGain, Settings, ordered
 from dammrl_core.task import TaskSettings, scene_layout
 
@@ -56,8 +56,9 @@ class ControllerSettings(Settings):
     """'pinocchio' (damped least squares, fast) or 'ikpy' (bounded optimisation, the paper's)."""
     ik_latency: LatencyMode = "model"
     """How IK compute time enters simulated time: drawn from a fitted lognormal ('model'),
-    the processor time of each solve ('measured': the paper's mechanism, reproduced by
-    replaying the latencies a run spent), or 0 ('zero')."""
+    the processor time of each solve here ('measured': the paper's mechanism, reproduced by
+    replaying the latencies a run spent), the time each solve's work took on the reference
+    machine ('reference': the mechanism without this computer's speed), or 0 ('zero')."""
     ik_latency_profile: IKSolverName = "ikpy"
     """Whose fitted compute-time distribution 'model' draws from. Default: the paper's solver,
     so results carry the paper's timing whichever solver computes the joint solution."""
@@ -65,6 +66,9 @@ class ControllerSettings(Settings):
     """Override of the latency model's median [s]."""
     ik_latency_sigma: float | None = Field(None, ge=0, le=3)
     """Override of the latency model's log-standard deviation."""
+    ik_latency_scale: float = Field(1.0, gt=0, le=MAX_LATENCY_SCALE)
+    """Every IK latency times this (0-100, exclusive of 0): a computer this many times
+    slower than the one the latency stands for (how results depend on solve time)."""
     calibration_correction: bool = True
     """Aim each step's IK at the subgoal minus the measured end-effector's offset from the
     nominal forward kinematics: without it, a calibration error of a few millimetres puts
