@@ -265,3 +265,19 @@ def test_a_client_that_reaches_no_stack_says_so_within_seconds(tmp_path: Path) -
                             timeout=60)  # fmt: skip
     assert replay.returncode != 0 and f"nothing answers at {where}" in replay.stderr
     assert len(replay.stderr.strip().splitlines()) == 1, replay.stderr
+
+
+def test_the_display_is_spelled_the_same_in_up_and_session_run(tmp_path: Path) -> None:
+    """`up --display-port N` as `session run` spells it, `session run --display` as `up`
+    does (it was "ambiguous"); both at once with --no-display is refused in one line."""
+    from dammrl.cli import parser
+
+    assert parser().parse_args(["up", "--display-port", "9000"]).display == 9000
+    assert parser().parse_args(["up", "--display"]).display == 8080
+    run = ["session", "run", "--participant", "P001", "--protocol", "event-vs-fixed"]
+    assert parser().parse_args([*run, "--display"]).display is True
+    done = subprocess.run([sys.executable, "-m", "dammrl", *run, "--root", str(tmp_path),
+                           "--display", "--no-display"], capture_output=True, text=True,
+                          timeout=120)  # fmt: skip
+    assert done.returncode == 2
+    assert done.stderr.strip() == "dammrl: error: --display and --no-display: give one of them"

@@ -121,6 +121,11 @@ def _add_run(actions: Commands) -> None:
     run.add_argument("--display-host", default="0.0.0.0",
                      help="the address the display listens on (default all: the display "
                           "may be another machine; 127.0.0.1: this one only)")  # fmt: skip
+    run.add_argument(
+        "--display",
+        action="store_true",
+        help="serve the participant display (the default; as `up` spells it)",
+    )
     run.add_argument("--no-display", action="store_true", help="no participant display")
     run.add_argument("--large-text", action="store_true",
                      help="larger words on the participant display (they fill about 70%% "
@@ -183,6 +188,8 @@ def _run(args: argparse.Namespace) -> int:
 
     if not 1.0 <= args.comfort_timeout <= 3600.0:
         raise UsageError(f"--comfort-timeout {args.comfort_timeout:g}: allowed 1 to 3600 s")
+    if args.display and args.no_display:
+        raise UsageError("--display and --no-display: give one of them")
     setup = _setup(args, bus_port=args.bus_port, operator=args.operator,
                    outcome_s=args.outcome_s, rehearsal=args.rehearsal,
                    names=None if args.names is None else Names.read(args.names))  # fmt: skip

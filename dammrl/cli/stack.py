@@ -104,6 +104,8 @@ def _add_up(commands: Commands) -> None:
     up.add_argument("--display", type=display_port, nargs="?", const=8080, metavar="PORT",
                     help="serve the participant display at http://THIS-MACHINE:PORT "
                          "(default 8080)")  # fmt: skip
+    up.add_argument("--display-port", type=display_port, dest="display", metavar="PORT",
+                    help="the same as --display PORT (as `session run` spells it)")  # fmt: skip
     up.add_argument("--large-text", action="store_true",
                     help="with --display: larger words on the participant display (they "
                          "fill about 70%% of the screen instead of 58%%)")  # fmt: skip
