@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import threading
 import time
 from typing import Any
 
@@ -381,3 +382,43 @@ def test_the_posterior_learns_nothing_from_the_therapists_decisions() -> None:
                                    source=source, person=source == "pad",
                                    decision_s=0.6))  # fmt: skip
     assert node.posterior.decisions == 1  # the participant's only
+
+
+def test_the_controller_gives_a_policy_that_came_alive_late_its_whole_wait() -> None:
+    """Beside two CPU hogs the stack's start-up took longer than the policy's wait: the
+    controller started the first reach into that start-up (and it held at 0.7 s). The wait
+    counts from the policy's liveliness; a policy never alive still gets it from the start."""
+    from dammrl_core.control.settings import ControllerSettings
+    from dammrl_core.models import ModelSet
+    from dammrl_core.robot import RobotSettings
+    from dammrl_core.task import TaskSettings
+    from services.controller.node import ControllerNode
+
+    class StartingBus(FakeBus):
+        """The policy comes alive after 0.3 s and speaks 0.4 s after that."""
+
+        def __init__(self) -> None:
+            super().__init__()
+            self.start = time.monotonic()
+
+        def receive(self, timeout_s: float) -> Message | None:
+            time.sleep(0.01)
+            return _choice(-1, 2) if time.monotonic() - self.start > 0.7 else None
+
+        def alive_peers(self) -> set[str]:
+            late = time.monotonic() - self.start > 0.3
+            return {"intent", "policy"} if late else {"intent"}
+
+        def report_health(self, state: str, detail: str) -> None: ...
+
+    bus = StartingBus()
+    node = ControllerNode(ControllerSettings(policy_wait_s=0.5), TaskSettings(), RobotSettings(),
+                          ModelSet(), bus)  # type: ignore[arg-type]  # fmt: skip
+    node._wait_for_peers(threading.Event())
+    assert node.choice[0] == 2  # it waited past 0.5 s from its start, for the policy's choice
+    never = StartingBus()
+    never.alive_peers = lambda: {"intent"}  # type: ignore[method-assign]
+    node = ControllerNode(ControllerSettings(policy_wait_s=0.5), TaskSettings(), RobotSettings(),
+                          ModelSet(), never)  # type: ignore[arg-type]  # fmt: skip
+    node._wait_for_peers(threading.Event())
+    assert node.choice[0] != 2  # its 0.5 s from the start ran out before the choice came

@@ -165,9 +165,12 @@ class ControllerNode:
         """Start the first episode once the policy speaks (its first ModelChoice), so every
         decision is the policy's, and the human service is alive, so it hears the episode's
         announcement; after ``policy_wait_s`` go on (the configured model; requests are
-        sent again until a human answers)."""
-        deadline = time.monotonic() + self.settings.policy_wait_s
-        spoke = False
+        sent again until a human answers). A policy that came alive gets ``policy_wait_s``
+        from then: a busy machine's start-up (every service importing at once) is not
+        counted against it, and the first reach does not start into that start-up."""
+        wait_s = self.settings.policy_wait_s
+        deadline = time.monotonic() + wait_s
+        spoke = policy_seen = False
         while not stop.is_set() and time.monotonic() < deadline:
             message = self.bus.receive(0.1)
             if isinstance(message, ModelChoice):
@@ -175,7 +178,11 @@ class ControllerNode:
                 spoke = True
             elif isinstance(message, EmergencyStop):
                 self._take_stop(message)
-            human = "intent" in self.bus.alive_peers()
+            alive = self.bus.alive_peers()
+            if not policy_seen and "policy" in alive:
+                policy_seen = True
+                deadline = max(deadline, time.monotonic() + wait_s)
+            human = "intent" in alive
             if spoke and human:
                 return
             waiting = " and ".join(
