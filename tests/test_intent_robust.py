@@ -263,33 +263,8 @@ def test_a_problem_of_a_tenth_of_a_second_stays_in_health_long_enough_to_be_seen
 
 
 # ---- the participant is told --------------------------------------------------------------------
-def test_the_display_says_when_a_question_is_answered_closed_or_a_movement_counts_not() -> None:
-    """Nothing told the person that a request closed; a late contraction then answered the
-    next reach's first question."""
-    from dammrl.display import ParticipantDisplay
-    from dammrl_core.robot import RobotSettings
-    from dammrl_core.task import TaskSettings
-    from schemas import DecisionRequest, EpisodeResult, Intent, IntentEvidence
-    from tests.busutil import free_port
-
-    display = ParticipantDisplay(RobotSettings().load(), TaskSettings(), host="127.0.0.1",
-                                 port=free_port())  # fmt: skip
-    try:
-        shown = lambda: str(display.text.content)  # noqa: E731
-        display.feed(DecisionRequest.model_construct(episode=1, request=1))
-        assert "Decide now" in shown()
-        display.feed(IntentEvidence.model_construct(acted=False, reason="began 0.60 s before "
-                                                    "the request opened"))  # fmt: skip
-        assert "Too early" in shown() and "before the question" in shown()
-        display.feed(Intent.model_construct(episode=1, request=1, u_h=-1, person=True))
-        assert "Answered" in shown() and "You chose back" in shown()
-        display.feed(DecisionRequest.model_construct(episode=1, request=2))
-        display.feed(EpisodeResult.model_construct(success=False, t_total_s=60.0))
-        assert "The question is closed" in shown()
-        display.feed(IntentEvidence.model_construct(acted=False, reason="no request open"))
-        assert "No question now" in shown() and "counts for nothing" in shown()
-    finally:
-        display.close()
+# what the participant's page says of a question answered, closed or not counted:
+# tests/test_display_screens.py (the page's screens)
 
 
 def test_a_request_opens_when_its_controller_stamped_it_not_when_it_arrived() -> None:

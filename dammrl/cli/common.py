@@ -362,3 +362,28 @@ def check_video_path(path: Path) -> None:
 def counted(n: int, noun: str, plural: str | None = None) -> str:
     """``n`` with its noun in the number it takes: 1 participant, 2 participants."""
     return f"{n} {noun if n == 1 else plural or noun + 's'}"
+
+
+def display_port(text: str) -> int:
+    """A TCP port for the participant display (1-65535)."""
+    try:
+        port = int(text)
+    except ValueError:
+        port = -1
+    if not 1 <= port <= 65535:
+        raise argparse.ArgumentTypeError(f"{text!r}: a port is a whole number 1-65535")
+    return port
+
+
+def outcome_seconds(text: str) -> float:
+    """How long a reach's outcome stays on the display (0-30 s, the controller's range)."""
+    from dammrl.session_steps import MAX_OUTCOME_S
+
+    try:
+        seconds = float(text)
+    except ValueError:
+        seconds = -1.0
+    if not 0.0 <= seconds <= MAX_OUTCOME_S:  # (NaN fails too)
+        raise argparse.ArgumentTypeError(
+            f"{text!r}: the outcome is held 0 to {MAX_OUTCOME_S:g} s")  # fmt: skip
+    return seconds

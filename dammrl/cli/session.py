@@ -7,7 +7,7 @@ import argparse
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from dammrl.cli.common import Commands, print_err, print_out
+from dammrl.cli.common import Commands, display_port, outcome_seconds, print_err, print_out
 from dammrl.display.screens import OUTCOME_S
 from dammrl_core.errors import Exit, UsageError
 from dammrl_core.protocol import ProtocolError
@@ -30,31 +30,6 @@ def protocol_file(text: str) -> Path:
         return shipped
     names = ", ".join(sorted(p.stem for p in PROTOCOLS.glob("*.yaml")))
     raise argparse.ArgumentTypeError(f"no protocol file {text!r} (shipped: {names})")
-
-
-def display_port(text: str) -> int:
-    """A TCP port for the participant display (1-65535)."""
-    try:
-        port = int(text)
-    except ValueError:
-        port = -1
-    if not 1 <= port <= 65535:
-        raise argparse.ArgumentTypeError(f"{text!r}: a port is a whole number 1-65535")
-    return port
-
-
-def outcome_seconds(text: str) -> float:
-    """How long a reach's outcome stays on the display (0-30 s, the controller's range)."""
-    from dammrl.session_steps import MAX_OUTCOME_S
-
-    try:
-        seconds = float(text)
-    except ValueError:
-        seconds = -1.0
-    if not 0.0 <= seconds <= MAX_OUTCOME_S:  # (NaN fails too)
-        raise argparse.ArgumentTypeError(
-            f"{text!r}: the outcome is held 0 to {MAX_OUTCOME_S:g} s")  # fmt: skip
-    return seconds
 
 
 def register(commands: Commands) -> None:

@@ -12,12 +12,13 @@ from dammrl.cli.common import (
     add_bus_arguments,
     add_credentials,
     bus_settings,
+    display_port,
     model_arg,
+    outcome_seconds,
     output_dir,
     print_err,
     print_out,
 )
-from dammrl.cli.session import display_port, outcome_seconds
 from dammrl.display.screens import OUTCOME_S
 from dammrl_core.errors import Exit, UsageError
 from schemas import DEFAULT_NAMESPACE, TOPICS
