@@ -167,7 +167,7 @@ def test_an_episode_ended_by_a_fault_is_not_blamed_on_the_persons_input() -> Non
     no decision came from the wearable's stream"; only an episode that timed out without
     a decision could not be done for want of the person's input."""
     from dammrl.launch import undecided
-    from tests.test_session import _result
+    from tests.sessionutil import result as _result
 
     stalled = _result(1, 0, "hold").model_copy(update={"n_decisions": 0, "t_total_s": 0.3})
     waited = _result(2, 0, "timeout").model_copy(update={"n_decisions": 0})
