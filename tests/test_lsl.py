@@ -186,7 +186,7 @@ def test_calibrate_a_person_then_run_an_episode_through_lsl(tmp_path: Path) -> N
         patient.kill()
     assert up.returncode == 0, up.stderr[-3000:]
     result = json.loads(up.stdout.strip().splitlines()[-1])
-    assert result["success"], (result, up.stderr[-2000:])
+    assert result["success"], (result["outcome"], result["reason"], up.stderr[-2000:])
     info = _dammrl("recording", "info", str(tmp_path / "s.mcap")).stdout
     assert "SignalChunk" in info and "IntentEvidence" in info
     decode = _dammrl("recording", "decode", str(tmp_path / "s.mcap"),
