@@ -29,25 +29,14 @@ import sys
 import tempfile
 import time
 from collections import Counter
-from collections.abc import Iterator
-from contextlib import contextmanager
 from pathlib import Path
 
 from tests.busutil import Lines, free_port
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from cpu_hogs import hogs
+
 TIMEOUT_S = 240.0  # a start that has not ended by then is counted as hung
-
-
-@contextmanager
-def hogs(count: int) -> Iterator[None]:
-    """``count`` times ``yes > /dev/null``: another program keeping the PC busy."""
-    busy = [subprocess.Popen(["yes"], stdout=subprocess.DEVNULL) for _ in range(count)]
-    try:
-        yield
-    finally:
-        for hog in busy:
-            hog.kill()
-            hog.wait()
 
 
 def start(index: int) -> tuple[str, str]:

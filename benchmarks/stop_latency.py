@@ -44,6 +44,9 @@ from services.common.config import BusSettings
 from services.common.security import run_credentials
 from tests.busutil import Lines, free_port
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from cpu_hogs import hogs
+
 WAIT_S = 60.0  # a stop not confirmed within this is a failed trial
 
 
@@ -97,18 +100,6 @@ def stack(mode: str, port: int) -> Iterator[None]:
     finally:
         launcher.terminate()
         launcher.wait(30)
-
-
-@contextmanager
-def hogs(count: int) -> Iterator[None]:
-    """``count`` times ``yes > /dev/null``: another program keeping the PC busy."""
-    busy = [subprocess.Popen(["yes"], stdout=subprocess.DEVNULL) for _ in range(count)]
-    try:
-        yield
-    finally:
-        for hog in busy:
-            hog.kill()
-            hog.wait()
 
 
 def timed_program(command: list[str]) -> float:
