@@ -322,6 +322,24 @@ def test_replay_into_the_recorded_policy_reproduces_its_decisions(
     assert rows[0].startswith("episode,request") and len(rows) == summary["decisions"] + 1
 
 
+def test_replay_into_a_policy_writes_beside_the_recording_unless_told(
+    session_recording: tuple[Path, Seen], tmp_path: Path
+) -> None:
+    """`dammrl replay REC --into-policy P` wrote decisions.csv into the current folder,
+    unasked: its CSV goes beside the recording (REC.decisions.csv), or to -o."""
+    import shutil
+
+    from dammrl.cli import main
+
+    copy = tmp_path / "s.mcap"
+    shutil.copy(session_recording[0], copy)
+    assert main(["replay", str(copy), "--into-policy", "reward2"]) == 0
+    assert (tmp_path / "s.decisions.csv").read_text().startswith("episode,request")
+    assert main(["replay", str(copy), "--into-policy", "reward2", "-o",
+                 str(tmp_path / "mine.csv")]) == 0  # fmt: skip
+    assert (tmp_path / "mine.csv").exists()
+
+
 def test_recordings_rotate_by_duration(tmp_path: Path) -> None:
     port = free_port()
     observer = Observer(port)

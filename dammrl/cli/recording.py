@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 from pathlib import Path
 
 from dammrl.cli.common import (
@@ -19,7 +20,7 @@ from dammrl.cli.common import (
     print_err,
     progress_bar,
 )
-from dammrl_core.errors import Exit
+from dammrl_core.errors import Exit, UsageError
 
 
 def register(commands: Commands) -> None:
@@ -277,6 +278,8 @@ def _replay(args: argparse.Namespace) -> int:
     recording = read_recording(args.file)
     if args.into_policy is not None:
         out = args.out or args.file.with_suffix(".decisions.csv")
+        if not os.access(out.parent, os.W_OK):  # -o was checked as it was parsed
+            raise UsageError(f"{out.parent} cannot be written: give -o FILE.csv")
         summary = write_decisions(into_policy(recording, args.into_policy), out)
         print(json.dumps(summary | {"csv": str(out)}))
         return 0
