@@ -624,3 +624,18 @@ def test_saved_verdicts_that_are_not_a_studys_fail_in_one_line(tmp_path: Path) -
         load_verdicts(tmp_path)
     with pytest.raises(UsageError, match="is not a study's saved verdicts"):
         load_verdicts(tmp_path / "missing.json")
+
+
+def test_the_search_fingerprint_does_not_depend_on_where_the_checkout_is(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    """The shipped search was not found in a fresh clone: the fingerprint held the URDF's
+    absolute path. It holds the file's content: a copy elsewhere gives the same one."""
+    from dammrl.study.study import TUNING_SEEDS, search_fingerprint
+    from dammrl_core.robot import RobotSettings
+
+    here = search_fingerprint(TUNING_SEEDS)
+    copy = tmp_path / "arm.urdf"
+    copy.write_bytes(Path(RobotSettings().urdf_path).read_bytes())
+    monkeypatch.setenv("DAMMRL_ROBOT_URDF_PATH", str(copy))
+    assert search_fingerprint(TUNING_SEEDS) == here

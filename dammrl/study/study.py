@@ -279,8 +279,12 @@ def search_fingerprint(tuning_seeds: range) -> str:
     candidates and the tuning seeds."""
     from dammrl.runner import ReachSettings
 
+    settings = ReachSettings().model_dump(mode="json")
+    # the arm by its description's content, not by where this checkout keeps the file
+    urdf = Path(settings["robot"].pop("urdf_path"))
+    settings["robot"]["urdf_sha256"] = hashlib.sha256(urdf.read_bytes()).hexdigest()
     document = {
-        "settings": ReachSettings().model_dump(mode="json"),
+        "settings": settings,
         "candidates": [[c.key, c.trigger, c.controller, list(c.policy.model)]
                        for c in best_fixed_candidates()],
         "tuning_seeds": [tuning_seeds.start, tuning_seeds.stop],
