@@ -14,7 +14,7 @@ import argparse
 
 import numpy as np
 
-from dammrl.runner import ReachRunner, ReachSettings
+from dammrl.stack.runner import ReachRunner, ReachSettings
 from dammrl_core.sim.settings import DomainRandomization, SimSettings
 from dammrl_core.sim.simulation import Simulation
 from dammrl_core.state import JointCommand

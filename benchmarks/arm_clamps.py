@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dammrl.recording import read_recording
+from dammrl.stack.recording import read_recording
 from dammrl_core.robot import RobotDescription
 from schemas import EpisodeResult, Health, RobotState
 from tests.busutil import free_port

@@ -22,7 +22,7 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
-from dammrl.runner import ReachRunner, ReachSettings
+from dammrl.stack.runner import ReachRunner, ReachSettings
 from dammrl_core.control.settings import ControllerSettings
 from dammrl_core.ik import DampedLeastSquaresIK, IkpyIK
 

@@ -30,7 +30,7 @@ import numpy as np
 import viser
 import zenoh
 
-from dammrl.display import BusFeed, ParticipantDisplay, inputs_for
+from dammrl.people.display import BusFeed, ParticipantDisplay, inputs_for
 from dammrl_core.robot import RobotSettings
 from dammrl_core.task import TaskSettings
 from schemas import DecisionRequest, Header, Intent, TaskGoal, decode, encode, key

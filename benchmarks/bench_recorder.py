@@ -24,8 +24,8 @@ from pathlib import Path
 import zenoh
 from mcap.writer import CompressionType, Writer
 
-from dammrl.recording import read_recording
-from dammrl.replay import ReplayOptions, replay
+from dammrl.stack.recording import read_recording
+from dammrl.stack.replay import ReplayOptions, replay
 from schemas import Header, RobotState, encode
 from services.common.bus import zenoh_config
 from services.common.config import BusSettings

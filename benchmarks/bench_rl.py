@@ -18,10 +18,10 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
-from dammrl.rl.config import RewardWeights, TrainSettings
-from dammrl.rl.env import ACTIONS, ReachEnv
-from dammrl.rl.train import train
-from dammrl.runner import ReachRunner, ReachSettings
+from dammrl.learning.rl.config import RewardWeights, TrainSettings
+from dammrl.learning.rl.env import ACTIONS, ReachEnv
+from dammrl.learning.rl.train import train
+from dammrl.stack.runner import ReachRunner, ReachSettings
 
 
 def environment(decisions: int, randomize: bool, seed: int = 0) -> tuple[float, float, int]:

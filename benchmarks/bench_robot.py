@@ -30,8 +30,8 @@ from pathlib import Path
 
 import numpy as np
 
-from dammrl.emulators.arm import EmulatedArm, emulated_arm, inject
-from dammrl.emulators.servo_chain import GOAL_POSITION
+from dammrl.devices.emulators.arm import EmulatedArm, emulated_arm, inject
+from dammrl.devices.emulators.servo_chain import GOAL_POSITION
 from dammrl_core.arm.driver import DriveCommand
 from dammrl_core.arm.dynamixel.driver import DynamixelDriver
 from schemas import Header, Health, RobotState, TaskGoal, encode
@@ -248,7 +248,7 @@ def _rest(arm: EmulatedArm, since: float, speed: float = 0.02) -> float:
 
 def stops(arm: EmulatedArm, repeats: int) -> None:
     """`dammrl stop` as a new process, and the stop console (a session already open)."""
-    from dammrl.stop import StopConsole
+    from dammrl.stack.stop import StopConsole
     from tests.busutil import client_settings
 
     port = free_port()

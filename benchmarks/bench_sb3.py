@@ -20,10 +20,10 @@ import gymnasium as gym
 import numpy as np
 from stable_baselines3 import DQN
 
-from dammrl.rl.config import RewardWeights, TrainSettings
-from dammrl.rl.env import ACTIONS, OBSERVATION_SIZE, ReachEnv
-from dammrl.rl.train import evaluate, train
-from dammrl.runner import ReachRunner, ReachSettings
+from dammrl.learning.rl.config import RewardWeights, TrainSettings
+from dammrl.learning.rl.env import ACTIONS, OBSERVATION_SIZE, ReachEnv
+from dammrl.learning.rl.train import evaluate, train
+from dammrl.stack.runner import ReachRunner, ReachSettings
 from dammrl_core.task import HELD_OUT_START, held_out_seeds
 
 

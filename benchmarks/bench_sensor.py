@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from dammrl.emulators.pad import SensorEmulator
+from dammrl.devices.emulators.pad import SensorEmulator
 from dammrl_core.intent.pad.protocol import BAUD_RATE
 from dammrl_core.intent.pad.serial import SerialSensor
 from schemas import DecisionRequest, Health, Intent, SensorSample, decode, type_of

@@ -46,9 +46,9 @@ from typing import Any
 
 import numpy as np
 
-from dammrl.emulators.emg import HELD_S, QUICK_S, EmgStream
-from dammrl.emulators.emg_signal import NOISE_LEVELS, EmgSynth, model_named
-from dammrl.emulators.movements import cued_session
+from dammrl.devices.emulators.emg import HELD_S, QUICK_S, EmgStream
+from dammrl.devices.emulators.emg_signal import NOISE_LEVELS, EmgSynth, model_named
+from dammrl.devices.emulators.movements import cued_session
 from dammrl_core.human import HumanModel
 from dammrl_core.intent.emg.calibration import EmgCalibration, StreamDescription, save_calibration
 from dammrl_core.intent.emg.classifier import decide_windows, offline_metrics
@@ -312,7 +312,7 @@ AMPLIFIERS: dict[str, Callable[[np.ndarray], np.ndarray]] = {
 
 def amplifier_figures() -> None:
     """(f): per generator and conditioning, each amplifier's decisions and phantoms."""
-    from dammrl.wearable import Signal, decode_signal
+    from dammrl.devices.wearable import Signal, decode_signal
     from dammrl_core.intent.emg.conditioning import Conditioning
     from tests import muap_emg
     from tests.test_conditioning import MUAP_STREAM, _scripted_patient

@@ -25,10 +25,10 @@ from pathlib import Path
 
 from mcap.writer import CompressionType, Writer
 
-from dammrl.bids import export
-from dammrl.catalogue import build
-from dammrl.outcomes import every_participant_report
-from dammrl.recording import read_recording
+from dammrl.data.bids import export
+from dammrl.data.catalogue import build
+from dammrl.data.outcomes import every_participant_report
+from dammrl.stack.recording import read_recording
 
 
 def main() -> None:

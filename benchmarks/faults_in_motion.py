@@ -36,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dammrl.emulators.arm import EmulatedArm, emulated_arm, inject
+from dammrl.devices.emulators.arm import EmulatedArm, emulated_arm, inject
 from dammrl_core.dynamics import ArmModel
 from dammrl_core.robot import RobotSettings
 from schemas import Header, Health, TaskGoal, encode

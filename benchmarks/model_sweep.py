@@ -13,7 +13,7 @@ import time
 
 import numpy as np
 
-from dammrl.runner import ReachRunner
+from dammrl.stack.runner import ReachRunner
 from dammrl.study.stats import wilson
 from dammrl_core.metrics import ReachMetrics
 from dammrl_core.models import HUMAN_MODELS, ROBOT_MODELS, parse_model

@@ -20,7 +20,7 @@ import argparse
 
 import numpy as np
 
-from dammrl.runner import ReachResult, ReachRunner, ReachSettings
+from dammrl.stack.runner import ReachResult, ReachRunner, ReachSettings
 from dammrl.study.stats import bootstrap_mean, paired_difference
 from dammrl_core.metrics import MOTION_CUTOFF_HZ, n_oscillations
 from dammrl_core.sim.settings import DomainRandomization, SimSettings

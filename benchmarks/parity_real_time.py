@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import argparse
 
-from dammrl.runner import ReachRunner
+from dammrl.stack.runner import ReachRunner
 from tests.test_parity import _in_process, _path_difference, _run_stack
 
 

@@ -102,7 +102,7 @@ def publish_states(endpoint: str, rate_hz: float, stop: threading.Event) -> None
 
 def last_recorded_ns(path: Path) -> tuple[int | None, str]:
     """The log time of the last message readable in ``path`` (repaired first when cut)."""
-    from dammrl.recording import RecordingError, read_recording, repair
+    from dammrl.stack.recording import RecordingError, read_recording, repair
 
     try:
         recording = read_recording(path)

@@ -19,7 +19,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
-from dammrl.rl.train import Rollout, greedy_rollouts
+from dammrl.learning.rl.train import Rollout, greedy_rollouts
 from dammrl.study.stats import bootstrap_mean, wilson
 from dammrl_core.models import ModelSet
 from dammrl_core.task import held_out_seeds

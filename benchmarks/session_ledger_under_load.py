@@ -23,7 +23,7 @@ from pathlib import Path
 
 import yaml
 
-from dammrl.catalogue import build, query
+from dammrl.data.catalogue import build, query
 from tests.busutil import free_port
 
 SHIPPED = Path(__file__).resolve().parents[1] / "dammrl" / "protocols" / "event-vs-fixed.yaml"

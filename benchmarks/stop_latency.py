@@ -37,7 +37,7 @@ from pathlib import Path
 import numpy as np
 import zenoh
 
-from dammrl.stop import ARM_SERVICES, StopConsole
+from dammrl.stack.stop import ARM_SERVICES, StopConsole
 from schemas import DecodeError, Health, decode
 from services.common.bus import zenoh_config
 from services.common.config import BusSettings

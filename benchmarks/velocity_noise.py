@@ -17,7 +17,7 @@ import argparse
 
 import numpy as np
 
-from dammrl.runner import ReachResult, ReachRunner, ReachSettings
+from dammrl.stack.runner import ReachResult, ReachRunner, ReachSettings
 from dammrl.study.stats import paired_difference, wilson
 from dammrl_core.policy import FixedPolicy, Policy
 from dammrl_core.policy.learned import LearnedPolicy

@@ -18,7 +18,7 @@ import time
 
 from websockets.sync.client import connect
 
-from dammrl.viewer import FoxgloveServer
+from dammrl.views.viewer import FoxgloveServer
 from dammrl_core.robot import RobotDescription
 from tests.busutil import free_port
 

@@ -10,7 +10,7 @@ from dammrl.cli.common import headless_gl
 
 headless_gl()  # before MuJoCo is imported: the video tests render offscreen
 
-from dammrl.runner import ReachRunner
+from dammrl.stack.runner import ReachRunner
 from dammrl_core.dynamics import ArmModel
 from dammrl_core.robot import RobotDescription
 from dammrl_core.robot.scene import SceneLayout

@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from dammrl.cli.session import open_display
-from dammrl.session import SessionRunner, SetUp
+from dammrl.people.session import SessionRunner, SetUp
 from tests.browser import Browser
 from tests.busutil import free_port, start_patient, wait_for
 from tests.sessionutil import Typist

@@ -1,7 +1,7 @@
 """Surface EMG of another kind than the project's emulator, to check what does not depend
 on that emulator: motor units firing, not shaped noise.
 
-Written apart from ``dammrl.emulators.emg_signal`` (which filters Gaussian noise under an
+Written apart from ``dammrl.devices.emulators.emg_signal`` (which filters Gaussian noise under an
 envelope), after the textbook model of surface EMG (De Luca; Farina & Merletti 2001):
 
 * two muscles (flexors: +1, extensors: -1), each of ``units`` motor units recruited in

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 from pydantic import ValidationError
 
-from dammrl.emulators.pad import DEFAULT_CALIBRATION, Press, SensorEmulator
+from dammrl.devices.emulators.pad import DEFAULT_CALIBRATION, Press, SensorEmulator
 from dammrl_core.errors import DammrlError
 from dammrl_core.intent.pad.decoder import Calibration, PressDecoder
 from dammrl_core.settings import error_line

@@ -10,8 +10,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any, ClassVar
 
-from dammrl.launch import StackOptions
-from dammrl.stop import StopReport
+from dammrl.stack.launch import StackOptions
+from dammrl.stack.stop import StopReport
 from dammrl_core.errors import JobFailedError
 from schemas import (
     EmergencyStop,

@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 import torch
 
-from dammrl.adapt import (
+from dammrl.cli import main
+from dammrl.learning.adapt import (
     GATE_SEEDS_PER_SEED,
     GATE_SEEDS_START,
     SIM_SEEDS_PER_SEED,
@@ -27,12 +28,11 @@ from dammrl.adapt import (
     recorded_reaches,
     refine,
 )
-from dammrl.cli import main
-from dammrl.launch import Stack, StackOptions
-from dammrl.rl.config import RewardWeights
-from dammrl.rl.env import ReachEnv
-from dammrl.runner import ReachRunner
-from dammrl.session import Participant
+from dammrl.learning.rl.config import RewardWeights
+from dammrl.learning.rl.env import ReachEnv
+from dammrl.people.session import Participant
+from dammrl.stack.launch import Stack, StackOptions
+from dammrl.stack.runner import ReachRunner
 from dammrl_core.coadaptation import Targets
 from dammrl_core.errors import ConfigurationError
 from dammrl_core.human import HumanModel, direction_to_goal
@@ -85,7 +85,7 @@ def test_an_arms_state_heard_before_its_episodes_goal_still_belongs_to_it(
 ) -> None:
     """The recorder hears the goal and the arm's reset state on separate subscribers: on a
     loaded machine the reset state can be logged first (CI did). Its transitions stay."""
-    from dammrl.recording import read_recording
+    from dammrl.stack.recording import read_recording
     from schemas.codec import decode
     from schemas.keys import type_of
     from schemas.messages import RobotState, TaskGoal

@@ -16,7 +16,7 @@ from collections.abc import Iterator
 import pytest
 from pydantic import BaseModel
 
-import dammrl.rl.config
+import dammrl.learning.rl.config
 import services.common.config
 import services.controller.config
 import services.intent.config
@@ -41,7 +41,7 @@ from dammrl_core.sim.settings import SimSettings
 CLASSES: list[type[Settings]] = [
     services.common.config.BusSettings, ControllerSettings, services.intent.config.IntentSettings,
     PolicySettings, services.recorder.config.RecorderSettings, SimSettings,
-    dammrl.rl.config.TrainSettings, human.HumanModel, models.ModelSet, task.TaskSettings,
+    dammrl.learning.rl.config.TrainSettings, human.HumanModel, models.ModelSet, task.TaskSettings,
     robot.RobotSettings, ArmSettings, PadSettings, SimulatedSettings, DynamixelSettings,
     LslSettings,
 ]  # fmt: skip

@@ -8,9 +8,9 @@ from pathlib import Path
 
 import pytest
 
-from dammrl.bids import export
-from dammrl.catalogue import CatalogueError, build
 from dammrl.cli import main
+from dammrl.data.bids import export
+from dammrl.data.catalogue import CatalogueError, build
 from schemas import DecisionRequest, Intent
 from tests.test_catalogue import MS, _study, write_run
 from tests.test_schemas import EXAMPLES

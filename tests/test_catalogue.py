@@ -17,10 +17,10 @@ from typing import Any
 
 import pytest
 
-from dammrl.bids import export
-from dammrl.catalogue import CatalogueError, build, query, trials_of
-from dammrl.outcomes import participant_report
-from dammrl.recording import read_recording
+from dammrl.data.bids import export
+from dammrl.data.catalogue import CatalogueError, build, query, trials_of
+from dammrl.data.outcomes import participant_report
+from dammrl.stack.recording import read_recording
 from schemas import (
     ComfortRating,
     EmergencyStop,
@@ -384,8 +384,8 @@ def test_a_recording_newer_than_the_catalogue_is_in_the_next_answer(
 ) -> None:
     """A session run after the last build: `dammrl sessions trials` rebuilds first and
     says so on stderr (its stdout stays the answer)."""
-    from dammrl.catalogue import stale
     from dammrl.cli import main
+    from dammrl.data.catalogue import stale
 
     assert stale(root)
     build(root)

@@ -10,10 +10,10 @@ from typing import Any
 
 import pytest
 
-from dammrl.catalogue import build, query
 from dammrl.cli import main
-from dammrl.outcomes import session_report
-from dammrl.recording import read_recording
+from dammrl.data.catalogue import build, query
+from dammrl.data.outcomes import session_report
+from dammrl.stack.recording import read_recording
 from schemas import EpisodeResult, Header, RobotState, encode, key
 from services.recorder.core import McapRecorder
 from services.recorder.episodes import METADATA, EpisodeLedger
@@ -223,7 +223,7 @@ def test_a_continuation_must_carry_its_runs_tag(tmp_path: Path, tag: dict[str, A
 def test_the_catalogue_reads_each_recording_once(
     three: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    import dammrl.catalogue.recordings as recordings
+    import dammrl.data.catalogue.recordings as recordings
 
     write_run(three / SESSION / "recordings" / "part-01-001.mcap", _study("b", [1, 2, 3]),
               [(3, 7.0)], 60_000 * MS)  # fmt: skip

@@ -12,9 +12,9 @@ from pathlib import Path
 
 import pytest
 
-import dammrl.catalogue.store as store
-from dammrl.catalogue import CatalogueError, build, catalogue_path, query, stale
+import dammrl.data.catalogue.store as store
 from dammrl.cli import main
+from dammrl.data.catalogue import CatalogueError, build, catalogue_path, query, stale
 from tests.test_catalogue import MS, _study, dump_catalogue, write_run
 
 RECORDING = Path("P007") / "ses-01" / "recordings" / "part-01.mcap"

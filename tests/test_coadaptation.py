@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dammrl.runner import ReachRunner, evidence_of
+from dammrl.stack.runner import ReachRunner, evidence_of
 from dammrl_core.coadaptation import (
     ARM_SCALE_PRIOR_SD,
     BASE,
@@ -392,7 +392,7 @@ def test_a_reach_in_process_gives_the_evidence_of_its_decisions_and_steps() -> N
 
 
 def test_evaluate_in_the_adaptive_mode_is_the_policy_itself_until_a_switch() -> None:
-    from dammrl.rl.train import evaluate
+    from dammrl.learning.rl.train import evaluate
 
     seeds = range(7_000_000, 7_000_003)
     plain = evaluate(PolicySettings().checkpoint, seeds)
@@ -460,7 +460,7 @@ def test_the_comparison_runs_every_arm_counts_its_progress_and_reports_every_goa
     """A tiny plan of the registered comparison: every arm on the test seeds, the progress
     in reaches adding up to the plan's (the refinement counts its reaches, not one), the
     report naming no oracle on 2 seeds, and the figures and JSON written."""
-    from dammrl.adapt import RefineSettings
+    from dammrl.learning.adapt import RefineSettings
     from dammrl.study.coadaptation import PERSONS_DIR, Kind, Plan, compare
     from dammrl.study.coadaptation_report import write_report
 

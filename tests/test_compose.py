@@ -16,7 +16,7 @@ from typing import Any
 import pytest
 import yaml
 
-from dammrl.emulators.pad import DEFAULT_CALIBRATION
+from dammrl.devices.emulators.pad import DEFAULT_CALIBRATION
 from schemas import EpisodeResult, Intent
 from services.common.bus import Bus
 from services.common.certificates import create_credentials
@@ -255,7 +255,7 @@ def test_the_real_profile_runs_an_episode_on_the_passed_through_servo_bus(
     tmp_path: Path,
 ) -> None:
     """The emulated arm stands in for the device at the robot's DAMMRL_DYNAMIXEL_PORT."""
-    from dammrl.emulators.arm import emulated_arm
+    from dammrl.devices.emulators.arm import emulated_arm
     from dammrl_core.arm.dynamixel.calibration import Calibration, save_calibration
 
     save_calibration(Calibration(), tmp_path / "arm_calibration.json")

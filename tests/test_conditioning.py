@@ -13,8 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dammrl.emulators.emg_signal import EmgSynth, model_named
-from dammrl.wearable import Signal, decode_signal
+from dammrl.devices.emulators.emg_signal import EmgSynth, model_named
+from dammrl.devices.wearable import Signal, decode_signal
 from dammrl_core.errors import ConfigurationError
 from dammrl_core.intent.emg.calibration import (
     EmgCalibration,

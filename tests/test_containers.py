@@ -32,7 +32,7 @@ from typing import Any
 import pytest
 import yaml
 
-from dammrl.recording import info, read_recording
+from dammrl.stack.recording import info, read_recording
 from dammrl_core.intent.pad.calibration import DEFAULT_CALIBRATION
 from schemas import Intent
 from services.common.certificates import create_credentials

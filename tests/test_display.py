@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dammrl.display import ParticipantDisplay, Place, inputs_for
+from dammrl.people.display import ParticipantDisplay, Place, inputs_for
 from dammrl_core.dynamics import ArmModel
 from dammrl_core.robot import RobotSettings
 from dammrl_core.task import TaskSettings

@@ -3,7 +3,7 @@
 
 from __future__ import annotations
 
-from dammrl.display.screens import INPUTS, Place, Screens
+from dammrl.people.display.screens import INPUTS, Place, Screens
 from schemas import (
     DecisionRequest,
     EmergencyStop,

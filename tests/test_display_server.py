@@ -12,7 +12,7 @@ from collections.abc import Iterator
 import pytest
 from websockets.sync.client import connect
 
-from dammrl.display import ParticipantDisplay, inputs_for
+from dammrl.people.display import ParticipantDisplay, inputs_for
 from dammrl_core.errors import ConfigurationError
 from dammrl_core.robot import RobotSettings
 from dammrl_core.task import TaskSettings

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import serial
 
-from dammrl.emulators.pad import DEFAULT_CALIBRATION, Press, SensorEmulator
+from dammrl.devices.emulators.pad import DEFAULT_CALIBRATION, Press, SensorEmulator
 from dammrl_core.intent.pad.decoder import PressDecoder
 from dammrl_core.intent.pad.protocol import BAUD_RATE, SAMPLE_RATE_HZ, FrameParser
 from dammrl_core.intent.pad.serial import Arrival, SerialSensor

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from dammrl.runner import ReachRunner, ReachSettings
+from dammrl.stack.runner import ReachRunner, ReachSettings
 from dammrl_core.control.settings import ControllerSettings
 from dammrl_core.task import ReachTask
 

@@ -176,7 +176,7 @@ def _chunk(seq: int, missing: int, corrected: float) -> bytes:
 def test_the_recording_counts_a_raw_streams_missing_samples_and_clock_jumps(
     tmp_path: Path,
 ) -> None:
-    from dammrl.recording import info
+    from dammrl.stack.recording import info
 
     recorder = McapRecorder(tmp_path / "r.mcap", "dammrl", {}, 1 << 20)
     topic = key("dammrl", SignalChunk)

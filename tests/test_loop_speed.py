@@ -13,10 +13,10 @@ import numpy as np
 import pytest
 from scipy.signal import sosfiltfilt
 
-from dammrl.rl.config import RewardWeights, TrainSettings
-from dammrl.rl.env import ACTIONS, ReachEnv
-from dammrl.rl.train import train
-from dammrl.runner import ReachResult, ReachRunner, ReachSettings
+from dammrl.learning.rl.config import RewardWeights, TrainSettings
+from dammrl.learning.rl.env import ACTIONS, ReachEnv
+from dammrl.learning.rl.train import train
+from dammrl.stack.runner import ReachResult, ReachRunner, ReachSettings
 from dammrl_core.control.settings import ControllerSettings
 from dammrl_core.control.trajectory import QuinticSegment
 from dammrl_core.metrics import _low_pass, motion_estimate
@@ -83,7 +83,9 @@ def test_training_rewards_are_those_of_the_ticked_loop(
 ) -> None:
     settings = TrainSettings(episodes=3, max_decisions=25, learning_starts=20, batch_size=8)
     fast = train(2, tmp_path / "fast", settings, "cpu", progress=lambda _: None)
-    monkeypatch.setattr("dammrl.rl.train.ReachSettings", lambda: ReachSettings(fast_forward=False))
+    monkeypatch.setattr(
+        "dammrl.learning.rl.train.ReachSettings", lambda: ReachSettings(fast_forward=False)
+    )
     ticked = train(2, tmp_path / "ticked", settings, "cpu", progress=lambda _: None)
     np.testing.assert_array_equal(
         [list(dataclasses.astuple(log)) for log in fast],

@@ -14,8 +14,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dammrl.emulators.emg import EmgStream
-from dammrl.emulators.emg_signal import EmgSynth, model_named
+from dammrl.devices.emulators.emg import EmgStream
+from dammrl.devices.emulators.emg_signal import EmgSynth, model_named
 from dammrl_core.intent.emg.calibration import save_calibration
 from dammrl_core.intent.lsl import LslSettings, LslSource
 from dammrl_core.intent.source import Ask, Decided

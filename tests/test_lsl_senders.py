@@ -16,8 +16,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dammrl.emulators.emg import EmgStream
-from dammrl.emulators.emg_signal import EmgSynth, model_named
+from dammrl.devices.emulators.emg import EmgStream
+from dammrl.devices.emulators.emg_signal import EmgSynth, model_named
 from schemas import DecisionRequest, Health, Intent, decode, key
 from services.common.bus import Bus
 from services.common.config import BusSettings

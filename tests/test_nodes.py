@@ -166,7 +166,7 @@ def test_a_stray_request_of_an_older_episode_does_not_reseed_the_human() -> None
 
 
 def test_the_launcher_counts_only_the_controllers_new_results() -> None:
-    from dammrl.launch import Stack, StackOptions
+    from dammrl.stack.launch import Stack, StackOptions
     from schemas import EpisodeResult, encode
     from tests.busutil import free_port
 

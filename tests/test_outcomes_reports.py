@@ -12,11 +12,11 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from dammrl.catalogue import build, trials_of
 from dammrl.cli import main
-from dammrl.outcomes import MEASURES, MIN_N, estimate, shown
-from dammrl.outcomes.figures import _point
-from dammrl.outcomes.reports import session_report
+from dammrl.data.catalogue import build, trials_of
+from dammrl.data.outcomes import MEASURES, MIN_N, estimate, shown
+from dammrl.data.outcomes.figures import _point
+from dammrl.data.outcomes.reports import session_report
 from tests.test_catalogue import MS, _study, write_run
 
 TIME = next(m for m in MEASURES if m.column == "t_total_s")

@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import pytest
 
-from dammrl.runner import ReachResult, ReachRunner, ReachSettings, evidence_of
+from dammrl.stack.runner import ReachResult, ReachRunner, ReachSettings, evidence_of
 from dammrl_core.coadaptation import Targets
 from dammrl_core.policy import Policy
 from dammrl_core.policy.adaptive import AdaptivePolicy

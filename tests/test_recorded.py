@@ -16,7 +16,7 @@ from typing import Any
 
 import pytest
 
-from dammrl.recording import read_recording
+from dammrl.stack.recording import read_recording
 from schemas import EpisodeRecorded, EpisodeResult, Header, RobotState, TaskGoal, encode, key
 from services.recorder.episodes import METADATA, EpisodeLedger
 from tests.busutil import Observer, free_port, wait_for

@@ -10,7 +10,7 @@ import msgpack
 import pytest
 from mcap.reader import make_reader
 
-from dammrl.recording import RecordingError, info, read_recording, repair
+from dammrl.stack.recording import RecordingError, info, read_recording, repair
 from schemas import Header, encode
 from services.recorder.config import RecorderSettings
 from services.recorder.core import McapRecorder

@@ -34,8 +34,8 @@ from mcap.records import Channel, Chunk, Header, Message
 from mcap.writer import CompressionType, Writer
 
 from dammrl.cli import main
-from dammrl.recording import info, read_recording
-from dammrl.replay import ReplayOptions, selected
+from dammrl.stack.recording import info, read_recording
+from dammrl.stack.replay import ReplayOptions, selected
 from schemas import Header as BusHeader
 from schemas import Health, encode, key
 from schemas import Message as BusMessage

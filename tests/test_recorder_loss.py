@@ -21,8 +21,8 @@ import pytest
 import zenoh
 from mcap.reader import make_reader
 
-from dammrl.launch import recording_files
-from dammrl.recording import info, repair
+from dammrl.stack.launch import recording_files
+from dammrl.stack.recording import info, repair
 from services.recorder.core import complete_mcap
 from services.recorder.gaps import publishers_of
 from tests.busutil import endpoint, free_port, listener_settings, wait_for

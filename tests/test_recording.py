@@ -18,8 +18,15 @@ import pytest
 import zenoh
 from mcap.reader import make_reader
 
-from dammrl.recording import export_csv, export_json, human_statistics, info, read_recording, repair
-from dammrl.replay import ReplayOptions, replay, selected
+from dammrl.stack.recording import (
+    export_csv,
+    export_json,
+    human_statistics,
+    info,
+    read_recording,
+    repair,
+)
+from dammrl.stack.replay import ReplayOptions, replay, selected
 from dammrl_core.errors import DammrlError
 from schemas import RobotState, StepEvent
 from services.common.config import BusSettings
@@ -308,7 +315,7 @@ def test_an_arm_heard_only_by_its_states_still_refuses_a_replay_of_commands(
 def test_replay_into_the_recorded_policy_reproduces_its_decisions(
     session_recording: tuple[Path, Seen], tmp_path: Path
 ) -> None:
-    from dammrl.replay import into_policy, write_decisions
+    from dammrl.stack.replay import into_policy, write_decisions
     from dammrl_core.policy.settings import SHIPPED_POLICY
 
     recording = read_recording(session_recording[0])
@@ -369,7 +376,7 @@ def test_a_recorded_episode_renders_to_a_video(
     session_recording: tuple[Path, Seen], tmp_path: Path
 ) -> None:
     """``dammrl recording video``: the recorded states, subgoals and goal, offscreen."""
-    from dammrl.video import VideoSettings, frame_times, frames, track_of_recording
+    from dammrl.views.video import VideoSettings, frame_times, frames, track_of_recording
 
     path, _ = session_recording
     track = track_of_recording(path)

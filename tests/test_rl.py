@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 import torch
 
-from dammrl.rl.config import RewardWeights, TrainSettings
-from dammrl.rl.dqn import DualAgentDQN, ReplayBuffer
-from dammrl.rl.env import ACTIONS, OBSERVATION_SIZE, ReachEnv, RewardTerms, accuracy_term
-from dammrl.rl.train import CheckpointError, evaluate, load_checkpoint, train
-from dammrl.runner import ReachRunner
+from dammrl.learning.rl.config import RewardWeights, TrainSettings
+from dammrl.learning.rl.dqn import DualAgentDQN, ReplayBuffer
+from dammrl.learning.rl.env import ACTIONS, OBSERVATION_SIZE, ReachEnv, RewardTerms, accuracy_term
+from dammrl.learning.rl.train import CheckpointError, evaluate, load_checkpoint, train
+from dammrl.stack.runner import ReachRunner
 from dammrl_core.task import held_out_seeds
 
 SMALL = TrainSettings(episodes=4, learning_starts=8, batch_size=8, buffer_size=500,
@@ -170,7 +170,7 @@ def test_policy_service_falls_back_to_the_safe_fixed_model(tmp_path: Path) -> No
 
 
 def test_shipped_reward_1_policy_takes_smaller_steps_near_the_goal_than_reward_2() -> None:
-    from dammrl.rl.train import greedy_rollouts
+    from dammrl.learning.rl.train import greedy_rollouts
     from dammrl_core.models import ModelSet
     from dammrl_core.policy.settings import SHIPPED_POLICY
 

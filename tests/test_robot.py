@@ -77,7 +77,7 @@ def test_urdf_with_wrong_joint_count_is_refused(tmp_path: Path) -> None:
 
 def test_another_urdf_with_other_names_runs_a_reach(tmp_path: Path) -> None:
     """Nothing depends on the reference arm's names: rename every joint and the tool."""
-    from dammrl.runner import ReachRunner, ReachSettings
+    from dammrl.stack.runner import ReachRunner, ReachSettings
     from dammrl_core.robot import DEFAULT_URDF, RobotSettings
 
     text = DEFAULT_URDF.read_text()

@@ -14,8 +14,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dammrl.emulators.arm import EmulatedArm, emulated_arm, inject
-from dammrl.emulators.servo_chain import (
+from dammrl.devices.emulators.arm import EmulatedArm, emulated_arm, inject
+from dammrl.devices.emulators.servo_chain import (
     BUTTON_MODEL,
     GOAL_POSITION,
     KD_UNIT_AS_PER_RAD,

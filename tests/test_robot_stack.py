@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dammrl.emulators.arm import EmulatedArm, emulated_arm
+from dammrl.devices.emulators.arm import EmulatedArm, emulated_arm
 from schemas import Header, Health, TaskGoal, encode
 from tests.busutil import Observer, endpoint, free_port, start_service, wait_for
 

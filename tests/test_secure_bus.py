@@ -153,7 +153,7 @@ def test_only_the_controller_role_can_reset_the_arm(
 def test_spoofed_messages_from_another_role_leave_the_episode_exactly_as_in_process(
     credentials: Path,
 ) -> None:
-    from dammrl.runner import ReachRunner
+    from dammrl.stack.runner import ReachRunner
     from schemas import EpisodeResult, ModelChoice
     from tests.busutil import Stack
 
@@ -306,7 +306,7 @@ def test_the_participant_display_joins_a_run_with_its_own_certificate() -> None:
     (``Stack.join``) reaches the recorder's key of the comfort rating, and the operator's
     keys not (a participant's page cannot release a stop or take over), while the
     launcher's own session, the operator's, sends a stop."""
-    from dammrl.launch import Stack, StackOptions
+    from dammrl.stack.launch import Stack, StackOptions
     from schemas import ComfortRating, EmergencyStop, SessionControl
     from tests.test_schemas import EXAMPLES
 

@@ -10,8 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dammrl.emulators.pad import Press, SensorEmulator
-from dammrl.recording import session_traces
+from dammrl.devices.emulators.pad import Press, SensorEmulator
+from dammrl.stack.recording import session_traces
 from schemas import DecisionRequest, EpisodeResult, Health, Intent, ModelChoice, SensorSample
 from tests.busutil import Lines, Observer, free_port, start_patient, start_service, wait_for
 

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
-from dammrl.emulators.pad import DEFAULT_CALIBRATION, Press, SensorEmulator
+from dammrl.devices.emulators.pad import DEFAULT_CALIBRATION, Press, SensorEmulator
 from dammrl_core.errors import ConfigurationError, Exit
 from dammrl_core.intent.pad.calibration import (
     CalibrationError,

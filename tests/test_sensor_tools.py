@@ -9,8 +9,8 @@ from pathlib import Path
 
 import pytest
 
-from dammrl.emulators.pad import DEFAULT_CALIBRATION, Press, SensorEmulator
-from dammrl.sensor import calibrate
+from dammrl.devices.emulators.pad import DEFAULT_CALIBRATION, Press, SensorEmulator
+from dammrl.devices.sensor import calibrate
 from dammrl_core.errors import ConfigurationError, Exit
 from dammrl_core.intent.pad.calibration import (
     CalibrationError,

@@ -19,9 +19,9 @@ from dynamixel_sdk import (
     PortHandler,
 )
 
-from dammrl.emulators.protocol2 import PacketReader, instruction_packet, status_packet
-from dammrl.emulators.servo_bus import ServoBusEmulator
-from dammrl.emulators.servo_chain import (
+from dammrl.devices.emulators.protocol2 import PacketReader, instruction_packet, status_packet
+from dammrl.devices.emulators.servo_bus import ServoBusEmulator
+from dammrl.devices.emulators.servo_chain import (
     BUS_WATCHDOG,
     GOAL_POSITION,
     HARDWARE_ERROR_STATUS,

@@ -12,7 +12,7 @@ from typing import Any
 
 import pytest
 
-from dammrl.session import JsonLines, SessionRunner, SetUp, check_participant, session_table
+from dammrl.people.session import JsonLines, SessionRunner, SetUp, check_participant, session_table
 from dammrl_core.errors import ConfigurationError, DammrlError, UsageError
 from dammrl_core.protocol import balanced_latin_square, block_order, load_protocol, plan_trials
 from schemas import SessionControl, decode
@@ -95,7 +95,7 @@ def test_a_torn_last_log_line_is_skipped_and_counted(tmp_path: Path) -> None:
 
 @pytest.fixture
 def scripted(monkeypatch: pytest.MonkeyPatch) -> type[ScriptedStack]:
-    monkeypatch.setattr("dammrl.session.Stack", ScriptedStack)
+    monkeypatch.setattr("dammrl.people.session.Stack", ScriptedStack)
     return reset(ScriptedStack)
 
 
@@ -252,7 +252,7 @@ def test_the_console_takes_the_decisions_over_and_gives_them_back(
 def test_a_closed_console_waits_its_timeout_instead_of_spinning() -> None:
     """With stdin at its end (a session run from a script, CI), the console thread polls
     a closed console: it must wait as an open, silent one does (it once spun a core)."""
-    from dammrl.console import Lines
+    from dammrl.people.console import Lines
 
     lines = Lines(io.StringIO(""))
     time.sleep(0.1)  # the reader thread meets the end

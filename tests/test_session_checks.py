@@ -15,9 +15,9 @@ from pathlib import Path
 import pytest
 
 from dammrl.cli import main
-from dammrl.enrolment import Ledger
-from dammrl.participants import JsonLines, Participant, check_participant
-from dammrl.session import SessionRunner, SetUp
+from dammrl.people.enrolment import Ledger
+from dammrl.people.participants import JsonLines, Participant, check_participant
+from dammrl.people.session import SessionRunner, SetUp
 from dammrl_core.errors import UsageError
 from dammrl_core.protocol import ProtocolError, load_protocol
 from tests.sessionutil import PROTOCOL, ScriptedStack, reset, write_protocol
@@ -130,7 +130,7 @@ def test_the_ledger_after_a_withdrawal_shifts_nobody(tmp_path: Path) -> None:
 def test_a_rehearsal_takes_no_row_and_runs_the_order_the_next_participant_will(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    monkeypatch.setattr("dammrl.session.Stack", ScriptedStack)
+    monkeypatch.setattr("dammrl.people.session.Stack", ScriptedStack)
     scripted = reset(ScriptedStack)
     root, protocol = tmp_path / "sessions", write_protocol(tmp_path)
     Participant(root, "P001").enrol()

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from dammrl.session import SessionRunner, SetUp
+from dammrl.people.session import SessionRunner, SetUp
 from dammrl_core.control.settings import ControllerSettings
 from dammrl_core.models import ModelSet
 from dammrl_core.robot import RobotSettings
@@ -55,7 +55,7 @@ blocks:
 
 @pytest.fixture
 def scripted(monkeypatch: pytest.MonkeyPatch) -> type[ScriptedStack]:
-    monkeypatch.setattr("dammrl.session.Stack", ScriptedStack)
+    monkeypatch.setattr("dammrl.people.session.Stack", ScriptedStack)
     return reset(ScriptedStack)
 
 
@@ -231,7 +231,7 @@ def test_a_kill_during_the_rest_resumes_what_was_left_of_it(
 def test_reasons_are_stored_without_the_names_of_the_registry(
     tmp_path: Path, scripted: type[ScriptedStack]
 ) -> None:
-    from dammrl.console import Names
+    from dammrl.people.console import Names
 
     scripted.console = {2: ["p Anna coughs", "r"]}
     typist = Typist([], every=ENTER)
@@ -366,7 +366,7 @@ def test_a_hold_for_a_fault_of_the_stack_is_not_blamed_on_the_persons_input(
     """A loaded PC once ended a session's one-reach block (a stale arm state 0.5 s in, no
     decision yet) with "no decision ever came from the pad": the session stopped, blaming
     the person's input for the stack's fault."""
-    from dammrl.launch import undecided
+    from dammrl.stack.launch import undecided
 
     ended = result(1, 7100100, outcome, reason).model_copy(update={"n_decisions": 0})
     assert undecided(ended) is could_not_be_done

@@ -22,7 +22,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from dammrl.catalogue import query
+from dammrl.data.catalogue import query
 from tests.busutil import free_port
 from tests.test_catalogue import VALIDATOR, dump_catalogue
 

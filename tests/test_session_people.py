@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from dammrl.recording import read_recording
+from dammrl.stack.recording import read_recording
 from schemas import Intent
 from tests.busutil import free_port, start_patient
 

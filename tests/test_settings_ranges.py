@@ -250,7 +250,7 @@ def test_a_contradictory_pair_is_refused_naming_the_range_the_other_leaves(
 def test_the_workspace_floor_must_keep_the_fingertip_above_the_table(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    from dammrl.runner import ReachSettings
+    from dammrl.stack.runner import ReachSettings
     from dammrl_core.control.settings import ControllerSettings, check_workspace
     from dammrl_core.task import TaskSettings
 

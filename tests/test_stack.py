@@ -177,7 +177,7 @@ def test_fuzzing_every_key_leaves_every_service_alive_and_the_arm_in_its_limits(
 def test_status_lists_every_service_and_echo_decodes_a_topic(
     stack: Stack, observer: Observer, port: int
 ) -> None:
-    from dammrl.inspect import echo, status
+    from dammrl.stack.inspect import echo, status
     from tests.busutil import client_settings
 
     wait_for(lambda: _steps(observer) >= 1, 60, "the reach to start")
@@ -271,7 +271,7 @@ def test_a_stop_finds_the_runs_credentials_and_a_killed_launchers_services_and_k
 
 LAUNCHER_OF_ONE = """
 import sys
-from dammrl import launch
+from dammrl.stack import launch
 launch.MODES["virtual"] = ("intent",)  # the launcher as it is, with one quick service
 sys.exit(launch.Stack(launch.StackOptions(port=int(sys.argv[1]))).run())
 """

@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dammrl.runner import ReachRunner
-from dammrl.video import (
+from dammrl.stack.runner import ReachRunner
+from dammrl.views.video import (
     OUTCOME_SHOWN_S,
     VideoSettings,
     frame_times,

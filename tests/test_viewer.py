@@ -21,7 +21,7 @@ from tests.busutil import free_port
 foxglove = pytest.importorskip("foxglove")
 websockets_client = pytest.importorskip("websockets.sync.client")
 
-from dammrl.viewer import URDF_URL, FoxgloveServer, SceneTranslator, stamp  # noqa: E402
+from dammrl.views.viewer import URDF_URL, FoxgloveServer, SceneTranslator, stamp  # noqa: E402
 
 GOAL = (0.45, 0.02, -0.216)
 RATE_HZ = 100.0
@@ -137,7 +137,7 @@ def test_a_foxglove_client_sees_the_arm_the_goal_and_the_plots(
 def test_the_shipped_layout_is_the_generated_one() -> None:
     from pathlib import Path
 
-    from dammrl.viewer import layout
+    from dammrl.views.viewer import layout
 
     shipped = Path(__file__).resolve().parent.parent / "docs/foxglove_layout.json"
     assert json.loads(shipped.read_text()) == json.loads(layout())

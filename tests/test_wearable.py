@@ -10,9 +10,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dammrl.emulators import movements
-from dammrl.emulators.emg_signal import EmgSynth, model_named
-from dammrl.wearable import Signal, decode_signal, signal_of_xdf
+from dammrl.devices.emulators import movements
+from dammrl.devices.emulators.emg_signal import EmgSynth, model_named
+from dammrl.devices.wearable import Signal, decode_signal, signal_of_xdf
 from dammrl_core.errors import ConfigurationError
 from dammrl_core.human import HumanModel
 from dammrl_core.intent.emg.calibration import (
@@ -340,7 +340,7 @@ def test_an_xdf_file_from_other_lab_software_decodes_as_the_live_stream(
 def test_a_wrist_imu_decides_by_posture(tmp_path: Path) -> None:
     """The IMU feature set: a wrist flexed (+1) or extended (-1) and held, on the emulated
     6-axis IMU at 100 Hz; the sign of the posture decides, its length the radius."""
-    from dammrl.emulators.imu_signal import IMU_NOISE_LEVELS, ImuSynth
+    from dammrl.devices.emulators.imu_signal import IMU_NOISE_LEVELS, ImuSynth
 
     model = IMU_NOISE_LEVELS["medium"]
     samples, times, cues = movements.cued_session(ImuSynth(model, seed=1), 100.0, seed=1)

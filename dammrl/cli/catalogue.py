@@ -14,7 +14,7 @@ from dammrl.cli.common import Commands, aligned, counted, output_dir, print_err,
 from dammrl_core.errors import Exit, UsageError
 
 if TYPE_CHECKING:
-    from dammrl.catalogue import Built
+    from dammrl.data.catalogue import Built
 
 T = TypeVar("T")
 
@@ -106,7 +106,7 @@ def add_root(parser: argparse.ArgumentParser) -> None:
 def _fresh(root: Path) -> None:
     """Rebuild the catalogue first when it is missing, stale or damaged (a session just
     run is in every answer without a step to remember); one line says why."""
-    from dammrl.catalogue import ensure
+    from dammrl.data.catalogue import ensure
 
     if root.is_dir():
         built = ensure(root, print_err)
@@ -116,7 +116,7 @@ def _fresh(root: Path) -> None:
 
 def _answer(root: Path, ask: Callable[[], T]) -> T:
     """``ask`` on a fresh catalogue; rebuilt once if it turns out damaged meanwhile."""
-    from dammrl.catalogue import UnreadableCatalogueError, build
+    from dammrl.data.catalogue import UnreadableCatalogueError, build
 
     _fresh(root)
     try:
@@ -128,7 +128,7 @@ def _answer(root: Path, ask: Callable[[], T]) -> T:
 
 
 def _build(args: argparse.Namespace) -> int:
-    from dammrl.catalogue import build
+    from dammrl.data.catalogue import build
 
     _tell(args.root, build(args.root, print_err), print_out)
     return Exit.OK
@@ -137,7 +137,7 @@ def _build(args: argparse.Namespace) -> int:
 def _tell(root: Path, built: Built, say: Callable[[str], None]) -> None:
     """Say on stderr every recording passed over or used although damaged, and every
     trial of the logs missing or recorded in part; what the catalogue holds to ``say``."""
-    from dammrl.catalogue import query
+    from dammrl.data.catalogue import query
 
     for line in built.passed_over:
         print_err(f"passed over {line}")
@@ -166,7 +166,7 @@ def _tell(root: Path, built: Built, say: Callable[[str], None]) -> None:
 
 
 def _trials(args: argparse.Namespace) -> int:
-    from dammrl.catalogue import trials_of
+    from dammrl.data.catalogue import trials_of
 
     names, rows = _answer(args.root, lambda: trials_of(
         args.root, args.participant, args.since, args.condition, args.practice))  # fmt: skip
@@ -174,15 +174,15 @@ def _trials(args: argparse.Namespace) -> int:
 
 
 def _query(args: argparse.Namespace) -> int:
-    from dammrl.catalogue import query
+    from dammrl.data.catalogue import query
 
     names, rows = _answer(args.root, lambda: query(args.root, args.sql))
     return _show(names, rows, args.json)
 
 
 def _report(args: argparse.Namespace) -> int:
-    from dammrl.outcomes import every_participant_report, participant_report, session_report
-    from dammrl.session import check_participant
+    from dammrl.data.outcomes import every_participant_report, participant_report, session_report
+    from dammrl.people.session import check_participant
 
     if args.all:
         if args.session:
@@ -200,7 +200,7 @@ def _report(args: argparse.Namespace) -> int:
 
 
 def _bids(args: argparse.Namespace) -> int:
-    from dammrl.bids import export
+    from dammrl.data.bids import export
 
     done = _answer(args.root, lambda: export(args.root, args.out, args.author, args.license))
     for line in done.kept.lines():

@@ -13,7 +13,7 @@ from dammrl.cli.common import Commands, output_dir, output_file, progress_bar
 
 SIM_SEEDS_PER_SEED = 7_500
 GATE_SEEDS_PER_SEED = 5_000
-"""dammrl.adapt's (not imported here: the command line loads torch only when it runs; a
+"""dammrl.learning.adapt's (not imported here: the command line loads torch only when it runs; a
 test holds them equal)."""
 
 
@@ -189,7 +189,7 @@ def _table(args: argparse.Namespace) -> int:
 
 
 def _compare(args: argparse.Namespace) -> int:
-    from dammrl.adapt import RefineSettings
+    from dammrl.learning.adapt import RefineSettings
     from dammrl.study.coadaptation import (
         ORACLE_SEEDS,
         TEST_SEEDS,
@@ -233,7 +233,7 @@ def _compare(args: argparse.Namespace) -> int:
 def _gate_rates(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from dammrl.adapt import deployment_rate
+    from dammrl.learning.adapt import deployment_rate
     from dammrl.study.stats import wilson
 
     rng = np.random.default_rng(0)
@@ -324,8 +324,8 @@ def register_adapt(commands: Commands) -> None:
 
 
 def _adapt(args: argparse.Namespace) -> int:
-    from dammrl.adapt import RefineSettings, describe, refine
-    from dammrl.session import Participant
+    from dammrl.learning.adapt import RefineSettings, describe, refine
+    from dammrl.people.session import Participant
     from dammrl_core.errors import ConfigurationError
 
     recordings, out, in_use = args.recordings, args.out, args.start

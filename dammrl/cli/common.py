@@ -377,7 +377,7 @@ def display_port(text: str) -> int:
 
 def outcome_seconds(text: str) -> float:
     """How long a reach's outcome stays on the display (0-30 s, the controller's range)."""
-    from dammrl.session_steps import MAX_OUTCOME_S
+    from dammrl.people.session_steps import MAX_OUTCOME_S
 
     try:
         seconds = float(text)

@@ -20,9 +20,9 @@ from dammrl.cli.common import (
 from dammrl_core.errors import ConfigurationError, Exit
 
 if TYPE_CHECKING:
-    from dammrl.emulators.emg import EmgStream
-    from dammrl.emulators.emg_signal import EmgSynth
-    from dammrl.emulators.imu_signal import ImuSynth
+    from dammrl.devices.emulators.emg import EmgStream
+    from dammrl.devices.emulators.emg_signal import EmgSynth
+    from dammrl.devices.emulators.imu_signal import ImuSynth
 
 EMULATED_STREAM = "dammrl-emg"
 
@@ -126,7 +126,13 @@ def _sources(args: argparse.Namespace) -> int:
 
 
 def _calibrate(args: argparse.Namespace) -> int:
-    from dammrl.wearable import Protocol, calibrate, feature_set_of, find_stream, write_report
+    from dammrl.devices.wearable import (
+        Protocol,
+        calibrate,
+        feature_set_of,
+        find_stream,
+        write_report,
+    )
     from dammrl_core.intent.emg.calibration import save_calibration
 
     if args.blocks < 2:
@@ -155,7 +161,7 @@ def _calibrate(args: argparse.Namespace) -> int:
 
 def _rebaseline(args: argparse.Namespace) -> int:
     from dammrl.cli.common import bus_settings
-    from dammrl.wearable import REBASELINE_WAIT_S, rebaseline
+    from dammrl.devices.wearable import REBASELINE_WAIT_S, rebaseline
 
     if not 1 <= len(args.who) <= 32:
         raise ConfigurationError(f"--who {args.who!r}: 1-32 characters")
@@ -170,7 +176,7 @@ def _rebaseline(args: argparse.Namespace) -> int:
 
 def _emulate(args: argparse.Namespace) -> int:
     from dammrl.cli.sensor import stop_after
-    from dammrl.emulators.emg import EmgStream
+    from dammrl.devices.emulators.emg import EmgStream
     from services.common.runtime import stop_on_signals
 
     if not 1 <= args.channels <= 64:
@@ -201,8 +207,8 @@ def _emulate(args: argparse.Namespace) -> int:
 def _synth(args: argparse.Namespace) -> EmgSynth | ImuSynth:
     from dataclasses import replace
 
-    from dammrl.emulators.emg_signal import EmgSynth, model_named
-    from dammrl.emulators.imu_signal import IMU_NOISE_LEVELS, ImuSynth
+    from dammrl.devices.emulators.emg_signal import EmgSynth, model_named
+    from dammrl.devices.emulators.imu_signal import IMU_NOISE_LEVELS, ImuSynth
 
     if args.kind == "imu":
         model = IMU_NOISE_LEVELS[args.noise]
@@ -213,7 +219,7 @@ def _synth(args: argparse.Namespace) -> EmgSynth | ImuSynth:
 
 def _patient(args: argparse.Namespace, stream: EmgStream, stop: threading.Event) -> None:
     from dammrl.cli.sensor import answer_while_joined
-    from dammrl.emulators.patient import SimulatedPatient
+    from dammrl.devices.emulators.patient import SimulatedPatient
     from services.common.runs import run_reading
 
     patient = SimulatedPatient(stream, args.patient_model, seed=args.seed)

@@ -20,7 +20,7 @@ from dammrl.cli.common import (
 )
 
 if TYPE_CHECKING:
-    from dammrl.runner import ReachResult, ReachSettings
+    from dammrl.stack.runner import ReachResult, ReachSettings
 
 
 def register(commands: Commands) -> None:
@@ -63,7 +63,7 @@ def _reach(args: argparse.Namespace) -> int:
     if args.video is not None:
         check_video_path(args.video)  # before the reach runs
         headless_gl()  # before MuJoCo is imported
-    from dammrl.runner import ReachRunner
+    from dammrl.stack.runner import ReachRunner
 
     runner = ReachRunner(_settings(args))
     triggers = ["fixed", "event"] if args.trigger == "both" else [args.trigger]
@@ -75,7 +75,7 @@ def _reach(args: argparse.Namespace) -> int:
     else:
         print(table([r.summary() for r in results]))
     if args.plot:
-        from dammrl.plots import plot_reaches
+        from dammrl.views.plots import plot_reaches
         from dammrl_core.task import scene_layout
 
         path = plot_reaches(results, runner.settings.task.goal_tolerance_m, args.plot,
@@ -92,7 +92,7 @@ def _video_path(path: Path, trigger: str, several: bool) -> Path:
 
 
 def write_video_of(result: ReachResult, path: Path) -> None:
-    from dammrl.video import VideoSettings, frame_times, track_of_reach, write_video
+    from dammrl.views.video import VideoSettings, frame_times, track_of_reach, write_video
 
     track = track_of_reach(result)
     update, close = progress_bar(len(frame_times(track, VideoSettings())), "video", "frame")
@@ -105,7 +105,7 @@ def write_video_of(result: ReachResult, path: Path) -> None:
 
 def _settings(args: argparse.Namespace) -> ReachSettings:
     """The runner's settings from ``--ik``, ``--feedforward`` and ``--randomize``."""
-    from dammrl.runner import ReachSettings
+    from dammrl.stack.runner import ReachSettings
     from dammrl_core.control.settings import ControllerSettings
     from dammrl_core.sim.settings import DomainRandomization, SimSettings
 

@@ -119,7 +119,7 @@ def _add_replay(commands: Commands) -> None:
 
 def _info(args: argparse.Namespace) -> int:
     """Topics, counts, rates, duration, gaps and metadata, as text or JSON."""
-    from dammrl.recording import info
+    from dammrl.stack.recording import info
 
     summary = info(args.file)
     if args.json:
@@ -152,7 +152,7 @@ def _info(args: argparse.Namespace) -> int:
 
 def _repair(args: argparse.Namespace) -> int:
     """Rewrite a cut recording as a complete MCAP."""
-    from dammrl.recording import repair
+    from dammrl.stack.recording import repair
 
     out = args.out or args.file.with_suffix(".repaired.mcap")
     done = repair(args.file, out)
@@ -169,7 +169,7 @@ def _counts(counts: dict[str, int]) -> str:
 
 def _export(args: argparse.Namespace) -> int:
     """One JSON-encoded MCAP, or one CSV per topic."""
-    from dammrl.recording import export_csv, export_json, read_recording
+    from dammrl.stack.recording import export_csv, export_json, read_recording
 
     total = len(read_recording(args.file).messages)
     update, close = progress_bar(total, f"export {args.format}", "message")
@@ -190,8 +190,8 @@ def _export(args: argparse.Namespace) -> int:
 
 def _plot(args: argparse.Namespace) -> int:
     """The pressure trace above the end-effector error; prints the figure's path."""
-    from dammrl.plots import plot_session
-    from dammrl.recording import session_traces
+    from dammrl.stack.recording import session_traces
+    from dammrl.views.plots import plot_session
     from dammrl_core.task import TaskSettings
 
     traces = session_traces(args.file, args.episode)
@@ -204,7 +204,7 @@ def _video(args: argparse.Namespace) -> int:
     """Render one episode of a recording offscreen; prints the video's path."""
     check_video_path(args.out)
     headless_gl()  # before MuJoCo is imported
-    from dammrl.video import VideoSettings, frame_times, track_of_recording, write_video
+    from dammrl.views.video import VideoSettings, frame_times, track_of_recording, write_video
 
     if not args.file.is_file():
         raise FileNotFoundError(f"no such recording: {args.file}")
@@ -223,7 +223,7 @@ def _video(args: argparse.Namespace) -> int:
 
 def _human(args: argparse.Namespace) -> int:
     """The human's decision rate and, per radius, error rate and decision time."""
-    from dammrl.recording import human_statistics
+    from dammrl.stack.recording import human_statistics
 
     stats = human_statistics(args.file)
     if args.json:
@@ -238,7 +238,7 @@ def _human(args: argparse.Namespace) -> int:
 
 def _decode(args: argparse.Namespace) -> int:
     """Decisions of a recorded stream under a calibration; agreement with the live ones."""
-    from dammrl.wearable import (
+    from dammrl.devices.wearable import (
         decode_signal,
         live_onsets,
         signal_of_recording,
@@ -271,8 +271,8 @@ def _decode(args: argparse.Namespace) -> int:
 
 def _replay(args: argparse.Namespace) -> int:
     """Publish a recording onto the bus, or (``--into-policy``) compare a policy offline."""
-    from dammrl.recording import read_recording
-    from dammrl.replay import ReplayOptions, into_policy, replay, selected, write_decisions
+    from dammrl.stack.recording import read_recording
+    from dammrl.stack.replay import ReplayOptions, into_policy, replay, selected, write_decisions
     from services.common.runtime import stopping_on_signals
 
     recording = read_recording(args.file)

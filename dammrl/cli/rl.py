@@ -91,8 +91,8 @@ def _betas(text: str) -> list[float]:
 
 def _train(args: argparse.Namespace) -> int:
     """Train (or resume) a run; progress on stderr, the last 50 episodes' success at the end."""
-    from dammrl.rl.config import RewardWeights, TrainSettings
-    from dammrl.rl.train import EpisodeLog, progress_summary, train
+    from dammrl.learning.rl.config import RewardWeights, TrainSettings
+    from dammrl.learning.rl.train import EpisodeLog, progress_summary, train
     from dammrl_core.errors import UsageError
 
     if args.seeds is not None:
@@ -183,7 +183,7 @@ def _command() -> str:
 
 def _evaluate(args: argparse.Namespace) -> int:
     """Greedy episodes of a trained run; their metrics as a table or one JSON object."""
-    from dammrl.rl.train import evaluate
+    from dammrl.learning.rl.train import evaluate
 
     update, close = progress_bar(len(args.seeds), "greedy reaches")
     try:

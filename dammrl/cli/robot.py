@@ -22,7 +22,7 @@ from dammrl.cli.common import (
 from dammrl_core.errors import DammrlError, Exit, UsageError
 
 if TYPE_CHECKING:
-    from dammrl.emulators.arm import EmulatedArm
+    from dammrl.devices.emulators.arm import EmulatedArm
     from dammrl_core.arm.driver import DriverPlugin
     from dammrl_core.settings import Settings
 
@@ -91,7 +91,7 @@ def _add_calibrate(actions: Commands) -> None:
 
 
 def _add_emulate(actions: Commands) -> None:
-    from dammrl.emulators.servo_chain import FAULT_HELP
+    from dammrl.devices.emulators.servo_chain import FAULT_HELP
 
     emulate = actions.add_parser(
         "emulate",
@@ -200,7 +200,7 @@ def _ask(prompt: str) -> None:
 
 def _emulate(args: argparse.Namespace) -> int:
     """Serve the emulated arm; fault commands from stdin."""
-    from dammrl.emulators.arm import emulated_arm
+    from dammrl.devices.emulators.arm import emulated_arm
     from dammrl_core.arm.dynamixel.calibration import Calibration, load_calibration
     from services.common.runtime import prioritise, stop_on_signals
 
@@ -222,7 +222,7 @@ def _emulate(args: argparse.Namespace) -> int:
 
 def _faults(arm: EmulatedArm, stop: threading.Event) -> None:
     """Fault commands, one per line on stdin, until it closes."""
-    from dammrl.emulators.arm import inject
+    from dammrl.devices.emulators.arm import inject
 
     for line in sys.stdin:
         try:

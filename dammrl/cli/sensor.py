@@ -23,8 +23,8 @@ from dammrl_core.errors import DammrlError
 if TYPE_CHECKING:
     from collections.abc import Callable
 
-    from dammrl.emulators.pad import SensorEmulator
-    from dammrl.emulators.patient import SimulatedPatient
+    from dammrl.devices.emulators.pad import SensorEmulator
+    from dammrl.devices.emulators.patient import SimulatedPatient
     from dammrl_core.intent.pad.decoder import Calibration
     from services.common.bus import Bus
     from services.common.runs import RunCard
@@ -119,7 +119,7 @@ def _list(args: argparse.Namespace) -> int:
 
 def _calibrate(args: argparse.Namespace) -> int:
     """Three guided recordings, then save the calibration; 130 if the person cancels."""
-    from dammrl.sensor import calibrate, quiet_reader
+    from dammrl.devices.sensor import calibrate, quiet_reader
     from dammrl_core.intent.pad.serial import SerialSensor
     from dammrl_core.intent.pad.source import PadSettings
 
@@ -164,7 +164,7 @@ def _show(line: str) -> None:
 
 def _monitor(args: argparse.Namespace) -> int:
     """Live pressure, decoded command and radius choice, with the intent service's thresholds."""
-    from dammrl.sensor import Monitor, quiet_reader, wait_for_frames
+    from dammrl.devices.sensor import Monitor, quiet_reader, wait_for_frames
     from dammrl_core.intent.pad.calibration import load_calibration
     from dammrl_core.intent.pad.decoder import PressDecoder
     from dammrl_core.intent.pad.serial import SerialSensor
@@ -185,8 +185,8 @@ def _monitor(args: argparse.Namespace) -> int:
 
 def _emulate(args: argparse.Namespace) -> int:
     """Serve frames on a pseudo-terminal: taps, keys pressed, or a simulated patient."""
-    from dammrl.emulators.pad import Press, SensorEmulator
-    from dammrl.sensor import KEYS, keyboard
+    from dammrl.devices.emulators.pad import Press, SensorEmulator
+    from dammrl.devices.sensor import KEYS, keyboard
     from services.common.runtime import stop_on_signals
 
     if args.pattern == "keyboard" and not sys.stdin.isatty():
@@ -223,7 +223,7 @@ def _patient(args: argparse.Namespace, pad: SensorEmulator, stop: threading.Even
     Without --connect or --bus-port it joins the local `dammrl up` that reads this pad
     (``--port`` the same device), whatever its port, once it runs; it rejoins a stack that
     went away and came back."""
-    from dammrl.emulators.patient import SimulatedPatient
+    from dammrl.devices.emulators.patient import SimulatedPatient
     from services.common.runs import run_reading
 
     patient = SimulatedPatient(pad, args.patient_model, seed=args.seed)

@@ -8,13 +8,13 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from dammrl.cli.common import Commands, display_port, outcome_seconds, print_err, print_out
-from dammrl.display.screens import OUTCOME_S
+from dammrl.people.display.screens import OUTCOME_S
 from dammrl_core.errors import Exit, UsageError
 from dammrl_core.protocol import ProtocolError
 
 if TYPE_CHECKING:
-    from dammrl.display import ParticipantDisplay
-    from dammrl.session import SetUp
+    from dammrl.people.display import ParticipantDisplay
+    from dammrl.people.session import SetUp
 
 PROTOCOLS = Path(__file__).resolve().parent.parent / "protocols"
 """The protocols shipped with dammrl, addressable by name."""
@@ -146,7 +146,7 @@ def _add_withdraw(actions: Commands) -> None:
 
 
 def _setup(args: argparse.Namespace, **more: Any) -> SetUp:
-    from dammrl.session import SetUp
+    from dammrl.people.session import SetUp
 
     if args.mode == "semi-virtual" and (args.port is None) == (args.stream is None):
         raise UsageError("semi-virtual: give the person's device, --port (pad) or --stream")
@@ -158,8 +158,8 @@ def _setup(args: argparse.Namespace, **more: Any) -> SetUp:
 
 
 def _run(args: argparse.Namespace) -> int:
-    from dammrl.console import Names
-    from dammrl.session import SessionRunner
+    from dammrl.people.console import Names
+    from dammrl.people.session import SessionRunner
 
     if not 1.0 <= args.comfort_timeout <= 3600.0:
         raise UsageError(f"--comfort-timeout {args.comfort_timeout:g}: allowed 1 to 3600 s")
@@ -188,7 +188,7 @@ def _run(args: argparse.Namespace) -> int:
 
 
 def _check(args: argparse.Namespace) -> int:
-    from dammrl.session import session_problems
+    from dammrl.people.session import session_problems
     from dammrl_core.protocol import load_protocol, plan_trials
 
     try:
@@ -214,8 +214,8 @@ def _problems(protocol: Path, problems: list[str]) -> int:
 
 
 def _withdraw(args: argparse.Namespace) -> int:
-    from dammrl.enrolment import Ledger
-    from dammrl.participants import check_participant
+    from dammrl.people.enrolment import Ledger
+    from dammrl.people.participants import check_participant
 
     participant = check_participant(args.participant)
     row = Ledger(args.root).withdraw(participant, args.why)
@@ -227,7 +227,7 @@ def _withdraw(args: argparse.Namespace) -> int:
 def open_display(host: str, port: int, intent: str | None, large_text: bool = False
                  ) -> ParticipantDisplay:  # fmt: skip
     """The participant display, its address said."""
-    from dammrl.display import ParticipantDisplay, inputs_for
+    from dammrl.people.display import ParticipantDisplay, inputs_for
     from dammrl_core.robot import RobotSettings
     from dammrl_core.task import TaskSettings
 
@@ -239,7 +239,7 @@ def open_display(host: str, port: int, intent: str | None, large_text: bool = Fa
 
 def _list(args: argparse.Namespace) -> int:
     from dammrl.cli.common import table_of_rows
-    from dammrl.session import session_table
+    from dammrl.people.session import session_table
 
     rows = session_table(args.root, args.participant)
     if not rows:

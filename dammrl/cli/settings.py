@@ -36,7 +36,7 @@ range and the value, exit code 3, e.g.
 def settings_classes() -> tuple[type[Settings], ...]:
     """Every settings class of dammrl, its services and built-in plug-ins, by prefix
     (imported here, not at start: some live beside heavy modules)."""
-    from dammrl.rl.config import TrainSettings
+    from dammrl.learning.rl.config import TrainSettings
     from dammrl_core.arm.dynamixel.plugin import DynamixelSettings
     from dammrl_core.arm.settings import ArmSettings
     from dammrl_core.control.settings import ControllerSettings

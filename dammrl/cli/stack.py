@@ -19,7 +19,7 @@ from dammrl.cli.common import (
     print_err,
     print_out,
 )
-from dammrl.display.screens import OUTCOME_S
+from dammrl.people.display.screens import OUTCOME_S
 from dammrl_core.errors import Exit, UsageError
 from schemas import DEFAULT_NAMESPACE, TOPICS
 
@@ -119,7 +119,7 @@ def _add_up(commands: Commands) -> None:
 
 def _up(args: argparse.Namespace) -> int:
     """Launch the stack; runs until the episodes are done, a signal, or a dead service."""
-    from dammrl.launch import Stack, StackOptions, check_options
+    from dammrl.stack.launch import Stack, StackOptions, check_options
 
     if args.display is None and (args.large_text or args.outcome_s is not None):
         raise UsageError("--large-text and --outcome-s are the participant display's: "
@@ -140,7 +140,7 @@ def _up(args: argparse.Namespace) -> int:
     if args.display is None:
         return Stack(options, out=print_out, info=print_err).run()
     from dammrl.cli.session import open_display
-    from dammrl.display import BusFeed
+    from dammrl.people.display import BusFeed
     from services.common.security import DISPLAY
 
     intent = args.intent or ("pad" if args.port else "lsl" if args.stream else "simulated")
@@ -156,7 +156,7 @@ def _up(args: argparse.Namespace) -> int:
 
 def _status(args: argparse.Namespace) -> int:
     """Print the services on the bus; exit 1 unless every one is alive and reporting."""
-    from dammrl.inspect import status
+    from dammrl.stack.inspect import status
 
     table, healthy = status(bus_settings(args))
     print_out(table)
@@ -167,7 +167,7 @@ def _echo(args: argparse.Namespace) -> int:
     """Print one topic's messages (or its rate) until a count, a duration or Ctrl-C; exit 1
     if nothing arrived."""
     from dammrl.cli.common import bus_settings_found_later
-    from dammrl.inspect import echo
+    from dammrl.stack.inspect import echo
 
     seen = echo(bus_settings(args), args.topic, args.hz, args.count, args.duration, print_out,
                 say=print_err, found_later=bus_settings_found_later(args))  # fmt: skip

@@ -19,7 +19,7 @@ from dammrl.cli.common import (
     print_err,
     print_out,
 )
-from dammrl.stop import StopConsole, StopReport
+from dammrl.stack.stop import StopConsole, StopReport
 from dammrl_core.errors import Exit
 
 

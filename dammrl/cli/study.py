@@ -131,7 +131,7 @@ def _study(args: argparse.Namespace) -> int:
         if not run.exists():
             raise UsageError(f"no such run or checkpoint: {run}")
     if args.recording is not None:  # read it now: a bad file fails before the study runs
-        from dammrl.recording import session_traces
+        from dammrl.stack.recording import session_traces
 
         if not args.recording.is_file():
             raise UsageError(f"no such recording: {args.recording}")

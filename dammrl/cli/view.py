@@ -18,7 +18,7 @@ from dammrl.cli.common import (
 )
 
 if TYPE_CHECKING:
-    from dammrl.viewer import FoxgloveServer, SceneTranslator
+    from dammrl.views.viewer import FoxgloveServer, SceneTranslator
 
 
 def register(commands: Commands) -> None:
@@ -59,7 +59,7 @@ def _view(args: argparse.Namespace) -> int:
         raise UsageError(f"no such recording: {args.recording}")
     if importlib.util.find_spec("foxglove") is None:
         raise UsageError("dammrl view needs foxglove-sdk: pip install 'dammrl[view]'")
-    from dammrl.viewer import FoxgloveServer, SceneTranslator, bus_messages, layout
+    from dammrl.views.viewer import FoxgloveServer, SceneTranslator, bus_messages, layout
 
     if args.layout_out is not None:
         args.layout_out.write_text(layout() + "\n")
@@ -86,7 +86,7 @@ def _play(recording: Path, rate: float, once: bool, server: FoxgloveServer,
           translator: SceneTranslator, stop: threading.Event) -> None:  # fmt: skip
     """Play the recording each time a viewer is subscribed, its times running on from one
     play to the next (a viewer's plots never see time go back)."""
-    from dammrl.viewer import recording_messages
+    from dammrl.views.viewer import recording_messages
 
     offset, plays = 0, 0
     while not stop.is_set():

@@ -76,10 +76,12 @@ from dammrl.study.inference import (
     unit_values,
 )
 
-CLAIMS_VERSION = 4
+CLAIMS_VERSION = 5
 """3: the v3 design (docs/results.md); 4: v3's rules with dammrl_core/metrics.py's faster
 oscillation filter (issue 43: the same values, tested), registered before any study ran
-under v3. A study names the version it was judged by."""
+under v3; 5: v4's rules with ``rows.py``'s type-only import of the runner at its new place
+(``dammrl.stack.runner``, issue 41's rooms), registered before any study ran under v4. A
+study names the version it was judged by."""
 ALPHA = LEVEL  # family-wise, per claim (Holm)
 HORIZON_S = 60.0  # time to success is restricted at the episode limit (TaskSettings'
 # episode_timeout_s: tests/test_study.py keeps the two equal)

@@ -52,7 +52,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dammrl.adapt import RefineSettings
+from dammrl.learning.adapt import RefineSettings
 from dammrl.study.coadaptation_jobs import (
     HORIZON_S,
     SESSION_REACHES,

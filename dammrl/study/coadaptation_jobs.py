@@ -17,7 +17,7 @@ from typing import Any, TypeVar
 
 import numpy as np
 
-from dammrl.adapt import (
+from dammrl.learning.adapt import (
     Decision,
     Gate,
     PersonFit,
@@ -27,9 +27,9 @@ from dammrl.adapt import (
     gate,
     refine_transitions,
 )
-from dammrl.rl.config import RewardWeights, TrainSettings
-from dammrl.rl.env import ReachEnv
-from dammrl.runner import ReachResult, ReachRunner, evidence_of
+from dammrl.learning.rl.config import RewardWeights, TrainSettings
+from dammrl.learning.rl.env import ReachEnv
+from dammrl.stack.runner import ReachResult, ReachRunner, evidence_of
 from dammrl.study.run import map_jobs
 from dammrl_core.coadaptation import Selection, Targets
 from dammrl_core.human import HumanModel
@@ -211,16 +211,16 @@ def refined_job(job: tuple[Kind, tuple[int, ...], tuple[int, ...], Path, RefineS
 
 J = TypeVar("J")
 R = TypeVar("R")
-REACHES = ("dammrl/runner.py", "dammrl_core/person.py", "dammrl_core/human.py", "Kind", "Row",
+REACHES = ("dammrl/stack/runner.py", "dammrl_core/person.py", "dammrl_core/human.py", "Kind", "Row",
            "practice", "_runner", "_shipped", "_reach")  # fmt: skip
 SOURCES = {
     "fixed_job": (*REACHES, "fixed_job"),
-    "refined_job": (*REACHES, "dammrl/adapt.py", "refined_job", "refined_run", "RefinedRun",
-                    "_shipped_episode"),
+    "refined_job": (*REACHES, "dammrl/learning/adapt.py", "refined_job", "refined_run",
+                    "RefinedRun", "_shipped_episode"),
     "adaptive_job": (*REACHES, "dammrl_core/coadaptation.py", "dammrl_core/model_table.py",
                      "dammrl_core/policy/adaptive.py", "dammrl_core/policies/model_table.json.gz",
                      "adaptive_job", "adaptive_session", "Session"),
-    "table_job": ("dammrl/runner.py", "dammrl_core/person.py", "dammrl_core/human.py",
+    "table_job": ("dammrl/stack/runner.py", "dammrl_core/person.py", "dammrl_core/human.py",
                   "dammrl/study/coadaptation_table.py"),
 }  # fmt: skip
 """What a cached job's result depends on beyond the simulation itself (files, and the

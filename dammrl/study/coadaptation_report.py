@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from dammrl.adapt import deployment_rate
+from dammrl.learning.adapt import deployment_rate
 from dammrl.study.coadaptation import (
     MARGIN_COMFORT,
     MARGIN_S,

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dammrl.runner import ReachResult, ReachRunner, ReachSettings, evidence_of
+from dammrl.stack.runner import ReachResult, ReachRunner, ReachSettings, evidence_of
 from dammrl.study.coadaptation_jobs import Jobs
 from dammrl_core.coadaptation import ReachEvidence
 from dammrl_core.human import HumanModel

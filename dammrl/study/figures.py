@@ -266,8 +266,8 @@ def training_figure(runs: dict[str, tuple[Path, ...]], path: Path) -> Path | Non
 def session_figure(recording: Path, path: Path) -> Path:
     """The paper's semi-virtual figure from a recorded session: the pressure above the
     per-axis end-effector error (its first episode)."""
-    from dammrl.plots import plot_session
-    from dammrl.recording import session_traces
+    from dammrl.stack.recording import session_traces
+    from dammrl.views.plots import plot_session
     from dammrl_core.task import TaskSettings
 
     traces = session_traces(recording, None)

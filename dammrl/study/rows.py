@@ -16,7 +16,7 @@ from dammrl.study.claims import EPS_G_RANGE_MM, eps_column, step_windows
 from dammrl_core.metrics import decisions_until_stable, mechanical_work_j, n_oscillations
 
 if TYPE_CHECKING:
-    from dammrl.runner import ReachResult
+    from dammrl.stack.runner import ReachResult
 
 TRAINING_COLUMNS = ("q_human", "q_robot")
 

@@ -23,7 +23,7 @@ from typing import Any, TypeVar
 
 import numpy as np
 
-from dammrl.runner import ReachResult, ReachRunner, ReachSettings
+from dammrl.stack.runner import ReachResult, ReachRunner, ReachSettings
 from dammrl.study.configs import CONDITIONS, Condition, Configuration
 from dammrl.study.rows import reach_row, steps_of
 from dammrl_core.errors import JobFailedError
@@ -127,7 +127,7 @@ def _policy(runner: ReachRunner, job: Job) -> Policy:
 def run_session(job: tuple[Configuration, tuple[int, ...], str]) -> list[Record]:
     """An adaptive configuration's reaches: its seeds in order as one session, the
     posterior over M_ij carried from reach to reach (one job: the order matters)."""
-    from dammrl.runner import evidence_of
+    from dammrl.stack.runner import evidence_of
     from dammrl_core.policy.adaptive import AdaptivePolicy
     from dammrl_core.policy.learned import LearnedPolicy
     from dammrl_core.policy.settings import PolicySettings

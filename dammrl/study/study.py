@@ -277,7 +277,7 @@ def search_fingerprint(tuning_seeds: range) -> str:
     """What decides a search's result besides the code: every default setting of a reach
     (the model set, arm, controller, human, task; DAMMRL_* overrides included), the
     candidates and the tuning seeds."""
-    from dammrl.runner import ReachSettings
+    from dammrl.stack.runner import ReachSettings
 
     settings = ReachSettings().model_dump(mode="json")
     # the arm by its description's content, not by where this checkout keeps the file

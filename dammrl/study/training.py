@@ -50,7 +50,7 @@ class TrainJob:
 
     @property
     def weights(self) -> Any:
-        from dammrl.rl.config import RewardWeights
+        from dammrl.learning.rl.config import RewardWeights
 
         preset = RewardWeights.preset(self.reward)
         return preset if self.beta is None else preset.model_copy(update={"beta": self.beta})
@@ -70,8 +70,8 @@ def train_and_evaluate(job: TrainJob) -> RunResult:
     """Train one run in a scratch directory, evaluate it, return everything it wrote."""
     import time
 
-    from dammrl.rl.config import TrainSettings
-    from dammrl.rl.train import train
+    from dammrl.learning.rl.config import TrainSettings
+    from dammrl.learning.rl.train import train
 
     started = time.monotonic()
     settings = TrainSettings(episodes=job.episodes, seed=job.seed, randomize=job.randomize)
@@ -94,7 +94,7 @@ def train_and_evaluate(job: TrainJob) -> RunResult:
 
 def _rollouts(run: Path, seeds: range, randomize: bool) -> dict[str, list[float]]:
     """Per held-out reach: success, time and final error of the greedy policy."""
-    from dammrl.rl.train import greedy_rollouts
+    from dammrl.learning.rl.train import greedy_rollouts
 
     metrics = [r.metrics for r in greedy_rollouts(run, seeds, randomize)]
     return {

@@ -4,7 +4,7 @@ Observation (16,): the end-effector position and the goal, normalised to the wor
 ([-1, 1] per axis), and the model in force as one-hots (i: 2, j: 8). Agent_0 (human
 model) scores the two radii from the observation; Agent_1 (robot) sees the observation
 plus Agent_0's choice (one-hot) and scores the eight step vectors. Training
-(``dammrl.rl``) builds on these networks; this module only needs them to act.
+(``dammrl.learning.rl``) builds on these networks; this module only needs them to act.
 """
 
 from __future__ import annotations

@@ -28,4 +28,4 @@ class IntentSettings(Settings):
 
 SETTINGS: tuple[type[Settings], ...] = (IntentSettings, HumanModel, ModelSet)
 """Every settings class this service reads (the launcher checks them before a start; the
-source's own too, see ``dammrl.launch``)."""
+source's own too, see ``dammrl.stack.launch``)."""

@@ -10,4 +10,4 @@ from dammrl_core.task import TaskSettings
 
 SETTINGS: tuple[type[Settings], ...] = (ArmSettings, TaskSettings, RobotSettings)
 """Every settings class this service reads (the launcher checks them before a start; the
-driver's own settings too, see ``dammrl.launch``)."""
+driver's own settings too, see ``dammrl.stack.launch``)."""
