@@ -26,7 +26,9 @@ import yaml
 from dammrl.data.catalogue import build, query
 from tests.busutil import free_port
 
-SHIPPED = Path(__file__).resolve().parents[1] / "dammrl" / "protocols" / "event-vs-fixed.yaml"
+SHIPPED = (
+    Path(__file__).resolve().parents[1] / "dammrl" / "people" / "protocols" / "event-vs-fixed.yaml"
+)
 
 
 def main() -> int:

@@ -10,7 +10,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any, ClassVar
 
-from dammrl.stack.launch import StackOptions
+from dammrl.stack.options import StackOptions
 from dammrl.stack.stop import StopReport
 from dammrl_core.errors import JobFailedError
 from schemas import (

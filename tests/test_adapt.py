@@ -31,7 +31,8 @@ from dammrl.learning.adapt import (
 from dammrl.learning.rl.config import RewardWeights
 from dammrl.learning.rl.env import ReachEnv
 from dammrl.people.session import Participant
-from dammrl.stack.launch import Stack, StackOptions
+from dammrl.stack.launch import Stack
+from dammrl.stack.options import StackOptions
 from dammrl.stack.runner import ReachRunner
 from dammrl_core.coadaptation import Targets
 from dammrl_core.errors import ConfigurationError

@@ -106,7 +106,8 @@ def test_lockstep_is_refused_with_a_person_at_the_sensor(
 
 
 def test_lockstep_reaches_every_service() -> None:
-    from dammrl.stack.launch import Stack, StackOptions
+    from dammrl.stack.launch import Stack
+    from dammrl.stack.options import StackOptions
     from tests.busutil import free_port
 
     # a free port: a run of the user's own may hold the default one beside the tests
@@ -118,7 +119,7 @@ def test_lockstep_reaches_every_service() -> None:
 def test_a_port_in_time_wait_is_reused_and_a_held_port_is_a_clear_error() -> None:
     import socket
 
-    from dammrl.stack.launch import check_port
+    from dammrl.stack.options import check_port
     from dammrl_core.errors import DammrlError
 
     server = socket.socket()

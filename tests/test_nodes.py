@@ -166,7 +166,8 @@ def test_a_stray_request_of_an_older_episode_does_not_reseed_the_human() -> None
 
 
 def test_the_launcher_counts_only_the_controllers_new_results() -> None:
-    from dammrl.stack.launch import Stack, StackOptions
+    from dammrl.stack.launch import Stack
+    from dammrl.stack.options import StackOptions
     from schemas import EpisodeResult, encode
     from tests.busutil import free_port
 
@@ -178,12 +179,12 @@ def test_the_launcher_counts_only_the_controllers_new_results() -> None:
                   start_m=(0.3, 0, 0), goal_m=(0.5, 0, -0.2))  # fmt: skip
     genuine = EpisodeResult(header=Header(stamp_ns=1, seq=0, source="controller"), **fields)
     forged = EpisodeResult(header=Header(stamp_ns=1, seq=0, source="intruder"), **fields)
-    assert stack._accept(bytes(12)) is None  # garbage: ignored, never fatal
-    assert stack._accept(encode(forged)) is None
-    accepted = stack._accept(encode(genuine))
+    assert stack.tally.accept(bytes(12)) is None  # garbage: ignored, never fatal
+    assert stack.tally.accept(encode(forged)) is None
+    accepted = stack.tally.accept(encode(genuine))
     assert accepted is not None
-    stack.results.append(accepted)
-    assert stack._accept(encode(genuine)) is None  # the same episode again: a replay
+    stack.tally.results.append(accepted)
+    assert stack.tally.accept(encode(genuine)) is None  # the same episode again: a replay
 
 
 def test_the_controller_ignores_states_whose_time_runs_backwards_or_jumps() -> None:

@@ -21,7 +21,7 @@ import pytest
 import zenoh
 from mcap.reader import make_reader
 
-from dammrl.stack.launch import recording_files
+from dammrl.stack.options import recording_files
 from dammrl.stack.recording import info, repair
 from services.recorder.core import complete_mcap
 from services.recorder.gaps import publishers_of

@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 
 from dammrl.cli.common import bus_settings
-from dammrl.stack.launch import StackOptions, check_options
+from dammrl.stack.options import StackOptions, check_options
 from dammrl_core.errors import UsageError
 from services.common.runs import RunCard, local_runs, only_run, remove_card, run_reading, write_card
 from services.common.security import CredentialsError, run_credentials
@@ -166,7 +166,7 @@ def test_an_episode_ended_by_a_fault_is_not_blamed_on_the_persons_input() -> Non
     """A hold 0.3 s into a reach (the sim's state stale on a loaded machine) said "in 0 s
     no decision came from the wearable's stream"; only an episode that timed out without
     a decision could not be done for want of the person's input."""
-    from dammrl.stack.launch import undecided
+    from dammrl.stack.progress import undecided
     from tests.sessionutil import result as _result
 
     stalled = _result(1, 0, "hold").model_copy(update={"n_decisions": 0, "t_total_s": 0.3})

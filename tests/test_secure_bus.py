@@ -306,7 +306,8 @@ def test_the_participant_display_joins_a_run_with_its_own_certificate() -> None:
     (``Stack.join``) reaches the recorder's key of the comfort rating, and the operator's
     keys not (a participant's page cannot release a stop or take over), while the
     launcher's own session, the operator's, sends a stop."""
-    from dammrl.stack.launch import Stack, StackOptions
+    from dammrl.stack.launch import Stack
+    from dammrl.stack.options import StackOptions
     from schemas import ComfortRating, EmergencyStop, SessionControl
     from tests.test_schemas import EXAMPLES
 

@@ -366,7 +366,7 @@ def test_a_hold_for_a_fault_of_the_stack_is_not_blamed_on_the_persons_input(
     """A loaded PC once ended a session's one-reach block (a stale arm state 0.5 s in, no
     decision yet) with "no decision ever came from the pad": the session stopped, blaming
     the person's input for the stack's fault."""
-    from dammrl.stack.launch import undecided
+    from dammrl.stack.progress import undecided
 
     ended = result(1, 7100100, outcome, reason).model_copy(update={"n_decisions": 0})
     assert undecided(ended) is could_not_be_done

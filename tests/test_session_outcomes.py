@@ -27,7 +27,9 @@ from tests.busutil import free_port
 from tests.test_catalogue import VALIDATOR, dump_catalogue
 
 pytestmark = pytest.mark.slow
-SHIPPED = Path(__file__).resolve().parents[1] / "dammrl" / "protocols" / "event-vs-fixed.yaml"
+SHIPPED = (
+    Path(__file__).resolve().parents[1] / "dammrl" / "people" / "protocols" / "event-vs-fixed.yaml"
+)
 
 
 def _protocol(tmp_path: Path) -> Path:

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dammrl.stack.launch import check_port
+from dammrl.stack.options import check_port
 from dammrl.stack.recording import read_recording
 from dammrl_core.errors import DammrlError
 from schemas import EpisodeResult
@@ -141,7 +141,8 @@ def test_a_pause_holds_the_arm_without_a_jump_and_an_again_ends_the_reach() -> N
     its time leaves the pause out."""
     import threading
 
-    from dammrl.stack.launch import Stack, StackOptions
+    from dammrl.stack.launch import Stack
+    from dammrl.stack.options import StackOptions
     from schemas import Header, JointCommand, SessionControl, decode, encode, key
 
     commands: list[tuple[float, JointCommand]] = []
@@ -210,7 +211,8 @@ def test_the_therapist_takes_the_decisions_over_and_hands_them_back() -> None:
     and the reach reaches the button."""
     import threading
 
-    from dammrl.stack.launch import Stack, StackOptions
+    from dammrl.stack.launch import Stack
+    from dammrl.stack.options import StackOptions
     from schemas import DecisionRequest, Header, Intent, SessionControl, decode, encode, key
 
     intents: list[Intent] = []

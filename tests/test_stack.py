@@ -271,8 +271,8 @@ def test_a_stop_finds_the_runs_credentials_and_a_killed_launchers_services_and_k
 
 LAUNCHER_OF_ONE = """
 import sys
-from dammrl.stack import launch
-launch.MODES["virtual"] = ("intent",)  # the launcher as it is, with one quick service
+from dammrl.stack import launch, options
+options.MODES["virtual"] = ("intent",)  # the launcher as it is, with one quick service
 sys.exit(launch.Stack(launch.StackOptions(port=int(sys.argv[1]))).run())
 """
 

@@ -16,7 +16,7 @@ if TYPE_CHECKING:
     from dammrl.people.display import ParticipantDisplay
     from dammrl.people.session import SetUp
 
-PROTOCOLS = Path(__file__).resolve().parent.parent / "protocols"
+PROTOCOLS = Path(__file__).resolve().parent.parent / "people" / "protocols"
 """The protocols shipped with dammrl, addressable by name."""
 
 

@@ -119,7 +119,8 @@ def _add_up(commands: Commands) -> None:
 
 def _up(args: argparse.Namespace) -> int:
     """Launch the stack; runs until the episodes are done, a signal, or a dead service."""
-    from dammrl.stack.launch import Stack, StackOptions, check_options
+    from dammrl.stack.launch import Stack
+    from dammrl.stack.options import StackOptions, check_options
 
     if args.display is None and (args.large_text or args.outcome_s is not None):
         raise UsageError("--large-text and --outcome-s are the participant display's: "

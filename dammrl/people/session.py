@@ -51,7 +51,9 @@ from dammrl.people.participants import (
     sha256_of,
 )
 from dammrl.people.session_steps import SessionSteps, SetUp, trial_line
-from dammrl.stack.launch import Stack, StackOptions, check_stack, recording_files, result_dict
+from dammrl.stack.launch import Stack
+from dammrl.stack.options import StackOptions, check_stack, recording_files
+from dammrl.stack.progress import result_dict
 from dammrl.stack.stop import StopConsole
 from dammrl_core.coadaptation import Targets
 from dammrl_core.errors import DammrlError, Exit, UsageError

@@ -18,6 +18,7 @@ import numpy as np
 import zenoh
 
 from dammrl.stack.recording import Recording
+from dammrl.stack.stop import ARM_SERVICES
 from dammrl_core.errors import DammrlError, JobFailedError
 from dammrl_core.models import ModelSet
 from schemas import (
@@ -34,7 +35,6 @@ from services.common.config import BusSettings
 from services.common.security import OBSERVER, roles_publishing
 
 COMMAND_TOPICS = ("robot/command", "task/goal")
-ARM_SERVICES = ("sim", "robot")
 
 
 @dataclass(frozen=True)
