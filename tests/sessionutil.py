@@ -118,7 +118,7 @@ class ScriptedStack:
         stack_run = self.on_up.__self__
         stack_run.stack = self  # as the launcher is, when it calls on_up
         self.on_up(self)
-        stack_run.listening = ScriptedStack.ack_after_s is not None
+        stack_run.bus.listening = ScriptedStack.ack_after_s is not None
         for episode in range(1, self.options.episodes + 1):
             if ScriptedStack.crash_after is not None and self.given >= self.crash_after:
                 raise JobFailedError("service controller exited unexpectedly with code -9")
@@ -130,14 +130,14 @@ class ScriptedStack:
                 q_start_rad=(0, 1, 0, 1.6, 0, 0.3))))  # fmt: skip
             outcome, reason = "success", ""
             for line in ScriptedStack.console.get(ScriptedStack.given, []):
-                stack_run.line(line)
+                stack_run.console.line(line)
                 if line.split()[0] in ("s", "a", "e"):
                     outcome = "skipped"
                 if self.stopped:
                     outcome, reason = "stopped", f"emergency stop from tool: {self.stopped}"
                     break
             if ScriptedStack.posterior is not None:  # the policy spoke of the person
-                stack_run.posterior = ScriptedStack.posterior
+                stack_run.bus.posterior = ScriptedStack.posterior
             if ScriptedStack.ack_after_s is not None:
                 _acknowledge(stack_run, episode, ScriptedStack.ack_after_s)
             self.on_result(result(episode, seed, outcome, reason))
@@ -152,7 +152,7 @@ def _acknowledge(stack_run: Any, episode: int, after_s: float) -> None:
     ack = EpisodeRecorded(header=Header(stamp_ns=1, seq=episode, source="recorder"),
                           episode=episode, file=stack_run.part.name, result_seq=episode,
                           states=100, complete=True)  # fmt: skip
-    later = threading.Timer(after_s, stack_run.recorded.take, args=(ack,))
+    later = threading.Timer(after_s, stack_run.bus.recorded.take, args=(ack,))
     later.daemon = True
     later.start()
 

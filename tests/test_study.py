@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 from dammrl.study.claims import (
+    CLAIMS_VERSION,
     EPS_G_RANGE_MM,
     HORIZON_S,
     STATEMENTS,
@@ -346,7 +347,7 @@ def test_dammrl_study_writes_the_report_the_table_and_the_generated_sections(
     report = (out / "report.md").read_text()
     assert "| C2: " in report and "dammrl study --seeds 7000000:7000002" in report
     assert "press: **" in report and "eps_g: **" in report and "stable" in report
-    assert "Claim rules version 4" in report and "restricted mean" in report
+    assert f"Claim rules version {CLAIMS_VERSION}" in report and "restricted mean" in report
     assert "struggles to optimise reaching speed" in report  # the paper's words
     assert "| nominal | C3 |" in report and "4 mm" in report  # verdicts over the eps_g range
     assert "| ikpy-measured | 1-fixed |" in report and "this computer:" in report

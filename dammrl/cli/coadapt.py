@@ -26,6 +26,13 @@ def register(commands: Commands) -> None:
         "re-selection), measured on simulated persons unlike the training human.",
     )
     sub = coadapt.add_subparsers(required=True, metavar="ACTION")
+    _add_table(sub)
+    _add_compare(sub)
+    _add_gate_rates(sub)
+
+
+def _add_table(sub: Commands) -> None:
+    """``coadapt table``."""
     table = sub.add_parser(
         "table",
         help="run every option on a grid of persons; write the model table the posterior "
@@ -46,6 +53,10 @@ def register(commands: Commands) -> None:
         help="processes on this machine (default: every core)",
     )
     table.set_defaults(handler=_table)
+
+
+def _add_compare(sub: Commands) -> None:
+    """``coadapt compare``."""
     compare = sub.add_parser(
         "compare",
         help="shipped, adaptive, refined and oracle policy for kinds of person; report.md, "
@@ -111,6 +122,10 @@ def register(commands: Commands) -> None:
         help="processes on this machine (default: every core)",
     )
     compare.set_defaults(handler=_compare)
+
+
+def _add_gate_rates(sub: Commands) -> None:
+    """``coadapt gate-rates``."""
     rates = sub.add_parser(
         "gate-rates",
         help="how often dammrl adapt's gate deploys a candidate no better (false positives) "

@@ -16,6 +16,11 @@ DEFAULT_SEEDS, DEFAULT_SETS = "120", 3  # 3 x 40 seeds: the default study in ~15
 
 def register(commands: Commands) -> None:
     """Add ``study`` and ``verdicts``."""
+    _add_verdicts(commands)
+    _add_study(commands)
+
+
+def _add_verdicts(commands: Commands) -> None:
     verdicts = commands.add_parser(
         "verdicts",
         help="saved studies' verdicts side by side: which are findings",
@@ -29,6 +34,9 @@ def register(commands: Commands) -> None:
                           help="also regenerate this page's side-by-side section (the "
                           "ranges markers)")  # fmt: skip
     verdicts.set_defaults(handler=_verdicts)
+
+
+def _add_study(commands: Commands) -> None:
     study = commands.add_parser(
         "study",
         help="the paper's comparison: every configuration, claims C1-C6, report",
@@ -37,7 +45,13 @@ def register(commands: Commands) -> None:
         "under both success criteria; write report.md, reaches.csv, the measured IK latencies "
         "and the figures into --out.",
     )
-    study.add_argument("--out", type=output_dir, default=Path("study"), help="report directory")
+    _add_study_rows(study.add_argument_group("what runs"))
+    _add_study_outputs(study.add_argument_group("where it runs and what it writes"))
+    study.set_defaults(handler=_study)
+
+
+def _add_study_rows(study: argparse._ArgumentGroup) -> None:
+    """The seeds, conditions, rows and policies a study runs."""
     study.add_argument("--seeds", default=DEFAULT_SEEDS, metavar="N|A:B", type=seeds_arg,
                        help="every evaluation seed, split into --sets in order: N (the first N "
                        "from 7,000,000) or A:B (seeds A to B-1, all >= 7,000,000: training "
@@ -73,6 +87,17 @@ def register(commands: Commands) -> None:
                        help="all: the paper's configurations, our variants and the reviewer's "
                        "rows (default); paper: configurations 1-4 only, which every verdict "
                        "needs (a third of the reaches, no best-fixed search)")  # fmt: skip
+    study.add_argument(
+        "--adaptive",
+        action="store_true",
+        help="also configuration 4 inside the adaptive mode: each seed set as one "
+        "session, re-selecting when DAMMRL_POLICY_TARGETS__* are missed",
+    )
+
+
+def _add_study_outputs(study: argparse._ArgumentGroup) -> None:
+    """Where a study runs, and what it writes besides its report."""
+    study.add_argument("--out", type=output_dir, default=Path("study"), help="report directory")
     study.add_argument("--jobs", type=int, default=os.cpu_count() or 1,
                        help="processes on this machine (default: every core)")  # fmt: skip
     study.add_argument(
@@ -97,13 +122,6 @@ def register(commands: Commands) -> None:
         help="also regenerate this page's generated sections (docs/results.md, README.md; "
         "may be given more than once)",
     )
-    study.add_argument(
-        "--adaptive",
-        action="store_true",
-        help="also configuration 4 inside the adaptive mode: each seed set as one "
-        "session, re-selecting when DAMMRL_POLICY_TARGETS__* are missed",
-    )
-    study.set_defaults(handler=_study)
 
 
 def _conditions(text: str) -> tuple[str, ...]:

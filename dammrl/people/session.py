@@ -28,12 +28,10 @@ an interrupted run is kept as it is; its trial runs again in a new part.
 
 from __future__ import annotations
 
-import contextlib
 import shutil
 import sys
 import threading
 import time
-from collections import Counter
 from collections.abc import Callable, Iterator
 from dataclasses import replace
 from pathlib import Path
@@ -50,11 +48,11 @@ from dammrl.people.participants import (
     session_table,
     sha256_of,
 )
+from dammrl.people.run_bus import RunBus
 from dammrl.people.session_steps import SessionSteps, SetUp, trial_line
 from dammrl.stack.launch import Stack
 from dammrl.stack.options import StackOptions, check_stack, recording_files
 from dammrl.stack.progress import result_dict
-from dammrl.stack.stop import StopConsole
 from dammrl_core.coadaptation import Targets
 from dammrl_core.errors import DammrlError, Exit, UsageError
 from dammrl_core.protocol import (
@@ -70,22 +68,10 @@ from dammrl_core.protocol import (
 from dammrl_core.settings import error_line
 from schemas import (
     DEFAULT_NAMESPACE,
-    ComfortRating,
-    DecisionRequest,
-    DecodeError,
     EmergencyStop,
-    EpisodeRecorded,
     EpisodeResult,
-    Header,
-    Message,
-    ModelChoice,
-    SessionControl,
-    TaskGoal,
-    decode,
-    encode,
-    key,
 )
-from services.common.security import DISPLAY, OPERATOR
+from services.common.security import DISPLAY
 
 if TYPE_CHECKING:
     from dammrl.people.display import ParticipantDisplay
@@ -95,8 +81,6 @@ __all__ = [  # the session's folders live in dammrl.people.participants; callers
     "session_problems", "session_table",
 ]  # fmt: skip
 
-STOP_CONFIRM_S = 2.0
-"""The console's stop (or release) is sent until every arm confirms it, this long at most."""
 PERSON = ("pad", "lsl")
 """Intent sources through which a person decides (they need a device and a calibration)."""
 STOP_RESULT_WAIT_S = 3.0
@@ -161,38 +145,6 @@ RECORDED_WAIT_S = 15.0
 """How long a stack run waits at its end for the recorder to confirm that each of its
 reaches is on disk (``EpisodeRecorded``) before the stack stops [s]. A reach it does not
 confirm is logged in ``events.jsonl`` and said; the catalogue reports it."""
-
-
-class RecordedEpisodes:
-    """The recorder's acknowledgements of one stack run's episodes, as they come (a
-    complete one supersedes an incomplete one), and a bounded wait for them."""
-
-    def __init__(self, part: Path) -> None:
-        self.stem = part.stem  # part-NN: its continuations are part-NN-001.mcap, ...
-        self.acks: dict[int, EpisodeRecorded] = {}
-        self.changed = threading.Condition()
-
-    def take(self, ack: EpisodeRecorded) -> None:
-        """One acknowledgement heard (the recorder of another run's file is not ours)."""
-        if ack.header.source != "recorder" or not ack.file.startswith(self.stem):
-            return
-        with self.changed:
-            known = self.acks.get(ack.episode)
-            if known is None or not known.complete:
-                self.acks[ack.episode] = ack
-            self.changed.notify_all()
-
-    def wait(self, episodes: list[int], timeout_s: float) -> dict[int, EpisodeRecorded]:
-        """The acknowledgements of ``episodes`` once each is complete, or what came within
-        ``timeout_s``."""
-        deadline = time.monotonic() + timeout_s
-        with self.changed:
-            while not all(e in self.acks and self.acks[e].complete for e in episodes):
-                remaining = deadline - time.monotonic()
-                if remaining <= 0:
-                    break
-                self.changed.wait(remaining)
-            return {e: self.acks[e] for e in episodes if e in self.acks}
 
 
 class SessionRunner(SessionSteps):
@@ -371,12 +323,10 @@ class StackRun:
         self.runner, self.session, self.setup = runner, session, setup
         self.group, self.total = group, total
         self.part = session.next_part()
-        self.hub: Any = None  # the stack's bus session (the operator's), once it is up
-        self.display_bus: Any = None  # the participant display's own (its role), once up
-        self.stopper: StopConsole | None = None  # the console's stop, once the stack is up
+        self.bus = RunBus(self.part)
+        self.console = RunConsole(self)
         self.stack: Stack | None = None
         self.episode = 1  # the reach under way, or the next one (this run counts from 1)
-        self.announced = 0  # the last reach the controller announced (its TaskGoal)
         self.actions: list[dict[str, Any]] = []  # the console's, on the reach under way
         self.paused_since: float | None = None
         self.paused_s = 0.0
@@ -385,11 +335,6 @@ class StackRun:
         self.end_block_why = ""  # ... by whom and why
         self.stopping: str | None = None  # an emergency stop ends this run: why
         self.stopped_trial: Trial | None = None  # the trial the stop interrupted
-        self.sent: Counter[type[Message]] = Counter()  # per message type (its key): its seq
-        self.posterior: tuple[float, float] | None = None  # the policy's, last heard
-        self.subscribers: list[Any] = []
-        self.recorded = RecordedEpisodes(self.part)  # what the recorder holds on disk
-        self.listening = False  # to the recorder's acknowledgements
 
     def run(self) -> int:
         runner, group = self.runner, self.group
@@ -417,45 +362,37 @@ class StackRun:
             return self.stack.run()
         finally:
             runner.console.route(runner._idle)
-            self.hub, self.display_bus, self.subscribers = None, None, []
-            if self.stopper is not None:
-                self.stopper.close()
-                self.stopper = None
-            if self.posterior is not None and self.posterior != prior:
-                runner.participant.keep_posterior(self.posterior, self.session.folder.name,
+            self.bus.close()
+            posterior = self.bus.posterior
+            if posterior is not None and posterior != prior:
+                runner.participant.keep_posterior(posterior, self.session.folder.name,
                                                   [t.number for t in self.group])  # fmt: skip
-                self.session.events.add(runner.event("posterior", p=list(self.posterior)))
+                self.session.events.add(runner.event("posterior", p=list(posterior)))
 
     def attach(self, hub: Any) -> None:
         """The stack is up: the console acts on its bus as the operator; the display
         follows it with a session of its own role, which may send the participant's
         comfort rating and nothing else."""
-        runner = self.runner
-        self.hub = hub
+        runner, bus = self.runner, self.bus
+        bus.hub = hub
         if runner.display is not None:
             from dammrl.people.display import BusFeed
 
             assert self.stack is not None
-            self.display_bus = self.stack.join(DISPLAY)
+            bus.display_bus = self.stack.join(DISPLAY)
             runner.display.expect_run(self.places(), condition_intent(self.group[0], self.setup))
-            BusFeed(runner.display, DEFAULT_NAMESPACE).attach(self.display_bus)
-        self.subscribers = [
-            hub.declare_subscriber(key(DEFAULT_NAMESPACE, ModelChoice), self._choice),
-            hub.declare_subscriber(key(DEFAULT_NAMESPACE, EpisodeRecorded), self._recorded),
-            hub.declare_subscriber(key(DEFAULT_NAMESPACE, EmergencyStop), self._stop_heard),
-            hub.declare_subscriber(key(DEFAULT_NAMESPACE, TaskGoal), self._goal_heard),
-            hub.declare_subscriber(key(DEFAULT_NAMESPACE, DecisionRequest), self._asked),
-        ]
+            BusFeed(runner.display, DEFAULT_NAMESPACE).attach(bus.display_bus)
+        bus.listen(hub, self._stop_heard)
         if self.stack is not None:  # the stop one key away: its session open from now on
-            self.stopper = self.stack.stop_console()
-        self.listening = True
+            bus.stopper = self.stack.stop_console()
+        bus.listening = True
         for trial, rating, asked_s in runner.pending_comfort:  # asked while no stack ran
-            self._send(self._rating(trial, rating, asked_s), self.display_bus)
+            bus.comfort(runner.participant.id, trial, rating, asked_s)
         runner.pending_comfort = []
         if runner.latched is not None:  # typed while the stack started: it holds the arm
-            self._send(EmergencyStop(header=self._header(EmergencyStop), engaged=True,
-                                     reason=runner.latched))  # fmt: skip
-        runner.console.route(self.line)
+            bus.send(EmergencyStop(header=bus.header(EmergencyStop), engaged=True,
+                                   reason=runner.latched))  # fmt: skip
+        runner.console.route(self.console.line)
 
     def places(self) -> dict[int, Any]:
         """Each reach's place in the session, for the participant's page."""
@@ -466,38 +403,9 @@ class StackRun:
         return {episode: Place(t.index, trials, t.block_position, blocks, t.practice)
                 for episode, t in enumerate(self.group, start=1)}  # fmt: skip
 
-    def _choice(self, sample: Any) -> None:
-        """The policy's posterior of this person, as it learns (kept after the run)."""
-        with contextlib.suppress(DecodeError):
-            choice = decode(ModelChoice, sample.payload.to_bytes())
-            if choice.posterior is not None and len(choice.posterior) == 2:
-                self.posterior = (choice.posterior[0], choice.posterior[1])
-
-    def _recorded(self, sample: Any) -> None:
-        with contextlib.suppress(DecodeError):
-            self.recorded.take(decode(EpisodeRecorded, sample.payload.to_bytes()))
-
-    def _goal_heard(self, sample: Any) -> None:
-        with contextlib.suppress(DecodeError):
-            goal = decode(TaskGoal, sample.payload.to_bytes())
-            if goal.header.source == "controller":
-                self.announced = max(self.announced, goal.episode)
-
-    def _asked(self, sample: Any) -> None:
-        """A decision request: its reach runs (its goal may have gone out before the run
-        listened)."""
-        with contextlib.suppress(DecodeError):
-            request = decode(DecisionRequest, sample.payload.to_bytes())
-            if request.header.source == "controller":
-                self.announced = max(self.announced, request.episode)
-
-    def _stop_heard(self, sample: Any) -> None:
+    def _stop_heard(self, stop: EmergencyStop) -> None:
         """An emergency stop (or its release) on the bus, from the console or anyone: the
         session follows it; a stop ends this run (after the stopped reach's result)."""
-        try:
-            stop = decode(EmergencyStop, sample.payload.to_bytes())
-        except DecodeError:
-            return
         reason = f"emergency stop from {stop.header.source}" + (
             f": {stop.reason}" if stop.reason else "")  # fmt: skip
         self.runner.heard_stop(stop.engaged, reason)
@@ -505,17 +413,21 @@ class StackRun:
             return
         self.stopping = reason
         if self.under_way():  # the controller ends the reach: its result ends the run
-            later = threading.Timer(STOP_RESULT_WAIT_S, self._finish)  # or, without it, this
+            later = threading.Timer(STOP_RESULT_WAIT_S, self.finish)  # or, without it, this
             later.daemon = True
             later.start()
         else:
-            self._finish()
+            self.finish()
+
+    def trial(self) -> Trial:
+        """The trial under way, or the next one."""
+        return self.group[min(self.episode, len(self.group)) - 1]
 
     def under_way(self) -> bool:
         """A reach of this run was announced and has no result yet."""
-        return self.announced >= self.episode
+        return self.bus.announced >= self.episode
 
-    def _finish(self) -> None:
+    def finish(self) -> None:
         if self.stack is not None:
             self.stack.finish()
 
@@ -550,23 +462,23 @@ class StackRun:
         self.episode, self.actions, self.paused_s = result.episode + 1, [], 0.0
         last = trial.index == self.runner.blocks[trial.block].trials
         if self.end_block:
-            self._skip_rest_of_block(trial)
+            self.skip_rest_of_block(trial)
         if (last or self.end_block) and not stopped:
-            self._ask_comfort(trial)
+            self.ask_comfort(trial)
         ends = self.again or self.end_block or self.stopping is not None
         if result.episode == len(self.group) or ends:
-            self._await_recorded()  # the stack stops next
+            self.await_recorded()  # the stack stops next
         if ends:
-            self._finish()
+            self.finish()
 
-    def _await_recorded(self) -> None:
+    def await_recorded(self) -> None:
         """Wait (bounded) until the recorder confirms every reach of this run on disk;
         log what it confirmed and say what it did not (the catalogue reports those)."""
-        if not self.listening:
+        if not self.bus.listening:
             return
         runner, episodes = self.runner, list(range(1, self.episode))
         started = time.monotonic()
-        acks = self.recorded.wait(episodes, runner.recorded_wait_s)
+        acks = self.bus.recorded.wait(episodes, runner.recorded_wait_s)
         trial = {e: self.group[e - 1].number for e in episodes}
         partial = {trial[e]: a.missing for e, a in acks.items() if not a.complete}
         unconfirmed = [trial[e] for e in episodes if e not in acks]
@@ -587,7 +499,7 @@ class StackRun:
         a restarted recorder (``part-NN-001.mcap``, ...)."""
         return recording_files(self.part)[-1]
 
-    def _skip_rest_of_block(self, after: Trial | None) -> None:
+    def skip_rest_of_block(self, after: Trial | None) -> None:
         """Log the block's trials after ``after`` (None: all of this run's) as skipped
         (the operator ended the block)."""
         first = 0 if after is None else self.group.index(after) + 1
@@ -595,7 +507,7 @@ class StackRun:
             skipped = {"result": None, "skipped": self.end_block_why}
             self.session.trials.add(trial_line(trial) | skipped)
 
-    def _ask_comfort(self, trial: Trial) -> None:
+    def ask_comfort(self, trial: Trial) -> None:
         """The participant's comfort after the block, on the display: on the bus (the
         recording keeps it; the block's stack still runs) and in the events."""
         runner = self.runner
@@ -604,123 +516,104 @@ class StackRun:
         time.sleep(self.setup.outcome_s)  # the block's last outcome shows as every other
         answer = runner.ask_comfort(self.session, trial)
         if answer is not None:
-            self._send(self._rating(trial, *answer), self.display_bus)
+            self.bus.comfort(runner.participant.id, trial, *answer)
             time.sleep(0.2)  # the recorder takes it before the stack stops
 
-    def _rating(self, trial: Trial, rating: int, asked_s: float) -> ComfortRating:
-        header = self._header(ComfortRating, DISPLAY)
-        return ComfortRating(header=header, participant=self.runner.participant.id,
-                             block=trial.block, trial=trial.number, rating=rating,
-                             asked_s=asked_s)  # fmt: skip
 
-    # ---- the therapist's console ------------------------------------------------------
+class RunConsole:
+    """The therapist's console while a stack runs: each line acted on at once, on the
+    reach under way, logged with who and why; between two reaches, ending a trial is
+    refused and ending the block acts at once."""
+
+    def __init__(self, run: StackRun) -> None:
+        self.run = run
+
     def line(self, line: str) -> None:
         """One console line while the stack runs."""
+        run = self.run
         if not line.strip():
-            where = "reach under way" if self.under_way() else "between two reaches"
-            self.runner.say(f"console: trial {self.trial().number}, {where} (h for help)")
+            where = "reach under way" if run.under_way() else "between two reaches"
+            run.runner.say(f"console: trial {run.trial().number}, {where} (h for help)")
             return
-        command = self.runner.command(line)
+        command = run.runner.command(line)
         if command is not None:
             self.act(command)
 
-    def trial(self) -> Trial:
-        """The trial under way, or the next one."""
-        return self.group[min(self.episode, len(self.group)) - 1]
-
     def act(self, command: Command) -> None:
-        """Carry out one console command on the reach under way, logged with who and why;
-        between two reaches, ending a trial is refused and ending the block acts at once."""
-        runner, action = self.runner, command.action
+        """Carry out one console command on the reach under way, logged with who and why."""
+        run, action = self.run, command.action
+        runner = run.runner
         if action == "help":
             runner.say(HELP)
             return
-        trial = self.trial()
-        if action in ("skip", "again") and not self.under_way():
-            runner.say(f"console: {action} refused: no reach is under way (trial {trial.number} "
-                       "begins in a moment): type it again once it runs")  # fmt: skip
+        trial = run.trial()
+        if refusal := self._refusal(action):
+            runner.say(f"console: {action} refused: {refusal}")
             return
-        if action in ("pause", "resume", "skip", "again", "end-block") and self.stopping:
-            runner.say(f"console: {action} refused: the emergency stop ends this run")
-            return
-        record = {"action": action, "who": runner.setup.operator, "why": command.why,
-                  "utc": now_utc()}  # fmt: skip
-        self.actions.append(record)
-        self.session.events.add(runner.event("console", trial=trial.number, action=action,
-                                             why=command.why))  # fmt: skip
+        run.actions.append({"action": action, "who": runner.setup.operator,
+                            "why": command.why, "utc": now_utc()})  # fmt: skip
+        run.session.events.add(runner.event("console", trial=trial.number, action=action,
+                                            why=command.why))  # fmt: skip
+        self._carry_out(command)
+        runner.say(f"console: {action} (trial {trial.number})")
+
+    def _refusal(self, action: str) -> str:
+        """Why ``action`` cannot be done now ('' when it can)."""
+        run = self.run
+        if action in ("skip", "again") and not run.under_way():
+            return (f"no reach is under way (trial {run.trial().number} begins in a moment): "
+                    "type it again once it runs")  # fmt: skip
+        if action in ("pause", "resume", "skip", "again", "end-block") and run.stopping:
+            return "the emergency stop ends this run"
+        return ""
+
+    def _carry_out(self, command: Command) -> None:
+        run, action, why = self.run, command.action, command.why
+        operator = run.runner.setup.operator
         if action in ("stop", "release"):
-            self._stop(action, f"{runner.setup.operator}: {command.why}"[:200].rstrip(": "))
-        elif action == "pause" and self.paused_since is None:
-            self.paused_since = time.monotonic()
-            self._control("pause", command.why)
-        elif action == "resume" and self.paused_since is not None:
-            self.paused_s += time.monotonic() - self.paused_since
-            self.paused_since = None
-            self._control("resume", command.why)
+            run.bus.stop(action == "stop", f"{operator}: {why}"[:200].rstrip(": "), run.runner.say)
+        elif action == "pause" and run.paused_since is None:
+            run.paused_since = time.monotonic()
+            self._control("pause", why)
+        elif action == "resume" and run.paused_since is not None:
+            run.paused_s += time.monotonic() - run.paused_since
+            run.paused_since = None
+            self._control("resume", why)
         elif action in ("take", "give"):
-            self._control(action, command.why)
+            self._control(action, why)
         elif action in ("forward", "back"):
-            small = command.why.split()[:1] == ["small"]
-            self._control("decide", command.why, u_h=1 if action == "forward" else -1,
+            small = why.split()[:1] == ["small"]
+            self._control("decide", why, u_h=1 if action == "forward" else -1,
                           human_model=2 if small else 1)  # fmt: skip
-        elif action == "end-block" and not self.under_way():
+        elif action == "end-block" and not run.under_way():
             self._end_block_between(command)
         elif action in ("skip", "again", "end-block"):
-            self.again = action == "again"
+            run.again = action == "again"
             if action == "end-block":
-                self.end_block, self.end_block_why = True, f"{runner.setup.operator}: {command.why}"
-            self._control(action, command.why)  # each ends the reach; recorded as itself
-        runner.say(f"console: {action} (trial {trial.number})")
+                run.end_block, run.end_block_why = True, f"{operator}: {why}"
+            self._control(action, why)  # each ends the reach; recorded as itself
 
     def _end_block_between(self, command: Command) -> None:
         """End the block between two reaches: the next reach is held (paused before it
         begins), the block's remaining trials are logged skipped, the comfort question
         asked (on a thread: the console answers meanwhile), then the run ends."""
-        self.end_block, self.end_block_why = True, f"{self.runner.setup.operator}: {command.why}"
+        run = self.run
+        run.end_block, run.end_block_why = True, f"{run.runner.setup.operator}: {command.why}"
         self._control("pause", "the block ends")
-        done = self.group[self.episode - 2] if self.episode > 1 else None
-        self._skip_rest_of_block(done)
+        done = run.group[run.episode - 2] if run.episode > 1 else None
+        run.skip_rest_of_block(done)
 
         def close() -> None:
-            if done is not None or self.group[0].index > 1:  # a reach of the block was run
-                self._ask_comfort(self.group[-1])
-            self._await_recorded()
-            self._finish()
+            if done is not None or run.group[0].index > 1:  # a reach of the block was run
+                run.ask_comfort(run.group[-1])
+            run.await_recorded()
+            run.finish()
 
         threading.Thread(target=close, daemon=True).start()
 
     def _control(self, action: str, why: str, **decision: int) -> None:
-        self._send(SessionControl(header=self._header(SessionControl), episode=self.episode,
-                                  action=action, who=self.runner.setup.operator, why=why,
-                                  **decision))  # fmt: skip
-
-    def _header(self, message_type: type[Message], source: str = OPERATOR) -> Header:
-        """The next header of ``message_type``: one sequence per key and publisher, as
-        the recorder counts loss."""
-        self.sent[message_type] += 1
-        seq = self.sent[message_type] - 1
-        return Header(stamp_ns=time.time_ns(), seq=seq, source=source)
-
-    def _stop(self, action: str, reason: str) -> None:
-        """The emergency stop (or its release), sent until every arm confirms it (as
-        ``dammrl stop --console`` does: no start-up, repeated while unconfirmed)."""
-        if self.stopper is None:  # the stack is not up yet
-            self._send(EmergencyStop(header=self._header(EmergencyStop),
-                                     engaged=action == "stop", reason=reason))  # fmt: skip
-            return
-        report = self.stopper.send(action == "stop", reason, STOP_CONFIRM_S)
-        for service, seconds in sorted(report.acknowledged.items()):
-            self.runner.say(f"console: {action} confirmed by {service} after "
-                            f"{seconds * 1000:.0f} ms")  # fmt: skip
-        for service in report.silent or ([] if report.acknowledged else ["no arm"]):
-            self.runner.say(f"console: {service} did not confirm the {action} within "
-                            f"{STOP_CONFIRM_S:.0f} s: use the hardware stop")  # fmt: skip
-
-    def _send(self, message: Message, session: Any = None) -> None:
-        """Publish ``message`` on ``session`` (default: the operator's, the hub)."""
-        session = self.hub if session is None else session
-        if session is not None:
-            session.put(key(DEFAULT_NAMESPACE, type(message)), encode(message))
+        run = self.run
+        run.bus.control(run.episode, action, run.runner.setup.operator, why, **decision)
 
 
 def condition_intent(trial: Trial, setup: SetUp) -> str:
