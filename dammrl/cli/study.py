@@ -7,11 +7,16 @@ import os
 import shlex
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from dammrl.cli.common import Commands, output_dir, print_err, progress_bar, seeds_arg
 from dammrl.study.configs import CONDITIONS, DEFAULT_CONDITIONS
 
 DEFAULT_SEEDS, DEFAULT_SETS = "120", 3  # 3 x 40 seeds: the default study in ~15 min on 2 cores
+
+
+if TYPE_CHECKING:
+    from dammrl.study.study import StudyOptions
 
 
 def register(commands: Commands) -> None:
@@ -130,51 +135,10 @@ def _conditions(text: str) -> tuple[str, ...]:
 
 
 def _study(args: argparse.Namespace) -> int:
-    from dammrl.study.report import check_page, update_page, write_report
-    from dammrl.study.study import TUNING_START, StudyOptions, load_latencies, run_study
-    from dammrl_core.errors import UsageError
+    from dammrl.study.report import SEARCH_FILE, update_page, write_report
+    from dammrl.study.study import run_study
 
-    if args.jobs < 1:
-        raise UsageError(f"--jobs must be at least 1, got {args.jobs}")
-    if not 1 <= args.sets <= len(args.seeds):
-        raise UsageError(f"--sets must be 1 to the number of seeds ({len(args.seeds)}), "
-                         f"got {args.sets}")  # fmt: skip
-    if args.tuning_seeds is not None and not 1 <= args.tuning_seeds <= 10_000:
-        raise UsageError(f"--tuning-seeds must be 1 to 10000, got {args.tuning_seeds}")
-    from dammrl_core.policy.learned import resolve_run
-
-    args.reward1 = [resolve_run(run) for run in args.reward1]
-    args.reward2 = [resolve_run(run) for run in args.reward2]
-    for run in [*args.reward1, *args.reward2]:
-        if not run.exists():
-            raise UsageError(f"no such run or checkpoint: {run}")
-    if args.recording is not None:  # read it now: a bad file fails before the study runs
-        from dammrl.stack.recording import session_traces
-
-        if not args.recording.is_file():
-            raise UsageError(f"no such recording: {args.recording}")
-        session_traces(args.recording)
-    for page in args.results:
-        check_page(page)  # before hours of reaches, not after
-    latencies = None if args.ik_latencies is None else load_latencies(args.ik_latencies)
-    tuning = None
-    if args.tuning_seeds is not None:
-        tuning = range(TUNING_START, TUNING_START + args.tuning_seeds)
-    options = StudyOptions(
-        seeds=args.seeds,
-        sets=args.sets,
-        conditions=DEFAULT_CONDITIONS if args.conditions is None else args.conditions,
-        ik_latencies=latencies,
-        tuning_seeds=tuning,
-        reward1=tuple(args.reward1),
-        reward2=tuple(args.reward2),
-        workers=args.jobs,
-        ray=args.ray,
-        recording=args.recording,
-        adaptive=args.adaptive,
-        rows=args.rows,
-    )
-    options.check()  # every refusal before the note, so a refusal is one line
+    options = _study_options(args)
     if len(args.seeds) < 20 * args.sets:
         print_err(
             f"note: {len(args.seeds) // args.sets} seeds per set: with a handful of reaches "
@@ -186,8 +150,6 @@ def _study(args: argparse.Namespace) -> int:
         update, close = progress_bar(total, description)
         closers.append(close)
         return update
-
-    from dammrl.study.report import SEARCH_FILE
 
     try:
         result = run_study(options, progress, (args.out / SEARCH_FILE,))
@@ -210,6 +172,55 @@ def _study(args: argparse.Namespace) -> int:
             print(f"{condition} ({criterion}): " + ", ".join(verdicts))
     print(f"report: {report}")
     return 0
+
+
+def _study_options(args: argparse.Namespace) -> StudyOptions:
+    """The study the command line asks for, every input checked before hours of reaches:
+    a refusal is one line."""
+    from dammrl.study.report import check_page
+    from dammrl.study.study import TUNING_START, StudyOptions, load_latencies
+    from dammrl_core.errors import UsageError
+    from dammrl_core.policy.learned import resolve_run
+
+    if args.jobs < 1:
+        raise UsageError(f"--jobs must be at least 1, got {args.jobs}")
+    if not 1 <= args.sets <= len(args.seeds):
+        raise UsageError(f"--sets must be 1 to the number of seeds ({len(args.seeds)}), "
+                         f"got {args.sets}")  # fmt: skip
+    if args.tuning_seeds is not None and not 1 <= args.tuning_seeds <= 10_000:
+        raise UsageError(f"--tuning-seeds must be 1 to 10000, got {args.tuning_seeds}")
+    runs = {reward: [resolve_run(run) for run in getattr(args, reward)]
+            for reward in ("reward1", "reward2")}  # fmt: skip
+    for run in [*runs["reward1"], *runs["reward2"]]:
+        if not run.exists():
+            raise UsageError(f"no such run or checkpoint: {run}")
+    if args.recording is not None:  # read it now: a bad file fails before the study runs
+        from dammrl.stack.recording import session_traces
+
+        if not args.recording.is_file():
+            raise UsageError(f"no such recording: {args.recording}")
+        session_traces(args.recording)
+    for page in args.results:
+        check_page(page)
+    tuning = None
+    if args.tuning_seeds is not None:
+        tuning = range(TUNING_START, TUNING_START + args.tuning_seeds)
+    options = StudyOptions(
+        seeds=args.seeds,
+        sets=args.sets,
+        conditions=DEFAULT_CONDITIONS if args.conditions is None else args.conditions,
+        ik_latencies=None if args.ik_latencies is None else load_latencies(args.ik_latencies),
+        tuning_seeds=tuning,
+        reward1=tuple(runs["reward1"]),
+        reward2=tuple(runs["reward2"]),
+        workers=args.jobs,
+        ray=args.ray,
+        recording=args.recording,
+        adaptive=args.adaptive,
+        rows=args.rows,
+    )
+    options.check()  # every refusal before the note, so a refusal is one line
+    return options
 
 
 def _verdicts(args: argparse.Namespace) -> int:
