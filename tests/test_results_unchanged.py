@@ -147,5 +147,6 @@ if __name__ == "__main__":
     if sys.argv[1:] != ["--record"]:
         sys.exit(__doc__)
     digests = {case: compute() for case, compute in CASES.items()}
-    DIGESTS.write_text(json.dumps({"platform": platform_key(), "digests": digests}, indent=1) + "\n")
+    recorded = {"platform": platform_key(), "digests": digests}
+    DIGESTS.write_text(json.dumps(recorded, indent=1) + "\n")
     print(json.dumps(digests, indent=1))
