@@ -66,8 +66,9 @@ class RecordedPhysics:
             q: np.ndarray, button_xy: tuple[float, float], rng: np.random.Generator | None = None
         ) -> RobotState:
             self.episodes.append((q.copy(), button_xy, copy.deepcopy(rng), []))
-            self.ends.append(np.empty(0))
-            return reset(q, button_xy, rng)
+            state = reset(q, button_xy, rng)
+            self.ends.append(np.concatenate([sim.data.qpos, sim.data.qvel]))  # none stepped yet
+            return state
 
         def recording_step(n_steps: int) -> None:
             self.episodes[-1][3].append(sim.data.ctrl.copy())
