@@ -4,7 +4,11 @@
     (whole reaches: IK, human, metrics included) against raw ``mj_step`` on the same
     compiled model, with the runner's shortcuts (the idle fast-forward, stretches of quiet
     ticks in one go) and ticking every period; each the best of ``--repeat`` interleaved
-    timings (on a shared machine the others' work only slows a run down);
+    timings (on a shared machine the others' work only slows a run down). Two baselines:
+    the arm held at a start posture (the issue's), and the same reaches' own physics
+    replayed through bare ``mj_step`` (every period's actuator inputs recorded, then
+    stepped again from the same start, bit for bit: the loop's true ceiling, which is
+    faster per step than the held arm);
 (b) median / p95 solve time and accuracy of the two IK solvers on the same micro-step
     targets, and the lognormal fit of each (the IK latency model's parameters);
 (c) wall time of one complete event-triggered reach (pinocchio and ikpy).
@@ -15,9 +19,11 @@
 from __future__ import annotations
 
 import argparse
+import copy
 import json
 import time
 from pathlib import Path
+from typing import Any
 
 import mujoco
 import numpy as np
@@ -25,6 +31,7 @@ import numpy as np
 from dammrl.stack.runner import ReachRunner, ReachSettings
 from dammrl_core.control.settings import ControllerSettings
 from dammrl_core.ik import DampedLeastSquaresIK, IkpyIK
+from dammrl_core.state import RobotState
 
 
 def raw_mj_step_rates(runner: ReachRunner, n_steps: int = 200_000) -> tuple[float, float]:
@@ -40,6 +47,64 @@ def raw_mj_step_rates(runner: ReachRunner, n_steps: int = 200_000) -> tuple[floa
     start = time.process_time()
     mujoco.mj_step(model, data, nstep=n_steps)
     return chunked, n_steps / (time.process_time() - start)
+
+
+class RecordedPhysics:
+    """Every episode a ticking runner's sim steps (its reset and each period's actuator
+    inputs), kept to be stepped again through bare ``mj_step``: the physics of the same
+    reaches without the loop around it."""
+
+    def __init__(self, runner: ReachRunner) -> None:
+        if runner.settings.fast_forward:
+            raise ValueError("record a ticking runner (fast_forward=False): one step per period")
+        self.runner, sim = runner, runner.sim
+        self.episodes: list[tuple[np.ndarray, tuple[float, float], Any, list[np.ndarray]]] = []
+        self.ends: list[np.ndarray] = []  # each episode's last state (qpos, qvel)
+        reset, step = sim.reset, sim.step
+
+        def recording_reset(
+            q: np.ndarray, button_xy: tuple[float, float], rng: np.random.Generator | None = None
+        ) -> RobotState:
+            self.episodes.append((q.copy(), button_xy, copy.deepcopy(rng), []))
+            state = reset(q, button_xy, rng)
+            self.ends.append(np.concatenate([sim.data.qpos, sim.data.qvel]))  # none stepped yet
+            return state
+
+        def recording_step(n_steps: int) -> None:
+            self.episodes[-1][3].append(sim.data.ctrl.copy())
+            step(n_steps)
+            self.ends[-1] = np.concatenate([sim.data.qpos, sim.data.qvel])
+
+        self._reset = reset
+        sim.reset = recording_reset  # type: ignore[method-assign]
+        sim.step = recording_step  # type: ignore[method-assign]
+
+    def replay(self) -> tuple[float, int, bool]:
+        """(processor seconds, physics steps, every episode ended in the state it did)."""
+        sim, substeps = self.runner.sim, self.runner.substeps
+        model, data = sim.model, sim.data
+        spent, steps, same = 0.0, 0, True
+        for (q, button_xy, rng, inputs), end in zip(self.episodes, self.ends, strict=True):
+            self._reset(q, button_xy, copy.deepcopy(rng))
+            start = time.process_time()
+            for ctrl in inputs:
+                data.ctrl[:] = ctrl
+                mujoco.mj_step(model, data, nstep=substeps)
+            spent += time.process_time() - start
+            steps += len(inputs) * substeps
+            same &= bool(np.array_equal(np.concatenate([data.qpos, data.qvel]), end))
+        return spent, steps, same
+
+
+def replayed_rate(settings: ReachSettings, n_reaches: int) -> tuple[float, bool]:
+    """(steps per processor second, replayed bit for bit) of the physics of the reaches
+    ``loop_rate`` runs, through bare ``mj_step`` one control period per call."""
+    runner = ReachRunner(settings.model_copy(update={"fast_forward": False}))
+    recorded = RecordedPhysics(runner)
+    for seed in range(n_reaches):
+        runner.run(seed, (1, 1), trigger="event")
+    spent, steps, same = recorded.replay()
+    return steps / spent, same
 
 
 def loop_rate(runner: ReachRunner, n_reaches: int) -> tuple[float, float]:
@@ -96,13 +161,15 @@ def main() -> None:
     runner = ReachRunner()
     runner.run(0)  # warm up (imports, caches)
     ticker = ReachRunner(ReachSettings(fast_forward=False))
-    raw, loops, ticks = [], [], []
+    raw, loops, ticks, replays = [], [], [], []
     for _ in range(args.repeat):  # interleaved: the machine's load changes
         raw.append(raw_mj_step_rates(runner))
         loops.append(loop_rate(runner, args.reaches))
         ticks.append(loop_rate(ticker, args.reaches // 2))
+        replays.append(replayed_rate(runner.settings, args.reaches))
     chunked, single = max(r[0] for r in raw), max(r[1] for r in raw)
     loop, ticking = max(r[0] for r in loops), max(r[0] for r in ticks)
+    replayed, bitwise = max(r[0] for r in replays), all(r[1] for r in replays)
     control_hz, physics_hz = 1 / runner.control_dt_s, 1 / runner.sim.timestep_s
     print(f"(a) physics throughput (control {control_hz:.0f} Hz, physics {physics_hz:.0f} Hz)")
     print(f"    raw mj_step, one call              : {single:9.0f} steps/s")
@@ -114,6 +181,11 @@ def main() -> None:
     print(
         f"    same, ticking every period         : {ticking:9.0f} steps/s  "
         f"ratio {ticking / chunked:.2f} / {ticking / single:.2f}"
+    )
+    print(
+        f"    the same reaches' physics replayed : {replayed:9.0f} steps/s  "
+        f"loop / replayed {loop / replayed:.2f} "
+        f"({'bit for bit' if bitwise else 'NOT bit for bit: the baseline is off'})"
     )
 
     pairs = ik_targets(runner, args.targets)
@@ -153,6 +225,8 @@ def main() -> None:
             "loop, steps/s": loop,
             "loop / raw mj_step": loop / single,
             "ticking / raw mj_step": ticking / single,
+            "replayed physics, steps/s": replayed,
+            "loop / replayed physics": loop / replayed,
             "ik pinocchio median [ms]": dls["median_ms"],
             "ik ikpy median [ms]": ikpy["median_ms"],
             "ik speed-up": ikpy["median_ms"] / dls["median_ms"],

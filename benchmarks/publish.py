@@ -87,12 +87,18 @@ FIGURES = (
     Figure("core", ("loop / raw mj_step",), "in-process loop / raw mj_step", ">= 0.9", True,
            0.1),
     Figure("core", ("ticking / raw mj_step",), "the same, ticking every period", "", True, 0.1),
+    Figure("core", ("loop / replayed physics",), "in-process loop / its own physics "
+           "replayed", "", True, 0.1),
     Figure("core", ("ik speed-up",), "IK speed-up, pinocchio / ikpy (median)", ">= 100",
            True, 0.3, 0),
     Figure("rl", ("environment / raw mj_step, nominal",), "RL environment / raw mj_step, "
            "nominal arm", ">= 0.8", True, 0.1),
     Figure("rl", ("environment / raw mj_step, randomised",), "RL environment / raw mj_step, "
            "randomised arm", ">= 0.8", True, 0.1),
+    Figure("rl", ("environment / its physics replayed, nominal",), "RL environment / its "
+           "own physics replayed, nominal arm", "", True, 0.1),
+    Figure("rl", ("environment / its physics replayed, randomised",), "RL environment / "
+           "its own physics replayed, randomised arm", "", True, 0.1),
 )  # fmt: skip
 
 

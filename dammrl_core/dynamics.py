@@ -46,6 +46,15 @@ class ArmModel:
         tau = pin.rnea(self.model, self.data, q, dq, ddq)
         return np.asarray(tau + self.robot.damping * dq)
 
+    def inverse_dynamics_many(self, q: np.ndarray, dq: np.ndarray, ddq: np.ndarray) -> np.ndarray:
+        """``inverse_dynamics`` row by row of (n, 6) arrays (the same numbers bit for bit:
+        the damping term is the same elementwise product and sum, done once for all rows)."""
+        rnea, model, data = pin.rnea, self.model, self.data
+        tau = np.empty_like(q)
+        for k in range(len(q)):
+            tau[k] = rnea(model, data, q[k], dq[k], ddq[k])
+        return np.asarray(tau + self.robot.damping * dq)
+
     def ee_drift_acceleration(self, q: np.ndarray, dq: np.ndarray) -> np.ndarray:
         """Jdot(q, dq) dq: the end-effector acceleration at zero joint acceleration (3,)."""
         pin.forwardKinematics(self.model, self.data, q, dq, np.zeros_like(q))

@@ -55,6 +55,12 @@ class _PlannedStep:
     event: StepEvent
 
 
+def first_true(flags: np.ndarray) -> int:
+    """The index of the first true of ``flags`` (n,); n when none."""
+    first = int(np.argmax(flags)) if len(flags) else 0
+    return first if first < len(flags) and flags[first] else len(flags)
+
+
 def latency_model(
     settings: ControllerSettings, rng: np.random.Generator, replay: Sequence[float] | None = None
 ) -> IKLatency:
@@ -350,17 +356,16 @@ class Controller:
         would do more than command the reference: a limit broken, a planned step ready,
         the trigger fired or timed out; n when none. The same tests as ``tick``: what bulk
         arithmetic finds near the admission sphere is confirmed with the tick's own."""
-        n = len(times)
-        limits = self.limits
-        eventful = np.any(np.abs(q - limits.q_mid) > limits.q_half_span, axis=1)
-        eventful |= np.any(np.abs(dq) > limits.dq_max, axis=1)
+        limits, either = self.limits, np.logical_or.reduce  # ndarray.any: a slow wrapper
+        eventful = either(np.abs(q - limits.q_mid) > limits.q_half_span, axis=1)
+        eventful |= either(np.abs(dq) > limits.dq_max, axis=1)
         if self.planned:
             eventful |= times >= self.planned[0].ready_s
-        first = int(np.argmax(eventful)) if eventful.any() else n
+        first = first_true(eventful)
         if not self.awaiting_trigger or self.subgoal is None:
             return first
         late = (times - self.segment.t0_s) > self.settings.trigger_timeout_s
-        first = min(first, int(np.argmax(late)) if late.any() else n)
+        first = min(first, first_true(late))
         error = self.subgoal - ee_pos[:first]
         # a few ulps from the tick's own sum of squares at most: only these may be inside
         near = np.sum(error * error, axis=1) <= self.radius_m**2 * (1 + 1e-9)
@@ -377,14 +382,15 @@ class Controller:
         resting = times >= segment.t0_s + segment.duration_s
         moving = int(np.argmax(resting)) if resting.any() else len(times)
         tau = np.empty_like(q_ref)
-        dynamics = self.arm.inverse_dynamics
-        for k in range(moving):
-            tau[k] = dynamics(q_ref[k], dq_ref[k], ddq_ref[k])
+        tau[:moving] = self.arm.inverse_dynamics_many(
+            q_ref[:moving], dq_ref[:moving], ddq_ref[:moving]
+        )
         if moving < len(times):  # the same reference at rest: the same torque
             cached = self._rest_command is not None and self._rest_segment is segment
             if cached and self._rest_command is not None:
                 tau[moving:] = self._rest_command.tau_ff
             else:
+                dynamics = self.arm.inverse_dynamics
                 tau[moving:] = dynamics(q_ref[moving], dq_ref[moving], ddq_ref[moving])
         tau = safety.saturate_torque(tau, self.robot.tau_max)  # elementwise, as per tick
         return ReferenceInputs(q_ref, dq_ref, tau, resting)

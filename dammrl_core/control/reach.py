@@ -22,7 +22,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from dammrl_core.control.controller import Controller
+from dammrl_core.control.controller import Controller, first_true
 from dammrl_core.control.settings import ControllerSettings
 from dammrl_core.dynamics import ArmModel
 from dammrl_core.ik import IKSolver
@@ -231,7 +231,7 @@ class Reach:
         eventful = (travel >= press_travel_m) | (times >= self.timeout_s)
         if self.pending is not None:
             eventful |= times >= self.pending.intent.t_s - DUE_TOLERANCE_S
-        first = int(np.argmax(eventful)) if eventful.any() else len(times)
+        first = first_true(eventful)
         column = {k: rows[:first, SENSOR_LAYOUT[k]] for k in ("q", "dq", "ee_pos", "ee_vel")}
         return self.controller.first_event(times[:first], column["q"], column["dq"],
                                            column["ee_pos"], column["ee_vel"])  # fmt: skip

@@ -249,7 +249,7 @@ class Simulation:
         if noisy:
             self._coast_noise = self.rng.bit_generator.state
         shape = (periods, self.model.nsensordata)
-        noise = self._noise_std * self.rng.standard_normal(shape) if noisy else np.zeros(shape)
+        noise = self._noise_std * self.rng.standard_normal(shape) if noisy else None
         ee = self._sensor_slices[3]
         raw = np.empty((periods, self.model.nsensordata))
         times = np.empty(periods)
@@ -269,7 +269,8 @@ class Simulation:
                 times[k] = data.time
         else:  # the end-effector as read (noise included) against the sphere, in floats
             limit = near[1] ** 2 * (1 + 1e-9)  # a stop a tick early costs a tick, no more
-            point_noise = (near[0] - noise[:, ee]).tolist()
+            point = near[0] if noise is None else near[0] - noise[:, ee]
+            point_noise = np.broadcast_to(point, (periods, 3)).tolist()
             i = ee.start
             for k in range(periods):
                 if k:
@@ -289,7 +290,7 @@ class Simulation:
         rows = raw.copy()
         true_ee = rows[:, ee].copy()
         rows[:, self._sensor_slices[0]] += self.joint_offset
-        if noisy:
+        if noise is not None:
             rows += noise[:stepped]
         return Stretch(times, rows, true_ee, raw)
 
