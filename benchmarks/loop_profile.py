@@ -19,12 +19,12 @@ import mujoco
 import numpy as np
 from mujoco import rollout
 
-import dammrl.runner as runner_module
+import dammrl.stack.runner as runner_module
 import dammrl_core.sim.simulation as simulation_module
-from dammrl.rl import env as env_module
-from dammrl.rl.config import RewardWeights
-from dammrl.rl.env import ACTIONS, ReachEnv
-from dammrl.runner import ReachRunner, ReachSettings
+from dammrl.learning.rl import env as env_module
+from dammrl.learning.rl.config import RewardWeights
+from dammrl.learning.rl.env import ACTIONS, ReachEnv
+from dammrl.stack.runner import ReachRunner, ReachSettings
 from dammrl_core.control import controller, reach, trajectory
 from dammrl_core.ik import DampedLeastSquaresIK
 

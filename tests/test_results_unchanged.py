@@ -26,10 +26,10 @@ from typing import Any
 import numpy as np
 import pytest
 
-from dammrl.rl.config import RewardWeights, TrainSettings
-from dammrl.rl.env import ACTIONS, ReachEnv
-from dammrl.rl.train import train
-from dammrl.runner import ReachResult, ReachRunner, ReachSettings
+from dammrl.learning.rl.config import RewardWeights, TrainSettings
+from dammrl.learning.rl.env import ACTIONS, ReachEnv
+from dammrl.learning.rl.train import train
+from dammrl.stack.runner import ReachResult, ReachRunner, ReachSettings
 from dammrl_core.control.settings import ControllerSettings
 
 DIGESTS = Path(__file__).with_name("results_unchanged.json")
