@@ -484,7 +484,7 @@ def test_the_comparison_runs_every_arm_counts_its_progress_and_reports_every_goa
     report = write_report(results, plan, tmp_path, "registered: a test").read_text()
     assert "best fixed on 2 seeds (too few to be an oracle)" in report
     assert "goal 3" in report and "| comfortable only with small steps |" in report
-    assert "false-positive rate" in report and "1,000 gates of 10 reaches" in report
+    assert "false-positive rate" in report and "1,000 gates of 10 and of 200 reaches" in report
     for name in ("results.json", "regret.png", "coadaptation.png"):
         assert (tmp_path / name).stat().st_size > 0
 

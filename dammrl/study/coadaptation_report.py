@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from dammrl.learning.adapt import deployment_rate
+from dammrl.learning.adapt import RefineSettings, deployment_rate
 from dammrl.study.coadaptation import (
     MARGIN_COMFORT,
     MARGIN_S,
@@ -134,26 +134,31 @@ def gate_rates_table(results: list[PersonResult], plan: Plan) -> list[str]:
     """The gate's false-positive rate and power for each kind of person, on the per-seed
     gains of the refined candidate over the shipped policy on the test seeds (a larger
     sample of how two such policies differ than the gate's own), shifted to a true gain
-    of 0 and of the margin."""
-    gate_seeds = plan.refine.gate_seeds
+    of 0 and of the margin: at this comparison's gate size and at ``dammrl adapt``'s."""
+    sizes = sorted({plan.refine.gate_seeds, RefineSettings().gate_seeds})
     lines = [
-        f"The gate's error rates: 1,000 gates of {gate_seeds} reaches each, drawn from the "
-        "per-seed gains (shipped minus refined time to success) on the test seeds, shifted "
-        f"to a true mean gain of 0 s (deployed: a false positive; nominal 2.5 %) and of "
-        f"{MARGIN_S:g} s (deployed: the power).",
+        f"The gate's error rates: 1,000 gates of {' and of '.join(map(str, sizes))} reaches "
+        "each, drawn from the per-seed gains (shipped minus refined time to success) on the "
+        "test seeds, shifted to a true mean gain of 0 s (deployed: a false positive; nominal "
+        f"2.5 %) and of {MARGIN_S:g} s (deployed: the power). This comparison's gate ran "
+        f"{plan.refine.gate_seeds} reaches per policy; `dammrl adapt`'s runs "
+        f"{RefineSettings().gate_seeds}.",
         "",
-        "| person | gains: mean, sd [s]; seeds with a different outcome | false-positive rate "
-        f"| power at {MARGIN_S:g} s |",
-        "|---|---|---|---|",
+        "| person | gains: mean, sd [s]; seeds with a different outcome | "
+        + " | ".join(f"false-positive rate, power at {MARGIN_S:g} s ({n} reaches)" for n in sizes)
+        + " |",
+        "|---|---|" + "---|" * len(sizes),
     ]
     for result in results:
         by_seed = {r.seed: r.restricted_s for r in result.arms["shipped"]}
         gains = np.array([by_seed[r.seed] - r.restricted_s for r in result.arms["refined"]])
-        rates = [wilson(*deployment_rate(gains, true, gate_seeds, plan.refine.min_gain_s))
-                 for true in (0.0, MARGIN_S)]  # fmt: skip
+        cells = []
+        for n in sizes:
+            false, power = (wilson(*deployment_rate(gains, true, n, plan.refine.min_gain_s))
+                            for true in (0.0, MARGIN_S))  # fmt: skip
+            cells.append(f"{false.text(100, 1)} %, {power.text(100, 0)} %")
         lines.append(f"| {result.kind.name} | {gains.mean():+.2f}, {gains.std(ddof=1):.2f}; "
-                     f"{np.mean(gains != 0):.0%} | {rates[0].text(100, 1)} % | "
-                     f"{rates[1].text(100, 0)} % |")  # fmt: skip
+                     f"{np.mean(gains != 0):.0%} | " + " | ".join(cells) + " |")  # fmt: skip
     return lines
 
 
