@@ -292,6 +292,11 @@ def _plain(value: Any) -> Any:
     return value
 
 
+COLOURS = {arm: f"C{k}" for k, arm in enumerate(
+    ("shipped", "oracle", "adaptive", "interpolated", "refined", "as deployed"))}  # fmt: skip
+"""One colour per arm in every figure."""
+
+
 def _levels_figure(results: list[PersonResult], path: Path) -> None:
     import matplotlib
 
@@ -313,7 +318,15 @@ def _levels_figure(results: list[PersonResult], path: Path) -> None:
             means = np.array([e.value for e in estimates])
             errors = np.array([[e.value - e.low for e in estimates],
                                [e.high - e.value for e in estimates]])  # fmt: skip
-            ax.barh(y + offset, means, height=height, xerr=errors, label=arm, capsize=2)
+            ax.barh(
+                y + offset,
+                means,
+                height=height,
+                xerr=errors,
+                label=arm,
+                capsize=2,
+                color=COLOURS[arm],
+            )
     for ax, (title, _) in zip(axes, measures, strict=True):
         ax.set_yticks(y, [r.kind.name for r in results])
         ax.invert_yaxis()
@@ -345,7 +358,7 @@ def _regret_figure(results: list[PersonResult], path: Path) -> None:
         for arm in ("shipped", "adaptive", "interpolated", "refined"):
             if result.arms.get(arm):
                 curve = regret_curve(result, arm)
-                ax.plot(np.arange(1, len(curve) + 1), curve, label=arm)
+                ax.plot(np.arange(1, len(curve) + 1), curve, label=arm, color=COLOURS[arm])
         ax.axhline(0.0, color="grey", linewidth=0.5)
         for boundary in range(SESSION_REACHES, len(result.arms["shipped"]), SESSION_REACHES):
             ax.axvline(boundary + 0.5, color="grey", linewidth=0.5, linestyle=":")
