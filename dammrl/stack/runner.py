@@ -26,7 +26,7 @@ from dammrl_core.coadaptation import (
     ReachRecord,
     robot_model_of,
 )
-from dammrl_core.control.controller import Controller, latency_model
+from dammrl_core.control.controller import Controller, first_true, latency_model
 from dammrl_core.control.reach import HOLD_OBSERVATION_S, Answer, Reach, Trajectory
 from dammrl_core.control.settings import ControllerSettings, check_workspace
 from dammrl_core.dynamics import ArmModel
@@ -430,4 +430,4 @@ class Episode:
             )
             if violation is not None:
                 eventful[violation] = True
-        return int(np.argmax(eventful)) if eventful.any() else len(times)
+        return first_true(eventful)

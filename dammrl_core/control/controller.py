@@ -380,7 +380,7 @@ class Controller:
         segment = self.segment
         q_ref, dq_ref, ddq_ref = segment.sample_many(times)
         resting = times >= segment.t0_s + segment.duration_s
-        moving = int(np.argmax(resting)) if resting.any() else len(times)
+        moving = first_true(resting)
         tau = np.empty_like(q_ref)
         tau[:moving] = self.arm.inverse_dynamics_many(
             q_ref[:moving], dq_ref[:moving], ddq_ref[:moving]
