@@ -1,6 +1,8 @@
 """The loop's speed work changes no result: whole reaches, the RL environment's steps, a
 training run's rewards and a study's records hash to the digests recorded from the code
-before it (``results_unchanged.json``, recorded at commit 56f1e4a).
+before it (``results_unchanged.json``, recorded at commit 56f1e4a; re-recorded once, when a
+reset began restoring the actuators' gains: only the torque read at each reach's first
+sample changed, and with it the effort and what follows from it).
 
 Floating-point results are only reproducible bit for bit with the same libraries on the
 same kind of processor, so the digests are keyed by both; elsewhere this test skips and

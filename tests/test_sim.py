@@ -129,6 +129,20 @@ def test_reset_restores_the_nominal_model() -> None:
     np.testing.assert_array_equal(sim.joint_offset, np.zeros(6))
 
 
+def test_a_reset_reads_the_same_state_whatever_ran_before() -> None:
+    """A command latches its gains into the model; a reset restores them, so the state a
+    reset reads (its torque included) does not depend on an earlier reach in the process
+    (a study's record would otherwise depend on which worker ran it)."""
+    used, fresh = _sim(SimSettings()), _sim(SimSettings())
+    used.reset(HOME_Q, (0.5, 0.0))
+    used.apply(JointCommand(HOME_Q + 0.3, np.zeros(6), np.zeros(6), np.full(6, 50.0),
+                            np.full(6, 5.0)))  # fmt: skip
+    used.step(10)
+    again, first = used.reset(HOME_Q, (0.5, 0.0)), fresh.reset(HOME_Q, (0.5, 0.0))
+    np.testing.assert_array_equal(again.tau, first.tau)
+    np.testing.assert_array_equal(used.model.actuator_biasprm, fresh.model.actuator_biasprm)
+
+
 def test_kinematic_randomisation_moves_the_true_arm_not_the_reported_angles() -> None:
     """Link lengths within 2 % and encoder offsets within 5 mrad: the arm reports the
     commanded posture while its fingertip is millimetres from where the nominal model

@@ -63,10 +63,11 @@ class Simulation:
         self.model = build_scene(self.robot, self.layout)
         self.data = mujoco.MjData(self.model)
         self.rng = np.random.default_rng(seed)
-        self._nominal = {
-            name: getattr(self.model, name).copy()
-            for name in ("body_mass", "body_inertia", "dof_damping", "dof_frictionloss", "body_pos")
-        }
+        # restored at every reset: the gains a command latches included, so the state a
+        # reset reads (its torque) is the same whatever reach ran before in this process
+        restored = ("body_mass", "body_inertia", "dof_damping", "dof_frictionloss", "body_pos",
+                    "actuator_biasprm")  # fmt: skip
+        self._nominal = {name: getattr(self.model, name).copy() for name in restored}
         self._n = len(self.robot.joint_names)
         self.joint_offset = np.zeros(self._n)  # encoder zero offsets [rad] (randomisation)
         self._button_body = self.model.body("button").id
