@@ -254,13 +254,20 @@ def test_the_semi_virtual_profile_runs_an_episode_from_the_passed_through_sensor
 def test_the_real_profile_runs_an_episode_on_the_passed_through_servo_bus(
     tmp_path: Path,
 ) -> None:
-    """The emulated arm stands in for the device at the robot's DAMMRL_DYNAMIXEL_PORT."""
-    from dammrl.devices.emulators.arm import emulated_arm
+    """The emulated arm stands in for the device at the robot's DAMMRL_DYNAMIXEL_PORT: its
+    own process at the servos' priority (`dammrl robot emulate`), as a lab runs it."""
     from dammrl_core.arm.dynamixel.calibration import Calibration, save_calibration
 
     save_calibration(Calibration(), tmp_path / "arm_calibration.json")
-    with emulated_arm(tmp_path / "ttyROBOT"):
+    link = tmp_path / "ttyROBOT"
+    arm = subprocess.Popen([sys.executable, "-m", "dammrl", "robot", "emulate", "--port",
+                            str(link)], stdin=subprocess.DEVNULL)  # fmt: skip
+    try:
+        wait_for(link.exists, 30, "the emulated servo bus")
         observer = _run_profile("real", tmp_path)
+    finally:
+        arm.terminate()
+        arm.wait(15)
     assert observer.of(EpisodeResult)
     assert list((tmp_path / "sessions").glob("*.mcap")), "the recorder wrote the session"
 

@@ -187,11 +187,12 @@ def _emulate(args: argparse.Namespace) -> int:
     """Serve frames on a pseudo-terminal: taps, keys pressed, or a simulated patient."""
     from dammrl.devices.emulators.pad import Press, SensorEmulator
     from dammrl.devices.sensor import KEYS, keyboard
-    from services.common.runtime import stop_on_signals
+    from services.common.runtime import prioritise, stop_on_signals
 
     if args.pattern == "keyboard" and not sys.stdin.isatty():
         raise DammrlError("the keyboard pattern needs a terminal (run it in its own tmux pane)")
     stop = stop_on_signals()
+    prioritise(True)  # it stands in for the pad's own microcontroller: a busy host is not its
     stop_after(stop, args.seconds)
     script = [Press(0.2, 0.2, 1.0)] if args.pattern == "taps" else []
     loop_s = args.period if args.pattern == "taps" else None

@@ -119,7 +119,7 @@ class Monitor:
         self.arrivals.append(t_s)
         while self.arrivals and self.arrivals[0] < t_s - 1.0:
             self.arrivals.popleft()
-        decision = self.decoder.update(t_s, self.raw, arrival.lost_frames)
+        decision = self.decoder.update(arrival.sampled_s, self.raw, arrival.lost_frames)
         if decision is None:
             return
         self.count += 1

@@ -2,31 +2,81 @@
 
 One reader serves the intent service, ``dammrl sensor monitor|calibrate`` and the
 benchmark: it opens the port (again with exponential back-off after it disappears),
-waits at most ``poll_s`` for bytes, and returns the valid frames with their arrival time
-and how many frames were lost before each (from the sequence numbers).
+waits at most ``poll_s`` for bytes, and returns the valid frames with their arrival time,
+the time each sample was taken (on this host's clock, from the pad's own count) and how
+many frames were lost before each (from the sequence numbers).
+
+A busy host delivers a serial port's bytes late and in bursts (the kernel hands them to
+the reader from a worker thread that competes for the processor: on a 2-core machine
+beside two CPU hogs, seconds late). The pad's count says when each sample was taken, so a
+press is timed and decoded as the person made it however late its frames arrive; only a
+lost frame breaks a press.
 """
 
 from __future__ import annotations
 
 import contextlib
 import logging
+import math
 import time
 from dataclasses import dataclass
 
 import serial
 
-from dammrl_core.intent.pad.protocol import BAUD_RATE, Frame, FrameParser, frames_lost
+from dammrl_core.intent.pad.protocol import (
+    BAUD_RATE,
+    SAMPLE_RATE_HZ,
+    SEQ_MODULO,
+    Frame,
+    FrameParser,
+    frames_lost,
+)
 
 log = logging.getLogger("dammrl.intent")
 
 FIRST_BACKOFF_S = 0.5
 
 
+MAX_CLOCK_DRIFT = 1e-3
+"""How fast the pad's clock may run slow against this host's [s/s] (a crystal's is ~1e-4)."""
+
+
 @dataclass(frozen=True)
 class Arrival:
     t_s: float  # time.monotonic() when the frame was read off the port
     frame: Frame
-    lost_frames: int | None = 0  # missing just before it; None: the first since opening
+    lost_frames: int | None  # missing just before it; None: the first since opening
+    sampled_s: float  # when the pad took it, on time.monotonic()'s clock (PadClock)
+
+
+class PadClock:
+    """When each sample was taken, on this host's monotonic clock: the pad's count times
+    its period, plus the offset of the least delayed arrival seen (the others came later
+    than their sample by a delivery delay). The offset may grow by ``MAX_CLOCK_DRIFT`` per
+    second, so a pad whose clock runs slow is followed; the times never run backwards."""
+
+    def __init__(self, period_s: float = 1.0 / SAMPLE_RATE_HZ) -> None:
+        self.period_s = period_s
+        self.reset()
+
+    def reset(self) -> None:
+        """A new device, or the same one again: nothing known of its clock."""
+        self._seq: int | None = None
+        self._count = 0
+        self._offset_s = self._offset_at_s = self._last_s = 0.0
+
+    def sampled_at(self, seq: int, arrival_s: float) -> float:
+        """The time the sample ``seq`` arriving at ``arrival_s`` was taken [s]."""
+        if self._seq is None:
+            self._offset_s, self._offset_at_s, self._last_s = arrival_s, arrival_s, -math.inf
+        else:
+            self._count += (seq - self._seq) % SEQ_MODULO
+        self._seq = seq
+        device_s = self._count * self.period_s
+        drifted = self._offset_s + MAX_CLOCK_DRIFT * (arrival_s - self._offset_at_s)
+        self._offset_s, self._offset_at_s = min(drifted, arrival_s - device_s), arrival_s
+        self._last_s = max(self._last_s, device_s + self._offset_s)
+        return self._last_s
 
 
 class SerialSensor:
@@ -46,6 +96,7 @@ class SerialSensor:
         self.last_frame_s = 0.0
         self.last_error = ""
         self._last_seq: int | None = None  # None: nothing received since the port opened
+        self.clock = PadClock()
         self._retry_at, self._backoff_s = 0.0, FIRST_BACKOFF_S
 
     @property
@@ -78,7 +129,7 @@ class SerialSensor:
     def _arrival(self, t_s: float, frame: Frame) -> Arrival:
         lost = frames_lost(self._last_seq, frame.seq)
         self._last_seq = frame.seq
-        return Arrival(t_s, frame, lost)
+        return Arrival(t_s, frame, lost, self.clock.sampled_at(frame.seq, t_s))
 
     def close(self) -> None:
         if self.port is not None:
@@ -86,6 +137,7 @@ class SerialSensor:
                 self.port.close()
         self.port = None
         self._last_seq = None  # whatever comes next may be another device, or a restarted one
+        self.clock.reset()
 
     def __enter__(self) -> SerialSensor:
         return self

@@ -75,7 +75,8 @@ class PadSource:
     def poll(self, now_s: float) -> Decided | None:
         decided = None
         for arrival in self.sensor.read():  # waits a few ms for bytes
-            decision = self.decoder.update(arrival.t_s, arrival.frame.raw, arrival.lost_frames)
+            decision = self.decoder.update(arrival.sampled_s, arrival.frame.raw,
+                                           arrival.lost_frames)  # fmt: skip
             self._readings.append(Reading(arrival.frame.seq, arrival.frame.raw,
                                           self.decoder.level,
                                           self.decoder.pressing_since is not None))  # fmt: skip
