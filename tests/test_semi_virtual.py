@@ -12,6 +12,7 @@ import pytest
 
 from dammrl.devices.emulators.pad import Press, SensorEmulator
 from dammrl.stack.recording import session_traces
+from dammrl_core.task import TaskSettings
 from schemas import DecisionRequest, EpisodeResult, Health, Intent, ModelChoice, SensorSample
 from tests.busutil import Lines, Observer, free_port, start_patient, start_service, wait_for
 
@@ -122,7 +123,7 @@ def test_a_simulated_patient_at_the_pad_is_recognised_by_the_policys_posterior(
     assert traces.pressure_normalised and traces.pressure.max() > 0.8  # firm presses seen
     assert len(traces.decisions) == len(intents) and len(traces.error_t) > 100
     final_error = float(np.linalg.norm(traces.error_m[-1]))
-    assert final_error < 0.02 and png.stat().st_size > 20_000
+    assert final_error < TaskSettings().goal_tolerance_m and png.stat().st_size > 20_000
 
 
 def test_the_intent_service_survives_every_wire_fault_and_still_answers(tmp_path: Path) -> None:

@@ -80,8 +80,8 @@ def summary_chart(records: list[Record], configurations: list[Configuration],
                        capsize=2, label=condition)  # fmt: skip
         ax.set_title(title)
         ax.set_xticks(range(len(keys)), keys, rotation=60, ha="right", fontsize=8)
-    handles, labels = axes.flat[0].get_legend_handles_labels()  # above the panels, on no bar
-    fig.legend(handles, labels, loc="upper right", ncols=len(conditions), fontsize=9)
+    handles, labels = axes.flat[0].get_legend_handles_labels()  # below the panels, on no bar
+    fig.legend(handles, labels, loc="outside lower center", ncols=len(conditions), fontsize=9)
     fig.suptitle(
         "Every configuration on the held-out seeds (95 % intervals: t over training "
         "runs for a learned configuration, over reaches otherwise)"
