@@ -177,7 +177,7 @@ def _rebaseline(args: argparse.Namespace) -> int:
 def _emulate(args: argparse.Namespace) -> int:
     from dammrl.cli.sensor import stop_after
     from dammrl.devices.emulators.emg import EmgStream
-    from services.common.runtime import prioritise, stop_on_signals
+    from services.common.runtime import stop_on_signals
 
     if not 1 <= args.channels <= 64:
         raise ConfigurationError(f"--channels {args.channels}: 1-64")
@@ -186,7 +186,6 @@ def _emulate(args: argparse.Namespace) -> int:
             f"--source-id: at most 200 characters, {len(args.source_id)} given"
         )
     stop = stop_on_signals()
-    prioritise(True)  # it stands in for the amplifier's own computer: a busy host is not its
     stop_after(stop, args.seconds)
     synth = _synth(args)
     model = synth.model
