@@ -423,3 +423,36 @@ def test_the_controller_gives_a_policy_that_came_alive_late_its_whole_wait() -> 
                           ModelSet(), never)  # type: ignore[arg-type]  # fmt: skip
     node._wait_for_peers(threading.Event())
     assert node.choice[0] != 2  # its 0.5 s from the start ran out before the choice came
+
+
+def test_between_two_reaches_the_controller_holds_the_arm_until_its_reset() -> None:
+    """The next reach announced, the arm not yet reset: each state of the last reach is
+    answered with a hold of its final reference for that reach (else the arm holds for
+    want of commands, and says so, between every two reaches on a loaded machine)."""
+    from dammrl_core.control.settings import ControllerSettings
+    from dammrl_core.models import ModelSet
+    from dammrl_core.robot import RobotSettings
+    from dammrl_core.state import JointCommand as CoreCommand
+    from dammrl_core.state import RobotState as CoreState
+    from dammrl_core.task import TaskSettings
+    from schemas import JointCommand
+    from services.common import convert
+    from services.controller.node import ControllerNode
+
+    bus = FakeBus()
+    node = ControllerNode(ControllerSettings(), TaskSettings(), RobotSettings(), ModelSet(),
+                          bus)  # type: ignore[arg-type]  # fmt: skip
+    q = np.array(TaskSettings().home_q_rad)
+    node._next_episode()
+    node.last_command = CoreCommand(q, np.zeros(6), np.zeros(6), np.full(6, 40.0), np.full(6, 4.0))
+    node._next_episode()  # reach 2 announced; the arm is still in reach 1
+    zeros = np.zeros(3)
+    state = CoreState(1.0, q, np.zeros(6), np.zeros(6), zeros, zeros, False, 0.0)
+    header = Header(stamp_ns=77, seq=5, source="sim")
+    node._on_state(convert.state_message(header, state, 1, holding=False))
+    holds = [m for m in bus.published if isinstance(m, JointCommand)]
+    assert len(holds) == 1 and holds[0].episode == 1 and holds[0].state_stamp_ns == 77
+    np.testing.assert_allclose(holds[0].q_ref_rad, q)
+    np.testing.assert_allclose(holds[0].dq_ref_rad_s, 0.0)
+    node._on_state(convert.state_message(header, state, 0, holding=False))  # older: nothing
+    assert len([m for m in bus.published if isinstance(m, JointCommand)]) == 1

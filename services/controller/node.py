@@ -91,6 +91,7 @@ class ControllerNode:
         self.number = 0  # the running episode's number (0: none yet)
         self.requests = Requests(0, 0, models, self.timing)
         self.started = False  # the arm has answered the episode's TaskGoal
+        self.previous_command: core.JointCommand | None = None  # the last reach's, till reset
         self.announced_s = 0.0
         self.last_state_s = time.monotonic()
         self.loop_s = time.monotonic()  # when the loop last ran
@@ -228,6 +229,8 @@ class ControllerNode:
     def _on_state(self, message: RobotState, answer: bool = True) -> None:
         plan = self.plan
         if message.episode != self.number:
+            if answer and not self.started and message.episode == self.number - 1:
+                self._hold_until_reset(message)
             return
         if plan is None:  # between reaches, or after the last: it holds where it was left
             if answer and not self.stop_latch.engaged:
@@ -271,6 +274,18 @@ class ControllerNode:
         self.last_state_s = time.monotonic()
         if tick.ended is not None:
             self._finish()
+
+    def _hold_until_reset(self, message: RobotState) -> None:
+        """The next reach is announced, the arm not yet reset: it holds the last reach's
+        final reference, answered state by state (else it holds for want of commands, and
+        says so, every time between two reaches)."""
+        last = self.previous_command
+        if last is None or self.stop_latch.engaged:
+            return
+        hold = hold_command(self.arm, last, self.robot.tau_max)
+        self.commands.send(convert.command_message(
+            self.commands.stamp(), hold, message.episode, message.header.stamp_ns
+        ))  # fmt: skip
 
     def _hold_paused(self, state_stamp_ns: int) -> None:
         """Paused (or between two reaches): the arm holds the last reference at rest."""
@@ -413,6 +428,7 @@ class ControllerNode:
                                self.ik, self.control_dt_s)  # fmt: skip
         self.requests = Requests(number, seed, self.models, self.timing)
         self.started = False
+        self.previous_command = self.last_command
         self.pause, self.last_command = Pause(), None
         self.last_state_stamp_ns = None
         self._announce(self.plan)
