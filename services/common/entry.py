@@ -18,7 +18,13 @@ from dammrl_core.settings import error_line
 from services.common.bus import Bus
 from services.common.config import BusSettings
 from services.common.logs import setup_logging
-from services.common.runtime import TIME_CRITICAL, exit_within, prioritise, stop_on_signals
+from services.common.runtime import (
+    TIME_CRITICAL,
+    exit_within,
+    freeze_startup_heap,
+    prioritise,
+    stop_on_signals,
+)
 from services.common.security import remove_run_credentials
 
 EPILOG = """\
@@ -76,6 +82,7 @@ def run_service(
             log.info(prioritise(name in TIME_CRITICAL))
         with Bus(settings, name) as bus:
             node = build(bus, args)
+            freeze_startup_heap()
             bus.declare_alive()
             log.info("up on namespace %r", settings.namespace)
             node.run(stop)
