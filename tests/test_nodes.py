@@ -456,3 +456,36 @@ def test_between_two_reaches_the_controller_holds_the_arm_until_its_reset() -> N
     np.testing.assert_allclose(holds[0].dq_ref_rad_s, 0.0)
     node._on_state(convert.state_message(header, state, 0, holding=False))  # older: nothing
     assert len([m for m in bus.published if isinstance(m, JointCommand)]) == 1
+
+
+def test_after_a_stop_the_controller_never_pulls_the_arm_back_to_an_old_reference() -> None:
+    """A release returns the arm to its ordinary hold, not to motion: the arm may have been
+    moved by hand, so neither between reaches nor until the next reset does the controller
+    command the reference it had before the stop."""
+    from dammrl_core.control.settings import ControllerSettings
+    from dammrl_core.models import ModelSet
+    from dammrl_core.robot import RobotSettings
+    from dammrl_core.state import JointCommand as CoreCommand
+    from dammrl_core.state import RobotState as CoreState
+    from dammrl_core.task import TaskSettings
+    from schemas import EmergencyStop, JointCommand
+    from services.common import convert
+    from services.controller.node import ControllerNode
+
+    bus = FakeBus()
+    node = ControllerNode(ControllerSettings(), TaskSettings(), RobotSettings(), ModelSet(),
+                          bus)  # type: ignore[arg-type]  # fmt: skip
+    q = np.array(TaskSettings().home_q_rad)
+    node._next_episode()
+    node.last_command = CoreCommand(q, np.zeros(6), np.zeros(6), np.full(6, 40.0), np.full(6, 4.0))
+    operator = Header(stamp_ns=2, seq=0, source="operator")
+    for engaged in (True, False):
+        node._take_stop(EmergencyStop(header=operator, engaged=engaged))
+    zeros = np.zeros(3)
+    state = CoreState(1.0, q + 0.3, np.zeros(6), np.zeros(6), zeros, zeros, False, 0.0)
+    node._on_state(convert.state_message(Header(stamp_ns=77, seq=5, source="sim"), state, 1,
+                                         holding=True))  # fmt: skip
+    node._next_episode()  # the next reach announced, the arm not yet reset
+    node._on_state(convert.state_message(Header(stamp_ns=78, seq=6, source="sim"), state, 1,
+                                         holding=True))  # fmt: skip
+    assert not [m for m in bus.published if isinstance(m, JointCommand)]

@@ -303,6 +303,8 @@ class ControllerNode:
         back the next reach's goal until the release."""
         if not self.stop_latch.take(stop.engaged, stop.header.source, stop.reason):
             return
+        if self.stop_latch.engaged:  # the arm may be moved by hand: no old reference after
+            self.last_command = self.previous_command = None  # the release (it holds where it is)
         reach = self.reach
         if self.stop_latch.reason is None:
             log.warning("emergency stop released by %s", stop.header.source)
