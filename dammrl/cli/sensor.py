@@ -77,7 +77,9 @@ def _add_emulate(actions: Commands) -> None:
         "emulate",
         help="a virtual sensor on a pseudo-terminal (until Ctrl-C)",
         description="A virtual pressure sensor: frames of the wire protocol on a "
-        "pseudo-terminal linked at --link, which the stack opens like a real port.",
+        "pseudo-terminal linked at --link, which the stack opens like a real port; it runs "
+        "at the arm loop's priority where allowed (it stands in for the pad's own "
+        "microcontroller).",
     )
     emulate.add_argument("--link", type=Path, default=Path("/tmp/ttySENSOR"),
                          help="path the emulated port appears at")  # fmt: skip
