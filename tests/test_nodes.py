@@ -425,18 +425,14 @@ def test_the_controller_gives_a_policy_that_came_alive_late_its_whole_wait() -> 
     assert node.choice[0] != 2  # its 0.5 s from the start ran out before the choice came
 
 
-def test_between_two_reaches_the_controller_holds_the_arm_until_its_reset() -> None:
-    """The next reach announced, the arm not yet reset: each state of the last reach is
-    answered with a hold of its final reference for that reach (else the arm holds for
-    want of commands, and says so, between every two reaches on a loaded machine)."""
+def _controller_in_a_reach() -> tuple[Any, FakeBus, np.ndarray]:
+    """A controller node in its first reach, its last command a hold of the start posture
+    ``q`` (returned with its bus)."""
     from dammrl_core.control.settings import ControllerSettings
     from dammrl_core.models import ModelSet
     from dammrl_core.robot import RobotSettings
     from dammrl_core.state import JointCommand as CoreCommand
-    from dammrl_core.state import RobotState as CoreState
     from dammrl_core.task import TaskSettings
-    from schemas import JointCommand
-    from services.common import convert
     from services.controller.node import ControllerNode
 
     bus = FakeBus()
@@ -445,6 +441,18 @@ def test_between_two_reaches_the_controller_holds_the_arm_until_its_reset() -> N
     q = np.array(TaskSettings().home_q_rad)
     node._next_episode()
     node.last_command = CoreCommand(q, np.zeros(6), np.zeros(6), np.full(6, 40.0), np.full(6, 4.0))
+    return node, bus, q
+
+
+def test_between_two_reaches_the_controller_holds_the_arm_until_its_reset() -> None:
+    """The next reach announced, the arm not yet reset: each state of the last reach is
+    answered with a hold of its final reference for that reach (else the arm holds for
+    want of commands, and says so, between every two reaches on a loaded machine)."""
+    from dammrl_core.state import RobotState as CoreState
+    from schemas import JointCommand
+    from services.common import convert
+
+    node, bus, q = _controller_in_a_reach()
     node._next_episode()  # reach 2 announced; the arm is still in reach 1
     zeros = np.zeros(3)
     state = CoreState(1.0, q, np.zeros(6), np.zeros(6), zeros, zeros, False, 0.0)
@@ -462,22 +470,11 @@ def test_after_a_stop_the_controller_never_pulls_the_arm_back_to_an_old_referenc
     """A release returns the arm to its ordinary hold, not to motion: the arm may have been
     moved by hand, so neither between reaches nor until the next reset does the controller
     command the reference it had before the stop."""
-    from dammrl_core.control.settings import ControllerSettings
-    from dammrl_core.models import ModelSet
-    from dammrl_core.robot import RobotSettings
-    from dammrl_core.state import JointCommand as CoreCommand
     from dammrl_core.state import RobotState as CoreState
-    from dammrl_core.task import TaskSettings
     from schemas import EmergencyStop, JointCommand
     from services.common import convert
-    from services.controller.node import ControllerNode
 
-    bus = FakeBus()
-    node = ControllerNode(ControllerSettings(), TaskSettings(), RobotSettings(), ModelSet(),
-                          bus)  # type: ignore[arg-type]  # fmt: skip
-    q = np.array(TaskSettings().home_q_rad)
-    node._next_episode()
-    node.last_command = CoreCommand(q, np.zeros(6), np.zeros(6), np.full(6, 40.0), np.full(6, 4.0))
+    node, bus, q = _controller_in_a_reach()
     operator = Header(stamp_ns=2, seq=0, source="operator")
     for engaged in (True, False):
         node._take_stop(EmergencyStop(header=operator, engaged=engaged))

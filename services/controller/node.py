@@ -279,22 +279,22 @@ class ControllerNode:
         """The next reach is announced, the arm not yet reset: it holds the last reach's
         final reference, answered state by state (else it holds for want of commands, and
         says so, every time between two reaches)."""
-        last = self.previous_command
-        if last is None or self.stop_latch.engaged:
-            return
-        hold = hold_command(self.arm, last, self.robot.tau_max)
-        self.commands.send(convert.command_message(
-            self.commands.stamp(), hold, message.episode, message.header.stamp_ns
-        ))  # fmt: skip
+        if not self.stop_latch.engaged:
+            self._send_hold(self.previous_command, message.episode, message.header.stamp_ns)
 
     def _hold_paused(self, state_stamp_ns: int) -> None:
         """Paused (or between two reaches): the arm holds the last reference at rest."""
         self.last_state_s = time.monotonic()
-        if self.last_command is None:
-            return  # no reference yet: the arm holds its start as it does unasked
-        hold = hold_command(self.arm, self.last_command, self.robot.tau_max)
+        self._send_hold(self.last_command, self.number, state_stamp_ns)
+
+    def _send_hold(self, last: core.JointCommand | None, episode: int, state_stamp_ns: int) -> None:
+        """``last``'s reference held at rest, answering a state of ``episode`` (None: no
+        reference yet, nothing sent: the arm holds where it is, as it does unasked)."""
+        if last is None:
+            return
+        hold = hold_command(self.arm, last, self.robot.tau_max)
         self.commands.send(convert.command_message(
-            self.commands.stamp(), hold, self.number, state_stamp_ns
+            self.commands.stamp(), hold, episode, state_stamp_ns
         ))  # fmt: skip
 
     def _take_stop(self, stop: EmergencyStop) -> None:
