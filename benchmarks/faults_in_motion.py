@@ -23,6 +23,7 @@ The emulated arm runs in this process at the arm loop's priority (it stands in f
 servos' own processors, which a busy host does not slow down).
 
     PYTHONPATH=. python benchmarks/faults_in_motion.py [--boot 0.05 0.3] [--trials 2]
+        [--joints 1 2 3 4 5 6] [--faults overheat overload missing silent unplug] [--hogs 2]
 """
 
 from __future__ import annotations
@@ -42,6 +43,9 @@ from dammrl_core.robot import RobotSettings
 from schemas import Header, Health, TaskGoal, encode
 from services.common.runtime import prioritise
 from tests.busutil import Observer, free_port, start_service, wait_for
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from cpu_hogs import hogs
 
 HOME = np.array([0.0, 1.0, 0.0, 1.6, 0.0, 0.3])
 FAULTS = {
@@ -155,6 +159,12 @@ def main() -> None:
     parser.add_argument("--trials", type=int, default=2, help="per joint and fault")
     parser.add_argument("--room", type=float, default=1.0,
                         help="the least room a posture leaves its joint to fall [rad]")  # fmt: skip
+    parser.add_argument("--joints", type=int, nargs="+", default=[1, 2, 3, 4, 5, 6],
+                        help="the joints to fault (1-6)")  # fmt: skip
+    parser.add_argument("--faults", nargs="+", default=None,
+                        help="only these columns: overheat, overload, missing, silent, unplug")  # fmt: skip
+    parser.add_argument("--hogs", type=int, default=0,
+                        help="CPU hogs (`yes > /dev/null`) beside the runs")  # fmt: skip
     args = parser.parse_args()
     prioritise(True)
     postures = loaded_postures(args.room)
@@ -162,10 +172,14 @@ def main() -> None:
     runs = [("overheating, left off", "overheat", args.boot[0])]
     runs += [(f"overload, reboot in {b:g} s", "overload", b) for b in args.boot]
     runs += [(f"{f} 1 s", f, args.boot[0]) for f in ("missing", "silent", "unplug")]
+    runs = [run for run in runs if args.faults is None or run[1] in args.faults]
     print("| joint (posture, pull) | " + " | ".join(label for label, *_ in runs) + " |")
     print("|---" * (len(runs) + 1) + "|")
-    with tempfile.TemporaryDirectory() as folder, emulated_arm(Path(folder) / "tty") as arm:
+    with (hogs(args.hogs), tempfile.TemporaryDirectory() as folder,
+          emulated_arm(Path(folder) / "tty") as arm):  # fmt: skip
         for joint, (posture, pull) in sorted(postures.items()):
+            if joint + 1 not in args.joints:
+                continue
             cells = []
             for _, fault, boot in runs:
                 arm.chain.boot_s = boot

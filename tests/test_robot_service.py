@@ -171,8 +171,8 @@ def test_a_short_or_late_status_packet_is_a_missed_read_not_a_crash(
     arm: EmulatedArm, fault: str
 ) -> None:
     """A status packet says nothing of what it answers: one a parameter short, or one that
-    comes after the SDK stopped waiting (here: the answer to the re-arm's one-byte read,
-    met by the next sync read) is a bus error like a timeout, and the next read is whole.
+    comes after the SDK stopped waiting (here: to the re-arm's one-byte read, which is
+    tried again) is a bus error like a timeout or a retry, and the next read is whole.
     (It was ``struct.error: unpack requires a buffer of 10 bytes``: the service died.)"""
     driver = DynamixelDriver(str(arm.bus.link), CALIBRATION)
     with driver:
@@ -183,8 +183,9 @@ def test_a_short_or_late_status_packet_is_a_missed_read_not_a_crash(
         time.sleep(0.3)
         inject(arm, fault)
         if fault.startswith("late"):
-            with pytest.raises(DriverError, match="reading address 98 failed"):
-                driver.rearm()  # its answer comes too late
+            # its answer comes too late: the read is tried again and takes it (a single
+            # late answer is no failed re-arm); the retry's own answer is flushed
+            assert driver.rearm() == list(CALIBRATION.ids)  # stopped by the 0.3 s silence
         failed: list[DriverError] = []
         for _ in range(20):  # a loaded machine may add timeouts of its own
             try:
@@ -192,8 +193,9 @@ def test_a_short_or_late_status_packet_is_a_missed_read_not_a_crash(
                 break
             except DriverError as exc:  # nothing else: no struct.error, no IndexError
                 failed.append(exc)
-        assert any(isinstance(e, BadReplyError) and re.search(
-            "servo 1 answered (9|1) bytes where 10", str(e)) for e in failed), failed  # fmt: skip
+        if fault.startswith("short"):
+            assert any(isinstance(e, BadReplyError) and re.search(
+                "servo 1 answered 9 bytes where 10", str(e)) for e in failed), failed  # fmt: skip
         with arm.bus.lock:
             np.testing.assert_allclose(q, arm.physics.state.q, atol=0.02)  # whole again
 
@@ -487,8 +489,9 @@ def test_a_late_answer_after_a_stall_is_a_counted_bus_error_and_the_arm_goes_on(
     rig: Rig, caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """After a stall the node re-arms the servos one read at a time; an answer that comes
-    late is met by the next cycle's sync read: a failed cycle like a timeout, logged and
-    counted in Health, and the arm follows commands again (the service lived on)."""
+    late costs that read a retry (before: a failed re-arm, and the late answer met by the
+    next cycle's sync read as a failed cycle), and the arm follows commands again (the
+    service lived on)."""
     _started(rig)
     target = np.array([0.05, -0.05, 0.05, 0.05, 0.0, 0.0])
     rearm = rig.node.driver.rearm
@@ -503,7 +506,8 @@ def test_a_late_answer_after_a_stall_is_a_counted_bus_error_and_the_arm_goes_on(
     monkeypatch.setattr(rig.node.driver, "rearm", rearm_answered_late)
     time.sleep(0.3)  # a stall: the watchdog stops the servos, the node re-arms them
     rig.run(1.5, lambda r: _answer(r, target))
-    assert "servo 1 answered 1 bytes where 10 were asked" in caplog.text
+    assert rearmed and rig.arm.chain.faults.late_responses == 0  # the late answer came
+    assert "had stopped themselves" in caplog.text
     for _ in range(30):  # on a loaded machine the emulator's own timeouts come on top
         if (
             np.abs(rig.bus.states()[-1].q_rad - np.array(_goal(1).q_start_rad) - target).max()
@@ -513,8 +517,7 @@ def test_a_late_answer_after_a_stall_is_a_counted_bus_error_and_the_arm_goes_on(
         rig.run(0.2, lambda r: _answer(r, target))
     np.testing.assert_allclose(rig.bus.states()[-1].q_rad,
                                np.array(_goal(1).q_start_rad) + target, atol=0.02)  # fmt: skip
-    counted = re.search(r"(\d+) bus errors", rig.last_health[1])
-    assert counted is not None and int(counted[1]) >= 2, rig.last_health
+    assert rig.last_health[0] == "ok", rig.last_health
 
 
 def _true_q(rig: Rig) -> np.ndarray:
@@ -547,6 +550,76 @@ def test_an_overloaded_servo_is_rebooted_and_holds_where_its_joint_is(rig: Rig) 
     inject(rig.arm, "overload 6")
     rig.run(0.5)
     assert "left off after 1 restarts: support the arm" in rig.last_health[1]
+
+
+def _lose_reboots(rig: Rig, monkeypatch: pytest.MonkeyPatch, count: int) -> None:
+    """The next ``count`` REBOOT packets never reach their servo (noise on the bus)."""
+    packet = rig.node.driver._packet
+    sent = packet.reboot
+    lost = [count]
+
+    def reboot(port: object, servo_id: int) -> tuple[int, int]:
+        if lost[0] > 0:
+            lost[0] -= 1
+            return 0, 0
+        return sent(port, servo_id)  # type: ignore[no-any-return]
+
+    monkeypatch.setattr(packet, "reboot", reboot)
+
+
+def test_a_reboot_that_never_reached_its_servo_is_sent_again(
+    rig: Rig, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A lost REBOOT left the servo answering with its overload latched: the restore's
+    torque-on was refused cycle after cycle, the bus counted lost, the reconnect refused
+    the latched error, and the joint fell as if never restarted (0.70 rad here). The
+    pings now see the error still latched and send the REBOOT again."""
+    rig.arm.chain.boot_s = 0.05
+    _started(rig)
+    rig.run(0.3, lambda r: _answer(r, np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.2])))  # moving
+    q0 = _true_q(rig)
+    _lose_reboots(rig, monkeypatch, 1)
+    inject(rig.arm, "overload 6")
+    rig.run(1.5)
+    state, detail = rig.last_health
+    assert state == "stopped" and "joint 6's drive back after a restart" in detail, detail
+    assert rig.node.connected and rig.node.link.bus_errors == 0
+    fall = abs(_true_q(rig)[5] - q0[5])
+    print(f"wrist pitch fell {fall:.3f} rad with its first REBOOT lost")
+    assert fall < 0.4, fall  # measured 0.15 rad (a 0.05 s boot, one lost REBOOT)
+
+
+def test_a_drive_a_restart_does_not_clear_is_left_off_and_said(
+    rig: Rig, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Every REBOOT lost (or a fault that outlives it): after a bounded number of REBOOTs
+    the drive is said left off, the bus stays connected and the other joints hold."""
+    _started(rig)
+    rig.run(0.3, lambda r: _answer(r, np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.2])))  # moving
+    q0 = _true_q(rig)
+    _lose_reboots(rig, monkeypatch, 100)
+    inject(rig.arm, "overload 6")
+    rig.run_until(lambda r: "still faulted" in r.last_health[1], 10)
+    state, detail = rig.last_health
+    assert state == "stopped" and "support the arm at this joint" in detail, detail
+    rig.run(0.5)
+    assert rig.node.connected and rig.node.link.bus_errors == 0
+    assert np.abs(_true_q(rig)[:5] - q0[:5]).max() < 0.02  # the others held
+
+
+def test_a_connect_survives_a_garbled_answer(arm: EmulatedArm) -> None:
+    """A connect is a dozen requests; a garbled answer to one of them costs that request
+    a retry, not the whole connect (on a loaded PC, the node's retries of whole connects
+    ran into the next garbled answer)."""
+    driver = DynamixelDriver(str(arm.bus.link), CALIBRATION)
+    inject(arm, "corrupt 2")  # the first two answers (to the first ping and its retry)
+    try:
+        driver.connect()
+        assert arm.chain.faults.corrupt_responses == 0
+        with arm.bus.lock:
+            assert all(arm.chain.servos[i].torque_on for i in CALIBRATION.ids)
+    finally:
+        driver.disconnect()
 
 
 def test_an_overheated_servo_is_left_off_and_said_while_the_others_hold(rig: Rig) -> None:

@@ -56,6 +56,14 @@ class DriveRecovery:
             f"({self.restarts[joint]} of {self.max_restarts} restarts used)"
         )
 
+    def not_cleared(self, joint: int) -> None:
+        """The drive of ``joint`` answers again with its fault still latched (its restart
+        never reached it, or did not clear it): left off."""
+        self.restarting.discard(joint)
+        self._leave_off(
+            joint, f"joint {joint + 1}'s drive still faulted after its restart: left off"
+        )
+
     def _leave_off(self, joint: int, why: str) -> bool:
         self.off[joint] = why
         self.notes[joint] = f"{why}: support the arm at this joint"

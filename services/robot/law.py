@@ -177,8 +177,12 @@ class ArmLaw:
         """Latch a fault on a drive's fault, a joint beyond its limits or its speed; restart
         a drive that cut its torque, and hold its joint where it is once it is back.
         Whether the arm must now stop (the caller applies the stop)."""
-        for j in self.recovery.restarting - joint.restarting:  # read this cycle: it is back
-            self._drive_back(j, joint)
+        faulted = {fault.joint for fault in joint.faults}
+        for j in self.recovery.restarting - joint.restarting:  # read this cycle again
+            if j in faulted:
+                self.recovery.not_cleared(j)  # still latched: its restarts never took
+            else:
+                self._drive_back(j, joint)
         first = self.fault is None
         if joint.faults:
             self.fault = self.fault or "; ".join(f.what for f in joint.faults)

@@ -21,10 +21,11 @@ import contextlib
 import math
 import struct
 import time
-from collections.abc import Collection, Iterator
+from collections.abc import Callable, Collection, Iterator
 from dataclasses import dataclass, field, replace
+from functools import partial
 from types import TracebackType
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -55,6 +56,13 @@ ALERT = 0x80
 COMM_SUCCESS = 0  # dynamixel_sdk.COMM_SUCCESS
 FIRST_PING_S = 0.05  # a rebooted servo is first looked for this long after the REBOOT [s]
 PING_EVERY_S = 0.05  # then this often (an unanswered ping costs the SDK's timeout, ~34 ms)
+REBOOT_TRIES = 3  # a servo still answering with its error latched is sent REBOOT again
+TRIES = 3
+"""A request answered late, garbled or not at all is sent again this often before it counts
+as failed: on a loaded PC one late answer is common, and a connect or a restore (a dozen
+requests) that failed on any one of them would start over or leave a joint without torque
+(three in a row is a servo that does not answer). The cycle's own sync read and write are
+not retried: the next cycle is their retry."""
 OVERLOAD = 0x20
 STATUS_ID, STATUS_LENGTH, STATUS_ERROR, STATUS_PARAMS = 4, 5, 8, 9  # a status packet's fields
 PRESENT_RANGE = ((-2047, 2047), (-1023, 1023), (-1_048_575, 1_048_575))
@@ -77,6 +85,9 @@ def _bus_io(port: str) -> Iterator[None]:
         raise PortLostError(f"the servo bus at {port} failed: {exc}") from None
 
 
+T = TypeVar("T")
+
+
 def describe_errors(bits: int) -> str:
     names = [name for bit, name in ERROR_BITS.items() if bits & bit]
     return ", ".join(names) or f"error bits 0x{bits:02x}"
@@ -95,6 +106,7 @@ class DynamixelDriver:
     _packet: Any = None
     _written: dict[str, tuple[int, ...]] = field(default_factory=dict)
     _booting: dict[int, float] = field(default_factory=dict)  # servo id -> next ping [s]
+    _reboots: dict[int, int] = field(default_factory=dict)  # servo id -> REBOOTs sent
     _last: JointState | None = None
 
     def __enter__(self) -> DynamixelDriver:
@@ -148,14 +160,10 @@ class DynamixelDriver:
             raise
 
     def _power_up(self, torque: bool, hold: HoldLaw | None) -> bool:
-        import dynamixel_sdk as sdk
-
         devices = self.ids + (() if self.calibration.button_id is None
                               else (self.calibration.button_id,))  # fmt: skip
         for servo_id in devices:
-            _, result, _ = self._packet.ping(self._port, servo_id)
-            if result != sdk.COMM_SUCCESS:
-                raise DriverError(f"servo {servo_id} does not answer on {self.port}")
+            self._retried(partial(self._ping, servo_id))
         holding = []
         for servo_id in self.ids:
             bits = self._read1(servo_id, "hardware_error")
@@ -204,38 +212,58 @@ class DynamixelDriver:
         with the gains last written, as soon as it answers a ping."""
         self._require_open()
         servo_id = self.ids[joint]
+        self._reboots[servo_id] = 0
         with _bus_io(self.port):
-            self._packet.reboot(self._port, servo_id)  # no answer expected once it boots
+            self._reboot(servo_id)
+
+    def _reboot(self, servo_id: int) -> None:
+        """REBOOT sent (its answer may be lost or late: the pings tell whether it took)."""
+        self._packet.reboot(self._port, servo_id)
+        self._reboots[servo_id] += 1
         self._booting[servo_id] = time.monotonic() + FIRST_PING_S
 
     def _poll_booting(self) -> None:
-        """Ping one booting servo whose turn it is; one that answers is put back."""
+        """Ping one booting servo whose turn it is; one that answers is put back. One
+        that answers with its error still latched never got the REBOOT: sent again, and
+        after ``REBOOT_TRIES`` left out no more (its fault is read again: the restart did
+        not clear it)."""
         now = time.monotonic()
         due = [i for i, at in self._booting.items() if at <= now]
         if not due:
             return
         servo_id = due[0]
-        _, result, _ = self._packet.ping(self._port, servo_id)
+        _, result, error = self._packet.ping(self._port, servo_id)
         if result != COMM_SUCCESS:
             self._booting[servo_id] = time.monotonic() + PING_EVERY_S
             return
+        if error & ALERT:
+            if self._reboots[servo_id] < REBOOT_TRIES:
+                self._reboot(servo_id)
+            else:
+                del self._booting[servo_id]
+            return
+        self._booting[servo_id] = time.monotonic() + PING_EVERY_S  # if the restore fails
         self._restore(servo_id)
         del self._booting[servo_id]
 
     def _restore(self, servo_id: int) -> None:
-        """A rebooted servo holding where its shaft is: its mode, the gains and current
-        limit last written, the goal at its present position, the torque on, the bus
-        watchdog armed."""
-        self._write1(servo_id, ADDRESS["operating_mode"], CURRENT_BASED_POSITION)
+        """A rebooted servo holding where its shaft is: the gains and current limit last
+        written, the goal at its present position, the bus watchdog armed, the torque on
+        (its operating mode is in its EEPROM, kept through a reboot). Its joint falls
+        until then, and on a loaded PC each answer waited for costs most of a restore:
+        one read, the writes unanswered (sync writes to it alone), one read confirming the
+        torque on. Each step may be repeated (a restore that failed is tried again)."""
         index = self.ids.index(servo_id)
+        present = self._read_position(servo_id)
         for name, size in (("gains", 6), ("goal_current", 2)):
             row = self._written.get(name, ())[index * size : (index + 1) * size]
             if row:
-                self._write_bytes(servo_id, ADDRESS[name], bytes(row))
-        present = self._read_position(servo_id)
-        self._write_bytes(servo_id, ADDRESS["goal_position"], struct.pack("<i", present))
-        self._write1(servo_id, ADDRESS["torque_enable"], 1)
-        self._write1(servo_id, ADDRESS["watchdog"], self._watchdog_ticks)
+                self._send(servo_id, name, bytes(row))
+        self._send(servo_id, "goal_position", struct.pack("<i", present))
+        self._send(servo_id, "watchdog", bytes([self._watchdog_ticks]))
+        self._send(servo_id, "torque_enable", bytes([1]))
+        if self._read1(servo_id, "torque_enable") != 1:
+            raise DriverError(f"servo {servo_id} did not turn its torque on after its restart")
 
     def _start(self, off: tuple[int, ...] | list[int], torque: bool = True,
                hold: HoldLaw | None = None) -> None:  # fmt: skip
@@ -413,11 +441,28 @@ class DynamixelDriver:
                 self._port.closePort()
         self._port = None
 
+    def _retried(self, transaction: Callable[[], T]) -> T:
+        """``transaction`` (a request and its answer), tried up to ``TRIES`` times; the
+        input is flushed before a retry, so that a late answer to the failed try is not
+        taken for the next one's."""
+        for _ in range(TRIES - 1):
+            try:
+                return transaction()
+            except DriverError:
+                self._port.clearPort()
+        return transaction()
+
+    def _ping(self, servo_id: int) -> None:
+        _, result, _ = self._packet.ping(self._port, servo_id)
+        if result != COMM_SUCCESS:
+            raise DriverError(f"servo {servo_id} does not answer on {self.port}")
+
     def _read(self, servo_id: int, address: int, length: int) -> bytes:
         """``length`` bytes at ``address`` of one servo."""
-        import dynamixel_sdk as sdk
+        return self._retried(lambda: self._read_once(servo_id, address, length))
 
-        if self._packet.readTx(self._port, servo_id, address, length) != sdk.COMM_SUCCESS:
+    def _read_once(self, servo_id: int, address: int, length: int) -> bytes:
+        if self._packet.readTx(self._port, servo_id, address, length) != COMM_SUCCESS:
             raise DriverError(f"servo {servo_id}: reading address {address} failed (not sent)")
         return self._receive(
             servo_id, length, f"servo {servo_id}: reading address {address} failed"
@@ -451,32 +496,44 @@ class DynamixelDriver:
 
     def _read1(self, servo_id: int, name: str) -> int:
         """The one-byte field ``name`` (of ADDRESS), refused unless it holds a valid value."""
-        value = self._read(servo_id, ADDRESS[name], 1)[0]
-        if value not in VALID[name]:
-            raise BadReplyError(f"servo {servo_id} reported {name} {value}: not a reading")
-        return value
+
+        def read() -> int:
+            value = self._read_once(servo_id, ADDRESS[name], 1)[0]
+            if value not in VALID[name]:
+                raise BadReplyError(f"servo {servo_id} reported {name} {value}: not a reading")
+            return value
+
+        return self._retried(read)
 
     def _read_position(self, servo_id: int) -> int:
         """The present position [ticks], refused outside what a servo reports."""
-        value = int(struct.unpack("<i", self._read(servo_id, ADDRESS["present"] + 6, 4))[0])
-        low, high = PRESENT_RANGE[2]
-        if not low <= value <= high:
-            raise BadReplyError(f"servo {servo_id} reported position {value}: not a reading")
-        return value
 
-    def _write_bytes(self, servo_id: int, address: int, data: bytes) -> None:
-        import dynamixel_sdk as sdk
+        def read() -> int:
+            data = self._read_once(servo_id, ADDRESS["present"] + 6, 4)
+            value = int(struct.unpack("<i", data)[0])
+            low, high = PRESENT_RANGE[2]
+            if not low <= value <= high:
+                raise BadReplyError(f"servo {servo_id} reported position {value}: not a reading")
+            return value
 
-        result, error = self._packet.writeTxRx(self._port, servo_id, address, len(data),
-                                               list(data))  # fmt: skip
-        if result != sdk.COMM_SUCCESS or error & 0x7F:
-            raise DriverError(f"servo {servo_id}: writing {len(data)} bytes at {address} failed "
-                              f"({self._packet.getTxRxResult(result)}, error {error})")  # fmt: skip
+        return self._retried(read)
 
     def _write1(self, servo_id: int, address: int, value: int) -> None:
+        self._retried(lambda: self._write_once(servo_id, address, bytes([value])))
+
+    def _write_once(self, servo_id: int, address: int, data: bytes) -> None:
+        result, error = self._packet.writeTxRx(self._port, servo_id, address, len(data),
+                                               list(data))  # fmt: skip
+        if result != COMM_SUCCESS or error & 0x7F:
+            raise DriverError(f"servo {servo_id}: writing {list(data)} at {address} failed "
+                              f"({self._packet.getTxRxResult(result)}, error {error})")  # fmt: skip
+
+    def _send(self, servo_id: int, name: str, data: bytes) -> None:
+        """``data`` to field ``name`` of one servo, no answer waited for (a sync write to
+        it alone: on a loaded PC each answer waited for costs a wait on the serial port)."""
         import dynamixel_sdk as sdk
 
-        result, error = self._packet.write1ByteTxRx(self._port, servo_id, address, value)
-        if result != sdk.COMM_SUCCESS or error & 0x7F:
-            raise DriverError(f"servo {servo_id}: writing {value} at {address} failed "
-                              f"({self._packet.getTxRxResult(result)}, error {error})")  # fmt: skip
+        writer = sdk.GroupSyncWrite(self._port, self._packet, ADDRESS[name], len(data))
+        writer.addParam(servo_id, list(data))
+        if writer.txPacket() != COMM_SUCCESS:
+            raise DriverError(f"servo {servo_id}: sending {name} failed")
