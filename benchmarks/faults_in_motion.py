@@ -162,7 +162,7 @@ def main() -> None:
     parser.add_argument("--joints", type=int, nargs="+", default=[1, 2, 3, 4, 5, 6],
                         help="the joints to fault (1-6)")  # fmt: skip
     parser.add_argument("--faults", nargs="+", default=None,
-                        help="only these columns: overheat, overload, missing, silent, unplug")  # fmt: skip
+                        help="only: overheat overload missing silent unplug")  # fmt: skip
     parser.add_argument("--hogs", type=int, default=0,
                         help="CPU hogs (`yes > /dev/null`) beside the runs")  # fmt: skip
     args = parser.parse_args()
