@@ -11,9 +11,9 @@ is classed by what the launcher and the services said:
 * done: exit 0 and one episode's result (its outcome is the controller's business: a
   stale hold on a starved PC is counted apart, not as a failure of the arm).
 
-Printed: one line per start (its exit code, outcome, the robot's worst loop period and
-bus errors from its Health), then the counts, with the machine's load average (other
-work on the PC comes on top of the two hogs).
+Printed: one line per start (its exit code, outcome and time; a start that did not end
+done names the log it kept of every service's words), then the counts, with the
+machine's load average (other work on the PC comes on top of the two hogs).
 
     PYTHONPATH=. python benchmarks/real_starts.py [--starts 30] [--hogs 2]
 """
@@ -23,7 +23,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import re
 import subprocess
 import sys
 import tempfile
@@ -68,7 +67,7 @@ def start(index: int) -> tuple[str, str]:
     took = time.monotonic() - began
     results = [json.loads(line) for line in out.splitlines() if line.startswith("{")]
     outcome = results[0]["outcome"] if results else "none"
-    line = f"{ended}, episode {outcome}, {took:.0f} s{_robot_health(said)}"
+    line = f"{ended}, episode {outcome}, {took:.0f} s"
     (folder / "stderr.log").write_text(said)  # what every service said, kept to read
     kept = f" (log: {folder / 'stderr.log'})"
     if "Traceback" in said or "exited unexpectedly" in said:
@@ -85,14 +84,6 @@ def start(index: int) -> tuple[str, str]:
 
 def _first(text: str, marks: tuple[str, ...]) -> str:
     return next((ln.strip() for ln in text.splitlines() if any(m in ln for m in marks)), "")
-
-
-def _robot_health(said: str) -> str:
-    """The robot's loop period p99 and bus errors, from the last Health the launcher said."""
-    periods = re.findall(r"robot \w+ \(loop period p50 [\d.]+ ms, p99 ([\d.]+) ms", said)
-    errors = re.findall(r"(\d+) bus errors", said)
-    return (f", loop p99 {periods[-1]} ms" if periods else "") + (
-        f", {errors[-1]} bus errors" if errors else "")  # fmt: skip
 
 
 def main() -> None:
