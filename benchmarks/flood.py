@@ -56,6 +56,7 @@ from bus_variants import VARIANTS
 
 FLOODS = ("none", "10MB", "at-limits", "1kHz", "denied", "unbounded")
 REVIEW_RATE_HZ = 1000.0  # the review's flood: ~1 kHz per key
+UNLIMITED_HZ = 10_000.0  # "at each key's rate limit" for a key with none (as the limit was)
 HOG = "while True: pass"  # another program on the lab's PC, at the default priority
 TOPICS_FLOODED = [t if t != "health/*" else "health/sim" for t in TOPICS]
 
@@ -130,9 +131,10 @@ def _flood(port: int, kind: str, stop: Any, count: Any, nice: int) -> None:
         role = _denied_role(topic) if kind == "denied" else roles_publishing(topic)[0]
         session = sessions.get(role) or sessions.setdefault(role, _session(port, role))
         limits = LIMITS["health/*" if topic.startswith("health/") else topic]
-        rate = limits.max_rate_hz if kind in ("at-limits", "unbounded") else REVIEW_RATE_HZ
+        limit = limits.max_rate_hz or UNLIMITED_HZ  # a key with no rate rule: as fast as it goes
+        rate = limit if kind in ("at-limits", "unbounded") else REVIEW_RATE_HZ
         publisher = session.declare_publisher(f"dammrl/{topic}")
-        publishers.append((publisher, os.urandom(limits.max_bytes), min(rate, limits.max_rate_hz)))
+        publishers.append((publisher, os.urandom(limits.max_bytes), min(rate, limit)))
     try:
         if kind == "unbounded":
             while not stop.is_set():

@@ -5,6 +5,7 @@ Several stacks share a Zenoh network by using different namespaces.
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass
 
 from schemas.messages import (
@@ -57,20 +58,30 @@ class KeyLimits:
     is cut to the rate on its own link and never crowds out another peer's messages.
     Size: a larger payload is dropped and counted in Zenoh's callback, before it is
     copied. The stack's own messages stay far below both (a quarter of the size with
-    every string and list at its bound; ten times the fastest rate the settings allow)."""
+    every string and list at its bound; ten times the fastest rate the settings allow).
+
+    ``max_rate_hz`` None: no rate rule. Zenoh's rule is a least interval, taken as the
+    receiver works messages off: messages that wait together (a receiver or a sender
+    the PC did not run for a few milliseconds, several put in one batch) are worked off
+    microseconds apart, and all but the first are dropped, whatever the rate (bursts of
+    five lost 4 of 5 at 10 kHz, 1 of 3 even at 1 MHz). The arm's loop streams wait so
+    on a busy PC (beside two CPU hogs: states and commands lost, stale holds with no
+    flood at all): they have none. A flood on them from their own role's certificate
+    fills the receiver's inbox, and the arm holds (its commands stale), as it does for
+    a silent controller. Health has a rule per service (one for ``health/*`` took the
+    first of several services' Health sent back to back, and dropped the others)."""
 
     max_bytes: int
-    max_rate_hz: float
+    max_rate_hz: float | None
 
 
 LIMITS: dict[str, KeyLimits] = {
-    # the arm's loop and the sensors: <= 1 kHz by the settings, at times back to back. The
-    # size limits are the tightest with the margin below: they bound what a peer holding a
-    # role's key can make every receiver read (size x rate, ~20 MB/s per key)
-    "robot/state": KeyLimits(2048, 10_000.0),
-    "robot/command": KeyLimits(2048, 10_000.0),
-    "sensor/sample": KeyLimits(1024, 10_000.0),
-    "controller/step": KeyLimits(2048, 10_000.0),  # several steps may start in one tick
+    # the arm's loop and the sensors: <= 1 kHz by the settings, at times back to back (no
+    # rate rule: see KeyLimits). The size limits are the tightest with the margin below
+    "robot/state": KeyLimits(2048, None),
+    "robot/command": KeyLimits(2048, None),
+    "sensor/sample": KeyLimits(1024, None),
+    "controller/step": KeyLimits(2048, None),  # several steps may start in one tick
     # decisions and episodes: a few per second
     "intent": KeyLimits(4096, 1_000.0),
     "intent/request": KeyLimits(4096, 1_000.0),
@@ -85,7 +96,7 @@ LIMITS: dict[str, KeyLimits] = {
     "session/control": KeyLimits(1024, 100.0),  # a therapist's keys
     "recorder/episode": KeyLimits(2048, 1_000.0),  # one or two per episode
     "safety/stop": KeyLimits(1024, 1_000.0),  # per link: a flood never delays the console's
-    "health/*": KeyLimits(32_768, 100.0),  # one a second per service
+    "health/*": KeyLimits(32_768, 100.0),  # one a second per service: a rule per service
 }
 """Per topic (relative to the namespace)."""
 FOREIGN_LIMITS = KeyLimits(65_536, 1_000.0)
@@ -95,11 +106,16 @@ MAX_MESSAGE_BYTES = 1 << 20
 ``transport/link/rx/max_message_size``), before any subscriber sees it."""
 
 
-def downsampling(namespace: str) -> list[dict[str, object]]:
-    """Zenoh's ingress downsampling for every key of the stack (per link: see KeyLimits)."""
+def downsampling(namespace: str, services: Iterable[str]) -> list[dict[str, object]]:
+    """Zenoh's ingress downsampling for every key of the stack with a rate (per link: see
+    KeyLimits); Health with a rule per service of ``services`` (a role may publish its
+    own Health only)."""
+    topics = [(t, limits) for t, limits in LIMITS.items() if t != "health/*"]
+    topics += [(f"health/{service}", LIMITS["health/*"]) for service in services]
     rules = [
         {"key_expr": f"{namespace}/{topic}", "freq": limits.max_rate_hz}
-        for topic, limits in LIMITS.items()
+        for topic, limits in topics
+        if limits.max_rate_hz is not None
     ]
     return [{"id": "dammrl-limits", "flows": ["ingress"], "messages": ["put"], "rules": rules}]
 

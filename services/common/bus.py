@@ -77,7 +77,7 @@ def zenoh_config(
     # and a faster one per key and link (schemas.keys.LIMITS)
     config.insert_json5("transport/link/rx/max_message_size", json.dumps(MAX_MESSAGE_BYTES))
     if rate_limits:
-        config.insert_json5("downsampling", json.dumps(downsampling(settings.namespace)))
+        config.insert_json5("downsampling", json.dumps(downsampling(settings.namespace, ROLES)))
     if settings.listen:
         config.insert_json5("listen/endpoints", json.dumps(settings.listen))
     elif settings.credentials is not None and settings.mode == "peer":

@@ -42,6 +42,17 @@ def prioritise(critical: bool) -> str:
     return f"scheduling priority nice {wanted}"
 
 
+def cpu_wait_s() -> float | None:
+    """How long the calling thread has waited for a CPU since it started, ready to run
+    [s] (Linux's schedstat; None elsewhere): a stall it grew by was the PC's, not the
+    thread's own work."""
+    try:
+        with open("/proc/thread-self/schedstat") as stat:
+            return int(stat.read().split()[1]) * 1e-9
+    except (OSError, IndexError, ValueError):
+        return None
+
+
 def freeze_startup_heap() -> None:
     """Collect once, then put every object made at start-up beyond the garbage collector
     (``gc.freeze``): later full collections scan only what the loop made since, not the

@@ -48,6 +48,7 @@ from schemas import (
 from services.common import convert
 from services.common.bus import Bus
 from services.common.entry import run_service
+from services.common.runtime import cpu_wait_s
 from services.common.security import OPERATOR
 from services.controller.requests import Requests, Timing
 
@@ -95,6 +96,7 @@ class ControllerNode:
         self.announced_s = 0.0
         self.last_state_s = time.monotonic()
         self.loop_s = time.monotonic()  # when the loop last ran
+        self.loop_cpu_wait_s = cpu_wait_s()  # this thread's wait for a CPU by then
         self.superseded = 0  # states observed, not answered: a newer one was waiting
         self.last_t = 0.0
         self.last_state_stamp_ns: int | None = None  # of the last state the reach took in
@@ -138,9 +140,12 @@ class ControllerNode:
         the last look (frozen, swapped out, starved): the arm held meanwhile for lack of
         commands, and the episode ends in a hold that names the controller, not the arm."""
         silent, self.loop_s = now - self.loop_s, now
+        waited, self.loop_cpu_wait_s = self.loop_cpu_wait_s, cpu_wait_s()
         if silent <= self.stale_s or self.reach is None or not self.started:
             return False
         reason = f"the controller itself stalled for {silent:.2f} s (the arm held)"
+        if waited is not None and self.loop_cpu_wait_s is not None:
+            reason += f"; {self.loop_cpu_wait_s - waited:.2f} s of it waiting for a CPU"
         log.warning("%s", reason)
         self.reach.end("hold", reason, self.last_t)
         self._finish()
