@@ -553,6 +553,13 @@ def _running(pid: int) -> bool:
     return stat.rpartition(")")[2].split()[0] != "Z"
 
 
+def _ctrl_c_as_in_a_terminal() -> None:
+    """Ctrl-C's signal at its default, as a terminal starts a command: a background job of
+    a script (``pytest ... &``) inherits it ignored, and Python then never turns it into
+    KeyboardInterrupt (the study ran on and exited 0 in such a run beside two CPU hogs)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 @pytest.mark.slow
 @pytest.mark.skipif(sys.platform != "linux", reason="reads /proc")
 @pytest.mark.parametrize("how", ["kill", "ctrl-c", "kill -9"])
@@ -564,7 +571,8 @@ def test_a_killed_study_leaves_no_process(tmp_path: Path, how: str) -> None:
                "--sets", "1", "--conditions", "nominal", "--jobs", "2",
                "--out", str(tmp_path / "study")]  # fmt: skip
     study = subprocess.Popen(command, start_new_session=True, stdout=subprocess.DEVNULL,
-                             stderr=subprocess.PIPE, text=True)  # fmt: skip
+                             stderr=subprocess.PIPE, text=True,
+                             preexec_fn=_ctrl_c_as_in_a_terminal)  # fmt: skip
     seen: set[int] = set()
     try:
         deadline = time.monotonic() + 240  # start-up under load: imports, spawned workers
