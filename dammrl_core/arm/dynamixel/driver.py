@@ -61,8 +61,9 @@ TRIES = 3
 """A request answered late, garbled or not at all is sent again this often before it counts
 as failed: on a loaded PC one late answer is common, and a connect or a restore (a dozen
 requests) that failed on any one of them would start over or leave a joint without torque
-(three in a row is a servo that does not answer). The cycle's own sync read and write are
-not retried: the next cycle is their retry."""
+(three in a row is a servo that does not answer; each unanswered try costs the SDK's
+timeout, ~34 ms). The cycle's own sync read and write are not retried: the next cycle is
+their retry."""
 OVERLOAD = 0x20
 STATUS_ID, STATUS_LENGTH, STATUS_ERROR, STATUS_PARAMS = 4, 5, 8, 9  # a status packet's fields
 PRESENT_RANGE = ((-2047, 2047), (-1023, 1023), (-1_048_575, 1_048_575))
@@ -258,10 +259,10 @@ class DynamixelDriver:
         for name, size in (("gains", 6), ("goal_current", 2)):
             row = self._written.get(name, ())[index * size : (index + 1) * size]
             if row:
-                self._send(servo_id, name, bytes(row))
-        self._send(servo_id, "goal_position", struct.pack("<i", present))
-        self._send(servo_id, "watchdog", bytes([self._watchdog_ticks]))
-        self._send(servo_id, "torque_enable", bytes([1]))
+                self._send(name, size, {servo_id: list(row)})
+        self._send("goal_position", 4, {servo_id: list(struct.pack("<i", present))})
+        self._send("watchdog", 1, {servo_id: [self._watchdog_ticks]})
+        self._send("torque_enable", 1, {servo_id: [1]})
         if self._read1(servo_id, "torque_enable") != 1:
             raise DriverError(f"servo {servo_id} did not turn its torque on after its restart")
 
@@ -405,14 +406,20 @@ class DynamixelDriver:
 
     def _sync_write(self, field_name: str, rows: list[list[int]],
                     only: Collection[int] | None = None) -> None:  # fmt: skip
+        """A row to every servo (``only``: to these), a booting one left out: it would not
+        hear it, and is put back later."""
+        chosen = {i: row for i, row in zip(self.ids, rows, strict=True)
+                  if i not in self._booting and (only is None or i in only)}  # fmt: skip
+        self._send(field_name, len(rows[0]), chosen)
+
+    def _send(self, field_name: str, size: int, rows: dict[int, list[int]]) -> None:
+        """``size``-byte rows to field ``field_name`` of the servos keyed, in one sync
+        write: no answer is waited for."""
         import dynamixel_sdk as sdk
 
-        writer = sdk.GroupSyncWrite(self._port, self._packet, ADDRESS[field_name], len(rows[0]))
-        for servo_id, row in zip(self.ids, rows, strict=True):
-            if servo_id in self._booting:  # it would not hear it: it is put back later
-                continue
-            if only is None or servo_id in only:
-                writer.addParam(servo_id, row)
+        writer = sdk.GroupSyncWrite(self._port, self._packet, ADDRESS[field_name], size)
+        for servo_id, row in rows.items():
+            writer.addParam(servo_id, row)
         result = writer.txPacket()
         if result != sdk.COMM_SUCCESS:
             raise DriverError(f"sync write failed: {self._packet.getTxRxResult(result)}")
@@ -442,14 +449,12 @@ class DynamixelDriver:
         self._port = None
 
     def _retried(self, transaction: Callable[[], T]) -> T:
-        """``transaction`` (a request and its answer), tried up to ``TRIES`` times; the
-        input is flushed before a retry, so that a late answer to the failed try is not
-        taken for the next one's."""
+        """``transaction`` (a request and its answer), tried up to ``TRIES`` times (the
+        SDK flushes the input before each request: a late answer to a failed try that
+        came meanwhile is not taken for the next one's)."""
         for _ in range(TRIES - 1):
-            try:
+            with contextlib.suppress(DriverError):
                 return transaction()
-            except DriverError:
-                self._port.clearPort()
         return transaction()
 
     def _ping(self, servo_id: int) -> None:
@@ -458,10 +463,8 @@ class DynamixelDriver:
             raise DriverError(f"servo {servo_id} does not answer on {self.port}")
 
     def _read(self, servo_id: int, address: int, length: int) -> bytes:
-        """``length`` bytes at ``address`` of one servo."""
-        return self._retried(lambda: self._read_once(servo_id, address, length))
-
-    def _read_once(self, servo_id: int, address: int, length: int) -> bytes:
+        """``length`` bytes at ``address`` of one servo (one try: callers retry it with
+        their check of the value)."""
         if self._packet.readTx(self._port, servo_id, address, length) != COMM_SUCCESS:
             raise DriverError(f"servo {servo_id}: reading address {address} failed (not sent)")
         return self._receive(
@@ -498,7 +501,7 @@ class DynamixelDriver:
         """The one-byte field ``name`` (of ADDRESS), refused unless it holds a valid value."""
 
         def read() -> int:
-            value = self._read_once(servo_id, ADDRESS[name], 1)[0]
+            value = self._read(servo_id, ADDRESS[name], 1)[0]
             if value not in VALID[name]:
                 raise BadReplyError(f"servo {servo_id} reported {name} {value}: not a reading")
             return value
@@ -509,7 +512,7 @@ class DynamixelDriver:
         """The present position [ticks], refused outside what a servo reports."""
 
         def read() -> int:
-            data = self._read_once(servo_id, ADDRESS["present"] + 6, 4)
+            data = self._read(servo_id, ADDRESS["present"] + 6, 4)
             value = int(struct.unpack("<i", data)[0])
             low, high = PRESENT_RANGE[2]
             if not low <= value <= high:
@@ -527,13 +530,3 @@ class DynamixelDriver:
         if result != COMM_SUCCESS or error & 0x7F:
             raise DriverError(f"servo {servo_id}: writing {list(data)} at {address} failed "
                               f"({self._packet.getTxRxResult(result)}, error {error})")  # fmt: skip
-
-    def _send(self, servo_id: int, name: str, data: bytes) -> None:
-        """``data`` to field ``name`` of one servo, no answer waited for (a sync write to
-        it alone: on a loaded PC each answer waited for costs a wait on the serial port)."""
-        import dynamixel_sdk as sdk
-
-        writer = sdk.GroupSyncWrite(self._port, self._packet, ADDRESS[name], len(data))
-        writer.addParam(servo_id, list(data))
-        if writer.txPacket() != COMM_SUCCESS:
-            raise DriverError(f"servo {servo_id}: sending {name} failed")
