@@ -58,7 +58,8 @@ class KeyLimits:
     is cut to the rate on its own link and never crowds out another peer's messages.
     Size: a larger payload is dropped and counted in Zenoh's callback, before it is
     copied. The stack's own messages stay far below both (a quarter of the size with
-    every string and list at its bound; ten times the fastest rate the settings allow).
+    every string and list at its bound; where a key has a rate, ten times the fastest rate
+    the settings allow).
 
     ``max_rate_hz`` None: no rate rule. Zenoh's rule is a least interval, taken as the
     receiver works messages off: messages that wait together (a receiver or a sender
