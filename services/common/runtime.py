@@ -39,7 +39,30 @@ def prioritise(critical: bool) -> str:
     except PermissionError:
         now = os.getpriority(os.PRIO_PROCESS, 0)
         return f"scheduling priority left at nice {now} (nice {wanted} needs CAP_SYS_NICE)"
-    return f"scheduling priority nice {wanted}"
+    return f"scheduling priority nice {wanted}{_session_priority(wanted)}"
+
+
+AUTOGROUP = "/proc/self/autogroup"
+"""Linux's scheduler shares the processors between sessions first (autogroup, on by
+default where a process's cgroup is the root's) and weighs a nice value only within its
+session: a service leading its own session (``dammrl up`` starts each so) at nice -10 got no
+more of a busy processor than any program beside it. Measured on the 2-core machine, a
+2 ms loop beside two CPU hogs and four busy sessions: late by p99 6.7 ms (max 12.7) at nice
+-10 alone, 0.1 ms (max 5.7) with its session's nice -10 too; in a running stack, stalls of
+the controller of 0.11-0.15 s spent waiting for a CPU."""
+
+
+def _session_priority(nice: int) -> str:
+    """Give this process's session (Linux's autogroup) the same nice, when it leads it: a
+    session of its own is the service alone (never a terminal's shell and what it runs)."""
+    if os.getsid(0) != os.getpid():
+        return ""
+    try:
+        with open(AUTOGROUP, "w") as autogroup:
+            autogroup.write(str(nice))
+    except OSError:  # no autogroup in this kernel, or not allowed
+        return ""
+    return ", its session's too"
 
 
 def cpu_wait_s() -> float | None:
