@@ -85,7 +85,7 @@ class ScriptedStack:
         return self
 
     def __init__(self, options: StackOptions, out: Any, info: Any, on_result: Any,
-                 on_up: Any) -> None:  # fmt: skip
+                 on_up: Any, confirm_recorded: bool) -> None:  # fmt: skip
         self.options, self.on_result, self.on_up = options, on_result, on_up
         self.finishing = False
         self.subscribers: dict[str, list[Callable[[Any], None]]] = {}

@@ -16,9 +16,11 @@ import pytest
 
 from dammrl.devices.emulators.emg import EmgStream
 from dammrl.devices.emulators.emg_signal import EmgSynth, model_named
+from dammrl.stack.recording import read_recording
 from dammrl_core.intent.emg.calibration import save_calibration
 from dammrl_core.intent.lsl import LslSettings, LslSource
 from dammrl_core.intent.source import Ask, Decided
+from schemas import EpisodeRecorded
 from tests.busutil import free_port
 from tests.test_wearable import STREAM, cued_session
 
@@ -189,6 +191,11 @@ def test_calibrate_a_person_then_run_an_episode_through_lsl(tmp_path: Path) -> N
     assert result["success"], (result["outcome"], result["reason"], up.stderr[-2000:])
     info = _dammrl("recording", "info", str(tmp_path / "s.mcap")).stdout
     assert "SignalChunk" in info and "IntentEvidence" in info
+    # the launcher stopped the stack only once the recorder confirmed the reach whole
+    acks = read_recording(tmp_path / "s.mcap").decoded(EpisodeRecorded)
+    assert [(a.episode, a.complete) for _, a in acks if isinstance(a, EpisodeRecorded)] == [
+        (1, True)
+    ], up.stderr[-2000:]
     decode = _dammrl("recording", "decode", str(tmp_path / "s.mcap"),
                      "--calibration", str(tmp_path / "p.json"))  # fmt: skip
     live, matched = (int(n) for n in decode.stdout.split("live decisions in the recording: ")[1]

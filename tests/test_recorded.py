@@ -17,7 +17,16 @@ from typing import Any
 import pytest
 
 from dammrl.stack.recording import read_recording
-from schemas import EpisodeRecorded, EpisodeResult, Header, RobotState, TaskGoal, encode, key
+from schemas import (
+    EpisodeRecorded,
+    EpisodeResult,
+    Header,
+    Intent,
+    RobotState,
+    TaskGoal,
+    encode,
+    key,
+)
 from services.recorder.episodes import METADATA, EpisodeLedger
 from tests.busutil import Observer, free_port, wait_for
 from tests.test_recorder_faults import _recorder
@@ -26,7 +35,9 @@ from tests.test_schemas import EXAMPLES
 RESULT = next(m for m in EXAMPLES if isinstance(m, EpisodeResult))
 GOAL = next(m for m in EXAMPLES if isinstance(m, TaskGoal))
 STATE = next(m for m in EXAMPLES if isinstance(m, RobotState))
-SOURCE = {RobotState: "sim", TaskGoal: "controller", EpisodeResult: "controller"}
+INTENT = next(m for m in EXAMPLES if isinstance(m, Intent))
+SOURCE = {RobotState: "sim", TaskGoal: "controller", EpisodeResult: "controller",
+          Intent: "intent"}  # fmt: skip
 
 
 def _payload(message: Any, stamp_ns: int, seq: int, source: str | None = None) -> bytes:
@@ -39,10 +50,16 @@ def _state(episode: int, stamp_ns: int, t_s: float = 1.0) -> tuple[str, bytes]:
     return key("dammrl", RobotState), _payload(state, stamp_ns, stamp_ns)
 
 
-def _result(episode: int, last_state_ns: int | None, source: str = "controller"
-            ) -> tuple[str, bytes]:  # fmt: skip
-    result = RESULT.model_copy(update={"episode": episode, "last_state_stamp_ns": last_state_ns})
+def _result(episode: int, last_state_ns: int | None, source: str = "controller",
+            decisions: int = 0) -> tuple[str, bytes]:  # fmt: skip
+    result = RESULT.model_copy(update={"episode": episode, "last_state_stamp_ns": last_state_ns,
+                                       "n_decisions": decisions})  # fmt: skip
     return key("dammrl", EpisodeResult), _payload(result, 10**9, 40 + episode, source)
+
+
+def _intent(episode: int, request: int, source: str = "intent") -> tuple[str, bytes]:
+    intent = INTENT.model_copy(update={"episode": episode, "request": request})
+    return key("dammrl", Intent), _payload(intent, 10**9, 100 + request, source)
 
 
 def _goal(episode: int) -> tuple[str, bytes]:
@@ -76,6 +93,24 @@ def test_a_last_state_that_never_comes_is_acknowledged_as_missing_then_as_comple
     assert later.complete and later.episode == 1
 
 
+def test_a_result_heard_before_its_last_decision_is_acknowledged_only_with_that_decision() -> None:
+    """The intent service's link was slower than the controller's: the reach's last
+    decision (an Intent answering its request) comes after the result that counts it."""
+    ledger = EpisodeLedger("dammrl", wait_s=5.0)
+    ledger.written(*_state(1, 100), now_s=0.0)
+    ledger.written(*_intent(1, request=0), now_s=0.0)
+    ledger.written(*_intent(1, request=0), now_s=0.0)  # a request answered again counts once
+    ledger.written(*_intent(1, request=-1), now_s=0.0)  # unsolicited: no decision of a request
+    ledger.written(*_intent(1, request=1, source="controller"), now_s=0.0)  # not its key's
+    ledger.written(*_result(1, last_state_ns=100, decisions=2), now_s=0.0)
+    assert ledger.due(now_s=1.0) == []
+    (ack,) = ledger.due(now_s=5.0)
+    assert not ack.complete and ack.missing == "1 of the 2 decisions its result counts"
+    ledger.written(*_intent(1, request=1), now_s=6.0)
+    (later,) = ledger.due(now_s=6.0)
+    assert later.complete and later.episode == 1
+
+
 def test_a_result_naming_no_state_is_acknowledged_at_once_and_a_forged_one_never() -> None:
     ledger = EpisodeLedger("dammrl")
     ledger.written(*_result(1, last_state_ns=None, source="intent"), now_s=0.0)  # not its key's
@@ -98,7 +133,7 @@ def test_a_finished_file_marks_the_episodes_it_saw_begin_without_their_result() 
     assert ledger.metadata() == {
         "results": "[1, 3]",
         "open_at_close": "[2]",
-        "without_last_state": json.dumps({"3": missing}),
+        "incomplete": json.dumps({"3": missing}),
     }
     assert ledger.metadata()["results"] == "[]"  # the next file starts afresh
 
@@ -108,7 +143,8 @@ def test_the_recorder_acknowledges_an_episode_once_its_result_and_last_state_are
     tmp_path: Path,
 ) -> None:
     """The result comes first (the controller's link was faster); the acknowledgement
-    waits for the arm's state the result names, and the file then holds both."""
+    waits for the arm's state the result names and the decision it counts, and the file
+    then holds them all."""
     port = free_port()
     observer = Observer(port)
     path = tmp_path / "part-01.mcap"
@@ -122,11 +158,15 @@ def test_the_recorder_acknowledges_an_episode_once_its_result_and_last_state_are
                     _payload(GOAL.model_copy(update={"episode": 1}), now, 0))  # fmt: skip
         for k in range(5):
             session.put(*_state(1, now + k))
-        result = RESULT.model_copy(update={"episode": 1, "last_state_stamp_ns": now + 9})
+        result = RESULT.model_copy(update={"episode": 1, "last_state_stamp_ns": now + 9,
+                                           "n_decisions": 1})  # fmt: skip
         session.put(key("dammrl", EpisodeResult), _payload(result, now + 10, 1))
         time.sleep(1.0)
         assert observer.of(EpisodeRecorded) == []  # the state it names is not there yet
         session.put(*_state(1, now + 9))
+        time.sleep(1.0)
+        assert observer.of(EpisodeRecorded) == []  # nor the decision it counts
+        session.put(*_intent(1, request=0))
         wait_for(lambda: bool(observer.of(EpisodeRecorded)), 20, "the acknowledgement")
         (ack,) = observer.of(EpisodeRecorded)
         assert isinstance(ack, EpisodeRecorded)

@@ -7,13 +7,13 @@ sequence per key and publisher, as the recorder counts loss."""
 from __future__ import annotations
 
 import contextlib
-import threading
 import time
 from collections import Counter
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from dammrl.stack.recorded import RecordedEpisodes
 from dammrl.stack.stop import StopConsole
 from dammrl_core.protocol import Trial
 from schemas import (
@@ -36,38 +36,6 @@ from services.common.security import DISPLAY, OPERATOR
 
 STOP_CONFIRM_S = 2.0
 """The console's stop (or release) is sent until every arm confirms it, this long at most."""
-
-
-class RecordedEpisodes:
-    """The recorder's acknowledgements of one stack run's episodes, as they come (a
-    complete one supersedes an incomplete one), and a bounded wait for them."""
-
-    def __init__(self, part: Path) -> None:
-        self.stem = part.stem  # part-NN: its continuations are part-NN-001.mcap, ...
-        self.acks: dict[int, EpisodeRecorded] = {}
-        self.changed = threading.Condition()
-
-    def take(self, ack: EpisodeRecorded) -> None:
-        """One acknowledgement heard (the recorder of another run's file is not ours)."""
-        if ack.header.source != "recorder" or not ack.file.startswith(self.stem):
-            return
-        with self.changed:
-            known = self.acks.get(ack.episode)
-            if known is None or not known.complete:
-                self.acks[ack.episode] = ack
-            self.changed.notify_all()
-
-    def wait(self, episodes: list[int], timeout_s: float) -> dict[int, EpisodeRecorded]:
-        """The acknowledgements of ``episodes`` once each is complete, or what came within
-        ``timeout_s``."""
-        deadline = time.monotonic() + timeout_s
-        with self.changed:
-            while not all(e in self.acks and self.acks[e].complete for e in episodes):
-                remaining = deadline - time.monotonic()
-                if remaining <= 0:
-                    break
-                self.changed.wait(remaining)
-            return {e: self.acks[e] for e in episodes if e in self.acks}
 
 
 class RunBus:

@@ -53,6 +53,7 @@ from dammrl.people.session_steps import SessionSteps, SetUp, trial_line
 from dammrl.stack.launch import Stack
 from dammrl.stack.options import StackOptions, check_stack, recording_files
 from dammrl.stack.progress import result_dict
+from dammrl.stack.recorded import RECORDED_WAIT_S
 from dammrl_core.coadaptation import Targets
 from dammrl_core.errors import DammrlError, Exit, UsageError
 from dammrl_core.protocol import (
@@ -140,11 +141,6 @@ def runs(trials: list[Trial]) -> Iterator[list[Trial]]:
 
 
 Say = Callable[[str], None]
-
-RECORDED_WAIT_S = 15.0
-"""How long a stack run waits at its end for the recorder to confirm that each of its
-reaches is on disk (``EpisodeRecorded``) before the stack stops [s]. A reach it does not
-confirm is logged in ``events.jsonl`` and said; the catalogue reports it."""
 
 
 class SessionRunner(SessionSteps):
@@ -357,7 +353,7 @@ class StackRun:
         if options.checkpoint is not None:  # what chose the models: kept with the session
             self.session.events.add(runner.event("policy", refined=str(options.checkpoint)))
         self.stack = Stack(options, out=lambda _: None, info=runner.say, on_result=self.keep,
-                           on_up=self.attach)  # fmt: skip
+                           on_up=self.attach, confirm_recorded=False)  # fmt: skip
         try:
             return self.stack.run()
         finally:

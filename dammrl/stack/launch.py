@@ -8,6 +8,7 @@ when the requested episodes are done, or (exit 1) when a service dies on its own
 
 from __future__ import annotations
 
+import contextlib
 import os
 import shutil
 import threading
@@ -28,13 +29,17 @@ from dammrl.stack.options import (
 )
 from dammrl.stack.processes import ServiceProcesses
 from dammrl.stack.progress import EpisodeTally, PatientPrompts, Progress, summary
+from dammrl.stack.recorded import RECORDED_WAIT_S, RecordedEpisodes
 from dammrl.stack.stop import StopConsole
 from dammrl_core.errors import (
     Exit,
 )
 from dammrl_core.settings import environment_of
 from schemas import (
+    DecodeError,
+    EpisodeRecorded,
     EpisodeResult,
+    decode,
     key,
 )
 from services.common.bus import SESSION_CLOSE_WAIT_S, close_within, zenoh_config
@@ -57,11 +62,14 @@ class Stack:
         info: Callable[[str], None] = print,
         on_result: Callable[[EpisodeResult], None] | None = None,
         on_up: Callable[[zenoh.Session], None] | None = None,
+        confirm_recorded: bool = True,
     ) -> None:
         """``out`` receives the episode results, ``info`` the progress lines; ``on_result``
         each episode's result as it is counted (a session's trial log keeps it at once);
         ``on_up`` the stack's hub session once every service is alive: the operator's
-        (the launcher's role; a participant display joins with its own, :meth:`join`)."""
+        (the launcher's role; a participant display joins with its own, :meth:`join`).
+        ``confirm_recorded``: a recorded run ends only once the recorder confirms its
+        episodes on disk, bounded (a session confirms each of its runs itself)."""
         check_options(options)
         self.options = options
         self.info = info
@@ -75,6 +83,9 @@ class Stack:
         self.on_up = on_up
         self.finishing = threading.Event()  # finish(): end the run after the current result
         self.joined: list[zenoh.Session] = []  # sessions of other roles (join), closed at the end
+        self.recorded = None
+        if options.record is not None and confirm_recorded:
+            self.recorded = RecordedEpisodes(options.record)
         check_settings(self.services(), self.environment())
 
     def environment(self) -> dict[str, str]:
@@ -133,6 +144,10 @@ class Stack:
 
     def _run_on(self, session: zenoh.Session, stop: SignalStop) -> int:
         results = session.declare_subscriber(key(self.options.namespace, EpisodeResult))
+        if self.recorded is not None:  # kept until the session closes
+            self.recorded.subscriber = session.declare_subscriber(
+                key(self.options.namespace, EpisodeRecorded), self._recorded
+            )
         prompts = None
         if self.options.pad_port is not None and not self.options.json:
             prompts = PatientPrompts(session, self.options.namespace, self.info)
@@ -145,6 +160,26 @@ class Stack:
             self.on_up(session)
         progress = Progress(session, self.options.namespace, self.info)
         return self._watch(results, stop, progress, prompts)
+
+    def _recorded(self, sample: zenoh.Sample) -> None:
+        assert self.recorded is not None
+        with contextlib.suppress(DecodeError):
+            self.recorded.take(decode(EpisodeRecorded, sample.payload.to_bytes()))
+
+    def _await_recorded(self) -> None:
+        """Before the stack stops: wait (bounded) until the recorder confirms the run's
+        episodes on disk, their last states and decisions included; say what it did not."""
+        episodes = [result.episode for result in self.tally.results]
+        if self.recorded is None or not episodes:
+            return
+        acks = self.recorded.wait(episodes, RECORDED_WAIT_S)
+        if unconfirmed := [e for e in episodes if e not in acks]:
+            self.info(f"the recorder did not confirm episode(s) {unconfirmed} on disk within "
+                      f"{RECORDED_WAIT_S:g} s (`dammrl recording info` says what the file "
+                      "holds)")  # fmt: skip
+        for episode, ack in sorted(acks.items()):
+            if not ack.complete:
+                self.info(f"episode {episode} is recorded without {ack.missing}")
 
     def card(self) -> RunCard:
         """What a tool needs to join this run: where, how, and the person's input."""
@@ -196,6 +231,7 @@ class Stack:
         """Count the episodes as they end, until the last, a finish or a signal."""
         while not stop.is_set():
             if self.finishing.is_set() or self.tally.done():
+                self._await_recorded()
                 self.info(summary(self.tally.results))
                 return self.tally.verdict()
             self.processes.check()

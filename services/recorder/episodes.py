@@ -1,10 +1,12 @@
 """What the recorder holds of each episode, and when it may say so (pure: no bus, no clock).
 
 A session must not stop its stack before the recorder holds the episode it just logged:
-the result, and the arm's states up to the one the result was decided from (the result
-names it: ``EpisodeResult.last_state_stamp_ns``, a stamp on the arm's own clock). The
-recorder hears the controller and the arm on separate links, so the result may come
-before the arm's last states; and on a loaded machine the bus may drop either.
+the result, the arm's states up to the one the result was decided from (the result
+names it: ``EpisodeResult.last_state_stamp_ns``, a stamp on the arm's own clock) and the
+person's decisions it counts (``n_decisions``: as many of the episode's answered requests
+in ``Intent``). The recorder hears the controller, the arm and the intent service on
+separate links, so the result may come before the arm's last states or the last
+decision; and on a loaded machine the bus may drop any of them.
 
 :class:`EpisodeLedger` watches what is written. An episode is *due* an acknowledgement
 once its result is written and the arm's stream has reached that state (complete), or
@@ -20,7 +22,7 @@ import json
 from dataclasses import dataclass, field
 from typing import Any
 
-from schemas import EpisodeResult, RobotState, TaskGoal, type_of
+from schemas import EpisodeResult, Intent, RobotState, TaskGoal, type_of
 from services.recorder.core import message_map
 from services.recorder.gaps import publishers_of
 
@@ -49,6 +51,8 @@ class _Episode:
     begun: bool = False  # its goal or a state of it was written
     result_seq: int | None = None  # its result's sequence number, once written
     last_state_ns: int | None = None  # the state its result names
+    answered: set[int] = field(default_factory=set)  # requests its Intents answered
+    n_decisions: int = 0  # the decisions its result counts
     result_at_s: float = 0.0  # when the result was written (the caller's clock) [s]
     acked: bool | None = None  # None: not yet; False: as incomplete; True: complete
 
@@ -66,7 +70,7 @@ class EpisodeLedger:
     def written(self, key: str, payload: bytes, now_s: float) -> None:
         """A message written to the file (``now_s``: the caller's monotonic clock)."""
         kind = type_of(self.namespace, key)
-        if kind not in (RobotState, TaskGoal, EpisodeResult):
+        if kind not in (RobotState, TaskGoal, EpisodeResult, Intent):
             return
         fields = message_map(payload)
         if fields is None or not _from_publisher(self.namespace, key, fields):
@@ -78,6 +82,9 @@ class EpisodeLedger:
             self._state(episode, fields)
         elif kind is TaskGoal:
             self._episode(episode).begun = True
+        elif kind is Intent:
+            if type(request := fields.get("request")) is int and request >= 0:
+                self._episode(episode).answered.add(request)
         else:
             self._result(episode, fields, now_s)
 
@@ -106,7 +113,7 @@ class EpisodeLedger:
         return {
             "results": json.dumps(with_result),
             "open_at_close": json.dumps(open_),
-            "without_last_state": json.dumps(partial),
+            "incomplete": json.dumps(partial),
         }
 
     def _episode(self, number: int) -> _Episode:
@@ -130,17 +137,28 @@ class EpisodeLedger:
         if episode.result_seq is not None:
             return  # a repeat: the first one counts
         named = fields.get("last_state_stamp_ns")
+        decisions = fields.get("n_decisions")
+        episode.n_decisions = decisions if type(decisions) is int else 0
         episode.result_seq = fields["header"]["seq"]
         episode.last_state_ns = named if type(named) is int and named >= 0 else None
         episode.result_at_s = now_s
 
     def _whole(self, episode: _Episode) -> bool:
+        return self._last_state_in(episode) and len(episode.answered) >= episode.n_decisions
+
+    def _last_state_in(self, episode: _Episode) -> bool:
         return episode.last_state_ns is None or self.arm_stamp_ns >= episode.last_state_ns
 
     def _missing(self, episode: _Episode) -> str:
-        reached = "none" if episode.last_t_s is None else f"robot time {episode.last_t_s:.3f} s"
-        return (f"the robot state its result was decided from (the arm's states written "
-                f"reach {reached})")  # fmt: skip
+        missing = []
+        if not self._last_state_in(episode):
+            reached = "none" if episode.last_t_s is None else f"robot time {episode.last_t_s:.3f} s"
+            missing.append(f"the robot state its result was decided from (the arm's states "
+                           f"written reach {reached})")  # fmt: skip
+        if (written := len(episode.answered)) < episode.n_decisions:
+            missing.append(f"{episode.n_decisions - written} of the {episode.n_decisions} "
+                           f"decisions its result counts")  # fmt: skip
+        return " and ".join(missing)
 
     def _ack(self, number: int, episode: _Episode, complete: bool) -> Ack:
         assert episode.result_seq is not None
