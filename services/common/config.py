@@ -49,8 +49,9 @@ class BusSettings(Settings):
     realtime: bool = True
     """The arm's loop goes first: robot states and commands travel at Zenoh's real-time
     priority (ahead of any other traffic on a link), and the services that close the loop
-    (sim or robot, controller) ask the kernel for a higher scheduling priority (nice -10;
-    needs root or CAP_SYS_NICE, else logged and skipped)."""
+    (sim or robot, controller) ask the kernel for a higher scheduling priority (nice -10,
+    and the same for the session each leads under ``dammrl up``, which Linux shares the
+    processors by first; needs root or CAP_SYS_NICE, else logged and skipped)."""
     lockstep: bool = False
     """Run the stack on the robot clock instead of in real time: the sim steps only once
     the controller answered its last state, and the controller answers a state that asked
