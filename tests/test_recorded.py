@@ -10,12 +10,14 @@ from __future__ import annotations
 
 import json
 import signal
+import threading
 import time
 from pathlib import Path
 from typing import Any
 
 import pytest
 
+from dammrl.stack.recorded import RecordedEpisodes
 from dammrl.stack.recording import read_recording
 from schemas import (
     EpisodeRecorded,
@@ -184,3 +186,27 @@ def test_the_recorder_acknowledges_an_episode_once_its_result_and_last_state_are
         observer.close()
     metadata = read_recording(path).metadata[METADATA]
     assert json.loads(metadata["results"]) == [1] and json.loads(metadata["open_at_close"]) == [2]
+
+
+def _ack(episode: int, complete: bool, file: str = "run.mcap") -> EpisodeRecorded:
+    header = Header(stamp_ns=1, seq=episode, source="recorder")
+    return EpisodeRecorded(header=header, file=file, episode=episode, result_seq=1, states=1,
+                           complete=complete, missing="" if complete else "a state")  # fmt: skip
+
+
+def test_a_runs_wait_ends_with_its_episodes_confirmed_or_at_once_on_a_stop() -> None:
+    recorded = RecordedEpisodes(Path("run.mcap"))
+    recorded.take(_ack(1, complete=True, file="other.mcap"))  # another run's file
+    recorded.take(_ack(2, complete=False))
+    threading.Timer(0.2, recorded.take, [_ack(1, complete=True, file="run-001.mcap")]).start()
+    started = time.monotonic()
+    acks = recorded.wait([1, 2], timeout_s=1.0)  # 2 stays incomplete: the whole second
+    assert 0.9 < time.monotonic() - started < 5.0
+    assert {e: a.complete for e, a in acks.items()} == {1: True, 2: False}
+    recorded.take(_ack(2, complete=True))  # a complete one supersedes it
+    assert recorded.wait([1, 2], timeout_s=0.0)[2].complete
+    stop = threading.Event()
+    threading.Timer(0.2, stop.set).start()
+    started = time.monotonic()
+    assert recorded.wait([3], timeout_s=30.0, stop=stop) == {}  # Ctrl-C: no 30 s wait
+    assert time.monotonic() - started < 5.0

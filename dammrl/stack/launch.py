@@ -166,13 +166,15 @@ class Stack:
         with contextlib.suppress(DecodeError):
             self.recorded.take(decode(EpisodeRecorded, sample.payload.to_bytes()))
 
-    def _await_recorded(self) -> None:
+    def _await_recorded(self, stop: SignalStop) -> None:
         """Before the stack stops: wait (bounded) until the recorder confirms the run's
         episodes on disk, their last states and decisions included; say what it did not."""
         episodes = [result.episode for result in self.tally.results]
         if self.recorded is None or not episodes:
             return
-        acks = self.recorded.wait(episodes, RECORDED_WAIT_S)
+        acks = self.recorded.wait(episodes, RECORDED_WAIT_S, stop)
+        if stop.is_set():
+            return  # asked to stop now: the recorder finishes the file as it is
         if unconfirmed := [e for e in episodes if e not in acks]:
             self.info(f"the recorder did not confirm episode(s) {unconfirmed} on disk within "
                       f"{RECORDED_WAIT_S:g} s (`dammrl recording info` says what the file "
@@ -231,7 +233,7 @@ class Stack:
         """Count the episodes as they end, until the last, a finish or a signal."""
         while not stop.is_set():
             if self.finishing.is_set() or self.tally.done():
-                self._await_recorded()
+                self._await_recorded(stop)
                 self.info(summary(self.tally.results))
                 return self.tally.verdict()
             self.processes.check()

@@ -16,6 +16,8 @@ RECORDED_WAIT_S = 15.0
 """How long a run waits at its end for the recorder to confirm that each of its reaches
 is on disk before the stack stops [s] (the recorder says an episode is incomplete, and
 what it lacks, 5 s after its result)."""
+STOP_POLL_S = 0.05
+"""How often a wait looks whether it was asked to stop [s]."""
 
 
 class RecordedEpisodes:
@@ -38,14 +40,16 @@ class RecordedEpisodes:
                 self.acks[ack.episode] = ack
             self.changed.notify_all()
 
-    def wait(self, episodes: list[int], timeout_s: float) -> dict[int, EpisodeRecorded]:
+    def wait(
+        self, episodes: list[int], timeout_s: float, stop: threading.Event | None = None
+    ) -> dict[int, EpisodeRecorded]:
         """The acknowledgements of ``episodes`` once each is complete, or what came within
-        ``timeout_s``."""
+        ``timeout_s`` or before ``stop`` was set (Ctrl-C ends the wait at once)."""
         deadline = time.monotonic() + timeout_s
         with self.changed:
             while not all(e in self.acks and self.acks[e].complete for e in episodes):
                 remaining = deadline - time.monotonic()
-                if remaining <= 0:
+                if remaining <= 0 or (stop is not None and stop.is_set()):
                     break
-                self.changed.wait(remaining)
+                self.changed.wait(min(remaining, STOP_POLL_S))
             return {e: self.acks[e] for e in episodes if e in self.acks}
