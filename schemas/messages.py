@@ -389,17 +389,18 @@ class SessionControl(Message):
 
 
 class EpisodeRecorded(Message):
-    """The recorder's acknowledgement that an episode is on disk: its result, and the
-    arm's states up to the one the result was decided from (``complete``), written to
-    ``file`` and synced. A session waits for it before it stops the episode's stack; a
-    later acknowledgement of the same episode supersedes an earlier, incomplete one."""
+    """The recorder's acknowledgement that an episode is on disk: its result, the arm's
+    states up to the one the result was decided from and the decisions the result counts
+    (``complete``), written to ``file`` and synced. A session, and ``dammrl up --record``,
+    wait for it before they stop the episode's stack; a later acknowledgement of the same
+    episode supersedes an earlier, incomplete one."""
 
     episode: int = Field(ge=1, description="the episode whose result is on disk")
     file: str = Field(min_length=1, max_length=255, description="the recording's file name")
     result_seq: int = Field(ge=0, description="the result's sequence number (its publisher's)")
     states: int = Field(ge=0, description="the episode's robot states in the file so far")
     complete: bool = Field(
-        description="the robot state the result was decided from is on disk too (or the "
-        "result names none)"
+        description="the robot state the result was decided from (or the result names "
+        "none) and the decisions it counts (its requests answered) are on disk too"
     )
     missing: str = Field("", max_length=500, description="what is not on disk (complete: empty)")
