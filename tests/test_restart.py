@@ -72,16 +72,22 @@ def test_each_service_killed_and_restarted_mid_episode_the_stack_goes_on() -> No
 
 def _frozen(stack: Stack, observer: Observer, name: str) -> EpisodeResult:
     """Freeze ``name`` (SIGSTOP) for a second mid-reach, then let it go on; the episode
-    it broke."""
+    it broke: the first result decided after the freeze began (on a busy PC the reach seen
+    under way may have ended before, its result still on the way)."""
     mark = len(observer.received)
     wait_for(lambda: _progress(observer.received[mark:]), 60, "a reach under way")
     mark = len(observer.received)
+    frozen_ns = time.time_ns()
     stack.processes[name].send_signal(signal.SIGSTOP)
     time.sleep(1.0)
     stack.processes[name].send_signal(signal.SIGCONT)
-    wait_for(lambda: bool([m for m in observer.received[mark:] if isinstance(m, EpisodeResult)]),
-             30, "the broken episode's result")  # fmt: skip
-    return next(m for m in observer.received[mark:] if isinstance(m, EpisodeResult))
+
+    def broken() -> list[EpisodeResult]:
+        return [m for m in observer.received[mark:]
+                if isinstance(m, EpisodeResult) and m.header.stamp_ns > frozen_ns]  # fmt: skip
+
+    wait_for(lambda: bool(broken()), 30, "the broken episode's result")
+    return broken()[0]
 
 
 def test_a_hold_names_who_went_silent() -> None:
