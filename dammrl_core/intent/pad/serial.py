@@ -10,7 +10,11 @@ A busy host delivers a serial port's bytes late and in bursts (the kernel hands 
 the reader from a worker thread that competes for the processor: on a 2-core machine
 beside two CPU hogs, seconds late). The pad's count says when each sample was taken, so a
 press is timed and decoded as the person made it however late its frames arrive; only a
-lost frame breaks a press.
+lost frame breaks a press. And the port is read on a thread of its own (``PortPump``):
+while that worker waits, a read or a poll of the port does not return at its timeout but
+waits for the worker, in the kernel (``n_tty_poll`` flushes the port's pending input
+first): on the calling thread, the intent service's whole loop (its Health, the
+operator's takeover) froze for as long, up to 60 s beside two CPU hogs.
 """
 
 from __future__ import annotations
@@ -18,6 +22,8 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
+import queue
+import threading
 import time
 from dataclasses import dataclass
 
@@ -35,6 +41,8 @@ from dammrl_core.intent.pad.protocol import (
 log = logging.getLogger("dammrl.intent")
 
 FIRST_BACKOFF_S = 0.5
+PUMP_WAIT_S = 0.1
+"""The longest the port's thread waits in one read (a close wakes it at once)."""
 
 
 MAX_CLOCK_DRIFT = 1e-3
@@ -79,6 +87,41 @@ class PadClock:
         return self._last_s
 
 
+class PortPump:
+    """A serial port read on a thread of its own: every chunk of bytes with the time it was
+    read off the port, or the error that ended the reading, into ``chunks``. The thread
+    owns the port: it closes it as it ends, so a port closed while the kernel holds a read
+    is never reused under it."""
+
+    def __init__(self, port: serial.Serial) -> None:
+        self.port = port
+        self.chunks: queue.SimpleQueue[tuple[float, bytes] | Exception] = queue.SimpleQueue()
+        self._stopping = threading.Event()
+        self._thread = threading.Thread(target=self._pump, name="serial-port", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        """End the reading (at once, unless the kernel holds the read; the port is closed
+        when it ends)."""
+        self._stopping.set()
+        with contextlib.suppress(Exception):  # a port already gone
+            self.port.cancel_read()
+
+    def _pump(self) -> None:
+        port = self.port
+        try:
+            while not self._stopping.is_set():
+                data = port.read(port.in_waiting or 1)
+                if data:
+                    self.chunks.put((time.monotonic(), data))
+        except (serial.SerialException, OSError, TypeError) as exc:  # TypeError: closed
+            if not self._stopping.is_set():
+                self.chunks.put(exc)
+        finally:
+            with contextlib.suppress(serial.SerialException, OSError):
+                port.close()
+
+
 class SerialSensor:
     def __init__(
         self,
@@ -92,7 +135,7 @@ class SerialSensor:
         self.reconnect_max_s = reconnect_max_s
         self.poll_s = poll_s
         self.parser = FrameParser()
-        self.port: serial.Serial | None = None
+        self.pump: PortPump | None = None
         self.last_frame_s = 0.0
         self.last_error = ""
         self._last_seq: int | None = None  # None: nothing received since the port opened
@@ -101,7 +144,7 @@ class SerialSensor:
 
     @property
     def connected(self) -> bool:
-        return self.port is not None
+        return self.pump is not None
 
     def silent_for(self) -> float:
         """Seconds since the last valid frame (or since the port was opened)."""
@@ -109,22 +152,26 @@ class SerialSensor:
 
     def read(self) -> list[Arrival]:
         """The frames that arrived within ``poll_s`` (sleeps that long while disconnected)."""
-        port = self._open()
-        if port is None:
+        pump = self._open()
+        if pump is None:
             time.sleep(self.poll_s)
             return []
-        try:
-            data = port.read(port.in_waiting or 1)
-        except (serial.SerialException, OSError) as exc:
-            self.last_error = str(exc)
-            log.warning("sensor lost (%s): reconnecting", exc)
-            self.close()
-            return []
-        now = time.monotonic()
-        frames = self.parser.feed(data)
-        if frames:
-            self.last_frame_s = now
-        return [self._arrival(now, frame) for frame in frames]
+        arrivals: list[Arrival] = []
+        with contextlib.suppress(queue.Empty):
+            chunk = pump.chunks.get(timeout=self.poll_s)
+            while True:
+                if isinstance(chunk, Exception):
+                    self.last_error = str(chunk)
+                    log.warning("sensor lost (%s): reconnecting", chunk)
+                    self.close()
+                    return arrivals
+                t_s, data = chunk
+                frames = self.parser.feed(data)
+                if frames:
+                    self.last_frame_s = t_s
+                arrivals += [self._arrival(t_s, frame) for frame in frames]
+                chunk = pump.chunks.get_nowait()
+        return arrivals
 
     def _arrival(self, t_s: float, frame: Frame) -> Arrival:
         lost = frames_lost(self._last_seq, frame.seq)
@@ -132,10 +179,9 @@ class SerialSensor:
         return Arrival(t_s, frame, lost, self.clock.sampled_at(frame.seq, t_s))
 
     def close(self) -> None:
-        if self.port is not None:
-            with contextlib.suppress(serial.SerialException, OSError):
-                self.port.close()
-        self.port = None
+        if self.pump is not None:
+            self.pump.stop()
+        self.pump = None
         self._last_seq = None  # whatever comes next may be another device, or a restarted one
         self.clock.reset()
 
@@ -145,14 +191,14 @@ class SerialSensor:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    def _open(self) -> serial.Serial | None:
-        if self.port is not None:
-            return self.port
+    def _open(self) -> PortPump | None:
+        if self.pump is not None:
+            return self.pump
         now = time.monotonic()
         if now < self._retry_at:
             return None
         try:
-            self.port = serial.Serial(self.device, self.baud_rate, timeout=self.poll_s)
+            port = serial.Serial(self.device, self.baud_rate, timeout=PUMP_WAIT_S)
         except (serial.SerialException, OSError) as exc:
             self.last_error = str(exc)
             self._retry_at = now + self._backoff_s
@@ -163,4 +209,5 @@ class SerialSensor:
             return None
         log.info("sensor connected on %s", self.device)
         self._backoff_s, self.last_frame_s, self.last_error = FIRST_BACKOFF_S, now, ""
-        return self.port
+        self.pump = PortPump(port)
+        return self.pump
