@@ -83,9 +83,10 @@ class Stack:
         self.on_up = on_up
         self.finishing = threading.Event()  # finish(): end the run after the current result
         self.joined: list[zenoh.Session] = []  # sessions of other roles (join), closed at the end
-        self.recorded = None
+        self.recorded: RecordedEpisodes | None = None  # what the recorder confirmed
         if options.record is not None and confirm_recorded:
             self.recorded = RecordedEpisodes(options.record)
+        self.recorder_acks: Any = None  # the subscriber feeding it, kept while the run lives
         check_settings(self.services(), self.environment())
 
     def environment(self) -> dict[str, str]:
@@ -144,8 +145,8 @@ class Stack:
 
     def _run_on(self, session: zenoh.Session, stop: SignalStop) -> int:
         results = session.declare_subscriber(key(self.options.namespace, EpisodeResult))
-        if self.recorded is not None:  # kept until the session closes
-            self.recorded.subscriber = session.declare_subscriber(
+        if self.recorded is not None:
+            self.recorder_acks = session.declare_subscriber(
                 key(self.options.namespace, EpisodeRecorded), self._recorded
             )
         prompts = None

@@ -8,7 +8,6 @@ from __future__ import annotations
 import threading
 import time
 from pathlib import Path
-from typing import Any
 
 from schemas import EpisodeRecorded
 
@@ -28,7 +27,6 @@ class RecordedEpisodes:
         self.stem = part.stem  # part-NN: its continuations are part-NN-001.mcap, ...
         self.acks: dict[int, EpisodeRecorded] = {}
         self.changed = threading.Condition()
-        self.subscriber: Any = None  # the bus's subscriber feeding ``take``, while it lives
 
     def take(self, ack: EpisodeRecorded) -> None:
         """One acknowledgement heard (the recorder of another run's file is not ours)."""

@@ -97,8 +97,7 @@ class PortPump:
         self.port = port
         self.chunks: queue.SimpleQueue[tuple[float, bytes] | Exception] = queue.SimpleQueue()
         self._stopping = threading.Event()
-        self._thread = threading.Thread(target=self._pump, name="serial-port", daemon=True)
-        self._thread.start()
+        threading.Thread(target=self._pump, name="serial-port", daemon=True).start()
 
     def stop(self) -> None:
         """End the reading (at once, unless the kernel holds the read; the port is closed
@@ -114,7 +113,7 @@ class PortPump:
                 data = port.read(port.in_waiting or 1)
                 if data:
                     self.chunks.put((time.monotonic(), data))
-        except (serial.SerialException, OSError, TypeError) as exc:  # TypeError: closed
+        except Exception as exc:  # any end of the reading reaches the reader, which reopens
             if not self._stopping.is_set():
                 self.chunks.put(exc)
         finally:
