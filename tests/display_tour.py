@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from dammrl.cli.session import open_display
+from dammrl.people.console import COMMANDS
 from dammrl.people.session import SessionRunner, SetUp
 from tests.browser import Browser
 from tests.busutil import free_port, start_patient, wait_for
@@ -129,12 +130,21 @@ def _visit(browser: Browser, typist: Typist, seen: Tour, shots: Path,
     """Act on each screen as it comes: shoot it the first time, then what the therapist
     or the participant does there; past ``deadline`` the console ends (so does the
     session). The second reach is paused, resumed and then stopped."""
-    typed: set[str] = set()
+    typed: dict[str, int] = {}  # each line typed: how much the session had said then
 
     def once(line: str) -> None:
         if line not in typed:
-            typed.add(line)
+            typed[line] = len(typist.said)
             typist.type(line)
+
+    def again_if_refused() -> None:
+        """A line the session refused ("type it again once the reach runs": the page can
+        show a reach a moment before the console acts on it) is typed again, as a
+        therapist would."""
+        for line, said in list(typed.items()):
+            refusal = f"console: {COMMANDS.get(line.split()[0])} refused"
+            if any(refusal in words for words in typist.said[said:]):
+                del typed[line]
 
     frames = Frames(browser)
     while running.is_set():
@@ -142,6 +152,7 @@ def _visit(browser: Browser, typist: Typist, seen: Tour, shots: Path,
             typist.close()
             return
         frames.take()
+        again_if_refused()
         kind = str(browser.evaluate("document.body && document.body.dataset.kind") or "")
         frames.shoot(list(browser.evaluate("window.__screens") or []), seen, shots)
         if kind == "comfort" and "comfort" in seen.shots:
@@ -153,7 +164,7 @@ def _visit(browser: Browser, typist: Typist, seen: Tour, shots: Path,
         elif step == "g" and "taken" in seen.shots:
             once(step)  # ... and give them back
         elif step == steps[2] and kind == "outcome":
-            typed.add("outcome")  # the next reach is paused, resumed, then stopped
+            typed["outcome"] = len(typist.said)  # the next reach: paused, resumed, stopped
         elif (
             (step == steps[2] and "outcome" in typed and kind in ("cue", "moving"))
             or (step == "r" and "paused" in seen.shots)

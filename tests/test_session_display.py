@@ -35,6 +35,8 @@ def _lines(path: Path) -> list[dict[str, Any]]:
 def test_every_screen_of_a_real_session_appears_on_the_page(tmp_path: Path) -> None:
     seen = tour(tmp_path, tmp_path / "shots")
     kinds = [s["kind"] for s in seen.screens]
+    print("the page showed:", " ".join(kinds))  # in full when it fails (pytest cuts asserts)
+    print("the session said:", *seen.said, sep="\n  ")
     assert not seen.error and seen.code == 0, (seen.error, seen.said[-10:])
     assert set(SCREENS) <= set(kinds), (kinds, seen.said)
     # each outcome stays its set time (the next reach, or the block's comfort, after it),

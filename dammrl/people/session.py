@@ -379,16 +379,19 @@ class StackRun:
             runner.display.expect_run(self.places(), condition_intent(self.group[0], self.setup))
             BusFeed(runner.display, DEFAULT_NAMESPACE).attach(bus.display_bus)
         bus.listen(hub, self._stop_heard)
+        if runner.latched is not None:  # typed while the stack started: it holds the arm
+            bus.send(EmergencyStop(header=bus.header(EmergencyStop), engaged=True,
+                                   reason=runner.latched))  # fmt: skip
+        # the console acts on the run as soon as the page can show the reach (its first
+        # reach is under way already): not after the stop console's own session, which
+        # takes a second to open on a busy PC (a stop meanwhile goes on the hub's)
+        runner.console.route(self.console.line)
         if self.stack is not None:  # the stop one key away: its session open from now on
             bus.stopper = self.stack.stop_console()
         bus.listening = True
         for trial, rating, asked_s in runner.pending_comfort:  # asked while no stack ran
             bus.comfort(runner.participant.id, trial, rating, asked_s)
         runner.pending_comfort = []
-        if runner.latched is not None:  # typed while the stack started: it holds the arm
-            bus.send(EmergencyStop(header=bus.header(EmergencyStop), engaged=True,
-                                   reason=runner.latched))  # fmt: skip
-        runner.console.route(self.console.line)
 
     def places(self) -> dict[int, Any]:
         """Each reach's place in the session, for the participant's page."""
