@@ -16,7 +16,7 @@ from dammrl.people.session import JsonLines, SessionRunner, SetUp, check_partici
 from dammrl_core.errors import ConfigurationError, DammrlError, UsageError
 from dammrl_core.protocol import balanced_latin_square, block_order, load_protocol, plan_trials
 from schemas import SessionControl, decode
-from tests.sessionutil import PROTOCOL, ScriptedStack, ScriptedStopper, reset
+from tests.sessionutil import PROTOCOL, ScriptedStack, ScriptedStopper, Typist, reset
 
 
 def _protocol(tmp_path: Path, text: str = PROTOCOL) -> Path:
@@ -247,6 +247,39 @@ def test_the_console_takes_the_decisions_over_and_gives_them_back(
         ("take", None, None), ("decide", 1, 2), ("decide", -1, 1), ("give", None, None)
     ]  # fmt: skip
     assert sent[0].why == "the patient is tired" and all(c.who == "operator" for c in sent)
+
+
+def _said_any(typist: Typist, *words: str) -> bool:
+    return any(typist.index(w) >= 0 for w in words)
+
+
+def test_a_line_typed_while_the_stop_console_opens_acts_on_the_reach(
+    tmp_path: Path, scripted: type[ScriptedStack], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The stop console's own session takes a second to open on a busy PC, and the first
+    reach is under way meanwhile: a takeover typed then acts on it (it was once refused as
+    'no reach runs now' until the stop console was open)."""
+    typist, opened = Typist([]), ScriptedStack.stop_console
+
+    def slow_stop_console(stack: ScriptedStack) -> ScriptedStopper:
+        if not stack.runs[1:]:  # the first run's: the line typed while it opens
+            typist.type("t the patient is tired")
+            deadline = time.monotonic() + 5.0  # it is acted on, or refused, by then
+            while time.monotonic() < deadline and not _said_any(typist, "take", "no reach"):
+                time.sleep(0.01)
+        return opened(stack)
+
+    monkeypatch.setattr(ScriptedStack, "stop_console", slow_stop_console)
+    runner = SessionRunner(tmp_path / "sessions", "P001", _protocol(tmp_path), SetUp(),
+                           say=typist.say, wait_for_operator=False,
+                           console=typist.stream)  # fmt: skip
+    try:
+        runner.run()
+    finally:
+        typist.close()
+    sent = [decode(SessionControl, p) for k, p in scripted.sent if k == "dammrl/session/control"]
+    assert [c.action for c in sent][:1] == ["take"], typist.said
+    assert typist.index("no reach runs now") == -1, typist.said
 
 
 def test_a_closed_console_waits_its_timeout_instead_of_spinning() -> None:
