@@ -265,7 +265,8 @@ def test_a_line_typed_while_the_stop_console_opens_acts_on_the_reach(
         if not stack.runs[1:]:  # the first run's: the line typed while it opens
             typist.type("t the patient is tired")
             deadline = time.monotonic() + 5.0  # it is acted on, or refused, by then
-            while time.monotonic() < deadline and not _said_any(typist, "console: take", "no reach runs"):
+            answers = ("console: take", "no reach runs")  # taken, or refused
+            while time.monotonic() < deadline and not _said_any(typist, *answers):
                 time.sleep(0.01)
         return opened(stack)
 
