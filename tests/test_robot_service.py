@@ -11,10 +11,11 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import mujoco
 import numpy as np
 import pytest
 
-from dammrl.devices.emulators.arm import EmulatedArm, emulated_arm, inject
+from dammrl.devices.emulators.arm import EmulatedArm, MujocoServos, emulated_arm, inject
 from dammrl.devices.emulators.servo_chain import (
     BUTTON_MODEL,
     GOAL_POSITION,
@@ -28,7 +29,7 @@ from dammrl.devices.emulators.servo_chain import (
 )
 from dammrl_core.arm.driver import BadReplyError, DriveCommand, DriveFault, DriverError, JointState
 from dammrl_core.arm.dynamixel.calibration import Calibration, load_calibration, save_calibration
-from dammrl_core.arm.dynamixel.driver import DynamixelDriver
+from dammrl_core.arm.dynamixel.driver import BUTTON_RANGE_UM, DynamixelDriver
 from dammrl_core.arm.dynamixel.tools import guided_calibration, scan
 from dammrl_core.arm.jog import jog
 from dammrl_core.arm.settings import ArmSettings, arm_limits
@@ -198,6 +199,24 @@ def test_a_short_or_late_status_packet_is_a_missed_read_not_a_crash(
                 "servo 1 answered 9 bytes where 10", str(e)) for e in failed), failed  # fmt: skip
         with arm.bus.lock:
             np.testing.assert_allclose(q, arm.physics.state.q, atol=0.02)  # whole again
+
+
+def test_the_buttons_board_reports_the_cap_within_its_travel() -> None:
+    """MuJoCo's soft stop lets a dragged cap rise past it; the board, as a real one behind
+    its stop, reads it at rest (it once reported -3 mm, and the driver refused the whole
+    bus's reading as not a reading)."""
+    task = TaskSettings()
+    physics = MujocoServos(CALIBRATION, RobotSettings().load(), task)
+    travel = scene_layout(task).button_travel_m
+    sim = physics.sim
+    cap = sim.model.jnt_qposadr[sim.model.joint("button").id]
+    for qpos_m, sensed_m in ((0.003, 0.0), (-0.005, 0.005), (-0.03, travel)):
+        sim.data.qpos[cap] = qpos_m  # above its stop, pressed, pressed past its travel
+        mujoco.mj_forward(sim.model, sim.data)
+        physics.state = sim.read()
+        assert physics.button_travel_m() == pytest.approx(sensed_m, abs=1e-9)
+        low, high = BUTTON_RANGE_UM
+        assert low <= round(physics.button_travel_m() * 1e6) <= high  # the driver's range
 
 
 # ---- the tools: scan, jog, calibrate -----------------------------------------------------

@@ -39,7 +39,9 @@ class MujocoServos:
                  ) -> None:  # fmt: skip
         self.calibration = calibration
         self.robot = robot
-        self.sim = Simulation(SimSettings(), robot, scene_layout(task))
+        layout = scene_layout(task)
+        self.sim = Simulation(SimSettings(), robot, layout)
+        self._button_travel_m = layout.button_travel_m
         self.state = self.sim.reset(np.array(task.home_q_rad), (0.45, 0.0))
         self.carry_s = 0.0
         self.parked = True  # on its support until the first torque-on (a real arm is parked)
@@ -87,7 +89,11 @@ class MujocoServos:
         }
 
     def button_travel_m(self) -> float:
-        return float(self.state.button_travel_m)
+        """The cap's travel as the button's board senses it: within the cap's mechanical
+        range. MuJoCo's joint limit is soft, so a fingertip dragging the cap sideways can
+        lift it millimetres past its stop (seen on a busy PC, the arm jerked by lost bus
+        cycles), which a real button's stop never lets it do."""
+        return min(max(float(self.state.button_travel_m), 0.0), self._button_travel_m)
 
 
 @dataclass
