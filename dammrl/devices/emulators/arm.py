@@ -90,9 +90,9 @@ class MujocoServos:
 
     def button_travel_m(self) -> float:
         """The cap's travel as the button's board senses it: within the cap's mechanical
-        range. MuJoCo's joint limit is soft, so a fingertip dragging the cap sideways can
-        lift it millimetres past its stop (seen on a busy PC, the arm jerked by lost bus
-        cycles), which a real button's stop never lets it do."""
+        range. MuJoCo's joint limit is soft, so a cap pushed upward can rise millimetres
+        past its stop (3 mm once, beside two CPU hogs after lost bus cycles), which a real
+        button's stop never lets it do."""
         return min(max(float(self.state.button_travel_m), 0.0), self._button_travel_m)
 
 
