@@ -49,17 +49,23 @@ def raw_mj_step_rates(runner: ReachRunner, n_steps: int = 200_000) -> tuple[floa
     return chunked, n_steps / (time.process_time() - start)
 
 
+PeriodInputs = list[tuple[np.ndarray, np.ndarray | None]]
+"""Each control period's actuator controls and gains (None: the previous period's)."""
+
+
 class RecordedPhysics:
     """Every episode a ticking runner's sim steps (its reset and each period's actuator
-    inputs), kept to be stepped again through bare ``mj_step``: the physics of the same
-    reaches without the loop around it."""
+    inputs: the controls and the gains a command latches, which a reset restores), kept to
+    be stepped again through bare ``mj_step``: the physics of the same reaches without the
+    loop around it."""
 
     def __init__(self, runner: ReachRunner) -> None:
         if runner.settings.fast_forward:
             raise ValueError("record a ticking runner (fast_forward=False): one step per period")
         self.runner, sim = runner, runner.sim
-        self.episodes: list[tuple[np.ndarray, tuple[float, float], Any, list[np.ndarray]]] = []
+        self.episodes: list[tuple[np.ndarray, tuple[float, float], Any, PeriodInputs]] = []
         self.ends: list[np.ndarray] = []  # each episode's last state (qpos, qvel)
+        self._gains = sim.model.actuator_biasprm.copy()
         reset, step = sim.reset, sim.step
 
         def recording_reset(
@@ -71,7 +77,11 @@ class RecordedPhysics:
             return state
 
         def recording_step(n_steps: int) -> None:
-            self.episodes[-1][3].append(sim.data.ctrl.copy())
+            inputs, gains = self.episodes[-1][3], sim.model.actuator_biasprm
+            changed = not inputs or not np.array_equal(gains, self._gains)
+            if changed:
+                self._gains = gains.copy()
+            inputs.append((sim.data.ctrl.copy(), self._gains if changed else None))
             step(n_steps)
             self.ends[-1] = np.concatenate([sim.data.qpos, sim.data.qvel])
 
@@ -87,8 +97,10 @@ class RecordedPhysics:
         for (q, button_xy, rng, inputs), end in zip(self.episodes, self.ends, strict=True):
             self._reset(q, button_xy, copy.deepcopy(rng))
             start = time.process_time()
-            for ctrl in inputs:
+            for ctrl, gains in inputs:
                 data.ctrl[:] = ctrl
+                if gains is not None:
+                    model.actuator_biasprm[:] = gains
                 mujoco.mj_step(model, data, nstep=substeps)
             spent += time.process_time() - start
             steps += len(inputs) * substeps
