@@ -140,6 +140,7 @@ class DampedLeastSquaresIK:
         self.q_lo = arm.robot.q_min + limit_margin_rad
         self.q_hi = arm.robot.q_max - limit_margin_rad
         self.q_mid = (arm.robot.q_min + arm.robot.q_max) / 2
+        self._damping_matrix = damping**2 * np.eye(3)
 
     def solve(self, target: np.ndarray, q_seed: np.ndarray) -> IKResult:
         start, start_cpu = time.perf_counter(), time.thread_time()
@@ -154,7 +155,7 @@ class DampedLeastSquaresIK:
                 break
             dq = self._step(J, error, q)
             blocked = (q <= lo) & (dq < 0) | (q >= hi) & (dq > 0)
-            if blocked.any():  # joints pinned at a bound: let the others do the work
+            if np.logical_or.reduce(blocked):  # pinned at a bound: let the others do the work
                 J[:, blocked] = 0.0
                 dq = self._step(J, error, q)
                 dq[blocked] = 0.0
@@ -163,7 +164,7 @@ class DampedLeastSquaresIK:
         return _result(q, error_m, start, start_cpu, evaluations)
 
     def _step(self, J: np.ndarray, error: np.ndarray, q: np.ndarray) -> np.ndarray:
-        J_pinv = J.T @ _inverse3(J @ J.T + self.damping**2 * np.eye(3))  # (6, 3)
+        J_pinv = J.T @ _inverse3(J @ J.T + self._damping_matrix)  # (6, 3)
         posture = self.posture_gain * (self.q_mid - q)
         return np.asarray(J_pinv @ error + posture - J_pinv @ (J @ posture))
 

@@ -364,8 +364,7 @@ class Episode:
         stepped = len(stretch.times)
         ticks = stretch.times[: stepped - 1]
         # the commands are those of the times foreseen: a tick at another time ends it
-        same = ticks == times[: stepped - 1]
-        ran = int(np.argmin(same)) if not same.all() else stepped - 1
+        ran = first_true(ticks != times[: stepped - 1])
         press = sim.settings.button_press_travel_m
         ran = self.reach.first_event(ticks[:ran], stretch.rows[:ran], press)
         sim.rewind(stretch, ctrl, runner.substeps, ran + 1)

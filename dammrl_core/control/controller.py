@@ -57,8 +57,9 @@ class _PlannedStep:
 
 def first_true(flags: np.ndarray) -> int:
     """The index of the first true of ``flags`` (n,); n when none."""
-    first = int(np.argmax(flags)) if len(flags) else 0
-    return first if first < len(flags) and flags[first] else len(flags)
+    n = len(flags)
+    first = int(flags.argmax()) if n else 0  # the method: np.argmax wraps it in Python
+    return first if n and flags[first] else n
 
 
 def latency_model(

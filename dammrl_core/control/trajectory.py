@@ -79,30 +79,33 @@ class QuinticSegment:
         return q, dq, ddq
 
     def sample_many(self, times_s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``sample`` at each of ``times_s`` (n,): (q, dq, ddq), each (n, n_joints), the
-        same numbers bit for bit (the same operations, row by row)."""
-        tau = np.maximum(times_s - self.t0_s, 0.0)
-        t2 = tau * tau
-        t3 = t2 * tau
-        basis = np.zeros((len(tau), 3, 6))
-        basis[:, 0, 0] = basis[:, 1, 1] = 1.0
-        basis[:, 2, 2] = 2.0
-        basis[:, 0, 1] = tau
-        basis[:, 0, 2] = t2
-        basis[:, 0, 3] = t3
-        basis[:, 0, 4] = t3 * tau
-        basis[:, 0, 5] = t3 * t2
-        basis[:, 1, 2] = 2 * tau
-        basis[:, 1, 3] = 3 * t2
-        basis[:, 1, 4] = 4 * t3
-        basis[:, 1, 5] = 5 * t3 * tau
-        basis[:, 2, 3] = 6 * tau
-        basis[:, 2, 4] = 12 * t2
-        basis[:, 2, 5] = 20 * t3
-        sampled = basis @ self.coeffs
-        resting = times_s >= self.t0_s + self.duration_s
+        """``sample`` at each of ``times_s`` (n,), increasing: (q, dq, ddq), each
+        (n, n_joints), the same numbers bit for bit (the same operations, row by row; the
+        rows at rest copied from ``rest``)."""
+        moving = int(np.searchsorted(times_s, self.t0_s + self.duration_s))  # then at rest
+        sampled = np.empty((len(times_s), 3, self.coeffs.shape[1]))
+        if moving:
+            tau = np.maximum(times_s[:moving] - self.t0_s, 0.0)
+            t2 = tau * tau
+            t3 = t2 * tau
+            basis = np.zeros((moving, 3, 6))
+            basis[:, 0, 0] = basis[:, 1, 1] = 1.0
+            basis[:, 2, 2] = 2.0
+            basis[:, 0, 1] = tau
+            basis[:, 0, 2] = t2
+            basis[:, 0, 3] = t3
+            basis[:, 0, 4] = t3 * tau
+            basis[:, 0, 5] = t3 * t2
+            basis[:, 1, 2] = 2 * tau
+            basis[:, 1, 3] = 3 * t2
+            basis[:, 1, 4] = 4 * t3
+            basis[:, 1, 5] = 5 * t3 * tau
+            basis[:, 2, 3] = 6 * tau
+            basis[:, 2, 4] = 12 * t2
+            basis[:, 2, 5] = 20 * t3
+            sampled[:moving] = basis @ self.coeffs
         for k, value in enumerate(self.rest):
-            sampled[resting, k] = value
+            sampled[moving:, k] = value
         return sampled[:, 0], sampled[:, 1], sampled[:, 2]
 
 

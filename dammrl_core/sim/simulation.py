@@ -270,8 +270,10 @@ class Simulation:
                 times[k] = data.time
         else:  # the end-effector as read (noise included) against the sphere, in floats
             limit = near[1] ** 2 * (1 + 1e-9)  # a stop a tick early costs a tick, no more
-            point = near[0] if noise is None else near[0] - noise[:, ee]
-            point_noise = np.broadcast_to(point, (periods, 3)).tolist()
+            if noise is None:
+                point_noise = [near[0].tolist()] * periods
+            else:
+                point_noise = (near[0] - noise[:, ee]).tolist()
             i = ee.start
             for k in range(periods):
                 if k:
