@@ -17,6 +17,7 @@ from dammrl.learning.rl.config import RewardWeights, TrainSettings
 from dammrl.learning.rl.env import ACTIONS, ReachEnv
 from dammrl.learning.rl.train import train
 from dammrl.stack.runner import ReachResult, ReachRunner, ReachSettings
+from dammrl_core.control.controller import Controller, ReferenceInputs
 from dammrl_core.control.settings import ControllerSettings
 from dammrl_core.control.trajectory import QuinticSegment
 from dammrl_core.metrics import _low_pass, motion_estimate
@@ -43,6 +44,26 @@ def test_whole_reaches_are_bitwise_those_of_ticking_every_period(randomized: boo
     ticking = ReachRunner(ReachSettings(fast_forward=False).randomized(randomized))
     for seed, model in ((0, (1, 1)), (1, (2, 1)), (2, (1, 8)), (3, (2, 6))):
         assert_same_reach(fast.run(seed, model), ticking.run(seed, model))
+
+
+@pytest.mark.parametrize("randomized", [False, True], ids=["nominal", "randomised"])
+def test_a_step_started_within_a_stretch_is_the_step_started_by_its_tick(
+    randomized: bool, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A solve waiting out its latency starts its step inside a stretch of quiet ticks
+    (no tick of its own), and the reach is the ticked one."""
+    settle, started = Controller.settle, []
+
+    def counting_settle(self: Controller, inputs: ReferenceInputs, ran: int) -> Any:
+        command, steps = settle(self, inputs, ran)
+        started.extend(steps)
+        return command, steps
+
+    monkeypatch.setattr(Controller, "settle", counting_settle)
+    fast = ReachRunner(ReachSettings().randomized(randomized)).run(5, (1, 3))
+    ticking = ReachRunner(ReachSettings(fast_forward=False).randomized(randomized)).run(5, (1, 3))
+    assert started and len(started) >= len(fast.steps) // 2  # most steps start in bulk
+    assert_same_reach(fast, ticking)
 
 
 @pytest.mark.parametrize(

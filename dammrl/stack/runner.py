@@ -324,8 +324,9 @@ class Episode:
 
     def _coast_periods(self, state: RobotState) -> int:
         """Control periods to step in one go while the reach coasts (0: tick each): up to
-        the next event known in advance (a decision due, a planned step ready, a timeout),
-        at most ``COAST_PERIODS``; none while the arm is already near its subgoal."""
+        the next event known in advance (a decision due, a timeout) or about when the
+        trigger fires (a planned step's approach included), at most ``COAST_PERIODS``;
+        none while the arm is already near its subgoal."""
         reach, controller = self.reach, self.controller
         if not self.runner.settings.fast_forward or not reach.coasting:
             return 0
@@ -338,8 +339,8 @@ class Episode:
             until = min(until, max(controller.segment.end_s, state.t_s) + SETTLE_S)
         else:
             until = math.inf
-        if controller.planned:
-            until = min(until, controller.planned[0].ready_s)
+        if controller.planned:  # the step starts within the stretch: foresee its approach
+            until = min(until, controller.foreseen_end_s() + SETTLE_S)
         if reach.pending is not None:
             until = min(until, reach.pending.intent.t_s)
         until = min(until, reach.timeout_s)
@@ -357,19 +358,17 @@ class Episode:
         inputs = controller.reference_inputs(times)
         ctrl = sim.inputs_of(inputs.q_ref, inputs.dq_ref, inputs.tau_ff, controller.kp,
                              controller.kd)  # fmt: skip
-        near = None
-        if controller.awaiting_trigger and controller.subgoal is not None:
-            near = (controller.subgoal, controller.radius_m)
-        stretch = sim.coast(ctrl, runner.substeps, near)
+        stretch = sim.coast(ctrl, runner.substeps, controller.armed_trigger(inputs))
         stepped = len(stretch.times)
         ticks = stretch.times[: stepped - 1]
         # the commands are those of the times foreseen: a tick at another time ends it
         ran = first_true(ticks != times[: stepped - 1])
         press = sim.settings.button_press_travel_m
-        ran = self.reach.first_event(ticks[:ran], stretch.rows[:ran], press)
+        ran = self.reach.first_event(ticks[:ran], stretch.rows[:ran], press, inputs)
         sim.rewind(stretch, ctrl, runner.substeps, ran + 1)
-        self.reach.coast(ticks[:ran], stretch.rows[:ran], stretch.true_ee[:ran], press)
-        if (command := controller.settle(inputs, ran)) is not None:
+        command = self.reach.coast(ticks[:ran], stretch.rows[:ran], stretch.true_ee[:ran],
+                                   press, inputs)  # fmt: skip
+        if command is not None:
             sim.latch(command)
         return sim.state_from_sensors(float(stretch.times[ran]), stretch.rows[ran],
                                       stretch.true_ee[ran])  # fmt: skip

@@ -40,12 +40,16 @@ class ControllerOutput:
 class ReferenceInputs:
     """The commands ``Controller.tick`` returns at a run of quiet ticks (rows): the
     reference and the feedforward, (n, n_joints) each; ``resting``: the ticks at which the
-    reference rests (the controller then re-sends one command object)."""
+    reference rests (the controller then re-sends one command object). A step whose solve
+    is waiting out its latency starts at tick ``start`` (n: none in these ticks) with the
+    reference ``started``; the rows from there on are that reference's."""
 
     q_ref: np.ndarray
     dq_ref: np.ndarray
     tau_ff: np.ndarray
     resting: np.ndarray  # (n,) bool
+    start: int
+    started: QuinticSegment | None
 
 
 @dataclass(frozen=True)
@@ -317,8 +321,15 @@ class Controller:
         return None
 
     def _start_segment(self, planned: _PlannedStep, t: float) -> StepEvent:
+        return self._begin(planned, self._segment_from(planned, t))
+
+    def _segment_from(self, planned: _PlannedStep, t: float) -> QuinticSegment:
+        """The reference of a step started at ``t``: from where the current one is then."""
         q0, v0, a0 = self.segment.sample(t)
-        duration = segment_duration(
+        return QuinticSegment.plan(t, self._duration(planned, q0), q0, v0, a0, planned.q_target)
+
+    def _duration(self, planned: _PlannedStep, q0: np.ndarray) -> float:
+        return segment_duration(
             planned.q_target - q0,
             float(np.linalg.norm(planned.event.dx)),
             self.robot.dq_max,
@@ -326,7 +337,9 @@ class Controller:
             self.settings.peak_speed_m_per_s,
             self.settings.min_segment_s,
         )
-        self.segment = QuinticSegment.plan(t, duration, q0, v0, a0, planned.q_target)
+
+    def _begin(self, planned: _PlannedStep, segment: QuinticSegment) -> StepEvent:
+        self.segment = segment
         self.subgoal = planned.event.subgoal
         self.awaiting_trigger = self.settings.trigger == "event"
         return planned.event
@@ -352,33 +365,69 @@ class Controller:
         dq: np.ndarray,
         ee_pos: np.ndarray,
         ee_vel: np.ndarray,
+        inputs: ReferenceInputs,
     ) -> int:
-        """The first of these states (rows: times (n,), the rest (n, k)) at which ``tick``
-        would do more than command the reference: a limit broken, a planned step ready,
-        the trigger fired or timed out; n when none. The same tests as ``tick``: what bulk
-        arithmetic finds near the admission sphere is confirmed with the tick's own."""
+        """The first of these states (rows: times (n,), the rest (n, k)), ticked with
+        ``inputs``, at which ``tick`` would do more than command the reference (and start a
+        planned step): a limit broken, the trigger fired or timed out; n when none. The
+        same tests as ``tick``: what bulk arithmetic finds near the admission sphere is
+        confirmed with the tick's own."""
         limits, either = self.limits, np.logical_or.reduce  # ndarray.any: a slow wrapper
         eventful = either(np.abs(q - limits.q_mid) > limits.q_half_span, axis=1)
         eventful |= either(np.abs(dq) > limits.dq_max, axis=1)
-        if self.planned:
-            eventful |= times >= self.planned[0].ready_s
         first = first_true(eventful)
-        if not self.awaiting_trigger or self.subgoal is None:
+        armed = self.armed_trigger(inputs)
+        if armed is None:
             return first
-        late = (times - self.segment.t0_s) > self.settings.trigger_timeout_s
-        first = min(first, first_true(late))
-        error = self.subgoal - ee_pos[:first]
+        subgoal, radius_m, since = armed
+        t0_s = self.segment.t0_s if inputs.started is None else inputs.started.t0_s
+        late = (times[since:] - t0_s) > self.settings.trigger_timeout_s
+        first = min(first, since + first_true(late))
+        error = subgoal - ee_pos[since:first]
         # a few ulps from the tick's own sum of squares at most: only these may be inside
-        near = np.sum(error * error, axis=1) <= self.radius_m**2 * (1 + 1e-9)
-        for k in np.flatnonzero(near):
-            if event_trigger(ee_pos[k], ee_vel[k], self.subgoal, self.radius_m, self.weights):
+        near = np.sum(error * error, axis=1) <= radius_m**2 * (1 + 1e-9)
+        for k in since + np.flatnonzero(near):
+            if event_trigger(ee_pos[k], ee_vel[k], subgoal, radius_m, self.weights):
                 return int(k)
         return first
 
+    def armed_trigger(self, inputs: ReferenceInputs) -> tuple[np.ndarray, float, int] | None:
+        """Where the event trigger watches in the ticks of ``inputs``: (subgoal, admission
+        radius [m], the first tick it watches), None where it does not."""
+        if self.awaiting_trigger and self.subgoal is not None:
+            return self.subgoal, self.radius_m, 0
+        if inputs.started is not None and self.settings.trigger == "event":
+            return self.planned[0].event.subgoal, self.radius_m, inputs.start
+        return None
+
+    def foreseen_end_s(self) -> float:
+        """About when the planned step's reference comes to rest, were it started at its
+        ready time (how far ahead quiet ticks are worth foreseeing; never a result)."""
+        planned = self.planned[0]
+        q0, _, _ = self.segment.sample(planned.ready_s)
+        return planned.ready_s + self._duration(planned, q0)
+
     def reference_inputs(self, times: np.ndarray) -> ReferenceInputs:
-        """The commands ``tick`` returns at these times while ``coasting`` (changing
+        """The commands ``tick`` returns at these times (increasing) while ``coasting``,
+        a planned step started at the first of them from its ready time on (changing
         nothing: ``settle`` takes the ticks that ran)."""
-        segment = self.segment
+        start, started = len(times), None
+        if self.planned:
+            start = int(np.searchsorted(times, self.planned[0].ready_s))
+            if start < len(times):
+                started = self._segment_from(self.planned[0], float(times[start]))
+        q_ref, dq_ref, tau, resting = self._segment_inputs(self.segment, times[:start])
+        if started is not None:
+            rows = zip((q_ref, dq_ref, tau, resting),
+                       self._segment_inputs(started, times[start:]), strict=True)  # fmt: skip
+            q_ref, dq_ref, tau, resting = (np.concatenate(pair) for pair in rows)
+        tau = safety.saturate_torque(tau, self.robot.tau_max)  # elementwise, as per tick
+        return ReferenceInputs(q_ref, dq_ref, tau, resting, start, started)
+
+    def _segment_inputs(
+        self, segment: QuinticSegment, times: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(q_ref, dq_ref, unsaturated tau_ff, resting) of ``segment`` at these times."""
         q_ref, dq_ref, ddq_ref = segment.sample_many(times)
         resting = times >= segment.t0_s + segment.duration_s
         moving = first_true(resting)
@@ -393,23 +442,29 @@ class Controller:
             else:
                 dynamics = self.arm.inverse_dynamics
                 tau[moving:] = dynamics(q_ref[moving], dq_ref[moving], ddq_ref[moving])
-        tau = safety.saturate_torque(tau, self.robot.tau_max)  # elementwise, as per tick
-        return ReferenceInputs(q_ref, dq_ref, tau, resting)
+        return q_ref, dq_ref, tau, resting
 
-    def settle(self, inputs: ReferenceInputs, ran: int) -> JointCommand | None:
+    def settle(
+        self, inputs: ReferenceInputs, ran: int
+    ) -> tuple[JointCommand | None, list[StepEvent]]:
         """The first ``ran`` of ``inputs`` ran as ticks: the command of the last one
-        (None: none ran), keeping the resting command as ``tick`` does."""
+        (None: none ran), keeping the resting command as ``tick`` does, and the step they
+        started (as ``tick`` reports it)."""
+        started = []
+        if inputs.started is not None and inputs.start < ran:
+            started.append(self._begin(self.planned.pop(0), inputs.started))
         if ran == 0:
-            return None
+            return None, started
         k = ran - 1
         if not inputs.resting[k]:
-            return JointCommand(inputs.q_ref[k], inputs.dq_ref[k], inputs.tau_ff[k],
-                                self.kp, self.kd)  # fmt: skip
+            command = JointCommand(inputs.q_ref[k], inputs.dq_ref[k], inputs.tau_ff[k],
+                                   self.kp, self.kd)  # fmt: skip
+            return command, started
         if self._rest_command is None or self._rest_segment is not self.segment:
             q, dq, _ = self.segment.rest
             command = JointCommand(q, dq, inputs.tau_ff[k], self.kp, self.kd)
             self._rest_command, self._rest_segment = command, self.segment
-        return self._rest_command
+        return self._rest_command, started
 
     # ---- command ------------------------------------------------------------------
     def _command(self, state: RobotState) -> JointCommand:

@@ -22,7 +22,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from dammrl_core.control.controller import Controller, first_true
+from dammrl_core.control.controller import Controller, ReferenceInputs, first_true
 from dammrl_core.control.settings import ControllerSettings
 from dammrl_core.dynamics import ArmModel
 from dammrl_core.ik import IKSolver
@@ -222,11 +222,13 @@ class Reach:
             and self.controller.coasting
         )
 
-    def first_event(self, times: np.ndarray, rows: np.ndarray, press_travel_m: float) -> int:
+    def first_event(
+        self, times: np.ndarray, rows: np.ndarray, press_travel_m: float, inputs: ReferenceInputs
+    ) -> int:
         """The first of these states (times (n,), sensor rows (n, k) as the arm reads them,
-        see SENSOR_LAYOUT) at which ``tick`` would do more than log it and command the
-        reference: the button pressed, the timeout, a decision due, or the controller's own
-        events; n: none."""
+        see SENSOR_LAYOUT), ticked with the controller's ``inputs``, at which ``tick`` would
+        do more than log it and command the reference: the button pressed, the timeout, a
+        decision due, or the controller's own events; n: none."""
         travel = -rows[:, SENSOR_LAYOUT["button"]][:, 0]
         eventful = (travel >= press_travel_m) | (times >= self.timeout_s)
         if self.pending is not None:
@@ -234,15 +236,28 @@ class Reach:
         first = first_true(eventful)
         column = {k: rows[:first, SENSOR_LAYOUT[k]] for k in ("q", "dq", "ee_pos", "ee_vel")}
         return self.controller.first_event(times[:first], column["q"], column["dq"],
-                                           column["ee_pos"], column["ee_vel"])  # fmt: skip
+                                           column["ee_pos"], column["ee_vel"], inputs)  # fmt: skip
 
     def coast(
-        self, times: np.ndarray, rows: np.ndarray, true_ee: np.ndarray, press_travel_m: float
-    ) -> None:
-        """These states (before ``first_event``) ran as quiet ticks: logged, as ``tick``
-        logs them (the controller's part: ``Controller.settle``)."""
-        self.log.record_many(times, rows, self.controller.subgoal, self.controller.radius_m,
-                             press_travel_m, true_ee)  # fmt: skip
+        self,
+        times: np.ndarray,
+        rows: np.ndarray,
+        true_ee: np.ndarray,
+        press_travel_m: float,
+        inputs: ReferenceInputs,
+    ) -> JointCommand | None:
+        """These states (before ``first_event``) ran as quiet ticks with the controller's
+        ``inputs``: logged as ``tick`` logs them (a step's start logs the subgoal it
+        replaces), its step kept; the command of the last (None: none ran)."""
+        controller, n = self.controller, len(times)
+        before = min(inputs.start + 1, n)
+        self.log.record_many(times[:before], rows[:before], controller.subgoal,
+                             controller.radius_m, press_travel_m, true_ee[:before])  # fmt: skip
+        command, started = controller.settle(inputs, n)
+        self.steps.extend(started)
+        self.log.record_many(times[before:], rows[before:], controller.subgoal,
+                             controller.radius_m, press_travel_m, true_ee[before:])  # fmt: skip
+        return command
 
     # ---- results ------------------------------------------------------------------
     def metrics(self) -> ReachMetrics:

@@ -233,14 +233,14 @@ class Simulation:
         self,
         inputs: np.ndarray,
         substeps: int,
-        near: tuple[np.ndarray, float] | None = None,
+        near: tuple[np.ndarray, float, int] | None = None,
     ) -> Stretch:
         """Step up to ``len(inputs) + 1`` control periods of ``substeps`` steps: the first
         under the latched command, period k under ``inputs[k - 1]`` (the commands' rows,
-        ``inputs_of``). With ``near`` (point, radius [m]): stop after the first period
-        that ends with the end-effector, as ``read`` reports it (noise included), within
-        the radius of the point (or a few ulps beyond): a hint only, where the caller
-        expects its next event. ``rewind`` takes the physics and
+        ``inputs_of``). With ``near`` (point, radius [m], period k): stop after the first
+        period from period k on that ends with the end-effector, as ``read`` reports it
+        (noise included), within the radius of the point (or a few ulps beyond): a hint
+        only, where the caller expects its next event. ``rewind`` takes the physics and
         the noise back to the end of any period of the stretch: numbers bitwise those of
         ``read`` and ``step`` period by period."""
         periods = len(inputs) + 1
@@ -274,7 +274,7 @@ class Simulation:
                 point_noise = [near[0].tolist()] * periods
             else:
                 point_noise = (near[0] - noise[:, ee]).tolist()
-            i = ee.start
+            i, since = ee.start, near[2]
             for k in range(periods):
                 if k:
                     ctrl[:] = inputs[k - 1]
@@ -284,7 +284,7 @@ class Simulation:
                 times[k] = data.time
                 x, y, z = row[i : i + 3].tolist()
                 px, py, pz = point_noise[k]
-                if (px - x) ** 2 + (py - y) ** 2 + (pz - z) ** 2 <= limit:
+                if (px - x) ** 2 + (py - y) ** 2 + (pz - z) ** 2 <= limit and k >= since:
                     stepped = k + 1
                     break
         raw, times = raw[:stepped], times[:stepped]
