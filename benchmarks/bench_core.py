@@ -239,6 +239,7 @@ def main() -> None:
             "ticking / raw mj_step": ticking / single,
             "replayed physics, steps/s": replayed,
             "loop / replayed physics": loop / replayed,
+            "replayed bit for bit": bitwise,
             "ik pinocchio median [ms]": dls["median_ms"],
             "ik ikpy median [ms]": ikpy["median_ms"],
             "ik speed-up": ikpy["median_ms"] / dls["median_ms"],

@@ -142,6 +142,7 @@ def main() -> None:
               f"at {replayed / spent:.0%} of it; {_bitwise(bitwise)})")  # fmt: skip
         figures[f"environment / raw mj_step, {arm}"] = physics / spent
         figures[f"environment / its physics replayed, {arm}"] = replayed / spent
+        figures[f"replayed bit for bit, {arm}"] = bitwise
         figures[f"environment decisions/s, {arm}"] = args.decisions / spent
     if args.no_training:
         _write(args.json, figures)

@@ -3,8 +3,9 @@
 Runs the benchmarks (each against its baseline in the same run), writes their figures with
 the date, the machine and the commit to ``docs/reference/performance.json``, regenerates
 the section of ``docs/reference/performance.md`` between its markers, and says each
-figure that regressed beyond its stated tolerance against the last published one (exit
-1 when any did; nothing is written then unless ``--accept``):
+figure that regressed beyond its stated tolerance against the last published one, and
+each benchmark whose replayed physics was not bit for bit (exit 1 when any; nothing is
+written then unless ``--accept``):
 
     PYTHONPATH=. python benchmarks/publish.py [--quick] [--accept] [--only bus core rl] [--full]
 
@@ -190,6 +191,14 @@ def regressions(runs: dict[str, Any], published: dict[str, Any]) -> list[str]:
     return lines
 
 
+def baselines_off(runs: dict[str, Any]) -> list[str]:
+    """One line per benchmark whose replayed physics was not the physics it ran (not bit for
+    bit): its ratios to that replay measure nothing."""
+    return [f"baseline off: {name}'s replayed physics was not bit for bit ({key})"
+            for name, run in runs.items() for key, same in run["figures"].items()
+            if key.startswith("replayed bit for bit") and same is False]  # fmt: skip
+
+
 def section(record: dict[str, Any]) -> str:
     """The page's generated section: the figures, each benchmark's date, commit and
     machine, and the commands."""
@@ -284,7 +293,7 @@ def main() -> int:
     published = json.loads(args.published.read_text()) if args.published.exists() else {}
     runs = run(list(_benchmarks(False)) if args.full else args.only, args.quick)
     record = {**published, **runs}  # the benchmarks not run keep their last figures
-    found = regressions(runs, published)
+    found = regressions(runs, published) + baselines_off(runs)
     for line in found:
         print(line)
     if args.quick or (found and not args.accept):
