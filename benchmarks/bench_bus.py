@@ -40,7 +40,7 @@ from bus_variants import VARIANTS, apply  # beside this script
 from dammrl_core.robot import RobotSettings
 from dammrl_core.sim.settings import SimSettings
 from dammrl_core.task import TaskSettings
-from schemas import JointCommand
+from schemas import JointCommand, RobotState
 from services.common.bus import Bus, zenoh_config
 from services.common.certificates import create_credentials
 from services.common.config import BusSettings
@@ -68,14 +68,34 @@ def percentiles(samples_s: list[float] | np.ndarray) -> dict[str, float]:
     return {"p50": float(p50), "p99": float(p99), "p99.9": float(p999), "n": len(ms)}
 
 
+LEGS = (
+    "the sim builds and sends the state",
+    "to the command's stamp (transport, the controller's wake and decode, its tick)",
+    "to the sim holding it (the controller builds and sends it, transport, the sim's wake "
+    "and decode)",
+)
+"""A round trip's three legs, each from the sim's own view (one machine, one clock)."""
+
+
 class TimedSim(SimNode):
-    """The sim node, noting each state it publishes and each command it takes."""
+    """The sim node, noting each state it publishes (and when its put returned) and each
+    command it takes (its own stamp, the controller's clock being this machine's)."""
 
     def __init__(self, *args: Any) -> None:
         super().__init__(*args)
         self.published: list[tuple[int, int]] = []  # (stamp_ns, episode)
-        self.answers: list[tuple[int, int]] = []  # (answered state's stamp_ns, taken at ns)
+        self.sent_ns: dict[int, int] = {}  # state stamp_ns: when its put returned
+        # (answered state's stamp_ns, the command's stamp_ns, taken at ns)
+        self.answers: list[tuple[int, int, int]] = []
         self.first_answer_s: float | None = None
+        send = self.state_publisher.send
+
+        def timed_send(message: RobotState) -> RobotState:
+            sent = send(message)
+            self.sent_ns[message.header.stamp_ns] = time.time_ns()
+            return sent
+
+        self.state_publisher.send = timed_send  # type: ignore[method-assign]
 
     def _publish_state(self) -> None:
         super()._publish_state()
@@ -84,15 +104,22 @@ class TimedSim(SimNode):
     def _take_command(self, message: JointCommand) -> None:
         if self.first_answer_s is None:
             self.first_answer_s = time.monotonic()
-        self.answers.append((message.state_stamp_ns, self.bus.arrival_ns))
+        self.answers.append((message.state_stamp_ns, message.header.stamp_ns,
+                             self.bus.arrival_ns))  # fmt: skip
         super()._take_command(message)
 
 
 def _stack_figures(sim: TimedSim, started_s: float) -> dict[str, Any]:
     """Round trips and answered states over the running reaches: per episode, from its
     first answered state to its last (between reaches nobody is asked to answer)."""
-    taken = dict(sim.answers)  # the first command answering each state
-    trips, states, answered = [], 0, 0
+    taken: dict[int, int] = {}  # the first command answering each state
+    legs_of: dict[int, tuple[int, int, int]] = {}  # its round trip's legs (LEGS) [ns]
+    for state, command, arrival in sim.answers:
+        if state not in taken:
+            taken[state] = arrival
+            sent = sim.sent_ns.get(state, state)
+            legs_of[state] = (sent - state, command - sent, arrival - command)
+    trips, legs, states, answered = [], [], 0, 0
     for episode in {e for _, e in sim.published if e > 0}:
         stamps = [s for s, e in sim.published if e == episode]
         hits = [i for i, s in enumerate(stamps) if s in taken]
@@ -102,9 +129,12 @@ def _stack_figures(sim: TimedSim, started_s: float) -> dict[str, Any]:
         states += len(window)
         answered += sum(s in taken for s in window)
         trips += [(taken[s] - s) * 1e-9 for s in window if s in taken]
+        legs += [legs_of[s] for s in window if s in taken]
     assert sim.first_answer_s is not None
+    spans = np.array(legs).reshape(-1, len(LEGS)) * 1e-9
     return {
         "round trip [ms]": percentiles(trips),
+        "legs [ms]": {leg: percentiles(spans[:, k]) for k, leg in enumerate(LEGS)},
         "states": states,
         "commands per state": answered / max(states, 1),
         "periods on their own answer": sim.answered_periods / max(sim.commanded_periods, 1),
@@ -304,6 +334,10 @@ def summary(runs: list[dict[str, Any]]) -> dict[str, Any]:
         ),
         "start-up [s]": float(np.median([r["start-up [s]"] for r in runs])),
         "real-time factor": float(np.median([r["real-time factor"] for r in runs])),
+        "legs p50 / p99 [ms]": {
+            leg: [float(np.median([r["legs [ms]"][leg][p] for r in runs])) for p in ("p50", "p99")]
+            for leg in LEGS
+        },
         "rounds": len(runs),
     }
 
@@ -359,6 +393,10 @@ def main() -> None:
     print(HEADER)
     for variant, figures in results.items():
         print(row(variant, figures))
+    for variant, figures in results.items():
+        legs = "; ".join(f"{leg}: {p50:.2f} / {p99:.2f}"
+                         for leg, (p50, p99) in figures["legs p50 / p99 [ms]"].items())  # fmt: skip
+        print(f"{variant}, the round trip's legs p50 / p99 [ms]: {legs}")
     if args.json is not None:
         args.json.write_text(json.dumps({"udp [ms]": udp, "variants": results, "runs": runs},
                                         indent=1))  # fmt: skip

@@ -10,6 +10,7 @@ service it starts), so the rest of the stack is the one that ships:
 * ``doorbell in Zenoh's thread``: the same rung from Zenoh's receiving thread (one thread
   hand-over less per message, but Zenoh's thread waits for the GIL);
 * ``1 ms polling``: every service looks at its rings every millisecond;
+* ``0.1 ms polling``: the time-critical services look at theirs every 0.1 ms;
 * ``5 ms GIL hand-over``: Python's default switch interval instead of the time-critical
   services' 0.2 ms;
 * ``loop thread SCHED_FIFO``: the sim's and the controller's loop thread (not Zenoh's)
@@ -72,6 +73,13 @@ def _polling_every(poll_s: float) -> Callable[[], None]:
     return patch
 
 
+def _critical_polling_every(poll_s: float) -> Callable[[], None]:
+    def patch() -> None:
+        bus_module.CRITICAL_POLL_S = poll_s
+
+    return patch
+
+
 def _fifo_loop_thread() -> None:
     """The time-critical services' loop thread (that thread only: Zenoh's are started
     before) under the kernel's real-time FIFO policy, ahead of every ordinary process."""
@@ -112,6 +120,7 @@ VARIANTS: dict[str, Callable[[], None]] = {
     "doorbell (before)": _doorbell(indirect=True),
     "doorbell in Zenoh's thread": _doorbell(indirect=False),
     "1 ms polling": _polling_every(0.001),
+    "0.1 ms polling": _critical_polling_every(0.0001),
     "5 ms GIL hand-over": _default_switch_interval,
     "loop thread SCHED_FIFO": _fifo_loop_thread,
     "no rate limits": _no_rate_limits,

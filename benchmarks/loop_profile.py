@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import argparse
 import time
-from collections import defaultdict
+from collections import Counter, defaultdict
 from collections.abc import Callable
 from typing import Any
 
@@ -60,10 +60,14 @@ class Clock:
 
     def __init__(self) -> None:
         self.spent: dict[str, float] = defaultdict(float)
+        self.calls: Counter[str] = Counter()  # by function name
         self._stack: list[float] = []  # the callees' time of each open call
 
     def timed(self, function: Callable[..., Any], part: str) -> Callable[..., Any]:
+        name = function.__qualname__
+
         def wrapper(*args: Any, **kwargs: Any) -> Any:
+            self.calls[name] += 1
             self._stack.append(0.0)
             start = time.process_time()
             try:
@@ -101,11 +105,22 @@ def decisions(runner: ReachRunner, n: int) -> None:
             env.reset(seed=episode)
 
 
+EVENTS = (("Reach.tick", "ticks"), ("Episode._coast", "stretches of quiet ticks"),
+          ("DampedLeastSquaresIK.solve", "IK solves (micro-steps planned)"))  # fmt: skip
+
+
 def table(title: str, clock: Clock, total: float) -> None:
-    print(f"{title}: {total:.2f} processor s")
+    physics = clock.spent["physics (MuJoCo)"]
+    solves = clock.calls["DampedLeastSquaresIK.solve"]
+    rest = total - physics
+    print(f"{title}: {total:.2f} processor s, physics {physics:.2f} s, the rest {rest:.2f} s")
+    print("events: " + ", ".join(f"{clock.calls[name]} {what}" for name, what in EVENTS))
+    if solves:
+        print(f"per micro-step: physics {physics / solves * 1e3:.2f} ms, the rest "
+              f"{rest / solves * 1e3:.2f} ms")  # fmt: skip
     print("| part | share |\n|---|---|")
-    rest = total - sum(clock.spent.values())
-    rows = [*clock.spent.items(), ("the loop itself and the rest", rest)]
+    unattributed = total - sum(clock.spent.values())
+    rows = [*clock.spent.items(), ("the loop itself and the rest", unattributed)]
     for part, spent in sorted(rows, key=lambda row: -row[1]):
         print(f"| {part} | {spent / total:.1%} |")
 
@@ -127,6 +142,7 @@ def main() -> None:
          lambda: decisions(runner, args.decisions)),
     ):  # fmt: skip
         clock.spent.clear()
+        clock.calls.clear()
         start = time.process_time()
         work()
         table(title, clock, time.process_time() - start)
