@@ -218,6 +218,12 @@ def section(record: dict[str, Any]) -> str:
         "ratio to its baseline in the same run, or measured beside it; processor-time figures "
         "are the best of their repeats.",
     ]
+    built = record.get("bus", {}).get("figures", {}).get("variants", {}).get("as built", {})
+    if "legs p50 / p99 [ms]" in built:
+        legs = "; ".join(f"{leg}: {p50:.2f} / {p99:.2f}"
+                         for leg, (p50, p99) in built["legs p50 / p99 [ms]"].items())  # fmt: skip
+        parts += ["", f"The as-built round trip's legs, p50 / p99 [ms], as the sim sees them: "
+                  f"{legs}."]  # fmt: skip
     if "bus-variants" in record:
         parts += ["", "What each of the bus's choices costs (each undone alone, "
                   "`benchmarks/bus_variants.py`; every row beside a bare Zenoh run of its own):",
