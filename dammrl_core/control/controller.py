@@ -380,6 +380,8 @@ class Controller:
         if armed is None:
             return first
         subgoal, radius_m, since = armed
+        # armed either by the reference in force or by the started one: a planned step and
+        # an armed trigger never coexist (the trigger fires before a step is planned)
         t0_s = self.segment.t0_s if inputs.started is None else inputs.started.t0_s
         late = (times[since:] - t0_s) > self.settings.trigger_timeout_s
         first = min(first, since + first_true(late))
