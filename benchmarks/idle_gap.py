@@ -50,9 +50,8 @@ def polls() -> None:
 def works() -> dict[str, Callable[[], object]]:
     """The works timed, each a function of nothing."""
     episode = ReachRunner().episode(3)
-    state = next(episode.loop())
-    reach = episode.reach
-    reach.tick(state)  # the reach starts: the ticks timed are quiet ones
+    state = next(episode.loop())  # the first tick: the reach starts, a decision is asked
+    reach = episode.reach  # its next ticks at this state are quiet ones
 
     def state_message() -> bytes:
         header = Header(stamp_ns=time.time_ns(), seq=1, source="sim")
