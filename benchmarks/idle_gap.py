@@ -4,10 +4,10 @@ of the 0.2 ms sleeps of a time-critical service's inbox polling; 10 ms of spinni
 why: after a sleep and then 1 ms of spinning (were it the processor's clock coming back
 up, this would be hot again), and after a sleep and the same work once (were it the
 caches, this would be). The works: the sim's RobotState built and encoded; the
-controller's answer (the state decoded, converted, one quiet tick, the JointCommand built
-and encoded); a trivial call. On a shared machine (or a VM) the processor's caches go cold
-in the gap, and the same work costs several times its hot cost: the bus's round trip
-pays that at each of its Python legs (``bench_bus.py``).
+controller's answer (the state decoded, converted, a quiet tick with the reference
+moving, the JointCommand built and encoded); a trivial call. On a shared machine (or a VM)
+the processor's caches go cold in the gap, and the same work costs several times its hot
+cost: the bus's round trip pays that at each of its Python legs (``bench_bus.py``).
 
     python benchmarks/idle_gap.py [--messages 300]
 """
@@ -15,12 +15,14 @@ pays that at each of its Python legs (``bench_bus.py``).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import time
 from collections.abc import Callable
 
 import numpy as np
 
 from dammrl.stack.runner import ReachRunner
+from dammrl_core.policy import FixedPolicy
 from schemas import Header, RobotState, decode, encode
 from services.common import convert
 
@@ -49,9 +51,17 @@ def polls() -> None:
 
 def works() -> dict[str, Callable[[], object]]:
     """The works timed, each a function of nothing."""
-    episode = ReachRunner().episode(3)
-    state = next(episode.loop())  # the first tick: the reach starts, a decision is asked
-    reach = episode.reach  # its next ticks at this state are quiet ones
+    runner = ReachRunner()
+    episode = runner.episode(3)
+    loop = episode.loop()
+    next(loop)  # the first tick: the reach starts, a decision is asked
+    choice = FixedPolicy(runner.settings.models, 1, 1).choice
+    state = loop.send(choice)  # the next ask: the first step's trigger has fired
+    reach = episode.reach
+    # ticked halfway through that step, with no decision due: a quiet tick, the reference
+    # moving (sampled, its inverse dynamics), as most of the bus's quiet ticks are
+    segment = reach.controller.segment
+    state = dataclasses.replace(state, t_s=segment.t0_s + segment.duration_s / 2)
 
     def state_message() -> bytes:
         header = Header(stamp_ns=time.time_ns(), seq=1, source="sim")
