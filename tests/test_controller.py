@@ -5,11 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from dammrl_core.control.controller import Controller
+from dammrl_core.control.controller import Controller, latency_model
 from dammrl_core.control.settings import ControllerSettings
 from dammrl_core.dynamics import ArmModel, joint_limit_avoidance
+from dammrl_core.ik import IKResult
 from dammrl_core.robot import RobotDescription
-from dammrl_core.state import Intent, RobotState
+from dammrl_core.state import Intent, JointCommand, RobotState
 from tests.conftest import HOME_Q, random_postures
 
 
@@ -161,3 +162,74 @@ def test_joint_limit_avoidance_points_to_mid_range(robot: RobotDescription) -> N
 def test_bad_step_vector_is_refused(robot: RobotDescription, arm: ArmModel) -> None:
     with pytest.raises(ValueError, match="3 positive numbers"):
         _controller(robot, arm).set_steps(np.array([0.01, -0.01, np.nan]))
+
+
+def _arrays(command: JointCommand) -> list[np.ndarray]:
+    return [command.q_ref, command.dq_ref, command.tau_ff, command.kp, command.kd]
+
+
+def _watch_ik(controller: Controller, order: list[str]) -> None:
+    solve = controller.ik.solve
+
+    def watched(target: np.ndarray, q_seed: np.ndarray) -> IKResult:
+        order.append("ik")
+        return solve(target, q_seed)
+
+    controller.ik.solve = watched  # type: ignore[method-assign]
+
+
+@pytest.mark.parametrize(
+    ("latency", "workspace_m"),
+    [("zero", None), ("model", None), ("zero", 0.005)],
+    ids=["started at once", "started after the IK latency", "refused: a hold"],
+)
+def test_a_step_from_rest_gives_its_command_before_its_ik(
+    robot: RobotDescription, arm: ArmModel, latency: str, workspace_m: float | None
+) -> None:
+    """The tick that plans a step from a resting reference hands its command out before
+    the IK runs (the bus sends it to the arm first), and it is the command the tick would
+    have ended with after the plan: a step started at once, one started later, a hold."""
+    start = _state(arm, HOME_Q, 0.0)
+    bounds = {} if workspace_m is None else {"workspace_max_m": tuple(start.ee_pos + workspace_m)}
+    controller = _controller(robot, arm, **bounds)
+    controller.settings = controller.settings.model_copy(update={"ik_latency": latency})
+    controller.latency = latency_model(controller.settings, np.random.default_rng(0))
+    controller.reset(start, start.ee_pos + np.array([0.2, 0.0, 0.0]))
+    controller.on_intent(_intent())
+    order: list[str] = []
+    _watch_ik(controller, order)
+    early: list[JointCommand] = []
+
+    def take(command: JointCommand) -> None:
+        order.append("command")
+        early.append(command)
+
+    out = controller.tick(start, early=take)
+    assert order[0] == "command" and len(early) == 1 and out.command is early[0]
+    after_the_plan = controller._command(start)  # what the tick ended with before
+    for sent, planned in zip(_arrays(out.command), _arrays(after_the_plan), strict=True):
+        np.testing.assert_array_equal(sent, planned)
+    assert (out.hold_reason is not None) == (workspace_m is not None)
+    assert len(out.steps) == (1 if latency == "zero" and workspace_m is None else 0)
+
+
+def test_a_step_planned_while_the_reference_moves_has_its_ik_before_its_command(
+    robot: RobotDescription, arm: ArmModel
+) -> None:
+    """A trigger that fires before the reference comes to rest: the next step's tick
+    samples a reference the plan may change, so its command waits for the plan."""
+    controller = _controller(robot, arm)
+    start = _state(arm, HOME_Q, 0.0)
+    controller.reset(start, start.ee_pos + np.array([0.2, 0.0, 0.0]))
+    controller.on_intent(_intent())
+    controller.tick(start)  # the first step starts at once
+    segment = controller.segment
+    midway = segment.t0_s + segment.duration_s / 2
+    controller.tick(_state(arm, segment.target, midway))  # at the subgoal, settled: fired
+    assert controller.wants_intent and not segment.finished(midway + 0.01)
+    controller.on_intent(_intent())
+    order: list[str] = []
+    _watch_ik(controller, order)
+    out = controller.tick(_state(arm, segment.target, midway + 0.01),
+                          early=lambda _: order.append("command"))  # fmt: skip
+    assert order == ["ik"] and len(out.steps) == 1

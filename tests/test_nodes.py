@@ -486,3 +486,44 @@ def test_after_a_stop_the_controller_never_pulls_the_arm_back_to_an_old_referenc
     node._on_state(convert.state_message(Header(stamp_ns=78, seq=6, source="sim"), state, 1,
                                          holding=True))  # fmt: skip
     assert not [m for m in bus.published if isinstance(m, JointCommand)]
+
+
+def test_the_controller_sends_the_arms_command_before_the_request_and_the_ik() -> None:
+    """Off lockstep nothing in a tick's command waits for the decision request it sends,
+    nor for the IK of a step planned from a resting reference: the command goes out first,
+    and exactly one answers each state."""
+    from dammrl_core.state import RobotState as CoreState
+    from schemas import DecisionRequest, Intent, JointCommand
+    from services.common import convert
+
+    node, bus, _ = _controller_in_a_reach()
+    assert node.plan is not None and node.reach is not None
+    q = node.plan.q_start
+    zeros = np.zeros(3)
+    ik_after: list[int] = []  # how many commands were out when each solve began
+    solve = node.reach.controller.ik.solve
+
+    def watched(target: np.ndarray, q_seed: np.ndarray) -> Any:
+        ik_after.append(sum(isinstance(m, JointCommand) for m in bus.published))
+        return solve(target, q_seed)
+
+    node.reach.controller.ik.solve = watched  # type: ignore[method-assign]
+
+    def state(k: int) -> None:
+        core = CoreState(k * 0.01, q, np.zeros(6), np.zeros(6), node.arm.ee_position(q), zeros,
+                         False, 0.0)  # fmt: skip
+        header = Header(stamp_ns=100 + k, seq=k, source="sim")
+        node._on_state(convert.state_message(header, core, 1, holding=False))
+
+    bus.published.clear()  # the episode's announcement
+    state(0)  # the reach's first tick asks for a decision
+    assert [type(m) for m in bus.published] == [JointCommand, DecisionRequest]
+    node._take_answer(_choice(1, 2))
+    node._take_answer(Intent(header=HEADER, episode=1, request=1, u_h=1, human_model=2,
+                             radius_m=0.01, confidence=1.0, source="pad", person=True,
+                             decision_s=0.02))  # fmt: skip
+    for k in range(1, 6):  # the answer is due at 0.02 s: the step is planned there
+        state(k)
+    commands = [m for m in bus.published if isinstance(m, JointCommand)]
+    assert [m.state_stamp_ns for m in commands] == [100 + k for k in range(6)]
+    assert ik_after == [3]  # the plan's tick (0.02 s) had its command out before its IK

@@ -14,7 +14,7 @@ intent, wherever the arm is.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -27,6 +27,9 @@ from dammrl_core.dynamics import ArmModel, joint_limit_avoidance
 from dammrl_core.ik import IKLatency, IKSolver, make_ik_solver
 from dammrl_core.robot import RobotDescription
 from dammrl_core.state import Intent, JointCommand, RobotState, StepEvent
+
+Early = Callable[[JointCommand], None]
+"""Takes a tick's command ahead of the tick's end (``Controller.tick``)."""
 
 
 @dataclass
@@ -185,33 +188,47 @@ class Controller:
         )
 
     # ---- the control tick ---------------------------------------------------------
-    def tick(self, state: RobotState) -> ControllerOutput:
-        """One control period: progression logic, then the joint command for ``state``."""
+    def tick(self, state: RobotState, early: Early | None = None) -> ControllerOutput:
+        """One control period: progression logic, then the joint command for ``state``.
+
+        A step planned from a resting reference (event mode) is planned after its tick's
+        command: the rest command, which the plan cannot change (a hold, or a step started
+        at once, begins where the reference rests). ``early`` gets that command before the
+        plan's IK runs: the bus sends it to the arm first."""
         started: list[StepEvent] = []
         entered_hold = self.hold_reason
+        command = None
         if self.hold_reason is None:
-            self._progress(state, started)
+            command = self._progress(state, started, early)
         reason = self.hold_reason if entered_hold is None else None
-        return ControllerOutput(self._command(state), started, reason)
+        return ControllerOutput(
+            self._command(state) if command is None else command, started, reason
+        )
 
-    def _progress(self, state: RobotState, started: list[StepEvent]) -> None:
+    def _progress(
+        self, state: RobotState, started: list[StepEvent], early: Early | None
+    ) -> JointCommand | None:
         t = state.t_s
         violation = self.limits.check(state.q, state.dq)
         if violation is not None:
             self.hold(violation, t)
-            return
+            return None
         self._start_if_ready(t, started)  # a solve that finished since the last tick
+        command = None
         if self.settings.trigger == "event":
-            self._event_progress(state)
+            command = self._event_progress(state, early)
         else:
             self._fixed_progress(state)
         self._start_if_ready(t, started)  # a step planned now with no IK latency
+        return command
 
     def _start_if_ready(self, t: float, started: list[StepEvent]) -> None:
         while self.planned and t >= self.planned[0].ready_s:
             started.append(self._start_segment(self.planned.pop(0), t))
 
-    def _event_progress(self, state: RobotState) -> None:
+    def _event_progress(self, state: RobotState, early: Early | None) -> JointCommand | None:
+        """Check the armed trigger, or plan the next step; the tick's command when it was
+        made before the plan (see ``tick``)."""
         t = state.t_s
         if self.awaiting_trigger and self.subgoal is not None:
             if event_trigger(state.ee_pos, state.ee_vel, self.subgoal, self.radius_m, self.weights):
@@ -222,10 +239,15 @@ class Controller:
                     f"{np.linalg.norm(self.subgoal - state.ee_pos) * 1000:.1f} mm from its subgoal",
                     t,
                 )
-            return
-        if not self.planned and self.intent is not None:
-            intent, self.intent = self.intent, None  # each decision drives one step
-            self._plan(state, intent)
+            return None
+        if self.planned or self.intent is None:
+            return None
+        intent, self.intent = self.intent, None  # each decision drives one step
+        command = self._command(state) if self.segment.finished(t) else None
+        if command is not None and early is not None:
+            early(command)
+        self._plan(state, intent)
+        return command
 
     def _fixed_progress(self, state: RobotState) -> None:
         """Plan a step on every timer tick with the latest (or a fresh) intent, wherever

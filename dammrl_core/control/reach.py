@@ -22,7 +22,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from dammrl_core.control.controller import Controller, ReferenceInputs, first_true
+from dammrl_core.control.controller import Controller, Early, ReferenceInputs, first_true
 from dammrl_core.control.settings import ControllerSettings
 from dammrl_core.dynamics import ArmModel
 from dammrl_core.ik import IKSolver
@@ -165,8 +165,10 @@ class Reach:
         self.end_s: float | None = None  # when the reach ended (a hold: when it began)
 
     # ---- the composition's calls ------------------------------------------------
-    def tick(self, state: RobotState) -> Tick:
-        """One control period at ``state``."""
+    def tick(self, state: RobotState, early: Early | None = None) -> Tick:
+        """One control period at ``state``; ``early`` may get its command before the tick
+        ends (``Controller.tick``), never on a tick that asks (lockstep holds its command
+        back for the answer)."""
         if not self.started:
             self.controller.reset(state, self.task.goal)
             self.started = True
@@ -177,7 +179,7 @@ class Reach:
         self._deliver_due(state.t_s)
         ask = self.ended is None and self._wants_decision()
         self.asked |= ask
-        output = self.controller.tick(state)
+        output = self.controller.tick(state, None if ask else early)
         self.steps.extend(output.steps)
         ended = None
         if output.hold_reason is not None and self.ended is None:

@@ -113,6 +113,7 @@ class ControllerNode:
         bus.expect(EmergencyStop, OPERATOR)  # `dammrl stop`, the console's x
         self.pause = Pause()  # the therapist's pauses of the running reach
         self.last_command: core.JointCommand | None = None  # the last command sent
+        self.answered = False  # the state being ticked has had its command
         self.stop_latch = StopLatch()  # no reach runs, and no goal goes out, while stopped
         self.next_due_s: float | None = None  # when the next reach may begin (its outcome held)
         self.held_next = ""  # who paused the session between two reaches (the next waits)
@@ -260,25 +261,38 @@ class ControllerNode:
         if self.pause.paused:
             self._hold_paused(message.header.stamp_ns)
             return
-        tick = plan.reach.tick(state)
+        stamp, self.answered = message.header.stamp_ns, False
+        # the arm's command first, before a step's IK (``early``) and the decision request,
+        # except in lockstep, where it waits for the answer (the robot clock must not pass
+        # the answer's due time)
+        tick = plan.reach.tick(state, early=lambda command: self._send_command(command, stamp))
+        lockstep = self.bus.settings.lockstep
+        if not (tick.ask and lockstep):
+            self._send_command(tick.command, stamp)
         if tick.ask:
             self.asks.send(self.requests.make(self.asks.stamp, state.t_s, state.ee_pos,
                                               plan.task.goal, self.settings.primary_axis,
                                               self.choice[0]))  # fmt: skip
-            if self.bus.settings.lockstep:
+            if lockstep:
                 self._await_answer()
                 if self.plan is not plan:
                     return  # a stop ended the reach while it waited
-        if tick.command is not None:
-            self.last_command = tick.command
-            self.commands.send(convert.command_message(
-                self.commands.stamp(), tick.command, self.number, message.header.stamp_ns
-            ))  # fmt: skip
+                self._send_command(tick.command, stamp)
         for step in tick.steps:
             self.steps.send(convert.step_message(self.steps.stamp(), step, self.number))
         self.last_state_s = time.monotonic()
         if tick.ended is not None:
             self._finish()
+
+    def _send_command(self, command: core.JointCommand | None, state_stamp_ns: int) -> None:
+        """The tick's command to the arm, answering the state stamped ``state_stamp_ns``
+        (once: a command sent early is not sent again)."""
+        if command is not None and not self.answered:
+            self.answered = True
+            self.last_command = command
+            self.commands.send(convert.command_message(
+                self.commands.stamp(), command, self.number, state_stamp_ns
+            ))  # fmt: skip
 
     def _hold_until_reset(self, message: RobotState) -> None:
         """The next reach is announced, the arm not yet reset: it holds the last reach's
