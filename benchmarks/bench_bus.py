@@ -13,7 +13,10 @@
     work), and once a raw UDP ping-pong;
 (c) the cost of each of the bus's design choices (``bus_variants.py``): each undone alone,
     measured as (a) beside its own bare Zenoh run;
-(d) the virtual stack's real-time factor and missed deadlines.
+(d) the virtual stack's real-time factor and missed deadlines;
+(e) with ``--ticks``, which states make the p99: the controller's time from taking a
+    state to sending its command, by what the tick did besides (nothing, an IK solve for
+    the next step, a decision request, a step started), and the kinds of its 1 % slowest.
 
     PYTHONPATH=. python benchmarks/bench_bus.py [--seconds 15] [--variants ...] [--hogs 2]
 """
@@ -35,7 +38,7 @@ from typing import Any
 
 import numpy as np
 import zenoh
-from bus_variants import VARIANTS, apply  # beside this script
+from bus_variants import TICK_KINDS, TICKS_ENV, VARIANTS, apply  # beside this script
 
 from dammrl_core.robot import RobotSettings
 from dammrl_core.sim.settings import SimSettings
@@ -148,10 +151,21 @@ def _spawn_service(name: str, variant: str, env: dict[str, str]) -> subprocess.P
 
 
 def stack_round_trip(
-    seconds: float, rate_hz: float, variant: str, credentials: Path | None
+    seconds: float, rate_hz: float, variant: str, credentials: Path | None, ticks: bool = False
 ) -> dict[str, Any]:
     """Run the stack under ``variant`` for ``seconds`` of running reaches (this process is
-    the sim); its figures."""
+    the sim); its figures (``ticks``: the controller's ticks timed, see ``--ticks``)."""
+    with tempfile.TemporaryDirectory() as folder:
+        timed = Path(folder) / "ticks.json" if ticks else None
+        figures = _stack_round_trip(seconds, rate_hz, variant, credentials, timed)
+        if timed is not None:
+            figures["ticks"] = json.loads(timed.read_text()) if timed.exists() else []
+    return figures
+
+
+def _stack_round_trip(
+    seconds: float, rate_hz: float, variant: str, credentials: Path | None, ticks: Path | None
+) -> dict[str, Any]:
     apply(variant)
     port = free_port()
     endpoint = f"{'tcp' if credentials is None else 'tls'}/127.0.0.1:{port}"
@@ -161,7 +175,9 @@ def stack_round_trip(
         env["DAMMRL_BUS_CREDENTIALS"] = str(credentials)
     settings = BusSettings(listen=[endpoint], credentials=credentials)
     prioritise(True)  # as the sim service does
-    children = [_spawn_service(name, variant, env) for name in ("policy", "intent", "controller")]
+    timed = {} if ticks is None else {TICKS_ENV: str(ticks)}
+    children = [_spawn_service(name, variant, env | (timed if name == "controller" else {}))
+                for name in ("policy", "intent", "controller")]  # fmt: skip
     stop = threading.Event()
     try:
         with Bus(settings, "sim") as bus:
@@ -292,18 +308,21 @@ def _one(args: argparse.Namespace) -> None:
     if args.one == SECURED:
         with tempfile.TemporaryDirectory() as folder:
             create_credentials(Path(folder) / "bus")
-            figures = stack_round_trip(args.seconds, args.rate, "as built", Path(folder) / "bus")
+            figures = stack_round_trip(args.seconds, args.rate, "as built", Path(folder) / "bus",
+                                       args.ticks)  # fmt: skip
     else:
-        figures = stack_round_trip(args.seconds, args.rate, args.one, None)
+        figures = stack_round_trip(args.seconds, args.rate, args.one, None, args.ticks)
     print(json.dumps(figures), flush=True)
 
 
-def run_variant(variant: str, seconds: float, rate_hz: float) -> dict[str, Any]:
+def run_variant(
+    variant: str, seconds: float, rate_hz: float, ticks: bool = False
+) -> dict[str, Any]:
     """One variant in a process of its own (its patches stay there), beside a bare Zenoh
     ping-pong run just before it."""
     bare = percentiles(zenoh_round_trip(seconds, rate_hz))
     command = [sys.executable, __file__, "--one", variant, "--seconds", str(seconds),
-               "--rate", str(rate_hz)]  # fmt: skip
+               "--rate", str(rate_hz), *(["--ticks"] if ticks else [])]  # fmt: skip
     out = subprocess.run(command, cwd=ROOT, env=os.environ | {"PYTHONPATH": str(ROOT)},
                          capture_output=True, text=True, timeout=seconds + 300)  # fmt: skip
     lines = [line for line in out.stdout.splitlines() if line.startswith("{")]
@@ -339,7 +358,25 @@ def summary(runs: list[dict[str, Any]]) -> dict[str, Any]:
             for leg in LEGS
         },
         "rounds": len(runs),
+        "ticks": tick_figures([tuple(t) for r in runs for t in r.get("ticks", [])]),
     }
+
+
+def tick_figures(ticks: list[tuple[str, float]]) -> dict[str, dict[str, float]]:
+    """Per kind of tick: how many, their p50 / p90 / p99 [µs] from taking the state to
+    sending the command, and how many of them are among the 1 % slowest of all."""
+    if not ticks:
+        return {}
+    seconds = np.array([s for _, s in ticks])
+    slowest = seconds >= np.quantile(seconds, 0.99)
+    figures = {}
+    for kind in TICK_KINDS:
+        mine = np.array([k == kind for k, _ in ticks])
+        if mine.any():
+            p50, p90, p99 = np.quantile(seconds[mine], [0.5, 0.9, 0.99]) * 1e6
+            figures[kind] = {"ticks": int(mine.sum()), "p50": p50, "p90": p90, "p99": p99,
+                             "among the 1 % slowest": int((mine & slowest).sum())}  # fmt: skip
+    return figures
 
 
 def row(variant: str, f: dict[str, Any]) -> str:
@@ -360,6 +397,11 @@ HEADER = (
 )
 
 
+TICKS_HEADER = (
+    "| the tick | ticks | p50 / p90 / p99 [µs] | among the 1 % slowest |\n|---|---|---|---|"
+)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seconds", type=float, default=15.0, help="of running reaches")
@@ -369,6 +411,8 @@ def main() -> None:
     parser.add_argument("--all", action="store_true", help="every variant (c)")
     parser.add_argument("--rounds", type=int, default=2, help="each variant this often")
     parser.add_argument("--hogs", type=int, default=0, help="CPU hogs beside the runs")
+    parser.add_argument("--ticks", action="store_true",
+                        help="time the controller's ticks by kind (e)")  # fmt: skip
     parser.add_argument("--json", type=Path, help="write the figures here too")
     parser.add_argument("--one", help=argparse.SUPPRESS)
     args = parser.parse_args()
@@ -382,7 +426,7 @@ def main() -> None:
         udp = percentiles(udp_round_trip(args.seconds, args.rate))
         for _ in range(args.rounds):  # interleaved: the machine's load changes
             for variant in variants:
-                runs[variant].append(run_variant(variant, args.seconds, args.rate))
+                runs[variant].append(run_variant(variant, args.seconds, args.rate, args.ticks))
     finally:
         for hog in hogs:
             hog.kill()
@@ -397,6 +441,13 @@ def main() -> None:
         legs = "; ".join(f"{leg}: {p50:.2f} / {p99:.2f}"
                          for leg, (p50, p99) in figures["legs p50 / p99 [ms]"].items())  # fmt: skip
         print(f"{variant}, the round trip's legs p50 / p99 [ms]: {legs}")
+    for variant, figures in results.items():
+        if figures["ticks"]:
+            print(f"\n{variant}, the controller from taking a state to sending its command:")
+            print(TICKS_HEADER)
+            for kind, f in figures["ticks"].items():
+                print(f"| {kind} | {f['ticks']} | {f['p50']:.0f} / {f['p90']:.0f} / "
+                      f"{f['p99']:.0f} | {f['among the 1 % slowest']} |")  # fmt: skip
     if args.json is not None:
         args.json.write_text(json.dumps({"udp [ms]": udp, "variants": results, "runs": runs},
                                         indent=1))  # fmt: skip

@@ -20,15 +20,24 @@ service it starts), so the rest of the stack is the one that ships:
 * ``every state answered``: the controller answers each waiting state, not only the
   newest.
 
+With ``DAMMRL_BENCH_TICKS`` set to a file, the controller service also times each tick
+it answers, from taking the state to sending its command, by what the tick did, and
+writes them there as it exits (``bench_bus.py --ticks``).
+
     python benchmarks/bus_variants.py VARIANT SERVICE   # a service under a variant
 """
 
 from __future__ import annotations
 
+import atexit
+import json
 import os
 import sys
 import threading
+import time
 from collections.abc import Callable
+from pathlib import Path
+from typing import Any
 
 import zenoh
 
@@ -128,6 +137,50 @@ VARIANTS: dict[str, Callable[[], None]] = {
 }
 
 
+TICKS_ENV = "DAMMRL_BENCH_TICKS"
+TICK_KINDS = ("quiet", "planned a step (its IK)", "asked for a decision", "started a step")
+
+
+def time_ticks(path: Path) -> None:
+    """Time the controller's answer to each state, from taking the state (``_on_state``)
+    to sending its command, and note what the tick did besides (an IK solve, a decision
+    request, a step started); written to ``path`` at exit as [kind, seconds] pairs."""
+    from services.controller.node import ControllerNode
+
+    ticks: list[tuple[str, float]] = []
+    atexit.register(lambda: path.write_text(json.dumps(ticks)))
+    init, on_state = ControllerNode.__init__, ControllerNode._on_state
+    seen: dict[str, float] = {}  # what the tick running did, and when its command went
+
+    def watch(owner: Any, name: str, what: str) -> None:
+        call = getattr(owner, name)
+
+        def watched(*args: Any) -> Any:
+            result = call(*args)
+            seen.setdefault(what, time.perf_counter())  # the command: built, encoded, put
+            return result
+
+        setattr(owner, name, watched)
+
+    def init_watched(self: ControllerNode, *args: Any, **kwargs: Any) -> None:
+        init(self, *args, **kwargs)
+        watch(self.commands, "send", "command")
+        watch(self.ik, "solve", TICK_KINDS[1])
+        watch(self.asks, "send", TICK_KINDS[2])
+        watch(self.steps, "send", TICK_KINDS[3])
+
+    def on_state_timed(self: ControllerNode, message: RobotState, answer: bool = True) -> None:
+        seen.clear()
+        start = time.perf_counter()
+        on_state(self, message, answer)
+        if answer and "command" in seen:
+            kind = next((k for k in TICK_KINDS[1:] if k in seen), TICK_KINDS[0])
+            ticks.append((kind, seen["command"] - start))
+
+    ControllerNode.__init__ = init_watched  # type: ignore[method-assign]
+    ControllerNode._on_state = on_state_timed  # type: ignore[method-assign]
+
+
 def apply(variant: str) -> None:
     """Undo one design choice in this process (see the module's docstring)."""
     VARIANTS[variant]()
@@ -136,6 +189,8 @@ def apply(variant: str) -> None:
 def main() -> int:
     variant, service = sys.argv[1], sys.argv[2]
     apply(variant)
+    if service == "controller" and os.environ.get(TICKS_ENV):
+        time_ticks(Path(os.environ[TICKS_ENV]))
     module = __import__(f"services.{service}.node", fromlist=["main"])
     return int(module.main([]))
 
