@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
 from dammrl_core.control.controller import Controller, latency_model
 from dammrl_core.control.settings import ControllerSettings
+from dammrl_core.control.trajectory import QuinticSegment
 from dammrl_core.dynamics import ArmModel, joint_limit_avoidance
 from dammrl_core.ik import IKResult
 from dammrl_core.robot import RobotDescription
@@ -233,3 +236,29 @@ def test_a_step_planned_while_the_reference_moves_has_its_ik_before_its_command(
     out = controller.tick(_state(arm, segment.target, midway + 0.01),
                           early=lambda _: order.append("command"))  # fmt: skip
     assert order == ["ik"] and len(out.steps) == 1
+
+
+def test_a_step_planned_from_rest_starts_on_the_reference_a_fresh_plan_gives(
+    robot: RobotDescription, arm: ArmModel
+) -> None:
+    """A step planned from a resting reference has its reference made with the plan (off
+    the tick that starts it): started later, it is bitwise the one planned at the start."""
+    controller = _controller(robot, arm)
+    controller.settings = controller.settings.model_copy(update={"ik_latency": "model"})
+    controller.latency = latency_model(controller.settings, np.random.default_rng(0))
+    start = _state(arm, HOME_Q, 0.0)
+    controller.reset(start, start.ee_pos + np.array([0.2, 0.0, 0.0]))
+    controller.on_intent(_intent())
+    rest = controller.segment
+    controller.tick(start)
+    (planned,) = controller.planned
+    t = math.ceil(planned.ready_s / 0.01) * 0.01
+    q0, v0, a0 = rest.sample(t)
+    fresh = QuinticSegment.plan(t, controller._duration(planned, q0), q0, v0, a0, planned.q_target)
+    (step,) = controller.tick(_state(arm, HOME_Q, t)).steps
+    started = controller.segment
+    assert started is not rest and started.t0_s == t and step.index == 1
+    assert started.duration_s == fresh.duration_s
+    np.testing.assert_array_equal(started.coeffs, fresh.coeffs)
+    for mine, theirs in zip(started.rest, fresh.rest, strict=True):
+        np.testing.assert_array_equal(mine, theirs)

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -60,6 +60,9 @@ class _PlannedStep:
     ready_s: float  # when the IK result becomes available
     q_target: np.ndarray
     event: StepEvent
+    # planned from a resting reference: (that reference, the step's own from there, as if
+    # started at the plan's tick); from the same rest, a later start only moves it in time
+    from_rest: tuple[QuinticSegment, QuinticSegment] | None = None
 
 
 def first_true(flags: np.ndarray) -> int:
@@ -308,7 +311,10 @@ class Controller:
             ik_compute_s=result.compute_s,
             ik_latency_s=latency,
         )
-        self.planned.append(_PlannedStep(t + latency, result.q, event))
+        planned = _PlannedStep(t + latency, result.q, event)
+        if self.segment.finished(t):  # its reference now, off the tick that starts it
+            planned = replace(planned, from_rest=(self.segment, self._segment_from(planned, t)))
+        self.planned.append(planned)
         self.radius_m = intent.radius_m
 
     def _calibration_offset(self, state: RobotState) -> np.ndarray:
@@ -347,6 +353,8 @@ class Controller:
 
     def _segment_from(self, planned: _PlannedStep, t: float) -> QuinticSegment:
         """The reference of a step started at ``t``: from where the current one is then."""
+        if planned.from_rest is not None and planned.from_rest[0] is self.segment:
+            return planned.from_rest[1].moved_to(t)
         q0, v0, a0 = self.segment.sample(t)
         return QuinticSegment.plan(t, self._duration(planned, q0), q0, v0, a0, planned.q_target)
 

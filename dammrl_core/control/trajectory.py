@@ -52,6 +52,11 @@ class QuinticSegment:
         zeros = np.zeros_like(q)
         return cls(t0_s, 0.0, np.stack([q, zeros, zeros, zeros, zeros, zeros]))
 
+    def moved_to(self, t0_s: float) -> QuinticSegment:
+        """The same reference starting at ``t0_s`` (its shape does not depend on its start:
+        bitwise the segment ``plan`` makes from the same states at ``t0_s``)."""
+        return QuinticSegment(t0_s, self.duration_s, self.coeffs)
+
     @property
     def end_s(self) -> float:
         return self.t0_s + self.duration_s
