@@ -108,7 +108,8 @@ def _benchmarks(quick: bool) -> dict[str, Callable[[Path], list[str]]]:
     return {
         "bus": lambda out: [
             "bench_bus.py", "--seconds", "5" if quick else "15", "--rounds",
-            "1" if quick else "2", "--variants", "as built", SECURED, "--json", str(out),
+            "1" if quick else "2", "--variants", "as built", SECURED, "--ticks", "--json",
+            str(out),
         ],
         "core": lambda out: [
             "bench_core.py", "--reaches", "3" if quick else "10", "--targets",
@@ -224,6 +225,10 @@ def section(record: dict[str, Any]) -> str:
                          for leg, (p50, p99) in built["legs p50 / p99 [ms]"].items())  # fmt: skip
         parts += ["", f"The as-built round trip's legs, p50 / p99 [ms], as the sim sees them: "
                   f"{legs}."]  # fmt: skip
+    if built.get("ticks"):
+        parts += ["", "Which states make the p99: the controller's time from taking a state to "
+                  "sending its command, by what the tick did besides (as built, every round):",
+                  "", *_ticks_table(built["ticks"])]  # fmt: skip
     if "bus-variants" in record:
         parts += ["", "What each of the bus's choices costs (each undone alone, "
                   "`benchmarks/bus_variants.py`; every row beside a bare Zenoh run of its own):",
@@ -244,6 +249,15 @@ def section(record: dict[str, Any]) -> str:
               "all), rewrites this section and `performance.json`, and says each figure that "
               "regressed beyond its tolerance against the last published one."]  # fmt: skip
     return "\n".join(parts)
+
+
+def _ticks_table(ticks: dict[str, dict[str, float]]) -> list[str]:
+    rows = ["| the tick | ticks | p50 / p90 / p99 [µs] | among the 1 % slowest of all |",
+            "|---|---|---|---|"]  # fmt: skip
+    for kind, f in ticks.items():
+        rows.append(f"| {kind} | {f['ticks']:.0f} | {f['p50']:.0f} / {f['p90']:.0f} / "
+                    f"{f['p99']:.0f} | {f['among the 1 % slowest']:.0f} |")  # fmt: skip
+    return rows
 
 
 def _variants_table(figures: dict[str, Any]) -> list[str]:

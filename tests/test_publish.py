@@ -40,3 +40,24 @@ def test_a_figure_beyond_its_tolerance_is_a_regression() -> None:
     assert publish.regressions(_runs(0.75, True), published) == []  # within 10 %
     (line,) = publish.regressions(_runs(0.70, True), published)
     assert "in-process loop / raw mj_step is 0.70, published 0.80" in line
+
+
+def test_the_page_says_which_states_make_the_p99() -> None:
+    publish = _publish()
+    ticks = {"quiet": {"ticks": 1400, "p50": 380.0, "p90": 520.0, "p99": 700.0,
+                       "among the 1 % slowest": 12},
+             "started a step": {"ticks": 20, "p50": 470.0, "p90": 600.0, "p99": 900.0,
+                                "among the 1 % slowest": 3}}  # fmt: skip
+    machine = {
+        "processor": "a CPU",
+        "cores": 2,
+        "system": "Linux",
+        "python": "3.11",
+        "load average (1 min)": 0.4,
+    }
+    record = {"bus": {"date": "2026-11-28", "commit": "abc", "machine": machine,
+                      "figures": {"variants": {"as built": {"ticks": ticks}}}}}  # fmt: skip
+    page = publish.section(record)
+    assert "Which states make the p99" in page
+    assert "| quiet | 1400 | 380 / 520 / 700 | 12 |" in page
+    assert "| started a step | 20 | 470 / 600 / 900 | 3 |" in page

@@ -7,9 +7,12 @@ the request time plus the human's decision time on the robot clock (a late answe
 on arrival). Without RobotState for ``state_stale_s`` the episode ends in a hold (the
 sim holds the arm by itself once commands stop).
 
-In lockstep (``DAMMRL_BUS_LOCKSTEP``) the command answering a state that asked for a
-decision waits for the human's answer, so the robot clock never runs past a due time
-before the answer is known: the stack then reproduces the in-process runner exactly.
+A tick's command goes out first: before its decision request, and before the IK of a
+step planned from a resting reference (whose tick's command the plan cannot change,
+``Controller.tick``). In lockstep (``DAMMRL_BUS_LOCKSTEP``) the command answering a state
+that asked for a decision waits for the human's answer, so the robot clock never runs
+past a due time before the answer is known: the stack then reproduces the in-process
+runner exactly.
 """
 
 from __future__ import annotations
