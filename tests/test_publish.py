@@ -61,3 +61,41 @@ def test_the_page_says_which_states_make_the_p99() -> None:
     assert "Which states make the p99" in page
     assert "| quiet | 1400 | 380 / 520 / 700 | 12 |" in page
     assert "| started a step | 20 | 470 / 600 / 900 | 3 |" in page
+
+
+def _bench_bus() -> ModuleType:
+    sys.path.insert(0, str(ROOT / "benchmarks"))  # it imports bus_variants beside it
+    try:
+        spec = importlib.util.spec_from_file_location(
+            "bench_bus", ROOT / "benchmarks" / "bench_bus.py"
+        )
+        assert spec is not None and spec.loader is not None
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+    finally:
+        sys.path.remove(str(ROOT / "benchmarks"))
+    return module
+
+
+def _bus_round(bus: ModuleType, p99_ms: float, bare_p99_ms: float) -> dict[str, Any]:
+    spans = {"p50": 1.0, "p99": p99_ms, "p99.9": p99_ms}
+    return {"round trip [ms]": spans, "bare Zenoh [ms]": {"p50": 0.5, "p99": bare_p99_ms},
+            "legs [ms]": dict.fromkeys(bus.LEGS, spans), "states": 1000, "commands per state": 1.0,
+            "periods on their own answer": 1.0, "start-up [s]": 1.0,
+            "real-time factor": 1.0}  # fmt: skip
+
+
+def test_the_bus_goal_is_read_on_the_median_round_with_its_interval() -> None:
+    """Twelve rounds: the median ratio's interval runs from the 3rd to the 10th smallest
+    round, and the page says how many rounds are at or under 2, and every round."""
+    ratios = [1.2, 2.6, 1.5, 1.9, 3.1, 1.4, 1.7, 2.2, 1.6, 1.8, 1.3, 2.05]
+    bus = _bench_bus()
+    figures = bus.summary([_bus_round(bus, 2 * r, 2.0) for r in ratios])
+    ordered = sorted(ratios)
+    assert figures["p99 / bare p99, 95 % interval"] == (ordered[2], ordered[9])
+    assert figures["p99 / bare p99"] == (ordered[5] + ordered[6]) / 2
+    line = _publish()._ratio_line("as built", figures)
+    assert "median 1.75, 95 % interval 1.40 to 2.20" in line
+    assert "8 of 12 rounds at or under 2" in line
+    every = "1.20, 1.30, 1.40, 1.50, 1.60, 1.70, 1.80, 1.90, 2.05, 2.20, 2.60, 3.10."
+    assert line.endswith(every)
