@@ -16,6 +16,9 @@ service it starts), so the rest of the stack is the one that ships:
 * ``loop thread SCHED_FIFO``: the sim's and the controller's loop thread (not Zenoh's)
   under the kernel's real-time FIFO policy (needs root or CAP_SYS_NICE), ahead of every
   ordinary process, other stacks' nice -10 services included;
+* ``loop threads on their own cores``: the sim's loop thread on the first core, the
+  controller's on the last (that thread only: Zenoh's are started before), so neither
+  migrates and each keeps its core's caches between states;
 * ``no rate limits``: no per-link ingress downsampling in any session;
 * ``every state answered``: the controller answers each waiting state, not only the
   newest.
@@ -103,6 +106,20 @@ def _fifo_loop_thread() -> None:
     Bus.__enter__ = enter_fifo  # type: ignore[method-assign]
 
 
+def _loop_threads_pinned() -> None:
+    """The sim's loop thread on the first core, the controller's on the last."""
+    enter = Bus.__enter__
+    cores = sorted(os.sched_getaffinity(0))
+
+    def enter_pinned(self: Bus) -> Bus:
+        bus = enter(self)
+        if self.service in runtime.TIME_CRITICAL:
+            os.sched_setaffinity(0, {cores[-1] if self.service == "controller" else cores[0]})
+        return bus
+
+    Bus.__enter__ = enter_pinned  # type: ignore[method-assign]
+
+
 def _default_switch_interval() -> None:
     runtime.CRITICAL_SWITCH_INTERVAL_S = 0.005
 
@@ -132,6 +149,7 @@ VARIANTS: dict[str, Callable[[], None]] = {
     "0.1 ms polling": _critical_polling_every(0.0001),
     "5 ms GIL hand-over": _default_switch_interval,
     "loop thread SCHED_FIFO": _fifo_loop_thread,
+    "loop threads on their own cores": _loop_threads_pinned,
     "no rate limits": _no_rate_limits,
     "every state answered": _every_state_answered,
 }

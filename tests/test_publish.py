@@ -5,10 +5,13 @@ not the physics the benchmark ran (the replay not bit for bit)."""
 from __future__ import annotations
 
 import importlib.util
+import json
 import sys
 from pathlib import Path
 from types import ModuleType
 from typing import Any
+
+import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -99,3 +102,35 @@ def test_the_bus_goal_is_read_on_the_median_round_with_its_interval() -> None:
     assert "8 of 12 rounds at or under 2" in line
     every = "1.20, 1.30, 1.40, 1.50, 1.60, 1.70, 1.80, 1.90, 2.05, 2.20, 2.60, 3.10."
     assert line.endswith(every)
+
+
+def test_a_refused_publish_keeps_its_runs_and_publishes_them_later(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Half an hour of measuring is not lost to a regression: the runs are kept, and
+    ``--runs`` publishes them without measuring again."""
+    publish = _publish()
+    machine = {"processor": "a CPU", "cores": 2, "system": "Linux", "python": "3.11",
+               "load average (1 min)": 0.1}  # fmt: skip
+    published = {"core": {"date": "2026-11-27", "commit": "old", "machine": machine,
+                          "figures": {"loop / raw mj_step": 0.80}}}  # fmt: skip
+    measured = {"core": {"date": "2026-11-28", "commit": "new", "machine": machine,
+                         "figures": {"loop / raw mj_step": 0.70}}}  # fmt: skip
+    page, record = tmp_path / "performance.md", tmp_path / "performance.json"
+    page.write_text(f"# Performance\n{publish.BEGIN}\nold\n{publish.END}\nafter\n")
+    record.write_text(json.dumps(published))
+    kept = tmp_path / "kept.json"
+    monkeypatch.setattr(publish, "KEPT", kept)
+    monkeypatch.setattr(publish, "run", lambda names, quick: measured)
+    files = ["--page", str(page), "--published", str(record), "--only", "core"]
+    monkeypatch.setattr(sys, "argv", ["publish.py", *files])
+    assert publish.main() == 1  # 0.70 against 0.80: beyond 10 %
+    assert "old" in page.read_text() and json.loads(record.read_text()) == published
+    assert json.loads(kept.read_text()) == measured
+
+    monkeypatch.setattr(publish, "run", lambda names, quick: pytest.fail("measured again"))
+    monkeypatch.setattr(sys, "argv", ["publish.py", *files, "--runs", str(kept), "--accept"])
+    assert publish.main() == 0
+    assert json.loads(record.read_text())["core"]["commit"] == "new"
+    assert "| in-process loop / raw mj_step | 0.70 |" in page.read_text()
+    assert page.read_text().endswith(f"{publish.END}\nafter\n")
