@@ -40,6 +40,8 @@ END = "<!-- benchmarks:end -->"
 SECURED = "as built, mutual TLS + ACL"
 KEPT = Path(tempfile.gettempdir()) / "dammrl-performance-runs.json"
 """Where a refused publish keeps its runs (half an hour of measuring)."""
+INTERVALS = {"p99 / bare p99": "p99 / bare p99, 95 % interval"}
+"""The figures read with an interval (beside them in their benchmark's JSON)."""
 
 
 @dataclass(frozen=True)
@@ -58,16 +60,35 @@ class Figure:
 
     def value(self, record: dict[str, Any]) -> float | None:
         """Its value in a record of runs (None: not measured there)."""
-        node: Any = record.get(self.benchmark, {}).get("figures")
-        for key in self.path:
-            if not isinstance(node, dict) or key not in node:
-                return None
-            node = node[key]
-        return float(node)
+        node = _node(record, self.benchmark, self.path)
+        return None if node is None else float(node)
 
     def regressed(self, now: float, published: float) -> bool:
         margin = self.tolerance * abs(published)
         return now < published - margin if self.higher_is_better else now > published + margin
+
+    def verdict(self, record: dict[str, Any]) -> str:
+        """Whether the goal is met: on the value; for a figure with an interval (the bus's
+        median round), met or not only when the whole interval says so."""
+        value = self.value(record)
+        if value is None or not self.goal.startswith(("<=", ">=")):
+            return ""
+        bound, ends = float(self.goal[2:]), [value]
+        if self.path[-1] in INTERVALS:
+            interval = _node(record, self.benchmark, (*self.path[:-1], INTERVALS[self.path[-1]]))
+            ends = list(interval) if isinstance(interval, list) else ends
+        met = [end <= bound if self.goal.startswith("<=") else end >= bound for end in ends]
+        return "met" if all(met) else "not met" if not any(met) else "unresolved"
+
+
+def _node(record: dict[str, Any], benchmark: str, path: tuple[str, ...]) -> Any:
+    """What lies at ``path`` in a benchmark's figures (None: not there)."""
+    node: Any = record.get(benchmark, {}).get("figures")
+    for key in path:
+        if not isinstance(node, dict) or key not in node:
+            return None
+        node = node[key]
+    return node
 
 
 def _bus(variant: str, key: str) -> tuple[str, ...]:
@@ -218,11 +239,12 @@ def section(record: dict[str, Any]) -> str:
     for figure in FIGURES:
         value = figure.value(record)
         shown = "not run" if value is None else f"{value:.{figure.decimals}f}"
-        rows.append(f"| {figure.label} | {shown} | {figure.goal} | {figure.tolerance:.0%} |")
+        rows.append(f"| {figure.label} | {shown} | {figure.goal} | {figure.verdict(record)} | "
+                    f"{figure.tolerance:.0%} |")  # fmt: skip
     udp = record.get("bus", {}).get("figures", {}).get("udp [ms]", {})
     parts = [
-        "| figure | value | goal | regression tolerance |",
-        "|---|---|---|---|",
+        "| figure | value | goal | goal met | regression tolerance |",
+        "|---|---|---|---|---|",
         *rows,
         "",
         f"Raw UDP ping-pong in the bus run: p50 {udp.get('p50', float('nan')):.2f} ms, p99 "

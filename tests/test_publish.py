@@ -134,3 +134,24 @@ def test_a_refused_publish_keeps_its_runs_and_publishes_them_later(
     assert json.loads(record.read_text())["core"]["commit"] == "new"
     assert "| in-process loop / raw mj_step | 0.70 |" in page.read_text()
     assert page.read_text().endswith(f"{publish.END}\nafter\n")
+
+
+def test_the_page_says_whether_each_goal_is_met() -> None:
+    """A goal is met on the value, and for the bus's median round only when its whole
+    interval says so; a figure with no goal gets no verdict."""
+    publish = _publish()
+
+    def bus(median: float, interval: tuple[float, float]) -> dict[str, Any]:
+        built = {"p99 / bare p99": median, "p99 / bare p99, 95 % interval": list(interval)}
+        return {"bus": {"figures": {"variants": {"as built": built}}}}
+
+    ratio = next(f for f in publish.FIGURES if f.label == "bus p99 / bare Zenoh p99")
+    assert ratio.verdict(bus(1.6, (1.4, 1.9))) == "met"
+    assert ratio.verdict(bus(2.2, (2.01, 2.4))) == "not met"
+    assert ratio.verdict(bus(1.9, (1.5, 2.3))) == "unresolved"
+    loop = next(f for f in publish.FIGURES if f.label == "in-process loop / raw mj_step")
+    assert loop.verdict(_runs(0.91, True)) == "met"
+    assert loop.verdict(_runs(0.76, True)) == "not met"
+    replay = next(f for f in publish.FIGURES if f.goal == "" and f.benchmark == "core")
+    assert replay.verdict({"core": {"figures": {replay.path[0]: 0.5}}}) == ""
+    assert loop.verdict({}) == ""  # not measured
