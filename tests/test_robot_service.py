@@ -454,6 +454,53 @@ def test_after_a_stall_longer_than_the_watchdog_the_servos_obey_again(
     assert "the drives [1, 2, 3, 4, 5, 6] had stopped themselves" in caplog.text
 
 
+def _stop_by_their_clock(arm: EmulatedArm) -> None:
+    """The servos' watchdog runs out by their own clock, not this host's (a starved
+    emulator, a USB adapter holding packets back): they stop at the next packet."""
+    with arm.bus.lock:
+        for servo in arm.chain.motors.values():
+            servo.watchdog_deadline_s = arm.chain.now_s
+
+
+def _holding(rig: Rig) -> None:
+    rig.run_until(lambda r: r.node.connected and bool(r.bus.health)
+                  and r.last_health[0] == "holding", 20)  # fmt: skip
+
+
+def test_servos_stopped_by_their_own_clock_are_rearmed_after_a_failed_cycle(
+    rig: Rig, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Seen beside two CPU hogs (the compose real profile): two failed bus cycles, no
+    silence by the host's clock, the servos stopped by their watchdog and refusing goals,
+    the move to the start never made and the episode refused for good. After a failed
+    cycle the node now asks the servos, re-arms those stopped, and the move goes on."""
+    _holding(rig)
+    _stop_by_their_clock(rig.arm)
+    inject(rig.arm, "corrupt 1")  # one failed cycle, far shorter than the watchdog
+    rig.bus.send(_goal(1))
+    rig.run_until(lambda r: r.node.law.episode == 1, 20, lambda r: r.bus.send(_goal(1)))
+    assert "the drives [1, 2, 3, 4, 5, 6] had stopped themselves" in caplog.text
+    assert rig.node.law.homing_failure is None
+
+
+def test_an_episode_refused_for_stopped_servos_is_tried_again_once_they_obey(
+    rig: Rig, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Servos stopped with no failed cycle to tell: the move to the start gives up and the
+    episode is refused. When the node later finds them stopped and re-arms them, the
+    refusal may have been theirs: the episode, announced again, is homed and begins."""
+    rig.node.law.settings = rig.node.law.settings.model_copy(update={"homing_timeout_s": 0.3})
+    _holding(rig)
+    _stop_by_their_clock(rig.arm)
+    rig.bus.send(_goal(1))
+    rig.run_until(lambda r: r.node.law.homing_failure is not None, 20,
+                  lambda r: r.bus.send(_goal(1)))  # fmt: skip
+    assert rig.node.law.episode == 0
+    time.sleep(0.3)  # a stall of this process: the node asks the servos
+    rig.run_until(lambda r: r.node.law.episode == 1, 20, lambda r: r.bus.send(_goal(1)))
+    assert "had stopped themselves" in caplog.text and rig.node.law.homing_failure is None
+
+
 def test_a_start_posture_never_reached_refuses_the_episode_and_holds(rig: Rig) -> None:
     """Blocked (here: a tolerance no arm meets), the move gives up and the arm holds."""
     rig.node.law.settings = rig.node.law.settings.model_copy(

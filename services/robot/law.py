@@ -249,7 +249,10 @@ class ArmLaw:
         """The drives had stopped themselves during a stall of this process (where they
         were, with the gains in force, the feed-forward gone: the arm sagged): hold where
         it is now, with the law's gains (a homing move starts again from there). Nothing
-        resumes a motion, nor pulls back to a hold, planned before the stall."""
+        resumes a motion, nor pulls back to a hold, planned before the stall. A start
+        posture not reached before may have been theirs: its episode, announced again, is
+        tried again."""
+        self.unreachable_episode, self.homing_failure = -1, None  # they may be why: try again
         if self.homing is not None:
             self.homing = self._plan_homing(self.homing.start, joint.q_rad, now)
         elif self.held is not None:

@@ -31,6 +31,10 @@ class DriveLink:
         self.bus_errors = 0  # failed cycles since the start (Health says how many)
         self.last_written: DriveCommand | None = None  # the law last sent to the drives
         self.last_write_s = float("inf")  # when (monotonic); inf: not since connecting
+        # a cycle failed since the drives were last asked: they keep their own clock, so a
+        # packet held back (a busy PC, a USB adapter's buffer) can let their watchdog see
+        # a longer silence than this host's clock did
+        self.doubt_drives = False
 
     def try_connect(self, now: float, hold: HoldLaw) -> bool:
         """Connect when it is time to try, the drives holding with ``hold``'s law from
@@ -74,6 +78,7 @@ class DriveLink:
         hear it hold with gravity compensation; the others' watchdog stops them."""
         self.errors += 1
         self.bus_errors += 1
+        self.doubt_drives = True
         if self.errors < self.settings.max_bus_errors:
             log.warning("bus cycle failed (%d in a row): %s", self.errors, exc)
             return False
@@ -101,9 +106,11 @@ class DriveLink:
         self.next_connect_s = 0.0
 
     def stalled(self, now: float) -> bool:
-        """This process was silent longer than the drives' own stop allows."""
+        """The drives may have stopped themselves: this process was silent longer than
+        their own stop allows, by its clock, or a cycle failed since they were last asked
+        (by their clock the silence may have been longer)."""
         stall_s = self.driver.stall_s
-        return stall_s is not None and now - self.last_write_s > stall_s
+        return stall_s is not None and (self.doubt_drives or now - self.last_write_s > stall_s)
 
     def soft_start(self, now: float) -> float:
         """The stiffness's share after torque-on: from ``soft_start_fraction`` to 1."""

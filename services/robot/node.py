@@ -152,12 +152,15 @@ class RobotNode:
             self.law.stop_here(q, now)
 
     def _after_stall(self, joint: JointState, now: float) -> None:
-        """This process was silent longer than the drives allow (a stall, a swap): they
-        stopped by themselves and refuse goals until re-armed."""
+        """The drives may have seen a longer silence than they allow (this process stalled
+        or swapped, or a cycle failed): those that stopped by themselves refuse goals until
+        re-armed."""
         stopped = self.driver.rearm()
+        self.link.doubt_drives = False
         if stopped:
-            log.warning("silent %.0f ms: the drives %s had stopped themselves; holding where "
-                        "the arm is", (now - self.link.last_write_s) * 1000, stopped)  # fmt: skip
+            log.warning("the drives %s had stopped themselves (%.0f ms since this host's last "
+                        "write, by its clock); holding where the arm is", stopped,
+                        (now - self.link.last_write_s) * 1000)  # fmt: skip
             self.law.after_stall(joint, now)
 
     def _note_written(self) -> None:
