@@ -40,6 +40,8 @@ END = "<!-- benchmarks:end -->"
 SECURED = "as built, mutual TLS + ACL"
 KEPT = Path(tempfile.gettempdir()) / "dammrl-performance-runs.json"
 """Where a refused publish keeps its runs (half an hour of measuring)."""
+BUS_RATIO_GOAL = 2.0
+"""The bus's p99 over bare Zenoh's p99, at most (issue 43)."""
 INTERVALS = {"p99 / bare p99": "p99 / bare p99, 95 % interval"}
 """The figures read with an interval (beside them in their benchmark's JSON)."""
 
@@ -102,10 +104,10 @@ FIGURES = (
            False, 0.5),
     Figure("bus", _bus("as built", "bare Zenoh p99 [ms]"), "bare Zenoh ping-pong p99 [ms]",
            "(the baseline)", False, 1.0),
-    Figure("bus", _bus("as built", "p99 / bare p99"), "bus p99 / bare Zenoh p99", "<= 2",
-           False, 0.3),
-    Figure("bus", _bus(SECURED, "p99 / bare p99"), "the same, mutual TLS + ACL", "<= 2",
-           False, 0.3),
+    Figure("bus", _bus("as built", "p99 / bare p99"), "bus p99 / bare Zenoh p99",
+           f"<= {BUS_RATIO_GOAL:g}", False, 0.3),
+    Figure("bus", _bus(SECURED, "p99 / bare p99"), "the same, mutual TLS + ACL",
+           f"<= {BUS_RATIO_GOAL:g}", False, 0.3),
     Figure("bus", _bus("as built", "commands per state"), "commands per state", ">= 0.99",
            True, 0.01, 4),
     Figure("bus", _bus("as built", "periods on their own answer"),
@@ -292,11 +294,11 @@ def _ratio_line(variant: str, f: dict[str, Any]) -> str:
     """The bus's goal figure over its rounds: the median, its interval, the rounds within."""
     ratios = f["p99 / bare p99, rounds"]
     low, high = f["p99 / bare p99, 95 % interval"]
-    within = sum(ratio <= 2 for ratio in ratios)
+    within = sum(ratio <= BUS_RATIO_GOAL for ratio in ratios)
     return (f"Bus p99 / bare Zenoh p99, {variant}, over {len(ratios)} rounds (each with its "
             f"own bare Zenoh run): median {f['p99 / bare p99']:.2f}, 95 % interval "
             f"{low:.2f} to {high:.2f} (distribution-free, the rounds as units); {within} of "
-            f"{len(ratios)} rounds at or under 2; every round: "
+            f"{len(ratios)} rounds at or under {BUS_RATIO_GOAL:g}; every round: "
             f"{', '.join(f'{r:.2f}' for r in sorted(ratios))}.")  # fmt: skip
 
 
@@ -349,11 +351,26 @@ def write_page(page: Path, text: str) -> None:
     page.write_text(f"{head}{BEGIN}\n{text}\n{END}{tail}")
 
 
+def _kept_runs(path: Path) -> dict[str, Any]:
+    """The runs a refused publish kept; a clear error for a file that is not one."""
+    try:
+        runs = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise SystemExit(f"--runs {path}: cannot read kept runs ({exc})") from None
+    if not isinstance(runs, dict) or not all(
+        isinstance(run, dict) and isinstance(run.get("figures"), dict) for run in runs.values()
+    ):
+        raise SystemExit(f"--runs {path}: not the runs a refused publish kept")
+    return runs
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--only", nargs="*", choices=list(_benchmarks(False)),
                         default=list(DEFAULT))  # fmt: skip
-    parser.add_argument("--full", action="store_true", help="every benchmark (over an hour)")
+    parser.add_argument(
+        "--full", action="store_true", help="every benchmark (over an hour and a half)"
+    )
     parser.add_argument("--quick", action="store_true", help="short runs; writes nothing")
     parser.add_argument("--accept", action="store_true", help="publish despite regressions")
     parser.add_argument("--runs", type=Path, help="publish the runs a refused publish kept")
@@ -362,7 +379,7 @@ def main() -> int:
     args = parser.parse_args()
     published = json.loads(args.published.read_text()) if args.published.exists() else {}
     if args.runs is not None:
-        runs = json.loads(args.runs.read_text())
+        runs = _kept_runs(args.runs)
     else:
         runs = run(list(_benchmarks(False)) if args.full else args.only, args.quick)
     record = {**published, **runs}  # the benchmarks not run keep their last figures

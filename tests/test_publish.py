@@ -155,3 +155,21 @@ def test_the_page_says_whether_each_goal_is_met() -> None:
     replay = next(f for f in publish.FIGURES if f.goal == "" and f.benchmark == "core")
     assert replay.verdict({"core": {"figures": {replay.path[0]: 0.5}}}) == ""
     assert loop.verdict({}) == ""  # not measured
+
+
+@pytest.mark.parametrize("content", [None, "{not json", '["a list"]', '{"bus": {"date": 1}}'])
+def test_runs_that_are_not_kept_runs_get_a_one_line_error(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, content: str | None
+) -> None:
+    publish = _publish()
+    kept = tmp_path / "kept.json"
+    if content is not None:
+        kept.write_text(content)
+    record = tmp_path / "performance.json"
+    monkeypatch.setattr(sys, "argv", ["publish.py", "--runs", str(kept), "--published",
+                                      str(record), "--page", str(tmp_path / "p.md")])  # fmt: skip
+    with pytest.raises(SystemExit) as stopped:
+        publish.main()
+    message = str(stopped.value.code)
+    assert message.startswith(f"--runs {kept}: ") and "\n" not in message
+    assert not record.exists()
