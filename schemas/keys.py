@@ -14,6 +14,7 @@ from schemas.messages import (
     EmergencyStop,
     EpisodeRecorded,
     EpisodeResult,
+    GoalRefused,
     Health,
     Intent,
     IntentEvidence,
@@ -39,6 +40,7 @@ TOPICS: dict[str, type[Message]] = {
     "controller/step": StepEvent,
     "task/goal": TaskGoal,
     "task/result": EpisodeResult,
+    "task/refused": GoalRefused,
     "sensor/sample": SensorSample,
     "sensor/chunk": SignalChunk,
     "intent/evidence": IntentEvidence,
@@ -89,6 +91,7 @@ LIMITS: dict[str, KeyLimits] = {
     "policy/model": KeyLimits(4096, 1_000.0),
     "task/goal": KeyLimits(4096, 1_000.0),
     "task/result": KeyLimits(4096, 1_000.0),
+    "task/refused": KeyLimits(2048, 1_000.0),
     "intent/evidence": KeyLimits(16_384, 100.0),  # <= 1024 features: ~9 kB
     # a wearable's raw stream: the intent service sends one chunk every 20 ms at most, of
     # at most CHUNK_BYTES (a 1 kHz, 8-channel stream: ~2 kB)

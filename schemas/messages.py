@@ -167,6 +167,16 @@ class TaskGoal(Message):
     q_start_rad: Joints
 
 
+class GoalRefused(Message):
+    """The arm cannot begin this episode: its start or goal lies beyond the arm's limits,
+    or its start posture was not reached (the arm blocked on the way). The controller ends
+    the episode as a hold with this reason and goes on. A goal refused for the arm's own
+    state (stopped, faulted, still moving) is not sent: that episode waits for the arm."""
+
+    episode: int = Field(ge=1)
+    reason: str = Field(min_length=1, max_length=500)
+
+
 class EpisodeResult(Message):
     """The metrics of one finished episode (same keys as ``dammrl reach --json``)."""
 

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from dammrl_core.robot import RobotDescription
-from schemas import Header, Health, JointCommand, RobotState, TaskGoal, encode, key
+from schemas import GoalRefused, Header, Health, JointCommand, RobotState, TaskGoal, encode, key
 from tests.busutil import Observer, free_port, start_service, wait_for
 
 pytestmark = pytest.mark.slow
@@ -151,6 +151,32 @@ def test_a_reset_waits_until_the_arm_rests() -> None:
         time.sleep(1.0)  # no more commands: the sim holds and the arm comes to rest
         observer.session.put(key("dammrl", TaskGoal), goal)
         wait_for(lambda: _states(observer)[-1].episode == 1, 5, "the reset at rest")
+    finally:
+        sim.terminate()
+        sim.wait(10)
+        observer.close()
+
+
+def test_a_goal_beyond_the_arms_limits_is_refused_to_the_controller() -> None:
+    """An episode the arm can never begin (here its start posture beyond a joint's limit)
+    is refused on ``task/refused``, so the controller ends it rather than announcing it
+    for good; the arm stays where it was."""
+    port = free_port()
+    observer = Observer(port)
+    sim = start_service("sim", port, DAMMRL_LOG_LEVEL="ERROR")
+    header = Header(stamp_ns=1, seq=0, source="controller")
+    beyond = encode(TaskGoal(header=header, episode=1, seed=0, start_m=(0.3, 0.0, -0.1),
+                             goal_m=(0.5, 0.0, -0.21),
+                             q_start_rad=(0.3, 0.7, 0.2, 1.2, 0.1, 6.0)))  # fmt: skip
+    try:
+        wait_for(lambda: len(_states(observer)) > 20, 60, "the sim's states")
+        observer.session.put(key("dammrl", TaskGoal), beyond)
+        wait_for(lambda: observer.of(GoalRefused), 10, "the refusal")
+        refusal = observer.of(GoalRefused)[0]
+        assert isinstance(refusal, GoalRefused) and refusal.episode == 1
+        assert refusal.header.source == "sim" and "limit" in refusal.reason, refusal.reason
+        time.sleep(0.2)
+        assert _states(observer)[-1].episode == 0
     finally:
         sim.terminate()
         sim.wait(10)

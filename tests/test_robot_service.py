@@ -39,7 +39,15 @@ from dammrl_core.errors import ConfigurationError
 from dammrl_core.robot import RobotSettings
 from dammrl_core.state import JointCommand as CoreCommand
 from dammrl_core.task import TaskSettings, scene_layout
-from schemas import EmergencyStop, Header, JointCommand, Message, RobotState, TaskGoal
+from schemas import (
+    EmergencyStop,
+    GoalRefused,
+    Header,
+    JointCommand,
+    Message,
+    RobotState,
+    TaskGoal,
+)
 from services.robot.law import ArmLaw, Start
 from services.robot.link import DriveLink
 from services.robot.node import RobotNode, make_driver
@@ -483,22 +491,20 @@ def test_servos_stopped_by_their_own_clock_are_rearmed_after_a_failed_cycle(
     assert rig.node.law.homing_failure is None
 
 
-def test_an_episode_refused_for_stopped_servos_is_tried_again_once_they_obey(
+def test_a_start_missed_for_stopped_servos_is_tried_again_not_refused(
     rig: Rig, caplog: pytest.LogCaptureFixture
 ) -> None:
-    """Servos stopped with no failed cycle to tell: the move to the start gives up and the
-    episode is refused. When the node later finds them stopped and re-arms them, the
-    refusal may have been theirs: the episode, announced again, is homed and begins."""
+    """Servos stopped by their own clock with no failed cycle to tell: the move to the
+    start gives up. Before it refuses the episode the node asks the servos, finds them
+    stopped and re-arms them: no refusal goes out (the controller would end the episode),
+    and the episode, announced again, is homed and begins."""
     rig.node.law.settings = rig.node.law.settings.model_copy(update={"homing_timeout_s": 0.3})
     _holding(rig)
     _stop_by_their_clock(rig.arm)
     rig.bus.send(_goal(1))
-    rig.run_until(lambda r: r.node.law.homing_failure is not None, 20,
-                  lambda r: r.bus.send(_goal(1)))  # fmt: skip
-    assert rig.node.law.episode == 0
-    time.sleep(0.3)  # a stall of this process: the node asks the servos
     rig.run_until(lambda r: r.node.law.episode == 1, 20, lambda r: r.bus.send(_goal(1)))
-    assert "had stopped themselves" in caplog.text and rig.node.law.homing_failure is None
+    assert "episode 1: tried again when announced (the drives had stopped)" in caplog.text
+    assert not [m for m in rig.bus.published if isinstance(m, GoalRefused)]
 
 
 def test_a_start_posture_never_reached_refuses_the_episode_and_holds(rig: Rig) -> None:
@@ -511,6 +517,9 @@ def test_a_start_posture_never_reached_refuses_the_episode_and_holds(rig: Rig) -
     rig.run(4.0, lambda r: r.bus.send(_goal(1)))  # the controller announces it again
     assert rig.node.law.episode == 0 and rig.node.law.homing is None
     assert sum("start posture not reached" in r for r in rig.bus.rejected) > 1
+    refusals = [m for m in rig.bus.published if isinstance(m, GoalRefused)]
+    assert refusals and {m.episode for m in refusals} == {1}  # the controller ends it
+    assert refusals[0].reason.startswith("episode 1: the start posture not reached")
     state, detail = rig.last_health
     assert state == "holding" and "episode 1: the start posture not reached" in detail
     assert rig.fastest(len(rig.speeds) - 20) < 0.02
@@ -793,6 +802,21 @@ def _law_at_rest() -> tuple[ArmLaw, np.ndarray]:
     limits = arm_limits(robot, (robot.q_min, robot.q_max), settings)
     law = ArmLaw(settings, limits, scene_layout(TaskSettings()), ArmModel(robot), 0.01, 0.0)
     return law, np.array(TaskSettings().home_q_rad)
+
+
+def test_a_goal_never_reachable_is_refused_to_the_controller_one_of_the_arms_state_waits() -> None:
+    """A start beyond the limits can never begin: refused, for the controller to end it.
+    A stopped arm refuses every goal until released: that episode waits (no refusal
+    goes out, or a session would burn through its trials while the arm is stopped)."""
+    law, q = _law_at_rest()
+    rest = JointState(q, np.zeros(6), np.zeros(6))
+    beyond = q + np.array([0.0, 0.0, 0.0, 0.0, 0.0, 6.0])
+    assert law.take_goal(Start(1, beyond), (0.45, 0, 0), rest, 0.0) is None
+    assert [(e, "outside the joint limits" in why) for e, why in law.refused] == [(1, True)]
+    law.refused.clear()
+    law.stop_latch.take(True, "operator", "T1")
+    assert law.take_goal(Start(2, q), (0.45, 0, 0), rest, 0.0) is not None
+    assert law.refused == [] and law.homing is None
 
 
 def test_a_late_cycle_never_jumps_the_homing_move_ahead() -> None:

@@ -343,6 +343,34 @@ def test_the_arm_is_held_where_the_reach_left_it_while_the_outcome_shows() -> No
     np.testing.assert_array_equal(held[0].dq_ref_rad_s, np.zeros(6))
 
 
+def test_an_episode_the_arm_cannot_begin_ends_as_a_hold_and_the_next_follows() -> None:
+    """Before, a start posture the arm could not reach (an arm truly blocked) left the
+    controller announcing that episode every 0.5 s for good, with no result: the session
+    stuck. The arm's refusal now ends it as a hold that says why; stale refusals (of an
+    episode not announced, or begun) change nothing."""
+    from dammrl.stack.progress import undecided
+    from schemas import GoalRefused
+
+    node, bus = _controller(hold_s=0.1)
+    node.next_due_s = time.monotonic()
+    node._watch()
+    robot = Header(stamp_ns=1, seq=0, source="robot")
+    why = "episode 1: the start posture not reached (0.542 rad away 5.0 s after the move)"
+    node._dispatch_all([GoalRefused(header=robot, episode=2, reason="not announced yet")])
+    assert _published(bus, EpisodeResult) == []
+    node._dispatch_all([GoalRefused(header=robot, episode=1, reason=why)])
+    node._dispatch_all([GoalRefused(header=robot, episode=1, reason=why)])  # again: ignored
+    results = _published(bus, EpisodeResult)
+    assert [(r.episode, r.outcome) for r in results] == [(1, "hold")]
+    assert results[0].reason == f"the robot cannot begin it: {why}"
+    assert results[0].n_decisions == 0 and not undecided(results[0])  # not the person's
+    _watch_for(node, 0.3)
+    assert [g.episode for g in _published(bus, TaskGoal)][-1] == 2
+    node._dispatch_all([_state(node, 1.0)])  # episode 2 begins: a late refusal is stale
+    node._dispatch_all([GoalRefused(header=robot, episode=2, reason="late")])
+    assert len(_published(bus, EpisodeResult)) == 1 and node.started
+
+
 def _state_of_episode(node: ControllerNode, episode: int, t_s: float) -> RobotState:
     zero = (0.0,) * 6
     return RobotState(header=Header(stamp_ns=int(t_s * 1e9), seq=0, source="sim"),

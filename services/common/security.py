@@ -31,8 +31,8 @@ OBSERVER, DISPLAY, OPERATOR = "observer", "display", "operator"
 
 # the keys (under the namespace) each role may publish, besides its health and liveliness
 PUBLISHES: dict[str, tuple[str, ...]] = {
-    "sim": ("robot/state",),
-    "robot": ("robot/state",),  # the real arm (stage S3): the sim's contract
+    "sim": ("robot/state", "task/refused"),
+    "robot": ("robot/state", "task/refused"),  # the real arm (stage S3): the sim's contract
     "controller": (
         "robot/command", "intent/request", "controller/step", "task/goal", "task/result",
     ),

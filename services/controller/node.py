@@ -39,6 +39,7 @@ from schemas import (
     DecisionRequest,
     EmergencyStop,
     EpisodeResult,
+    GoalRefused,
     Intent,
     JointCommand,
     Message,
@@ -108,8 +109,9 @@ class ControllerNode:
         self.asks = bus.publisher(DecisionRequest)
         self.goals = bus.publisher(TaskGoal)
         self.results = bus.publisher(EpisodeResult)
-        bus.subscribe(RobotState, Intent, ModelChoice, SessionControl, EmergencyStop)
+        bus.subscribe(RobotState, Intent, ModelChoice, SessionControl, EmergencyStop, GoalRefused)
         bus.expect(RobotState, "sim", "robot")  # the simulated or the real arm
+        bus.expect(GoalRefused, "sim", "robot")
         bus.expect(Intent, "intent")
         bus.expect(ModelChoice, "policy")
         bus.expect(SessionControl, OPERATOR)  # the session's console
@@ -226,6 +228,19 @@ class ControllerNode:
             self._take_control(message)
         elif isinstance(message, EmergencyStop):
             self._take_stop(message)
+        elif isinstance(message, GoalRefused):
+            self._take_refusal(message)
+
+    def _take_refusal(self, refusal: GoalRefused) -> None:
+        """The arm cannot begin the announced episode: it ends as a hold that says why (the
+        console shows it), and the next one follows. A refusal of any other episode (one
+        begun, ended, or not yet announced) is stale: ignored."""
+        if self.plan is None or self.started or refusal.episode != self.number:
+            return
+        arm = refusal.header.source
+        log.warning("episode %d refused by the %s: %s", self.number, arm, refusal.reason)
+        self.plan.reach.end("hold", f"the {arm} cannot begin it: {refusal.reason}", 0.0)
+        self._finish()
 
     def _take_answer(self, message: Intent | ModelChoice) -> None:
         asked = self.reach is not None and self.reach.asked

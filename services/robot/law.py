@@ -120,7 +120,8 @@ class ArmLaw:
         self.held: CoreCommand | None = None  # a hold or a stop's law, fixed when it began
         self.held_since_s = now_s
         self.last_q_ref: np.ndarray | None = None  # the reference in force (the rate cap's origin)
-        self.refused: list[str] = []  # episodes refused on the way (the node says so)
+        # episodes this arm can never begin, and why (the node says so to the controller)
+        self.refused: list[tuple[int, str]] = []
 
     @property
     def stopped(self) -> str | None:
@@ -134,18 +135,24 @@ class ArmLaw:
     # ---- what comes in -------------------------------------------------------------------
     def take_goal(self, start: Start, goal_m: tuple[float, float, float],
                   joint: JointState, now: float) -> str | None:  # fmt: skip
-        """Begin homing to a new episode's start; why not, or None (also for a repeat)."""
+        """Begin homing to a new episode's start; why not now (the arm stopped: the
+        episode waits for its release), or None (also for a repeat). An episode this arm
+        can never begin is refused (``refused``) instead."""
         if start.episode == self.episode or (
             self.homing and self.homing.start.episode == start.episode
         ):
             return None  # a repeated announcement
         if start.episode == self.unreachable_episode:
-            return self.homing_failure or "unreachable"
-        reason = self.stopped or goal_violation(
+            self.refused.append((start.episode, self.homing_failure or "unreachable"))
+            return None
+        if self.stopped is not None:
+            return self.stopped
+        violation = goal_violation(
             start.q_rad, goal_m, self.limits, self.layout, self.settings.limit_tolerance_rad
         )
-        if reason is not None:
-            return reason
+        if violation is not None:
+            self.refused.append((start.episode, violation))
+            return None
         self.homing = self._plan_homing(start, joint.q_rad, now)
         self.command = self.held = None
         log.info("episode %d: moving to the start posture (%.1f s)", start.episode,
@@ -316,7 +323,7 @@ class ArmLaw:
             f"away {self.settings.homing_timeout_s:.1f} s after the move): holding"
         )
         log.error("%s", self.homing_failure)
-        self.refused.append(self.homing_failure)
+        self.refused.append((homing.start.episode, self.homing_failure))
         self.unreachable_episode = homing.start.episode
         self.homing = None
         return self.begin_hold(joint.q_rad, now, None)

@@ -26,7 +26,7 @@ from dammrl_core.errors import ConfigurationError
 from dammrl_core.robot import RobotSettings
 from dammrl_core.state import RobotState as CoreState
 from dammrl_core.task import TaskSettings, scene_layout
-from schemas import EmergencyStop, JointCommand, RobotState, TaskGoal
+from schemas import EmergencyStop, GoalRefused, JointCommand, RobotState, TaskGoal
 from schemas.messages import HealthState
 from services.common import convert
 from services.common.bus import Bus
@@ -74,6 +74,7 @@ class RobotNode:
         self.latencies_s: deque[float] = deque(maxlen=10_000)  # command stamp -> written
         self.last_cycle_s: float | None = None
         self.state_publisher = bus.publisher(RobotState)
+        self.refusals = bus.publisher(GoalRefused)
         bus.subscribe(JointCommand, TaskGoal, EmergencyStop)
         bus.expect(JointCommand, "controller")
         bus.expect(TaskGoal, "controller")
@@ -131,9 +132,7 @@ class RobotNode:
                 self.joint = None
                 self.law.forget_motion()
             return
-        for reason in self.law.refused:
-            self.bus.reject(self.bus.key(TaskGoal), reason)
-        self.law.refused.clear()
+        self._refuse_episodes(joint, now)
         self.link.cycle_done()
         self.joint = joint
         self._publish_state(joint, now)
@@ -151,10 +150,10 @@ class RobotNode:
         elif q is not None:
             self.law.stop_here(q, now)
 
-    def _after_stall(self, joint: JointState, now: float) -> None:
+    def _after_stall(self, joint: JointState, now: float) -> bool:
         """The drives may have seen a longer silence than they allow (this process stalled
         or swapped, or a cycle failed): those that stopped by themselves refuse goals until
-        re-armed."""
+        re-armed. Whether any had."""
         stopped = self.driver.rearm()
         self.link.doubt_drives = False
         if stopped:
@@ -162,6 +161,22 @@ class RobotNode:
                         "write, by its clock); holding where the arm is", stopped,
                         (now - self.link.last_write_s) * 1000)  # fmt: skip
             self.law.after_stall(joint, now)
+        return bool(stopped)
+
+    def _refuse_episodes(self, joint: JointState, now: float) -> None:
+        """Tell the controller of each episode this arm cannot begin (it ends it as a hold
+        and goes on). A start posture not reached may be the drives' doing, stopped by
+        their own clock with nothing to tell this host: they are asked first, and if they
+        had stopped, re-armed and the episode, announced again, is tried again."""
+        refused, self.law.refused = dict(self.law.refused), []  # once per episode
+        for episode, reason in refused.items():
+            if episode == self.law.unreachable_episode and self._after_stall(joint, now):
+                log.warning("episode %d: tried again when announced (the drives had stopped)",
+                            episode)  # fmt: skip
+                continue
+            self.bus.reject(self.bus.key(TaskGoal), reason)
+            self.refusals.send(GoalRefused(header=self.refusals.stamp(), episode=episode,
+                                           reason=reason[:500]))  # fmt: skip
 
     def _note_written(self) -> None:
         if self.latency_pending:  # a new command's first write

@@ -35,7 +35,7 @@ from dammrl_core.sim.settings import SimSettings
 from dammrl_core.sim.simulation import Simulation
 from dammrl_core.state import JointCommand as CoreCommand
 from dammrl_core.task import TaskSettings, scene_layout, seed_streams
-from schemas import EmergencyStop, JointCommand, RobotState, TaskGoal
+from schemas import EmergencyStop, GoalRefused, JointCommand, RobotState, TaskGoal
 from services.common import convert
 from services.common.bus import Bus
 from services.common.entry import run_service
@@ -68,6 +68,7 @@ class SimNode:
         self.answered_periods = 0
         self.pacer = Pacer(self.substeps * self.sim.timestep_s)
         self.state_publisher = bus.publisher(RobotState)
+        self.refusals = bus.publisher(GoalRefused)
         self.caps = ArmCaps(
             settings.limit_tolerance_rad, settings.max_kp_nm_per_rad, settings.max_kd_nms_per_rad,
             settings.max_relative_target_rad, settings.reference_speed_fraction,
@@ -284,8 +285,10 @@ class SimNode:
                 log.info("episode %d waits until the arm rests (%.2f rad/s)", goal.episode, speed)
             self.settling = True  # lockstep: step on without waiting, so it comes to rest
             return
-        if reason is not None:
+        if reason is not None:  # this arm can never begin it: the controller goes on
             self.bus.reject(self.bus.key(TaskGoal), reason)
+            self.refusals.send(GoalRefused(header=self.refusals.stamp(), episode=goal.episode,
+                                           reason=reason[:500]))  # fmt: skip
             return
         self.settling = False
         self.episode = goal.episode
