@@ -21,7 +21,9 @@ service it starts), so the rest of the stack is the one that ships:
   migrates and each keeps its core's caches between states;
 * ``no rate limits``: no per-link ingress downsampling in any session;
 * ``every state answered``: the controller answers each waiting state, not only the
-  newest.
+  newest;
+* ``no rehearsal``: the sim and the controller do not rehearse the next state's work
+  while they wait for it (``Bus.rehearse``).
 
 With ``DAMMRL_BENCH_TICKS`` set to a file, the controller service also times each tick
 it answers, from taking the state to sending its command, by what the tick did, and
@@ -128,6 +130,10 @@ def _no_rate_limits() -> None:
     bus_module.UNLIMITED_ROLES = tuple(ROLES)
 
 
+def _no_rehearsal() -> None:
+    Bus.rehearse = lambda self, due_s, work: None  # type: ignore[method-assign]
+
+
 def _every_state_answered() -> None:
     from services.controller.node import ControllerNode
 
@@ -152,6 +158,7 @@ VARIANTS: dict[str, Callable[[], None]] = {
     "loop threads on their own cores": _loop_threads_pinned,
     "no rate limits": _no_rate_limits,
     "every state answered": _every_state_answered,
+    "no rehearsal": _no_rehearsal,
 }
 
 

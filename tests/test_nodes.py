@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -48,6 +49,9 @@ class FakeBus:
 
     def key(self, message_type: type) -> str:
         return message_type.__name__
+
+    def rehearse(self, due_s: float, work: Callable[[], object]) -> None:
+        self.rehearsal = work  # run by a test when it wants
 
 
 class ScriptedPerson:

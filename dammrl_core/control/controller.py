@@ -499,6 +499,20 @@ class Controller:
         return self._rest_command, started
 
     # ---- command ------------------------------------------------------------------
+    def rehearse(self, state: RobotState) -> None:
+        """A quiet tick's arithmetic on ``state`` (its limits, trigger, reference and
+        torques), every result dropped and nothing kept: the bus runs it while it waits
+        for the next state, and that tick then finds its code and data warm
+        (``services.common.bus.Bus.rehearse``)."""
+        self.limits.check(state.q, state.dq)
+        if self.subgoal is not None:
+            event_trigger(state.ee_pos, state.ee_vel, self.subgoal, self.radius_m, self.weights)
+        q_ref, dq_ref, ddq_ref = self.segment.sample(state.t_s)
+        if self.settings.feedforward == "resolved_acceleration":
+            self._resolved_acceleration_torque(state, q_ref, dq_ref, ddq_ref)
+        else:
+            self.arm.inverse_dynamics(q_ref, dq_ref, ddq_ref)
+
     def _command(self, state: RobotState) -> JointCommand:
         resting = self.segment.finished(state.t_s)
         static = resting and self.settings.feedforward == "inverse_dynamics"

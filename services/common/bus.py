@@ -54,6 +54,10 @@ CRITICAL_POLL_S = 0.0002
 message waits at most this long on top of the bus (~2-3 % of a core while waiting)."""
 POLL_S = 0.001
 """How often any other waiting service looks at its inbox [s]."""
+REHEARSAL_LEAD_S = 0.003
+"""How long before the next state is due a time-critical service rehearses its work on it
+(``Bus.rehearse``) [s]: 1 ms ahead lost its gain to states that came mid-rehearsal, 3 and
+5 ms ahead kept it (docs/reference/performance.md)."""
 
 
 def _priority(message_type: type[Message] | None) -> int:
@@ -147,6 +151,8 @@ class Bus:
         self._taken: deque[tuple[Message, int]] = deque()  # decoded, not yet received
         self.poll_s = CRITICAL_POLL_S if service in TIME_CRITICAL else POLL_S
         self.arrival_ns = 0  # when the last message receive() returned was taken from its ring
+        self._rehearsal: tuple[float, Callable[[], object]] | None = None  # (from when, work)
+        self._rehearsing = True  # until a rehearsal fails
         self._publishers: list[Publisher[Any]] = []
         self._started = time.monotonic()
         self._next_health = 0.0
@@ -262,8 +268,27 @@ class Bus:
             self._wait(remaining)
         return self._next()
 
+    def rehearse(self, due_s: float, work: Callable[[], object]) -> None:
+        """Run ``work`` once while this loop waits, ``REHEARSAL_LEAD_S`` before the next
+        message is due (``due_s``, monotonic): the work that message will cause, done on
+        the last one and its results dropped (it must change nothing). In the 10 ms
+        between two states this machine's caches go cold, and the same work then costs
+        several times its warm cost (``benchmarks/idle_gap.py``); rehearsed, the answer
+        finds its code and data warm. A later call replaces an earlier one. A rehearsal
+        that fails is logged and not tried again: it never stops the loop."""
+        if self._rehearsing:
+            self._rehearsal = (due_s - REHEARSAL_LEAD_S, work)
+
     def _wait(self, timeout_s: float | None) -> None:
-        """Until the rings may hold something new (at most ``timeout_s``)."""
+        """Until the rings may hold something new (at most ``timeout_s``); or a rehearsal."""
+        if self._rehearsal is not None and time.monotonic() >= self._rehearsal[0]:
+            work, self._rehearsal = self._rehearsal[1], None
+            try:
+                work()
+            except Exception:
+                log.exception("a rehearsal failed (the loop goes on without them)")
+                self._rehearsing = False
+            return
         time.sleep(self.poll_s if timeout_s is None else min(timeout_s, self.poll_s))
 
     def _next(self) -> Message:

@@ -48,6 +48,8 @@ from schemas import (
     SessionControl,
     StepEvent,
     TaskGoal,
+    decode,
+    encode,
 )
 from services.common import convert
 from services.common.bus import Bus
@@ -251,7 +253,7 @@ class ControllerNode:
         self._answer_if_complete()
 
     def _on_state(self, message: RobotState, answer: bool = True) -> None:
-        plan = self.plan
+        taken_s, plan = time.monotonic(), self.plan
         if message.episode != self.number:
             if answer and not self.started and message.episode == self.number - 1:
                 self._hold_until_reset(message)
@@ -301,6 +303,19 @@ class ControllerNode:
         self.last_state_s = time.monotonic()
         if tick.ended is not None:
             self._finish()
+        elif not lockstep:  # in lockstep the next state comes at once
+            self.bus.rehearse(taken_s + self.control_dt_s, lambda: self._rehearse(message))
+
+    def _rehearse(self, message: RobotState) -> None:
+        """The next state's answer rehearsed on this one (``Bus.rehearse``): decoded (from
+        its encoding: the payload was the bus's), converted, the controller's quiet tick,
+        a command built and encoded; nothing sent or kept."""
+        reach, command = self.reach, self.last_command
+        if reach is None or command is None:
+            return
+        reach.controller.rehearse(convert.robot_state(decode(RobotState, encode(message))))
+        encode(convert.command_message(message.header, command, self.number,
+                                       message.header.stamp_ns))  # fmt: skip
 
     def _send_command(self, command: core.JointCommand | None, state_stamp_ns: int) -> None:
         """The tick's command to the arm, answering the state stamped ``state_stamp_ns``

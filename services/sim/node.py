@@ -35,7 +35,16 @@ from dammrl_core.sim.settings import SimSettings
 from dammrl_core.sim.simulation import Simulation
 from dammrl_core.state import JointCommand as CoreCommand
 from dammrl_core.task import TaskSettings, scene_layout, seed_streams
-from schemas import EmergencyStop, GoalRefused, JointCommand, RobotState, TaskGoal
+from schemas import (
+    EmergencyStop,
+    GoalRefused,
+    Header,
+    JointCommand,
+    RobotState,
+    TaskGoal,
+    decode,
+    encode,
+)
 from services.common import convert
 from services.common.bus import Bus
 from services.common.entry import run_service
@@ -56,6 +65,7 @@ class SimNode:
         self.substeps = max(1, round(1.0 / (settings.state_rate_hz * self.sim.timestep_s)))
         self.episode = 0
         self.command: CoreCommand | None = None
+        self.command_message: JointCommand | None = None  # the last one applied, as it came
         self.command_wall_s = 0.0
         self.answered = False  # lockstep: the controller answered the last state
         self.reset_pending = False  # a TaskGoal reset the arm: publish its state first
@@ -131,6 +141,8 @@ class SimNode:
         )
         self.last_stamp_ns = message.header.stamp_ns
         self.freshness.published(self.last_stamp_ns, self.state.t_s)
+        if not self.bus.settings.lockstep:  # in lockstep the loop never waits for long
+            self.bus.rehearse(self.pacer.next_s + self.pacer.period_s, self._rehearse)
         self.answered = False
         answered = self.answered_periods / max(self.commanded_periods, 1)
         detail = (
@@ -145,6 +157,19 @@ class SimNode:
             self.bus.report_health("stopped", f"{reason}; {detail}", changed)
         else:
             self.bus.report_health("holding" if self.holding else "ok", detail, changed)
+
+    def _rehearse(self) -> None:
+        """The next period's messages rehearsed on the last ones (``Bus.rehearse``): the
+        state built and encoded, the command decoded and checked; nothing sent or kept."""
+        applied = None if self.sim.applied is None else self.sim.applied.q_ref
+        header = Header(stamp_ns=time.time_ns(), seq=0, source=self.bus.source)
+        encode(convert.state_message(header, self.state, self.episode, self.holding, applied,
+                                     self.in_force_answers_ns))  # fmt: skip
+        message = self.command_message
+        if message is not None:
+            command = convert.joint_command(decode(JointCommand, encode(message)))
+            guard_command(command, self.state.q, applied, 2 * self.pacer.period_s,
+                          self.sim.robot, self.caps)  # fmt: skip
 
     def _count_period(self) -> None:
         """A period about to be stepped: under command, and on its own state's answer?"""
@@ -220,7 +245,7 @@ class SimNode:
             line := self.freshness.clamp(guarded.reason, message.state_stamp_ns)
         ):
             log.log(guarded.log_level, "%s", line)
-        self.command = guarded.command
+        self.command, self.command_message = guarded.command, message
         self.freshness.applied(message.state_stamp_ns)
         self.in_force_answers_ns = message.state_stamp_ns
         self.command_wall_s = time.monotonic()
