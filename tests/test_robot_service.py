@@ -525,6 +525,32 @@ def test_a_start_posture_never_reached_refuses_the_episode_and_holds(rig: Rig) -
     assert rig.fastest(len(rig.speeds) - 20) < 0.02
 
 
+def test_a_bus_error_while_the_drives_are_asked_before_a_refusal_is_a_failed_cycle(
+    rig: Rig, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Before it refuses a start not reached the node asks the drives; a bus error then
+    is one failed cycle like any other (the service lives on), and the refusal goes out
+    at the next announcement."""
+    rig.node.law.settings = rig.node.law.settings.model_copy(
+        update={"homing_tolerance_rad": 1e-6, "homing_timeout_s": 0.3}
+    )
+    rearm, failures = rig.node.driver.rearm, []
+
+    def rearm_failing_once() -> list[int]:
+        if not failures:
+            failures.append(1)
+            raise DriverError("no answer from servo 3")
+        return rearm()
+
+    monkeypatch.setattr(rig.node.driver, "rearm", rearm_failing_once)
+    rig.run(0.5)
+    rig.bus.send(_goal(1))
+    rig.run(4.0, lambda r: r.bus.send(_goal(1)))
+    assert failures and rig.node.connected
+    refusals = [m for m in rig.bus.published if isinstance(m, GoalRefused)]
+    assert refusals and refusals[0].episode == 1
+
+
 @pytest.mark.parametrize(
     ("fault", "health", "recovery"),
     [("corrupt 2", "ok", None), ("missing 3", "degraded", "present 3"),

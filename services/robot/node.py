@@ -127,12 +127,12 @@ class RobotNode:
                 ramp = self.link.soft_start(now)
                 self.link.write(self.law.law(joint, now, ramp, self._controller_silence), now)
                 self._note_written()
+            self._refuse_episodes(joint, now)  # may ask the drives
         except DriverError as exc:
             if self.link.failed(exc):
                 self.joint = None
                 self.law.forget_motion()
             return
-        self._refuse_episodes(joint, now)
         self.link.cycle_done()
         self.joint = joint
         self._publish_state(joint, now)
