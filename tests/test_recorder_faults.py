@@ -56,7 +56,8 @@ def _valid(message: BusMessage, seq: int, source: str) -> bytes:
 _SOURCES = {"EmergencyStop": "operator", "RobotState": "sim", "SensorSample": "intent",
             "Intent": "intent", "Health": "sim", "ModelChoice": "policy",
             "SignalChunk": "intent", "IntentEvidence": "intent", "ComfortRating": "display",
-            "SessionControl": "operator", "EpisodeRecorded": "recorder"}  # fmt: skip
+            "SessionControl": "operator", "EpisodeRecorded": "recorder",
+            "GoalRefused": "sim"}  # fmt: skip
 
 
 def _session(writer: Writer) -> dict[str, int]:
