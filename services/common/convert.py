@@ -120,6 +120,11 @@ def episode_result(
     )  # fmt: skip
 
 
+def goal_refused(header: wire.Header, episode: int, reason: str) -> wire.GoalRefused:
+    """The arm's refusal of an episode it can never begin (its reason cut to the bound)."""
+    return wire.GoalRefused(header=header, episode=episode, reason=reason[:500])
+
+
 METRICS = tuple(ReachMetrics.__dataclass_fields__)
 """The metric fields an EpisodeResult carries (``tests/test_schemas.py`` checks they are
 exactly ReachMetrics', so a metric added to one is in the other)."""

@@ -175,8 +175,7 @@ class RobotNode:
                             episode)  # fmt: skip
                 continue
             self.bus.reject(self.bus.key(TaskGoal), reason)
-            self.refusals.send(GoalRefused(header=self.refusals.stamp(), episode=episode,
-                                           reason=reason[:500]))  # fmt: skip
+            self.refusals.send(convert.goal_refused(self.refusals.stamp(), episode, reason))
 
     def _note_written(self) -> None:
         if self.latency_pending:  # a new command's first write

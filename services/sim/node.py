@@ -312,8 +312,7 @@ class SimNode:
             return
         if reason is not None:  # this arm can never begin it: the controller goes on
             self.bus.reject(self.bus.key(TaskGoal), reason)
-            self.refusals.send(GoalRefused(header=self.refusals.stamp(), episode=goal.episode,
-                                           reason=reason[:500]))  # fmt: skip
+            self.refusals.send(convert.goal_refused(self.refusals.stamp(), goal.episode, reason))
             return
         self.settling = False
         self.episode = goal.episode
