@@ -11,7 +11,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import IO
 
@@ -153,18 +153,24 @@ class Observer:
 
 
 class Stack:
-    """The virtual stack's four services as processes, connected to ``port``."""
+    """The virtual stack's four services as processes, connected to ``port``; ``env`` for
+    all of them, ``env_of`` for some only (as on machines set up apart)."""
 
-    def __init__(self, port: int, **env: str) -> None:
-        self.port, self.env = port, env
-        self.processes = {name: start_service(name, port, **env) for name in SERVICES}
+    def __init__(
+        self, port: int, env_of: Mapping[str, Mapping[str, str]] | None = None, **env: str
+    ) -> None:
+        self.port, self.env, self.env_of = port, env, env_of or {}
+        self.processes = {name: self._start(name) for name in SERVICES}
+
+    def _start(self, name: str) -> subprocess.Popen[bytes]:
+        return start_service(name, self.port, **(self.env | dict(self.env_of.get(name, {}))))
 
     def kill(self, name: str) -> None:
         self.processes[name].send_signal(signal.SIGKILL)
         self.processes[name].wait()
 
     def restart(self, name: str) -> None:
-        self.processes[name] = start_service(name, self.port, **self.env)
+        self.processes[name] = self._start(name)
 
     def alive(self) -> dict[str, bool]:
         return {name: p.poll() is None for name, p in self.processes.items()}

@@ -22,7 +22,8 @@ import numpy as np
 import pytest
 
 from dammrl_core.robot import RobotDescription
-from schemas import TOPICS, EpisodeResult, Health, RobotState, StepEvent, encode
+from dammrl_core.robot.description import DEFAULT_URDF
+from schemas import TOPICS, EpisodeResult, GoalRefused, Health, RobotState, StepEvent, encode
 from tests.busutil import SERVICES, Lines, Observer, Stack, free_port, wait_for
 from tests.test_priority import may_raise_priority
 from tests.test_schemas import EXAMPLES
@@ -141,6 +142,33 @@ def test_killed_sim_makes_the_controller_report_stale_state(
     steps_after = _steps(observer)
     time.sleep(1.0)
     assert _steps(observer) == steps_after  # it stopped stepping
+
+
+def test_episodes_the_arm_cannot_begin_end_as_holds_that_say_why_and_the_next_follows(
+    port: int, observer: Observer, tmp_path: Path
+) -> None:
+    # the arm's machine has its elbow braced at 1.8 rad (its URDF says so), the controller's
+    # model still allows 2.6 rad: every start posture it solves (elbow ~2 rad) is beyond it
+    braced = tmp_path / "braced.urdf"
+    braced.write_text(DEFAULT_URDF.read_text().replace('lower="0.0" upper="2.6"',
+                                                       'lower="0.0" upper="1.8"'))  # fmt: skip
+    sim = {"DAMMRL_ROBOT_URDF_PATH": str(braced)}
+    stack = Stack(port, env_of={"sim": sim}, DAMMRL_TASK_EPISODES="2")
+    try:
+        wait_for(lambda: len(observer.of(EpisodeResult)) >= 2, 120, "both episodes to end")
+        results = [m for m in observer.of(EpisodeResult) if isinstance(m, EpisodeResult)]
+        assert [r.episode for r in results] == [1, 2]
+        for result in results:
+            assert result.outcome == "hold", result
+            assert "the sim cannot begin it" in result.reason
+            assert "outside the joint limits" in result.reason
+        assert {m.episode for m in observer.of(GoalRefused) if isinstance(m, GoalRefused)} == {1, 2}
+        assert not observer.of(StepEvent)  # nothing was begun
+        elbow = [m.q_rad[3] for m in observer.of(RobotState) if isinstance(m, RobotState)]
+        assert elbow and max(elbow) < 1.8
+        assert all(stack.alive().values())
+    finally:
+        stack.stop()
 
 
 def _fuzz_payloads(rng: random.Random) -> Iterator[tuple[type, bytes]]:
