@@ -16,6 +16,10 @@ service it starts), so the rest of the stack is the one that ships:
 * ``loop thread SCHED_FIFO``: the sim's and the controller's loop thread (not Zenoh's)
   under the kernel's real-time FIFO policy (needs root or CAP_SYS_NICE), ahead of every
   ordinary process, other stacks' nice -10 services included;
+* ``Zenoh's threads at the default priority``: the time-critical services raise the loop
+  thread's priority (and their session's) after Zenoh's threads have started, so those
+  stay at the default (as built, they inherit nice -10: a flood's decryption and routing
+  then competes with the loop at its own priority);
 * ``loop threads on their own cores``: the sim's loop thread on the first core, the
   controller's on the last (that thread only: Zenoh's are started before), so neither
   migrates and each keeps its core's caches between states;
@@ -108,6 +112,26 @@ def _fifo_loop_thread() -> None:
     Bus.__enter__ = enter_fifo  # type: ignore[method-assign]
 
 
+def _zenoh_threads_at_default_priority() -> None:
+    """The time-critical services raise their loop thread's priority after Zenoh's threads
+    have started (they stay at the default), not before (they inherit it)."""
+    from services.common import entry
+
+    def later(critical: bool) -> str:
+        return "priority raised for the loop thread only, after Zenoh's start"
+
+    entry.prioritise = later  # type: ignore[attr-defined]
+    enter = Bus.__enter__
+
+    def enter_then_raise(self: Bus) -> Bus:
+        bus = enter(self)
+        if self.settings.realtime and self.service in runtime.TIME_CRITICAL:
+            runtime.prioritise(True)  # this thread (the loop's) and its session
+        return bus
+
+    Bus.__enter__ = enter_then_raise  # type: ignore[method-assign]
+
+
 def _loop_threads_pinned() -> None:
     """The sim's loop thread on the first core, the controller's on the last."""
     enter = Bus.__enter__
@@ -155,6 +179,7 @@ VARIANTS: dict[str, Callable[[], None]] = {
     "0.1 ms polling": _critical_polling_every(0.0001),
     "5 ms GIL hand-over": _default_switch_interval,
     "loop thread SCHED_FIFO": _fifo_loop_thread,
+    "Zenoh's threads at the default priority": _zenoh_threads_at_default_priority,
     "loop threads on their own cores": _loop_threads_pinned,
     "no rate limits": _no_rate_limits,
     "every state answered": _every_state_answered,

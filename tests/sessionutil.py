@@ -18,6 +18,7 @@ from schemas import (
     EpisodeRecorded,
     EpisodeResult,
     Header,
+    SessionControl,
     TaskGoal,
     decode,
     encode,
@@ -144,6 +145,16 @@ class ScriptedStack:
             if self.finishing:
                 break
         return 0
+
+
+def consoles_controls() -> list[SessionControl]:
+    """The SessionControls the session put on the scripted bus for its console (not the
+    resume each run's attach sends for its first reach)."""
+    from dammrl.people.session import HELD_UNTIL_ATTACHED
+
+    sent = [decode(SessionControl, p) for k, p in ScriptedStack.sent
+            if k == key("dammrl", SessionControl)]  # fmt: skip
+    return [c for c in sent if c.why != HELD_UNTIL_ATTACHED]
 
 
 def _acknowledge(stack_run: Any, episode: int, after_s: float) -> None:

@@ -111,6 +111,17 @@ def test_a_comfort_question_has_a_number_and_its_answer_thanks() -> None:
     assert screens.screen.kind == "rest" and screens.screen.countdown_s == 42.0
 
 
+def test_the_comfort_question_shows_over_the_pause_that_holds_the_next_reach_back() -> None:
+    """Ending a block holds its next reach back with a pause, then asks: the participant
+    sees the question, not "Paused"."""
+    screens = _screens()
+    screens.take(_goal(1))
+    screens.take(_control("pause", episode=2))
+    assert screens.screen.kind == "paused"
+    screens.comfort()
+    assert screens.screen.kind == "comfort"
+
+
 def test_a_reach_whose_goal_the_page_missed_begins_with_its_first_request() -> None:
     screens = _screens()
     screens.take(DecisionRequest.model_construct(episode=2, request=1))

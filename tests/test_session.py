@@ -12,11 +12,23 @@ from typing import Any
 
 import pytest
 
-from dammrl.people.session import JsonLines, SessionRunner, SetUp, check_participant, session_table
+from dammrl.people.session import (
+    JsonLines,
+    SessionRunner,
+    SetUp,
+    check_participant,
+    session_table,
+)
 from dammrl_core.errors import ConfigurationError, DammrlError, UsageError
 from dammrl_core.protocol import balanced_latin_square, block_order, load_protocol, plan_trials
-from schemas import SessionControl, decode
-from tests.sessionutil import PROTOCOL, ScriptedStack, ScriptedStopper, Typist, reset
+from tests.sessionutil import (
+    PROTOCOL,
+    ScriptedStack,
+    ScriptedStopper,
+    Typist,
+    consoles_controls,
+    reset,
+)
 
 
 def _protocol(tmp_path: Path, text: str = PROTOCOL) -> Path:
@@ -216,8 +228,15 @@ def test_the_consoles_pause_skip_again_and_end_of_block_are_logged_and_counted(
     assert ended["result"]["outcome"] == "skipped"
     assert by_trial[6][0]["skipped"] == "operator: tired" and by_trial[6][0]["result"] is None
     assert sorted(by_trial) == list(range(1, 8))
-    keys = [k for k, _ in scripted.sent]
-    assert keys.count("dammrl/session/control") == 5
+    controls = [(c.episode, c.action, c.why) for c in consoles_controls()]
+    assert controls == [
+        (1, "pause", "the patient coughs"),
+        (1, "resume", ""),
+        (2, "skip", ""),
+        (3, "again", "the arm slipped"),
+        (1, "end-block", "tired"),
+        (2, "pause", "the block ends"),
+    ]  # the rest of the block held back
 
 
 def test_the_persons_posterior_is_carried_to_the_next_run_and_session(
@@ -238,11 +257,10 @@ def test_the_persons_posterior_is_carried_to_the_next_run_and_session(
 def test_the_console_takes_the_decisions_over_and_gives_them_back(
     tmp_path: Path, scripted: type[ScriptedStack]
 ) -> None:
-    from schemas import SessionControl, decode
 
     scripted.console = {2: ["t the patient is tired", "+ small", "-", "g"]}
     assert _runner(tmp_path).run() == 0
-    sent = [decode(SessionControl, p) for k, p in scripted.sent if k == "dammrl/session/control"]
+    sent = consoles_controls()
     assert [(c.action, c.u_h, c.human_model) for c in sent] == [
         ("take", None, None), ("decide", 1, 2), ("decide", -1, 1), ("give", None, None)
     ]  # fmt: skip
@@ -278,7 +296,7 @@ def test_a_line_typed_while_the_stop_console_opens_acts_on_the_reach(
         runner.run()
     finally:
         typist.close()
-    sent = [decode(SessionControl, p) for k, p in scripted.sent if k == "dammrl/session/control"]
+    sent = consoles_controls()
     assert [c.action for c in sent][:1] == ["take"], typist.said
     assert typist.index("no reach runs now") == -1, typist.said
 
@@ -331,14 +349,28 @@ def test_reaches_the_recorder_never_confirms_are_logged_and_said_after_a_bounded
                for line in said)  # fmt: skip
 
 
+def test_a_pause_outlives_its_reach_the_next_one_waits_for_the_resume(
+    tmp_path: Path, scripted: type[ScriptedStack]
+) -> None:
+    """A reach skipped while paused (or ending just as the pause was typed): the session
+    holds the next reach back until the therapist's resume."""
+    scripted.console = {2: ["p coughs", "s"], 3: ["r"]}
+    assert _runner(tmp_path).run() == 0
+    controls = [(c.episode, c.action, c.why) for c in consoles_controls()]
+    assert controls == [(1, "pause", "coughs"), (1, "skip", ""),
+                        (2, "pause", "paused as the last reach ended"), (2, "resume", "")]  # fmt: skip
+
+
 def test_the_consoles_again_and_end_of_block_go_on_the_bus_as_themselves(
     tmp_path: Path, scripted: type[ScriptedStack]
 ) -> None:
     scripted.console = {2: ["a slipped"], 5: ["e tired"]}
     assert _runner(tmp_path).run() == 0
-    actions = [decode(SessionControl, payload).action for k, payload in scripted.sent
-               if k == "dammrl/session/control"]  # fmt: skip
-    assert actions == ["again", "end-block"]
+    actions = [(c.action, c.why) for c in consoles_controls()]
+    # each ends the reach under way; the session then holds the run's next reach back (the
+    # block ended on its run's last reach: none follows)
+    assert actions == [("again", "slipped"), ("pause", "the trial runs again"),
+                       ("end-block", "tired")]  # fmt: skip
 
 
 def test_the_consoles_stop_is_sent_until_every_arm_confirms_it_and_says_so(

@@ -37,6 +37,7 @@ from tests.sessionutil import (
     ScriptedStack,
     StubDisplay,
     Typist,
+    consoles_controls,
     reset,
     result,
     write_protocol,
@@ -146,7 +147,7 @@ def test_console_input_during_a_rest_acts_or_is_refused_and_never_reaches_the_ne
     assert typist.index("rest ended early") < typist.said.index("block 2 (two)")
     assert typist.index("press Enter") < typist.said.index("block 2 (two)") < len(typist.said)
     assert all(not t["actions"] for t in _lines(tmp_path, "trials.jsonl"))
-    assert not [k for k, _ in scripted.sent if k == "dammrl/session/control"]
+    assert not consoles_controls()
 
 
 def test_a_command_typed_before_the_stack_is_up_is_refused_not_applied_later(
@@ -244,7 +245,7 @@ def test_reasons_are_stored_without_the_names_of_the_registry(
     stored += (tmp_path / "sessions/P001/ses-01/trials.jsonl").read_text()
     assert "Anna" not in stored and "[name removed] coughs" in stored
     assert any("stored without the name" in line for line in typist.said)
-    sent = [decode(SessionControl, p) for k, p in scripted.sent if k == "dammrl/session/control"]
+    sent = consoles_controls()
     assert sent[0].why == "[name removed] coughs"
 
 
@@ -325,6 +326,41 @@ def test_the_next_reach_waits_for_its_predecessors_outcome_and_for_a_resume() ->
     _watch_for(node, 0.05)
     goals = _published(bus, TaskGoal)
     assert [g.episode for g in goals] == [1, 2] and time.monotonic() - ended >= 0.4
+
+
+def test_a_sessions_stack_holds_its_first_reach_until_the_session_resumes_it() -> None:
+    """Nothing moves before the session is attached (its console routed, its stop one key
+    away): the resume may come while the controller still waits for its peers."""
+
+    class StartingBus(FakeBus):
+        """Peers alive; the session's resume is the first message to come."""
+
+        def __init__(self) -> None:
+            super().__init__()
+            self.inbox = [SessionControl(header=HEADER, episode=1, action="resume", who="T1")]
+
+        def receive(self, timeout_s: float) -> object:
+            time.sleep(0.01)
+            return self.inbox.pop() if self.inbox else None
+
+        def alive_peers(self) -> set[str]:
+            return {"intent", "policy"}
+
+        def report_health(self, state: str, detail: str) -> None: ...
+
+    bus = StartingBus()
+    settings = ControllerSettings(first_reach_held_by="the session", policy_wait_s=0.2)
+    node = ControllerNode(settings, TaskSettings(), RobotSettings(), ModelSet(),
+                          bus)  # type: ignore[arg-type]  # fmt: skip
+    node.next_due_s = time.monotonic()
+    _watch_for(node, 0.2)
+    assert not _published(bus, TaskGoal)
+    assert "paused by the session before reach 1" in node._waiting_for()
+    node._wait_for_peers(threading.Event())  # the policy is silent: 0.2 s, then on
+    assert not bus.inbox
+    node.next_due_s = time.monotonic()
+    node._watch()
+    assert [g.episode for g in _published(bus, TaskGoal)] == [1]
 
 
 def test_the_arm_is_held_where_the_reach_left_it_while_the_outcome_shows() -> None:

@@ -84,6 +84,9 @@ __all__ = [  # the session's folders live in dammrl.people.participants; callers
 
 PERSON = ("pad", "lsl")
 """Intent sources through which a person decides (they need a device and a calibration)."""
+HELD_UNTIL_ATTACHED = "the session, until its console, stop and display are up"
+"""Who holds each stack run's first reach back (``StackRun.attach`` resumes it): nothing
+moves while a stop typed as the stack starts cannot yet reach its bus."""
 STOP_RESULT_WAIT_S = 3.0
 """After a stop heard mid-reach, how long the stack waits for the controller to end the
 reach (``stopped``) before it stops anyway [s]."""
@@ -102,7 +105,7 @@ def stack_options(setup: SetUp, condition: Condition, seed: int, episodes: int,
         lsl_stream=setup.stream if intent == "lsl" else None,
         calibration=calibration if person else None, lockstep=setup.lockstep,
         adaptive=(condition.targets or Targets()) if condition.policy == "adaptive" else None,
-        outcome_hold_s=setup.outcome_s, **run,
+        outcome_hold_s=setup.outcome_s, first_reach_held_by=HELD_UNTIL_ATTACHED, **run,
     )  # fmt: skip
 
 
@@ -392,6 +395,8 @@ class StackRun:
         for trial, rating, asked_s in runner.pending_comfort:  # asked while no stack ran
             bus.comfort(runner.participant.id, trial, rating, asked_s)
         runner.pending_comfort = []
+        # the first reach may begin (a stop latched meanwhile went out above: it holds on)
+        bus.control(1, "resume", runner.setup.operator, HELD_UNTIL_ATTACHED)
 
     def places(self) -> dict[int, Any]:
         """Each reach's place in the session, for the participant's page."""
@@ -433,7 +438,8 @@ class StackRun:
     # ---- results --------------------------------------------------------------------
     def keep(self, result: EpisodeResult) -> None:
         trial = self.group[result.episode - 1]
-        if self.paused_since is not None:  # skipped while paused
+        paused = self.paused_since is not None  # ended while paused, or as the pause came
+        if self.paused_since is not None:
             self.paused_s += time.monotonic() - self.paused_since
             self.paused_since = None
         stopped = result.outcome == "stopped"
@@ -460,15 +466,33 @@ class StackRun:
                         + (": it runs again" if self.again else ""))  # fmt: skip
         self.episode, self.actions, self.paused_s = result.episode + 1, [], 0.0
         last = trial.index == self.runner.blocks[trial.block].trials
+        ends = self.again or self.end_block or self.stopping is not None
+        self._hold_next(ends, paused)
         if self.end_block:
             self.skip_rest_of_block(trial)
-        if (last or self.end_block) and not stopped:
+        if (last or self.end_block) and not stopped and not self.again:
             self.ask_comfort(trial)
-        ends = self.again or self.end_block or self.stopping is not None
         if result.episode == len(self.group) or ends:
             self.await_recorded()  # the stack stops next
         if ends:
             self.finish()
+
+    def _hold_next(self, ends: bool, paused: bool) -> None:
+        """Hold the run's next reach back before anything that takes time (the comfort
+        question, the recorder's confirmation): the controller begins it once the outcome
+        has shown. When the run ends (the trial again, the block ended: a stop's latch
+        holds on its own), for good; when the reach ended paused, until the resume (a
+        pause outlives its reach: typed as the reach ended, it was meant for what
+        follows)."""
+        if self.episode > len(self.group) or self.stopping is not None:
+            return
+        operator = self.runner.setup.operator
+        if ends:
+            why = "the trial runs again" if self.again else "the block ends"
+            self.bus.control(self.episode, "pause", operator, why)
+        elif paused:
+            self.bus.control(self.episode, "pause", operator, "paused as the last reach ended")
+            self.paused_since = time.monotonic()
 
     def await_recorded(self) -> None:
         """Wait (bounded) until the recorder confirms every reach of this run on disk;

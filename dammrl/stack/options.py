@@ -62,6 +62,7 @@ class StackOptions:
     robot_calibration: Path | None = None  # real: the arm driver's calibration file
     emulate_robot: bool = False  # real: serve the emulated (Dynamixel) arm at robot_port first
     outcome_hold_s: float = 0.0  # a reach's outcome stays this long before the next goal [s]
+    first_reach_held_by: str = ""  # the first reach waits for this one's resume ("": none)
 
 
 def check_port(port: int) -> int:
@@ -256,6 +257,7 @@ def run_settings(o: StackOptions) -> list[BaseSettings]:
     settings: list[BaseSettings] = [task]
     chosen = {} if o.model is None else {"human_model": o.model[0], "robot_model": o.model[1]}
     settings.append(ControllerSettings(trigger=o.trigger, outcome_hold_s=o.outcome_hold_s,
+                                       first_reach_held_by=o.first_reach_held_by,
                                        **chosen))  # type: ignore[arg-type]  # fmt: skip
     if o.model is not None:
         settings.append(PolicySettings(kind="fixed", **chosen))  # type: ignore[arg-type]

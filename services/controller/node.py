@@ -123,7 +123,9 @@ class ControllerNode:
         self.answered = False  # the state being ticked has had its command
         self.stop_latch = StopLatch()  # no reach runs, and no goal goes out, while stopped
         self.next_due_s: float | None = None  # when the next reach may begin (its outcome held)
-        self.held_next = ""  # who paused the session between two reaches (the next waits)
+        # who paused the session between two reaches (the next waits): a session holds the
+        # first until it is attached (its stop one key away)
+        self.held_next = settings.first_reach_held_by
 
     @property
     def reach(self) -> Reach | None:
@@ -192,6 +194,8 @@ class ControllerNode:
                 spoke = True
             elif isinstance(message, EmergencyStop):
                 self._take_stop(message)
+            elif isinstance(message, SessionControl):
+                self._take_control(message)  # the session's resume of the first reach
             alive = self.bus.alive_peers()
             if not policy_seen and "policy" in alive:
                 policy_seen = True
@@ -369,7 +373,7 @@ class ControllerNode:
         """The therapist's pause, resume or skip of the running reach (another episode's
         is late: ignored); a pause between two reaches holds the next one back."""
         reach = self.reach
-        if reach is None and control.episode == self.number + 1 and self.next_due_s is not None:
+        if reach is None and control.episode == self.number + 1:
             self._hold_next(control)
             return
         if reach is None or control.episode != self.number or reach.ended is not None:

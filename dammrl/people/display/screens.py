@@ -137,8 +137,10 @@ class Screens:
         self.base = Screen("rest", "Rest", "Relax your arm. We go on in", countdown_s=seconds)
 
     def comfort(self) -> int:
-        """Ask the comfort question; its number."""
+        """Ask the comfort question; its number. It shows over a pause (the session holds
+        the next reach back while it asks)."""
         self.question += 1
+        self.paused = False
         self.base = Screen("comfort", "How comfortable was that block?", "Touch one answer.",
                            tone="decide", question=self.question)  # fmt: skip
         return self.question
