@@ -115,7 +115,8 @@ class FirstOrderArm:
     def write_command(self, command: DriveCommand) -> None:
         self.q_ref = np.array(command.q_ref, dtype=float)
         self.commands += 1
-    def torque_off(self) -> None: ...
+    def torque_off(self) -> list[int]:
+        return []
     def rearm(self) -> list[int]:
         return []
     def restart(self, joint: int) -> None: ...

@@ -446,6 +446,35 @@ def test_the_emergency_stop_holds_within_one_period_and_refuses_commands(rig: Ri
     assert rig.last_health[0] == "holding"  # released: it holds until commands resume
 
 
+def test_a_torque_off_stop_stays_off_across_a_lost_bus_and_reconnection(
+    rig: Rig, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """STOP_ACTION=torque_off: a cable wiggle after the stop (the bus lost, then back) left
+    the torque on again with the hold law, while Health said stopped; and a limp arm,
+    written nothing, was taken for a stalled one and re-armed every cycle."""
+    _started(rig)
+    rig.node.settings = rig.node.settings.model_copy(update={"stop_action": "torque_off"})
+    rig.bus.send(EmergencyStop(header=Header(stamp_ns=1, seq=0, source="operator"), engaged=True))
+    rig.node.cycle()
+    servos = rig.arm.chain.servos
+    assert rig.node.link.limp and all(servos[i].table[TORQUE_ENABLE] == 0 for i in range(1, 7))
+    rearms = []
+    monkeypatch.setattr(rig.node.driver, "rearm", lambda: rearms.append(1) or [])
+    rig.run(0.3)
+    assert not rearms  # nothing is written: no stall to suspect
+    read, failures = rig.node.driver.read_state, [DriverError("sync read failed")] * 3
+
+    def wiggle() -> JointState:
+        if failures:
+            raise failures.pop()
+        return read()
+
+    monkeypatch.setattr(rig.node.driver, "read_state", wiggle)
+    rig.run_until(lambda r: not failures and r.node.connected and r.node.joint is not None, 10)
+    assert rig.node.link.limp and all(servos[i].table[TORQUE_ENABLE] == 0 for i in range(1, 7))
+    assert rig.last_health[0] == "stopped"
+
+
 def test_after_a_stall_longer_than_the_watchdog_the_servos_obey_again(
     rig: Rig, caplog: pytest.LogCaptureFixture
 ) -> None:
@@ -708,6 +737,28 @@ def test_a_drive_a_restart_does_not_clear_is_left_off_and_said(
     assert np.abs(_true_q(rig)[:5] - q0[:5]).max() < 0.02  # the others held
 
 
+def test_a_servo_bus_pulled_out_fails_as_a_lost_port_and_reconnects_once_plugged_back(
+    tmp_path: Path,
+) -> None:
+    """The adapter pulled out: every request fails as a DriverError (the SDK's flush raised
+    termios.error, which crashed the service), and a connect that fails closes the port,
+    so the same adapter plugged back is opened afresh (the SDK's port stayed "in use")."""
+    link = tmp_path / "ttyROBOT"
+    driver = DynamixelDriver(str(link), CALIBRATION)
+    with emulated_arm(link, CALIBRATION) as first:
+        driver.connect()
+        first.bus.pull_out()
+        for _ in range(3):
+            with pytest.raises(DriverError):
+                driver.read_state()
+        with pytest.raises(DriverError):
+            driver.connect()
+    with emulated_arm(link, CALIBRATION):  # plugged back: a new device at the same path
+        driver.connect()
+        assert driver.read_state().q_rad.shape == (6,)
+        driver.disconnect()
+
+
 def test_a_connect_survives_a_garbled_answer(arm: EmulatedArm) -> None:
     """A connect is a dozen requests; a garbled answer to one of them costs that request
     a retry, not the whole connect (on a loaded PC, the node's retries of whole connects
@@ -843,6 +894,20 @@ def test_a_goal_never_reachable_is_refused_to_the_controller_one_of_the_arms_sta
     law.stop_latch.take(True, "operator", "T1")
     assert law.take_goal(Start(2, q), (0.45, 0, 0), rest, 0.0) is not None
     assert law.refused == [] and law.homing is None
+
+
+def test_homing_an_arm_held_back_keeps_its_reference_near_the_arm() -> None:
+    """The person (or the table) holds the arm during the move to the start: the homing
+    reference ran on to the start (0.8 rad away), so the arm let go lunged after it at its
+    torque limit. It stays within a command's cap of the arm, as the controller's do."""
+    law, q = _law_at_rest()
+    held = JointState(q, np.zeros(6), np.zeros(6))
+    start = q + np.array([0.0, 0.8, 0.0, 0.0, 0.0, 0.0])
+    assert law.take_goal(Start(1, start), (0.45, 0, 0), held, 0.0) is None
+    gaps = [float(np.max(np.abs(law.law(held, k * 0.01, 1.0, lambda: "").q_ref - q)))
+            for k in range(1, 400)]  # fmt: skip
+    assert max(gaps) <= law.settings.max_relative_target_rad + 1e-12
+    assert max(gaps) > 0.1  # it does pull towards the start
 
 
 def test_a_late_cycle_never_jumps_the_homing_move_ahead() -> None:

@@ -95,8 +95,9 @@ class Driver(Protocol):
 
     def write_command(self, command: DriveCommand) -> None: ...
 
-    def torque_off(self) -> None:
-        """Every drive that answers lets go (the arm falls: only with a support)."""
+    def torque_off(self) -> list[int]:
+        """Every drive that answers lets go (the arm falls: only with a support); the
+        drives that did not confirm it."""
         ...
 
     def rearm(self) -> list[int]:

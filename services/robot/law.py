@@ -308,6 +308,12 @@ class ArmLaw:
             return self._begin_episode(homing.start, joint.q_rad, now)
         if late > self.settings.homing_timeout_s:
             return self._give_up_homing(homing, joint, now)
+        # never farther from the arm than a command may be: an arm held back (by the person,
+        # the table) and let go follows a reference at most this far ahead, not the whole way
+        reach = self.caps.max_relative_target_rad
+        near = np.clip(q_ref, joint.q_rad - reach, joint.q_rad + reach)
+        dq_ref = np.where(near == q_ref, dq_ref, 0.0)
+        q_ref = near
         gravity = self.arm.inverse_dynamics(q_ref, np.zeros(6), np.zeros(6))
         kp, kd = (
             np.array(self.settings.hold_kp_nm_per_rad),

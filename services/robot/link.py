@@ -45,8 +45,10 @@ class DriveLink:
         settings = self.settings
         self.ramp = SoftStart.begin(settings.soft_start_s, settings.soft_start_fraction,
                                     self.max_step_s, now)  # fmt: skip
-        try:
-            holding = self.driver.connect(hold=hold)
+        try:  # a torque-off stop outlives a lost bus: the drives come back limp
+            holding = (
+                self.driver.connect(torque=False) if self.limp else self.driver.connect(hold=hold)
+            )
         except DriverError as exc:
             if self.fault != str(exc):
                 log.error("%s: retrying every %.1f s", exc, self.settings.reconnect_s)
@@ -58,7 +60,10 @@ class DriveLink:
             self.ramp = SoftStart.begin(0.0, 1.0, self.max_step_s, now, done=True)
         self.last_write_s = float("inf")  # connect armed the drives' watchdog: no stall yet
         if self.fault is not None:
-            log.warning("the drives' bus answers again: holding where the arm is")
+            log.warning(
+                "the drives' bus answers again: %s",
+                "the torque stays off (the stop)" if self.limp else "holding where the arm is",
+            )
         self.fault, self.errors = None, 0
         return True
 
@@ -89,14 +94,22 @@ class DriveLink:
         return True
 
     def hold_blind(self) -> None:
-        if self.last_written is not None:
+        """The last law sent again to the drives that may still hear it (not after a
+        torque-off stop: that law is the motion the stop ended)."""
+        if self.last_written is not None and not self.limp:
             with contextlib.suppress(DriverError):
                 self.driver.write_command(self.last_written)
 
     def torque_off(self) -> None:
-        if self.connected:
-            self.driver.torque_off()
-        self.limp = True  # nothing is written until a release reconnects
+        """The stop's torque-off; nothing is written until a release reconnects (a
+        reconnection meanwhile turns the torque off again)."""
+        if not self.connected:
+            log.error("the stop's torque-off cannot reach the drives (their bus is lost): use "
+                      "the hardware stop; they come back limp")  # fmt: skip
+        elif failed := self.driver.torque_off():
+            log.error("the drives %s did not take the stop's torque-off: use the hardware stop",
+                      failed)  # fmt: skip
+        self.limp = True
 
     def reconnect_now(self) -> None:
         """Torque back on (after a torque-off stop was released), with the soft start."""
@@ -110,7 +123,9 @@ class DriveLink:
         their own stop allows, by its clock, or a cycle failed since they were last asked
         (by their clock the silence may have been longer)."""
         stall_s = self.driver.stall_s
-        return stall_s is not None and (self.doubt_drives or now - self.last_write_s > stall_s)
+        if stall_s is None or self.limp:  # limp: nothing is written, the torque is off
+            return False
+        return self.doubt_drives or now - self.last_write_s > stall_s
 
     def soft_start(self, now: float) -> float:
         """The stiffness's share after torque-on: from ``soft_start_fraction`` to 1."""

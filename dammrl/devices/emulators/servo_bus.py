@@ -45,11 +45,20 @@ class ServoBusEmulator:
         return self._lock
 
     def close(self) -> None:
+        self.pull_out()
+        if self._slave >= 0:
+            os.close(self._slave)
+            self._slave = -1
+        self.link.unlink(missing_ok=True)
+
+    def pull_out(self) -> None:
+        """The USB adapter pulled out: the device hangs up under whoever has it open (a
+        read or a flush fails), unlike ``unplug`` faults, which only silence the servos."""
         self._stop.set()
         self._thread.join(2.0)
-        for fd in (self._master, self._slave):
-            os.close(fd)
-        self.link.unlink(missing_ok=True)
+        if self._master >= 0:
+            os.close(self._master)
+            self._master = -1
 
     def _serve(self) -> None:
         reader = PacketReader()

@@ -20,6 +20,7 @@ from __future__ import annotations
 import contextlib
 import math
 import struct
+import termios
 import time
 from collections.abc import Callable, Collection, Iterator
 from dataclasses import dataclass, field, replace
@@ -76,13 +77,18 @@ ERROR_BITS = {0x01: "input voltage", 0x04: "overheating", 0x08: "motor encoder",
               0x10: "electrical shock", 0x20: "overload"}  # fmt: skip
 
 
+PORT_ERRORS = (OSError, termios.error)
+"""A serial device that fails or goes away: pyserial raises OSError, or termios.error (not
+an OSError) when it flushes a device pulled out (the SDK flushes before every request)."""
+
+
 @contextlib.contextmanager
 def _bus_io(port: str) -> Iterator[None]:
     """The serial device failing (a USB adapter pulled out) is a DriverError, as a silent
     servo is."""
     try:
         yield
-    except OSError as exc:
+    except PORT_ERRORS as exc:
         raise PortLostError(f"the servo bus at {port} failed: {exc}") from None
 
 
@@ -156,8 +162,10 @@ class DynamixelDriver:
         try:
             with _bus_io(self.port):
                 return self._power_up(torque, hold)
-        except PortLostError:
-            self._close()  # reopened at the next try
+        except DriverError:
+            # reopened at the next try: a device pulled out, or a port the SDK left "in
+            # use" by a request an error cut short (it would refuse every later one)
+            self._close()
             raise
 
     def _power_up(self, torque: bool, hold: HoldLaw | None) -> bool:
@@ -424,11 +432,17 @@ class DynamixelDriver:
         if result != sdk.COMM_SUCCESS:
             raise DriverError(f"sync write failed: {self._packet.getTxRxResult(result)}")
 
-    def torque_off(self) -> None:
-        """Torque off on every servo that answers (the arm goes limp)."""
+    def torque_off(self) -> list[int]:
+        """Torque off on every servo that answers (the arm goes limp); the servos that did
+        not confirm it."""
+        failed = []
         for servo_id in self.ids:
-            with contextlib.suppress(DriverError), _bus_io(self.port):
-                self._write1(servo_id, ADDRESS["torque_enable"], 0)
+            try:
+                with _bus_io(self.port):
+                    self._write1(servo_id, ADDRESS["torque_enable"], 0)
+            except DriverError:
+                failed.append(servo_id)
+        return failed
 
     def disconnect(self) -> None:
         """Leave the servos holding where they are, then close the port; their watchdog
@@ -444,7 +458,7 @@ class DynamixelDriver:
 
     def _close(self) -> None:
         if self._port is not None:
-            with contextlib.suppress(OSError):
+            with contextlib.suppress(*PORT_ERRORS):
                 self._port.closePort()
         self._port = None
 
