@@ -54,13 +54,19 @@ def test_garbage_and_late_answers_from_a_page_change_nothing(display: Participan
     with connect(f"ws://127.0.0.1:{display.port}/ws") as page:
         asking.start()
         wait_for(lambda: display.screens.question == 1, 10, "the question")
-        for junk in ("not json", "[1, 2]", json.dumps({"t": "rating", "question": 1, "value": 9}),
-                     json.dumps({"t": "rating", "question": 0, "value": 3}),  # an older one
-                     json.dumps({"t": "rating", "question": "1", "value": 3}),
-                     json.dumps({"t": "rating", "question": 1, "value": True})):  # fmt: skip
+        for junk in (
+            "not json",
+            "[1, 2]",
+            json.dumps({"t": "rating", "question": 1, "value": 9}),
+            json.dumps({"t": "rating", "question": 0, "value": 3}),  # an older one
+            json.dumps({"t": "rating", "question": "1", "value": 3}),
+            json.dumps({"t": "rating", "question": 1, "value": True}),
+            "[" * 1500 + "]" * 1500,  # nested deeper than the parser goes
+        ):  # fmt: skip
             page.send(junk)
         time.sleep(0.5)
         assert asking.is_alive()  # none of them answered
+        assert display.pages() == 1  # and the page still counts (its handler went on)
         page.send(json.dumps({"t": "rating", "question": 1, "value": 2}))
         asking.join(10)
     assert answer and answer[0] is not None and answer[0][0] == 2

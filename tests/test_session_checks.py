@@ -208,3 +208,14 @@ def test_the_display_settings_are_refused_in_one_line_out_of_range_or_without_a_
         except SystemExit as exit_:  # argparse's refusal
             code = exit_.code  # type: ignore[assignment]
     assert code != 0 and said in err.getvalue().splitlines()[-1], err.getvalue()
+
+
+def test_a_stray_file_among_the_recordings_is_no_part_and_no_crash(tmp_path: Path) -> None:
+    """A file manager's copy ("part-01 (copy).mcap") crashed the session's next run."""
+    from dammrl.people.participants import SessionFolder
+
+    folder = SessionFolder(tmp_path)
+    folder.recordings.mkdir()
+    for name in ("part-01.mcap", "part-02-001.mcap", "part-01 (copy).mcap", "part-x.mcap"):
+        (folder.recordings / name).write_bytes(b"")
+    assert folder.next_part().name == "part-03.mcap"

@@ -243,7 +243,11 @@ class SessionFolder:
 
     def next_part(self) -> Path:
         """A recording file no run has used."""
-        parts = [int(p.stem.split("-")[1]) for p in self.recordings.glob("part-*.mcap")]
+        # the runs' own names (part-NN.mcap, a restarted recorder's part-NN-MMM.mcap); any
+        # other file there (a file manager's "part-01 (copy).mcap") is no part of ours
+        named = (re.fullmatch(r"part-(\d+)(-\d+)?", p.stem)
+                 for p in self.recordings.glob("part-*.mcap"))  # fmt: skip
+        parts = [int(match[1]) for match in named if match]
         return self.recordings / f"part-{max(parts, default=0) + 1:02d}.mcap"
 
     def end(self) -> None:

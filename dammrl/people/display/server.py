@@ -149,6 +149,6 @@ def _parsed(raw: str | bytes) -> dict[str, Any] | None:
     """A page's message (a JSON object), or None for anything else."""
     try:
         message = json.loads(raw)
-    except ValueError:
+    except (ValueError, RecursionError):  # not JSON, or nested past the parser's depth
         return None
     return message if isinstance(message, dict) else None
