@@ -267,6 +267,18 @@ def test_the_console_takes_the_decisions_over_and_gives_them_back(
     assert sent[0].why == "the patient is tired" and all(c.who == "operator" for c in sent)
 
 
+def test_a_takeover_holds_across_stack_runs_until_it_is_given_back(
+    tmp_path: Path, scripted: type[ScriptedStack]
+) -> None:
+    """Each block is a new stack run, whose intent service and page knew nothing of the
+    takeover: the participant's device decided again, and the therapist's + was ignored."""
+    scripted.console = {2: ["t"], 5: ["g"]}
+    assert _runner(tmp_path).run() == 0
+    sent = [(c.episode, c.action, c.why) for c in consoles_controls()]
+    again = "taken over in an earlier stack run"
+    assert sent == [(1, "take", ""), (1, "take", again), (1, "give", "")], sent
+
+
 def _said_any(typist: Typist, *words: str) -> bool:
     return any(typist.index(w) >= 0 for w in words)
 

@@ -184,6 +184,7 @@ class SessionRunner(SessionSteps):
         )
         self.warned_reasons = False
         self.pending_comfort: list[tuple[Trial, int, float]] = []  # rated while no stack ran
+        self.taken = False  # the therapist decides (t): kept across stack runs until g
 
     def problems(self) -> list[str]:
         """What this session would fail on once it runs (``session_problems``), with the
@@ -395,6 +396,9 @@ class StackRun:
         for trial, rating, asked_s in runner.pending_comfort:  # asked while no stack ran
             bus.comfort(runner.participant.id, trial, rating, asked_s)
         runner.pending_comfort = []
+        if runner.taken:  # a new run's intent service and page know nothing of it
+            bus.control(1, "take", runner.setup.operator, "taken over in an earlier stack run")
+            runner.say("console: the decisions stay taken over (g gives them back)")
         # the first reach may begin (a stop latched meanwhile went out above: it holds on)
         bus.control(1, "resume", runner.setup.operator, HELD_UNTIL_ATTACHED)
 
@@ -603,6 +607,7 @@ class RunConsole:
             run.paused_since = None
             self._control("resume", why)
         elif action in ("take", "give"):
+            run.runner.taken = action == "take"
             self._control(action, why)
         elif action in ("forward", "back"):
             small = why.split()[:1] == ["small"]
