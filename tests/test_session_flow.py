@@ -209,6 +209,30 @@ def test_a_kill_during_the_comfort_question_is_completed_when_the_session_resume
     assert [(r.block, r.rating) for r in ratings] == [("one", 4), ("two", 4)]  # both recorded
 
 
+def test_ctrl_c_ends_the_comfort_question_asked_inside_the_stacks_loop(
+    tmp_path: Path, scripted: type[ScriptedStack], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A block's last result asks the question inside the stack's loop, which looks at
+    Ctrl-C only between results: it went on waiting for the answer (up to the comfort
+    timeout) and the recorder (15 s) before the stack stopped."""
+
+    class Unanswered(StubDisplay):
+        def ask_comfort(self, timeout_s: float, cancel: threading.Event | None = None
+                        ) -> tuple[int, float] | None:  # fmt: skip
+            assert cancel is not None and cancel.wait(timeout_s), "not ended by Ctrl-C"
+            return None
+
+    interrupted = threading.Event()
+    interrupted.set()  # Ctrl-C came as the reach ended
+    monkeypatch.setattr(ScriptedStack, "signalled", interrupted, raising=False)
+    typist = Typist([], every=ENTER)
+    runner = _runner(tmp_path, typist, display=Unanswered(), comfort_timeout_s=60,
+                     recorded_wait_s=60)  # fmt: skip
+    started = time.monotonic()
+    assert _run(runner, typist, timeout_s=60) == 0
+    assert time.monotonic() - started < 30
+
+
 def test_a_kill_during_the_rest_resumes_what_was_left_of_it(
     tmp_path: Path, scripted: type[ScriptedStack]
 ) -> None:

@@ -505,7 +505,7 @@ class StackRun:
             return
         runner, episodes = self.runner, list(range(1, self.episode))
         started = time.monotonic()
-        acks = self.bus.recorded.wait(episodes, runner.recorded_wait_s)
+        acks = self.bus.recorded.wait(episodes, runner.recorded_wait_s, self.signalled())
         trial = {e: self.group[e - 1].number for e in episodes}
         partial = {trial[e]: a.missing for e, a in acks.items() if not a.complete}
         unconfirmed = [trial[e] for e in episodes if e not in acks]
@@ -520,6 +520,11 @@ class StackRun:
                        f"{runner.recorded_wait_s:g} s: the catalogue will report them")  # fmt: skip
         for number, missing in partial.items():
             runner.say(f"trial {number} is recorded without {missing}")
+
+    def signalled(self) -> threading.Event | None:
+        """Ctrl-C (or a signal) to the stack: a question or a wait inside a result's
+        callback, which holds the stack's loop, ends at once."""
+        return getattr(self.stack, "signalled", None)
 
     def _recording(self) -> Path:
         """The file the recorder writes now: the part, or its newest continuation after
@@ -541,7 +546,7 @@ class StackRun:
         if not runner._asks_comfort():
             return
         time.sleep(self.setup.outcome_s)  # the block's last outcome shows as every other
-        answer = runner.ask_comfort(self.session, trial)
+        answer = runner.ask_comfort(self.session, trial, self.signalled())
         if answer is not None:
             self.bus.comfort(runner.participant.id, trial, *answer)
             time.sleep(0.2)  # the recorder takes it before the stack stops

@@ -166,9 +166,12 @@ class SessionSteps:
     def _asks_comfort(self) -> bool:
         return self.display is not None and self.protocol.comfort != "none"
 
-    def ask_comfort(self, session: SessionFolder, trial: Trial) -> tuple[int, float] | None:
-        """The comfort question on the display (the console's s skips it), logged in the
-        events; (rating, seconds it took) or None."""
+    def ask_comfort(
+        self, session: SessionFolder, trial: Trial, interrupted: threading.Event | None = None
+    ) -> tuple[int, float] | None:
+        """The comfort question on the display (the console's s skips it, ``interrupted``
+        ends it: Ctrl-C to a stack that waits on it), logged in the events; (rating,
+        seconds it took) or None."""
         display = self.display
         assert display is not None
         if not display.pages():
@@ -181,6 +184,9 @@ class SessionSteps:
             skipped.append(command)
             cancel.set()
 
+        if interrupted is not None:
+            threading.Thread(target=_relay, args=(interrupted, cancel, self.comfort_timeout_s),
+                             daemon=True).start()  # fmt: skip
         previous = self.console.handler
         self.console.route(lambda line: self._between(
             line, "the participant is answering the comfort question (s skips it)",
@@ -418,3 +424,9 @@ def seconds_since(utc: str) -> float:
         return max(0.0, (datetime.now(UTC) - datetime.fromisoformat(utc)).total_seconds())
     except (TypeError, ValueError):
         return 0.0
+
+
+def _relay(event: threading.Event, to: threading.Event, within_s: float) -> None:
+    """Set ``to`` if ``event`` is set within ``within_s``."""
+    if event.wait(within_s):
+        to.set()

@@ -82,6 +82,7 @@ class Stack:
         self.tally = EpisodeTally(options, out, info, on_result)
         self.on_up = on_up
         self.finishing = threading.Event()  # finish(): end the run after the current result
+        self.signalled: threading.Event | None = None  # set by Ctrl-C (or a signal) while it runs
         self.joined: list[zenoh.Session] = []  # sessions of other roles (join), closed at the end
         self.recorded: RecordedEpisodes | None = None  # what the recorder confirmed
         if options.record is not None and confirm_recorded:
@@ -121,6 +122,7 @@ class Stack:
         self._make_credentials()
         write_card(self.card())  # the tools and emulators beside it find it
         with stopping_on_signals() as stop:
+            self.signalled = stop  # a session waiting inside a result's callback looks at it
             # the services' hub, and the operator's session (a session's console, a stop)
             session = zenoh.open(zenoh_config(settings, OPERATOR, rate_limits=True))
             try:
