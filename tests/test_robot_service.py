@@ -441,9 +441,14 @@ def test_the_emergency_stop_holds_within_one_period_and_refuses_commands(rig: Ri
     stopped_at = next(i for i, s in enumerate(rig.speeds[cycles:]) if s.max() < 0.02)
     assert stopped_at * 0.011 < 0.5, rig.speeds[cycles:]  # at rest within half a second
     assert any("emergency stop" in r for r in rig.bus.rejected)
+    assert rig.node.law.held is not None
+    np.testing.assert_array_equal(rig.node.law.held.kp, rig.node.settings.stop_kp_nm_per_rad)
     rig.bus.send(EmergencyStop(header=Header(stamp_ns=2, seq=1, source="operator"), engaged=False))
     rig.run(0.3)
     assert rig.last_health[0] == "holding"  # released: it holds until commands resume
+    held = rig.node.law.held  # with the ordinary hold's gains, not the stop's
+    assert held is not None
+    np.testing.assert_array_equal(held.kp, rig.node.settings.hold_kp_nm_per_rad)
 
 
 def test_a_torque_off_stop_stays_off_across_a_lost_bus_and_reconnection(

@@ -229,6 +229,13 @@ class ArmLaw:
         self.held = self._hold_law(q, np.array(self.settings.stop_kp_nm_per_rad),
                                    np.array(self.settings.stop_kd_nms_per_rad), now)  # fmt: skip
 
+    def release_here(self, q: np.ndarray, now: float) -> None:
+        """The stop released: the ordinary hold where the arm is now (its gains, not the
+        stop's, which a person can push against); motion waits for the next command."""
+        if self.held is not None and self.homing is None:
+            kp, kd = self.settings.hold_kp_nm_per_rad, self.settings.hold_kd_nms_per_rad
+            self.held = self._hold_law(q, np.array(kp), np.array(kd), now)
+
     def law(self, joint: JointState, now: float, ramp: float,
             say_silent: Callable[[], str]) -> DriveCommand:  # fmt: skip
         """The joint law to write this period (``ramp``: the soft start's share)."""

@@ -206,6 +206,8 @@ class RobotNode:
             log.warning("emergency stop released: holding until commands resume")
             if self.link.limp and self.law.fault is None:
                 self.link.reconnect_now()  # torque back on, with the soft start
+            elif self.joint is not None and self.law.fault is None:
+                self.law.release_here(self.joint.q_rad, now)
 
     def _take_goal(self, goal: TaskGoal, now: float) -> None:
         joint = self.joint
