@@ -50,7 +50,7 @@ from schemas import (
 )
 from services.robot.law import ArmLaw, Start
 from services.robot.link import DriveLink
-from services.robot.node import RobotNode, make_driver
+from services.robot.node import START_RETRIES, RobotNode, make_driver
 
 CALIBRATION = Calibration(
     offsets_rad=(0.1, -0.05, 0.0, 0.2, 0.0, -0.1),
@@ -539,6 +539,24 @@ def test_a_start_missed_for_stopped_servos_is_tried_again_not_refused(
     rig.run_until(lambda r: r.node.law.episode == 1, 20, lambda r: r.bus.send(_goal(1)))
     assert "episode 1: tried again when announced (the drives had stopped)" in caplog.text
     assert not [m for m in rig.bus.published if isinstance(m, GoalRefused)]
+
+
+def test_a_start_missed_by_servos_that_stop_on_every_try_is_refused_after_two(
+    rig: Rig, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Servos that stop on their own clock at every try would have the episode tried
+    again for good (the session held on it): after two tries it is refused all the same."""
+    rig.node.law.settings = rig.node.law.settings.model_copy(update={"homing_timeout_s": 0.3})
+    _holding(rig)
+    rig.bus.send(_goal(1))
+
+    def stopping(r: Rig) -> None:
+        _stop_by_their_clock(r.arm)
+        r.bus.send(_goal(1))
+
+    rig.run_until(lambda r: any(isinstance(m, GoalRefused) for m in r.bus.published), 30,
+                  stopping)  # fmt: skip
+    assert caplog.text.count("episode 1: tried again when announced") == START_RETRIES
 
 
 def test_a_start_posture_never_reached_refuses_the_episode_and_holds(rig: Rig) -> None:

@@ -38,6 +38,10 @@ from services.robot.link import DriveLink
 
 log = logging.getLogger("dammrl.robot")
 BUTTON_PRESS_TRAVEL_M = 0.003  # as the sim's button
+START_RETRIES = 2
+"""How often an episode whose start was missed by drives stopped on their own clock is
+tried again; then it is refused all the same (drives that stop on every try would
+otherwise hold the session on that episode for good)."""
 
 
 def make_driver(settings: ArmSettings) -> Driver:
@@ -70,6 +74,7 @@ class RobotNode:
         self.reported_stopped = False
         self.command_stamp_ns = 0  # header stamp of the command in force
         self.latency_pending = False  # the command in force is not yet written
+        self.start_retries: dict[int, int] = {}  # episode -> tries after stopped drives
         self.periods_s: deque[float] = deque(maxlen=10_000)
         self.latencies_s: deque[float] = deque(maxlen=10_000)  # command stamp -> written
         self.last_cycle_s: float | None = None
@@ -170,7 +175,10 @@ class RobotNode:
         had stopped, re-armed and the episode, announced again, is tried again."""
         refused, self.law.refused = dict(self.law.refused), []  # once per episode
         for episode, reason in refused.items():
-            if episode == self.law.unreachable_episode and self._after_stall(joint, now):
+            tries = self.start_retries.get(episode, 0)
+            retry = episode == self.law.unreachable_episode and tries < START_RETRIES
+            if retry and self._after_stall(joint, now):
+                self.start_retries[episode] = tries + 1
                 log.warning("episode %d: tried again when announced (the drives had stopped)",
                             episode)  # fmt: skip
                 continue
