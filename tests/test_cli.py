@@ -282,3 +282,37 @@ def test_the_display_is_spelled_the_same_in_up_and_session_run(tmp_path: Path) -
                           timeout=120)  # fmt: skip
     assert done.returncode == 2
     assert done.stderr.strip() == "dammrl: error: --display and --no-display: give one of them"
+
+
+def test_the_stop_console_joins_a_new_run_on_its_port_when_no_arm_heard_it(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A session's next block is a new run on the same port, with new credentials: a stop
+    console opened before could not reach it (no arm confirmed, the arm went on). It joins
+    the run again and sends the stop once more."""
+    import io
+
+    from dammrl.cli import stop
+    from dammrl.stack.stop import StopReport
+
+    consoles: list[Console] = []
+
+    class Console:
+        def __init__(self, settings: object) -> None:
+            self.closed, self.heard = False, bool(consoles)  # the first: the old run's
+            consoles.append(self)
+
+        def send(self, engaged: bool, reason: str, timeout_s: float) -> StopReport:
+            return StopReport({"sim": 0.012} if self.heard else {}, [])
+
+        def close(self) -> None:
+            self.closed = True
+
+    monkeypatch.setattr(stop, "StopConsole", Console)
+    monkeypatch.setattr(stop, "bus_settings", lambda args: None)
+    monkeypatch.setattr(sys, "stdin", io.StringIO("\n"))
+    args = argparse.Namespace(console=True, release=False, reason="", timeout=0.1)
+    assert stop._stop(args) == Exit.OK
+    out, err = capsys.readouterr()
+    assert "joining the run on the bus again" in err and "sim: stop confirmed after 12 ms" in out
+    assert [c.closed for c in consoles] == [True, True]

@@ -56,8 +56,14 @@ def _stop(args: argparse.Namespace) -> int:
         print_err("stop console: Enter stops every arm, 'release' releases, Ctrl-D quits")
         for line in sys.stdin:
             release = line.strip() == "release"
-            report = console.send(not release, args.reason or "from the stop console",
-                                  args.timeout)  # fmt: skip
+            reason = args.reason or "from the stop console"
+            report = console.send(not release, reason, args.timeout)
+            if not report.acknowledged:  # the run may be a new one (a session's next block:
+                # new credentials on the same port), which this session cannot reach
+                print_err("stop console: no arm heard it: joining the run on the bus again")
+                console.close()
+                console = StopConsole(bus_settings(args))
+                report = console.send(not release, reason, args.timeout)
             _say_stop(report, "release" if release else "stop", args.timeout)
         return Exit.OK
     finally:
