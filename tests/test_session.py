@@ -21,6 +21,7 @@ from dammrl.people.session import (
 )
 from dammrl_core.errors import ConfigurationError, DammrlError, UsageError
 from dammrl_core.protocol import balanced_latin_square, block_order, load_protocol, plan_trials
+from schemas import SessionControl, decode
 from tests.sessionutil import (
     PROTOCOL,
     ScriptedStack,
@@ -311,6 +312,38 @@ def test_a_line_typed_while_the_stop_console_opens_acts_on_the_reach(
     sent = consoles_controls()
     assert [c.action for c in sent][:1] == ["take"], typist.said
     assert typist.index("no reach runs now") == -1, typist.said
+
+
+def test_a_pause_typed_as_the_stack_comes_up_keeps_the_first_reach_held(
+    tmp_path: Path, scripted: type[ScriptedStack], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Each run's first reach waits for the session's resume as it attaches: a pause typed
+    while the stop console opens is the therapist's, and that resume must not undo it."""
+    typist, opened = Typist([]), ScriptedStack.stop_console
+
+    def slow_stop_console(stack: ScriptedStack) -> ScriptedStopper:
+        if not stack.runs[1:]:  # the first run's: the pause typed while it opens
+            typist.type("p one moment")
+            deadline = time.monotonic() + 5.0
+            while time.monotonic() < deadline and not _said_any(typist, "console: pause"):
+                time.sleep(0.01)
+        return opened(stack)
+
+    monkeypatch.setattr(ScriptedStack, "stop_console", slow_stop_console)
+    runner = SessionRunner(tmp_path / "sessions", "P001", _protocol(tmp_path), SetUp(),
+                           say=typist.say, wait_for_operator=False,
+                           console=typist.stream)  # fmt: skip
+    try:
+        runner.run()
+    finally:
+        typist.close()
+    first_run = []
+    for key_expr, payload in scripted.sent:
+        if key_expr == "dammrl/task/goal":
+            break  # the first run's first goal (the scripted stack does not hold it)
+        if key_expr == "dammrl/session/control":
+            first_run.append(decode(SessionControl, payload))
+    assert [(c.episode, c.action, c.why) for c in first_run] == [(1, "pause", "one moment")]
 
 
 def test_a_closed_console_waits_its_timeout_instead_of_spinning() -> None:

@@ -399,8 +399,10 @@ class StackRun:
         if runner.taken:  # a new run's intent service and page know nothing of it
             bus.control(1, "take", runner.setup.operator, "taken over in an earlier stack run")
             runner.say("console: the decisions stay taken over (g gives them back)")
-        # the first reach may begin (a stop latched meanwhile went out above: it holds on)
-        bus.control(1, "resume", runner.setup.operator, HELD_UNTIL_ATTACHED)
+        # the first reach may begin (a stop latched meanwhile went out above: it holds on),
+        # unless the therapist paused it meanwhile: then their resume lets it begin
+        if self.paused_since is None:
+            bus.control(1, "resume", runner.setup.operator, HELD_UNTIL_ATTACHED)
 
     def places(self) -> dict[int, Any]:
         """Each reach's place in the session, for the participant's page."""
