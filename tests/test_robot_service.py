@@ -994,6 +994,26 @@ def test_a_driver_that_cannot_hold_from_its_torque_on_is_refused_at_start(
         make_driver(ArmSettings(driver="lab-arm"))
 
 
+def test_a_restart_that_never_went_out_stops_the_arm_and_is_sent_again() -> None:
+    """A bus error on the REBOOT once left the cycle before the stop: the arm never
+    stopped, and the joint was left off as if its restart had not cleared the fault."""
+    law, q = _law_at_rest()
+    overload = DriveFault(5, "servo 6: overload", restartable=True)
+    faulted = JointState(q, np.zeros(6), np.zeros(6), faults=(overload,))
+    sent: list[int] = []
+
+    def restart(j: int) -> None:
+        if not sent:
+            sent.append(-1)
+            raise DriverError("writing the REBOOT failed")
+        sent.append(j)
+
+    assert law.check(faulted, restart)  # the stop, all the same
+    assert not law.check(faulted, restart)  # stopped already; the restart sent again
+    assert sent == [-1, 5] and 5 not in law.recovery.off
+    assert law.recovery.restarts[5] == 1
+
+
 def test_a_drive_left_off_is_logged_once_not_every_cycle(caplog: pytest.LogCaptureFixture) -> None:
     """A servo left off keeps its alert bit: every read brings its fault again. It was an
     error line per cycle (100 a second); it is said once, and again when its news change."""

@@ -48,6 +48,12 @@ class DriveRecovery:
         )
         return True
 
+    def not_sent(self, joint: int) -> None:
+        """The restart of ``joint``'s drive never went out: none used, and not restarting."""
+        self.restarting.discard(joint)
+        self.restarts[joint] -= 1
+        self.notes.pop(joint, None)
+
     def back(self, joint: int, q_rad: float) -> None:
         """The drive of ``joint`` answers again and holds it at ``q_rad``."""
         self.restarting.discard(joint)

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from dammrl_core.arm.driver import DriveCommand, JointState
+from dammrl_core.arm.driver import DriveCommand, DriverError, JointState
 from dammrl_core.arm.recovery import DriveRecovery
 from dammrl_core.arm.settings import ArmSettings
 from dammrl_core.arm.start import LATE_CYCLE_S, MotionClock, softened
@@ -195,7 +195,7 @@ class ArmLaw:
             self.fault = self.fault or "; ".join(f.what for f in joint.faults)
             for fault in joint.faults:
                 if self.settings.stop_action == "hold" and self.recovery.fault(fault):
-                    restart(fault.joint)
+                    self._restart(fault.joint, restart)
                 self._say(fault.joint, self.recovery.notes.get(fault.joint, fault.what))
         elif first:
             self.fault = limit_violation(
@@ -206,6 +206,16 @@ class ArmLaw:
             log.error("arm fault: %s: stopping", self.fault)
             return True
         return False
+
+    def _restart(self, j: int, restart: Callable[[int], None]) -> None:
+        """Restart joint ``j``'s drive; a restart that never went out (a bus error) counts
+        for nothing and is sent again at the fault's next report, and the stop goes on
+        (the error once left the joint off for good and the arm never stopped)."""
+        try:
+            restart(j)
+        except DriverError as exc:
+            self.recovery.not_sent(j)
+            log.warning("joint %d's restart not sent (%s): sent again", j + 1, exc)
 
     def _say(self, joint: int, note: str) -> None:
         """A drive's news, logged once (a drive left off reports its fault every cycle)."""
