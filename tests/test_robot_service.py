@@ -525,6 +525,21 @@ def test_servos_stopped_by_their_own_clock_are_rearmed_after_a_failed_cycle(
     assert rig.node.law.homing_failure is None
 
 
+def test_servos_stopped_by_their_own_clock_while_following_are_found_and_rearmed(
+    rig: Rig, caplog: pytest.LogCaptureFixture
+) -> None:
+    """No failed cycle and no stall by this host's clock: the servos' watchdog ran out
+    (a packet held back) while they followed commands; they refuse goals silently and the
+    arm rests where it was, Health 'ok'. A reference not followed for a second makes the
+    node ask them: re-armed, the arm follows again."""
+    _started(rig)
+    _stop_by_their_clock(rig.arm)
+    target = np.array([0.12, 0, 0, 0, 0, 0])
+    start = _true_q(rig)[0]
+    rig.run_until(lambda r: _true_q(r)[0] - start > 0.08, 20, lambda r: _answer(r, target))
+    assert "had stopped themselves" in caplog.text
+
+
 def test_a_start_missed_for_stopped_servos_is_tried_again_not_refused(
     rig: Rig, caplog: pytest.LogCaptureFixture
 ) -> None:

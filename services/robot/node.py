@@ -38,6 +38,12 @@ from services.robot.link import DriveLink
 
 log = logging.getLogger("dammrl.robot")
 BUTTON_PRESS_TRAVEL_M = 0.003  # as the sim's button
+UNFOLLOWED_RAD = 0.1
+UNFOLLOWED_S = 1.0
+"""A reference the arm has not followed for this long (this far from it, at rest): the
+drives are asked whether they stopped themselves (a sync write they refuse says nothing,
+and a packet held back can let their watchdog run out with no failed cycle here). Their
+answer costs one read per drive; the controller's own never lag this far (0.054 rad)."""
 START_RETRIES = 2
 """How often an episode whose start was missed by drives stopped on their own clock is
 tried again; then it is refused all the same (drives that stop on every try would
@@ -75,6 +81,7 @@ class RobotNode:
         self.command_stamp_ns = 0  # header stamp of the command in force
         self.latency_pending = False  # the command in force is not yet written
         self.start_retries: dict[int, int] = {}  # episode -> tries after stopped drives
+        self.unfollowed_since: float | None = None  # the arm at rest far from its reference
         self.periods_s: deque[float] = deque(maxlen=10_000)
         self.latencies_s: deque[float] = deque(maxlen=10_000)  # command stamp -> written
         self.last_cycle_s: float | None = None
@@ -132,6 +139,7 @@ class RobotNode:
                 ramp = self.link.soft_start(now)
                 self.link.write(self.law.law(joint, now, ramp, self._controller_silence), now)
                 self._note_written()
+                self._doubt_if_unfollowed(joint, now)
             self._refuse_episodes(joint, now)  # may ask the drives
         except DriverError as exc:
             if self.link.failed(exc):
@@ -167,6 +175,18 @@ class RobotNode:
                         (now - self.link.last_write_s) * 1000)  # fmt: skip
             self.law.after_stall(joint, now)
         return bool(stopped)
+
+    def _doubt_if_unfollowed(self, joint: JointState, now: float) -> None:
+        """Ask the drives at the next cycle whether they stopped themselves, when the arm
+        has rested ``UNFOLLOWED_RAD`` from its reference for ``UNFOLLOWED_S``."""
+        q_ref = self.law.last_q_ref
+        resting = float(np.max(np.abs(joint.dq_rad_s))) < self.settings.rest_speed_rad_s
+        if q_ref is None or not resting or np.max(np.abs(q_ref - joint.q_rad)) < UNFOLLOWED_RAD:
+            self.unfollowed_since = None
+        elif self.unfollowed_since is None:
+            self.unfollowed_since = now
+        elif now - self.unfollowed_since >= UNFOLLOWED_S:
+            self.link.doubt_drives, self.unfollowed_since = True, None
 
     def _refuse_episodes(self, joint: JointState, now: float) -> None:
         """Tell the controller of each episode this arm cannot begin (it ends it as a hold
