@@ -284,19 +284,18 @@ def _said_any(typist: Typist, *words: str) -> bool:
     return any(typist.index(w) >= 0 for w in words)
 
 
-def test_a_line_typed_while_the_stop_console_opens_acts_on_the_reach(
-    tmp_path: Path, scripted: type[ScriptedStack], monkeypatch: pytest.MonkeyPatch
-) -> None:
-    """The stop console's own session takes a second to open on a busy PC, and the first
-    reach is under way meanwhile: a takeover typed then acts on it (it was once refused as
-    'no reach runs now' until the stop console was open)."""
+def _typed_as_the_stop_console_opens(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, line: str, answers: tuple[str, ...]
+) -> Typist:
+    """A session whose first run's stop console takes its time to open (a busy PC), and
+    ``line`` typed meanwhile: it waits (5 s at most) until the session says one of
+    ``answers``. The session runs to its end; its typist."""
     typist, opened = Typist([]), ScriptedStack.stop_console
 
     def slow_stop_console(stack: ScriptedStack) -> ScriptedStopper:
-        if not stack.runs[1:]:  # the first run's: the line typed while it opens
-            typist.type("t the patient is tired")
-            deadline = time.monotonic() + 5.0  # it is acted on, or refused, by then
-            answers = ("console: take", "no reach runs")  # taken, or refused
+        if not stack.runs[1:]:  # the first run's
+            typist.type(line)
+            deadline = time.monotonic() + 5.0
             while time.monotonic() < deadline and not _said_any(typist, *answers):
                 time.sleep(0.01)
         return opened(stack)
@@ -309,6 +308,18 @@ def test_a_line_typed_while_the_stop_console_opens_acts_on_the_reach(
         runner.run()
     finally:
         typist.close()
+    return typist
+
+
+def test_a_line_typed_while_the_stop_console_opens_acts_on_the_reach(
+    tmp_path: Path, scripted: type[ScriptedStack], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The stop console's own session takes a second to open on a busy PC, and the first
+    reach is under way meanwhile: a takeover typed then acts on it (it was once refused as
+    'no reach runs now' until the stop console was open)."""
+    # acted on (taken), or refused, while it opens
+    typist = _typed_as_the_stop_console_opens(tmp_path, monkeypatch, "t the patient is tired",
+                                              ("console: take", "no reach runs"))  # fmt: skip
     sent = consoles_controls()
     assert [c.action for c in sent][:1] == ["take"], typist.said
     assert typist.index("no reach runs now") == -1, typist.said
@@ -319,24 +330,7 @@ def test_a_pause_typed_as_the_stack_comes_up_keeps_the_first_reach_held(
 ) -> None:
     """Each run's first reach waits for the session's resume as it attaches: a pause typed
     while the stop console opens is the therapist's, and that resume must not undo it."""
-    typist, opened = Typist([]), ScriptedStack.stop_console
-
-    def slow_stop_console(stack: ScriptedStack) -> ScriptedStopper:
-        if not stack.runs[1:]:  # the first run's: the pause typed while it opens
-            typist.type("p one moment")
-            deadline = time.monotonic() + 5.0
-            while time.monotonic() < deadline and not _said_any(typist, "console: pause"):
-                time.sleep(0.01)
-        return opened(stack)
-
-    monkeypatch.setattr(ScriptedStack, "stop_console", slow_stop_console)
-    runner = SessionRunner(tmp_path / "sessions", "P001", _protocol(tmp_path), SetUp(),
-                           say=typist.say, wait_for_operator=False,
-                           console=typist.stream)  # fmt: skip
-    try:
-        runner.run()
-    finally:
-        typist.close()
+    _typed_as_the_stop_console_opens(tmp_path, monkeypatch, "p one moment", ("console: pause",))
     first_run = []
     for key_expr, payload in scripted.sent:
         if key_expr == "dammrl/task/goal":
