@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import os
 import threading
+import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, ClassVar
@@ -76,6 +77,7 @@ class ScriptedStack:
     crash_after: ClassVar[int | None] = None
     given: ClassVar[int] = 0
     console: ClassVar[dict[int, list[str]]] = {}
+    between: ClassVar[dict[int, list[str]]] = {}  # typed after reach N's result (all runs)
     sent: ClassVar[list[Any]] = []
     posterior: ClassVar[tuple[float, float] | None] = None
     ack_after_s: ClassVar[float | None] = None  # the recorder's acknowledgements (None: none)
@@ -142,6 +144,12 @@ class ScriptedStack:
             if ScriptedStack.ack_after_s is not None:
                 _acknowledge(stack_run, episode, ScriptedStack.ack_after_s)
             self.on_result(result(episode, seed, outcome, reason))
+            for line in ScriptedStack.between.get(ScriptedStack.given, []):
+                stack_run.console.line(line)
+            deadline = time.monotonic() + 30  # the block closes between two reaches: it
+            while not self.finishing and stack_run.closing is not None:  # finishes the run
+                assert time.monotonic() < deadline, "the block's close never finished the run"
+                time.sleep(0.01)
             if self.finishing:
                 break
         return 0
@@ -192,6 +200,7 @@ def reset(stack: type[ScriptedStack]) -> type[ScriptedStack]:
     stack.runs, stack.crash_after, stack.given, stack.stopper = [], None, 0, None
     ScriptedStopper.silent = []
     stack.console, stack.sent, stack.posterior, stack.ack_after_s = {}, [], None, None
+    stack.between = {}
     return stack
 
 

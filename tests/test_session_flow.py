@@ -233,6 +233,30 @@ def test_ctrl_c_ends_the_comfort_question_asked_inside_the_stacks_loop(
     assert time.monotonic() - started < 30
 
 
+def test_a_stop_while_a_block_ended_between_reaches_asks_its_comfort_question_once(
+    tmp_path: Path, scripted: type[ScriptedStack]
+) -> None:
+    """`e` between two reaches closes the block on a thread (the question, then the run's
+    end); an `x` while the question is open ended the run at once, and the session asked
+    the question a second time beside the first (one answer logged null)."""
+
+    class Slow(StubDisplay):
+        def ask_comfort(self, timeout_s: float, cancel: threading.Event | None = None
+                        ) -> tuple[int, float] | None:  # fmt: skip
+            self.shown.append(("comfort", None))
+            time.sleep(0.5)  # the participant reads it
+            return (4, 0.5)
+
+    scripted.between = {1: ["e tired", "x the arm slipped", "release"]}
+    typist = Typist([], every=ENTER)
+    display = Slow()
+    assert _run(_runner(tmp_path, typist, display=display), typist) == 0
+    comfort = [e for e in _lines(tmp_path, "events.jsonl") if e["what"] == "comfort"]
+    assert [(e["block"], e["rating"]) for e in comfort][:1] == [("one", 4)]
+    assert [e["block"] for e in comfort].count("one") == 1
+    assert display.shown.count(("comfort", None)) == len(comfort)
+
+
 def test_a_kill_during_the_rest_resumes_what_was_left_of_it(
     tmp_path: Path, scripted: type[ScriptedStack]
 ) -> None:

@@ -335,6 +335,7 @@ class StackRun:
         self.end_block_why = ""  # ... by whom and why
         self.stopping: str | None = None  # an emergency stop ends this run: why
         self.stopped_trial: Trial | None = None  # the trial the stop interrupted
+        self.closing: threading.Thread | None = None  # the block ended between two reaches
 
     def run(self) -> int:
         runner, group = self.runner, self.group
@@ -422,6 +423,8 @@ class StackRun:
         if not stop.engaged or self.stopping is not None:
             return
         self.stopping = reason
+        if self.closing is not None:  # the block's close ends the run once it has asked
+            return  # (ended now, the session would ask the comfort question again)
         if self.under_way():  # the controller ends the reach: its result ends the run
             later = threading.Timer(STOP_RESULT_WAIT_S, self.finish)  # or, without it, this
             later.daemon = True
@@ -644,7 +647,8 @@ class RunConsole:
             run.await_recorded()
             run.finish()
 
-        threading.Thread(target=close, daemon=True).start()
+        run.closing = threading.Thread(target=close, daemon=True)
+        run.closing.start()
 
     def _control(self, action: str, why: str, **decision: int) -> None:
         run = self.run
