@@ -427,3 +427,22 @@ def test_a_recorder_killed_at_any_moment_leaves_a_file_mcaps_default_reader_open
         checked += 1
     assert checked > 100
     assert info(path)["complete"] and info(path)["messages"] == 400
+
+
+def test_a_header_whose_source_is_no_string_is_kept_as_invalid_not_a_crash(tmp_path: Path) -> None:
+    """A list as the header's source made the episode ledger's membership test raise
+    (unhashable): the recorder died and lost what it had not yet written."""
+    from services.recorder.episodes import EpisodeLedger
+
+    odd = msgpack.unpackb(_state(0))
+    odd["header"]["source"] = ["sim"]
+    payload = bytes(msgpack.packb(odd))
+    path = tmp_path / "r.mcap"
+    recorder = McapRecorder(path, "dammrl", {"mode": "virtual"}, chunk_bytes=4096)
+    recorder.record(KEY, payload, 2_000)
+    recorder.record(KEY, _state(1), 2_001)
+    recorder.finish()
+    EpisodeLedger("dammrl").written(KEY, payload, 0.0)  # ignored, no TypeError
+    summary = info(path)
+    assert summary["topics"][f"_invalid/{KEY}"]["count"] == 1
+    assert summary["topics"][KEY]["count"] == 1

@@ -82,9 +82,9 @@ def message_map(payload: bytes) -> dict[str, Any] | None:
     header = obj.get("header") if isinstance(obj, dict) else None
     if not isinstance(header, dict):
         return None
-    stamp, seq = header.get("stamp_ns"), header.get("seq")
+    stamp, seq, source = header.get("stamp_ns"), header.get("seq"), header.get("source")
     ok = type(stamp) is int and type(seq) is int and seq >= 0  # bool is no number here
-    return obj if ok else None
+    return obj if ok and type(source) is str else None  # (a list as source crashed it)
 
 
 def loss_record(account: SequenceAccount, invalid: Counter[str],
