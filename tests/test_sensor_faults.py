@@ -160,6 +160,17 @@ def test_thresholds_that_rest_noise_could_cross_are_refused_with_the_variable() 
     assert PressDecoder(noisy, DecoderSettings(off_level=0.15, on_level=0.25))
 
 
+def test_levels_the_pad_cannot_read_are_refused_not_taken_as_back() -> None:
+    """A hand-edited calibration (or another pad's) beyond the 12-bit range, or a firm level
+    no press can reach: every firm press was decoded as back (the arm moved the other way)."""
+    with pytest.raises(ValueError, match="less than or equal to 4095"):
+        Calibration(rest_raw=400, light_raw=2000, firm_raw=9000)
+    wide = Calibration(rest_raw=400, light_raw=1200, firm_raw=3000)
+    with pytest.raises(ConfigurationError, match=r"read 4170 counts .* beyond the pad's 4095"):
+        PressDecoder(wide, DecoderSettings(firm_level=1.45))
+    assert PressDecoder(wide, DecoderSettings(firm_level=1.2))  # 3520 counts: within reach
+
+
 def test_a_calibration_that_noise_could_cross_is_refused_saying_what_to_redo() -> None:
     with pytest.raises(CalibrationError, match="Redo all three steps: keep the pad untouched"):
         calibration_from(Rest(400, 30), light_raw=1000, firm_raw=1400)

@@ -30,7 +30,7 @@ from dataclasses import dataclass
 from pydantic import BaseModel, Field, model_validator
 
 from dammrl_core.errors import ConfigurationError
-from dammrl_core.intent.pad.protocol import SAMPLE_RATE_HZ
+from dammrl_core.intent.pad.protocol import RAW_MAX, SAMPLE_RATE_HZ
 from dammrl_core.settings import FINITE, ordered
 
 NOISE_MARGIN = 8.0  # calibrated levels are at least this many rest-noise deviations apart
@@ -43,9 +43,9 @@ class Calibration(BaseModel):
 
     model_config = FINITE
 
-    rest_raw: float = Field(ge=0)
-    light_raw: float = Field(ge=0)
-    firm_raw: float = Field(ge=0)
+    rest_raw: float = Field(ge=0, le=RAW_MAX)  # readings the pad can make (12 bits)
+    light_raw: float = Field(ge=0, le=RAW_MAX)
+    firm_raw: float = Field(ge=0, le=RAW_MAX)
     rest_noise_raw: float | None = Field(None, ge=0)
     """Robust standard deviation of the readings at rest [ADC counts]; None in files written
     before it was measured: then the levels need only be MIN_LEVEL_GAP_RAW apart."""
@@ -140,7 +140,22 @@ def level_problem(calibration: Calibration, settings: DecoderSettings) -> str | 
             f"a light press ({calibration.light_level:.2f} of the range from rest to firm) does "
             f"not reach the on level (DAMMRL_PAD_DECODER__ON_LEVEL={settings.on_level})"
         )
+    firm = firm_level(calibration, settings)
+    if (firm_raw := calibration.rest_raw + firm * span) > RAW_MAX:
+        return (
+            f"a firm press must read {firm_raw:.0f} counts (DAMMRL_PAD_DECODER__FIRM_LEVEL="
+            f"{firm:.2f} of the range from rest to firm), beyond the pad's {RAW_MAX}: no press "
+            "could be firm, and every one would be taken as back"
+        )
     return None
+
+
+def firm_level(calibration: Calibration, settings: DecoderSettings) -> float:
+    """The normalised peak from which a press is firm: the setting, else halfway from a
+    light press to the calibrated firm one."""
+    if settings.firm_level is not None:
+        return settings.firm_level
+    return (calibration.light_level + 1) / 2
 
 
 @dataclass(frozen=True)
@@ -162,9 +177,7 @@ class PressDecoder:
             raise ConfigurationError(
                 f"{problem}: recalibrate (dammrl sensor calibrate) or change the levels"
             )
-        self.firm_level = (
-            s.firm_level if s.firm_level is not None else (calibration.light_level + 1) / 2
-        )
+        self.firm_level = firm_level(calibration, s)
         self._window: deque[float] = deque(maxlen=2 * s.glitch_frames + 1)
         self._recent: deque[float] = deque(maxlen=3)
         self._tops: deque[float] = deque(maxlen=2 * s.glitch_frames + 1)  # 3-sample medians
