@@ -324,3 +324,15 @@ def test_a_decision_made_just_before_its_request_arrived_answers_it(tmp_path: Pa
     source.unclaimed = (source.unclaimed[0], time.monotonic() - CLAIM_WITHIN_S - 0.1)  # type: ignore[index]
     assert source.poll(time.monotonic()) is None  # no request came in time: evidence only
     assert [(e.acted, e.reason) for e in source.evidence()] == [(False, "no request open")]
+
+
+def test_a_stream_wider_than_the_bus_carries_is_refused_at_its_description() -> None:
+    """A 128-channel HD-EMG stream calibrated and attached, then its first raw chunk failed
+    the bus's schema (64 channels at most) and ended the intent service, and the run."""
+    from dammrl_core.intent.emg.calibration import MAX_STREAM_CHANNELS
+    from schemas.messages import MAX_CHANNELS
+
+    assert MAX_STREAM_CHANNELS == MAX_CHANNELS
+    StreamDescription(name="HD", channel_count=MAX_CHANNELS, nominal_srate_hz=2048)
+    with pytest.raises(ValueError, match="less than or equal to 64"):
+        StreamDescription(name="HD", channel_count=128, nominal_srate_hz=2048)

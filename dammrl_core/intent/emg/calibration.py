@@ -23,6 +23,12 @@ CALIBRATION_VERSION: Literal[2] = 2
 READABLE_VERSIONS = (1, 2)
 
 
+MAX_STREAM_CHANNELS = 64
+"""The most channels a stream may have: what the bus's raw chunks carry (``SignalChunk``,
+schemas.messages.MAX_CHANNELS; a wider stream crashed the intent service at its first
+chunk). Refused at calibration, in one line, instead."""
+
+
 class StreamDescription(BaseModel):
     """The LSL stream a calibration was made on (a different one is refused)."""
 
@@ -30,13 +36,13 @@ class StreamDescription(BaseModel):
 
     name: str = Field(min_length=1, max_length=200)
     type: str = Field("", max_length=200)
-    channel_count: int = Field(ge=1, le=256)
+    channel_count: int = Field(ge=1, le=MAX_STREAM_CHANNELS)
     nominal_srate_hz: float = Field(gt=0, le=20_000)
     source_id: str = Field("", max_length=200)
     hostname: str = Field("", max_length=200)
-    channel_labels: list[str] = Field(default_factory=list, max_length=256)
+    channel_labels: list[str] = Field(default_factory=list, max_length=MAX_STREAM_CHANNELS)
     """Each channel's label from the stream's metadata (empty: it had none)."""
-    units: list[str] = Field(default_factory=list, max_length=256)
+    units: list[str] = Field(default_factory=list, max_length=MAX_STREAM_CHANNELS)
     """Each channel's unit from the stream's metadata (empty: it had none)."""
 
     @model_validator(mode="after")
