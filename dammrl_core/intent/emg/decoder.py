@@ -55,6 +55,13 @@ CLIPPED_SHARE = 0.05
 CLIPPED_MIN = 3
 """A channel with this share of a window's samples (and this many at least) at its
 extreme value is clipping: a signal's own peak is one sample."""
+SPIKE_OF_REST = 100.0
+SPIKE_ALONE = 8.0
+"""A sample this many times a channel's rest RMS from its window's median, and this many
+times as far as the window's fourth farthest, is a spike (an electrode's pop, a corrupted
+packet): muscle signal comes in bursts (the calibration sessions' largest sample is 17 to
+98 times the rest RMS, among others nearly as large). One spike once passed every check,
+and the filters' ringing after it was decided as a contraction."""
 LEVEL_RANGE = (0.1, 10.0)
 """A channel's rest level outside this multiple of the calibration's is a problem: no
 gain drift goes so far (a tenth: an electrode nearly off; ten times: noise picked up)."""
@@ -198,6 +205,9 @@ class WindowDecoder:
     # ---- one window ----------------------------------------------------------------------
     def _window(self, raw: np.ndarray, window: np.ndarray, end_s: float) -> Contraction | None:
         self.windows += 1
+        if (spiked := _spike(raw, self.rest_rms)) is not None:  # the signal starts afresh: the
+            self._bad(f"channel {spiked} spiked (an electrode's pop?)")  # filters would ring
+            return None  # after it for seconds (one of 3e38 left the decoder deaf for 17 s)
         if (problem := self._channel_problem(raw)) is not None:
             self._bad(problem, keep_buffer=True)
             return None
@@ -354,3 +364,14 @@ class WindowDecoder:
             return (f"a contraction held for {self.run.last_end_s - self.run.first_end_s:.1f} s: "
                     "no decision until rest")  # fmt: skip
         return None
+
+
+def _spike(raw: np.ndarray, rest_rms: np.ndarray) -> int | None:
+    """The first channel of ``raw`` (samples, channels) with a spike (``SPIKE_OF_REST``,
+    ``SPIKE_ALONE``), or None."""
+    if len(raw) < 4:
+        return None
+    deviation = np.abs(raw - np.median(raw, axis=0))
+    top, fourth = np.max(deviation, axis=0), np.partition(deviation, -4, axis=0)[-4]
+    spiked = (top > SPIKE_OF_REST * rest_rms) & (top > SPIKE_ALONE * fourth)
+    return int(np.argmax(spiked)) if np.any(spiked) else None
