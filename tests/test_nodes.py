@@ -100,8 +100,8 @@ def _goal(episode: int, seed: int) -> TaskGoal:
                     goal_m=(0.5, 0, -0.2), q_start_rad=(0, 1, 0, 1.6, 0, 0.3))  # fmt: skip
 
 
-def _request(request: int, episode: int = 1, seed: int = 5) -> DecisionRequest:
-    return DecisionRequest(header=HEADER, episode=episode, seed=seed, request=request, t_s=1.0,
+def _request(request: int, episode: int = 1, seed: int = 5, t_s: float = 1.0) -> DecisionRequest:
+    return DecisionRequest(header=HEADER, episode=episode, seed=seed, request=request, t_s=t_s,
                            ee_pos_m=(0.3, 0, 0), goal_m=(0.5, 0, -0.2), primary_axis=0,
                            human_model=1)  # fmt: skip
 
@@ -261,6 +261,23 @@ def test_a_re_sent_request_gets_the_same_answer_from_a_person_not_a_new_decision
     _step(node)
     assert len(bus.published) == 2 and _fields(bus)[0] == _fields(bus)[1]
     assert len(person.asked) == 1 and _fields(bus)[0]["person"]
+
+
+def test_a_restarted_controllers_request_of_the_same_number_asks_the_person_afresh() -> None:
+    """A controller restarted during episode 1 counts from 1 again: its request 1 (asked at
+    another robot time) was answered from memory with the old press, and the arm moved
+    on a decision the person never made for it."""
+    node, person, bus = _person_node()
+    _step(node, _request(1, t_s=1.0))
+    person.coming.append(Decided(u_h=1, human_model=2, confidence=0.9, decision_s=0.8))
+    _step(node)
+    _step(node, _request(1, t_s=9.0))  # the restarted controller's
+    assert len(bus.published) == 1 and len(person.asked) == 2  # asked, not answered
+    person.coming.append(Decided(u_h=-1, human_model=1, confidence=0.9, decision_s=0.3))
+    _step(node)
+    assert [p["u_h"] for p in _fields(bus)] == [1, -1]
+    _step(node, _request(1, t_s=9.0))  # a re-send of the new one: its own answer again
+    assert [p["u_h"] for p in _fields(bus)] == [1, -1, -1]
 
 
 def test_a_request_whose_episode_announcement_arrives_after_it_stays_open() -> None:

@@ -84,6 +84,9 @@ class IntentNode:
         self.choices: dict[Key, int] = {}  # the policy's i per request, which may come first
         self.seen: set[Key] = set()
         self.answered: OrderedDict[Key, Intent] = OrderedDict()
+        # each request's robot time: a request known by its number but asked at another time
+        # is a restarted controller's (it counts from 1 again), never one to answer from memory
+        self.asked_at: dict[Key, float] = {}
         self.health_state: HealthState = "ok"
         self.intents = bus.publisher(Intent)
         self.samples = bus.publisher(SensorSample)
@@ -199,6 +202,9 @@ class IntentNode:
         if request.episode > self.episode:  # its announcement was missed (never an older one)
             self._new_episode(request.episode, request.seed)
         key = (request.episode, request.request)
+        if self.asked_at.setdefault(key, request.t_s) != request.t_s:
+            self._forget(request.episode)  # another controller's: the old answers are not its
+            self.asked_at[key] = request.t_s
         if (answer := self.answered.get(key)) is not None:
             self._publish(answer)  # the answer was lost: the same again, never a new one
             return
@@ -223,10 +229,21 @@ class IntentNode:
         if self.open is not None and self.open.episode != episode:
             self.open = None
             self.source.cancel()
-        for pending in (self.waiting, self.choices, self.answered):
+        for pending in (self.waiting, self.choices, self.answered, self.asked_at):
             for key in [k for k in pending if k[0] != episode]:  # a choice may come first
                 del pending[key]
         self.seen = {k for k in self.seen if k[0] == episode}
+
+    def _forget(self, episode: int) -> None:
+        """Everything of ``episode`` so far (a restarted controller's episode of that
+        number is another): its open request, answers, choices and requests seen."""
+        if self.open is not None and self.open.episode == episode:
+            self.open = None
+            self.source.cancel()
+        for pending in (self.waiting, self.choices, self.answered, self.asked_at):
+            for key in [k for k in pending if k[0] == episode]:
+                del pending[key]
+        self.seen = {k for k in self.seen if k[0] != episode}
 
     def _ask_if_chosen(self, key: Key) -> None:
         if key in self.waiting and key in self.choices:
