@@ -5,6 +5,7 @@ from __future__ import annotations
 import shutil
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import msgpack
 import pytest
@@ -446,3 +447,76 @@ def test_a_header_whose_source_is_no_string_is_kept_as_invalid_not_a_crash(tmp_p
     summary = info(path)
     assert summary["topics"][f"_invalid/{KEY}"]["count"] == 1
     assert summary["topics"][KEY]["count"] == 1
+
+
+class _AckBus:
+    """The recorder node's bus in-process: what it publishes is kept (its acknowledgements)."""
+
+    namespace = "dammrl"
+
+    class _Session:
+        def declare_subscriber(self, *args: object) -> None: ...
+
+    session = _Session()
+
+    def __init__(self) -> None:
+        self.sent: list[Any] = []
+
+    def publisher(self, kind: type) -> _AckBus:
+        return self
+
+    def stamp(self) -> Header:
+        return Header(stamp_ns=1, seq=len(self.sent), source="recorder")
+
+    def send(self, message: Any) -> None:
+        self.sent.append(message)
+
+    def report_health(self, *args: object, **kwargs: object) -> None: ...
+
+
+def test_what_a_write_error_lost_is_never_acknowledged_complete(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The disk filled before the chunk holding an episode's decision was on it: the chunk
+    was lost, the recorder wrote on in a new file once space came back, and the episode's
+    acknowledgement said complete (the session took it as on disk)."""
+    import errno
+    import time
+
+    from schemas import EpisodeResult, Intent, RobotState, TaskGoal, key
+    from services.recorder import tail
+    from services.recorder.node import RecorderNode
+
+    def sent(kind: type, source: str, seq: int, **fields: Any) -> tuple[int, tuple[Any, ...]]:
+        stamp = time.time_ns()
+        header = {"stamp_ns": stamp, "seq": seq, "source": source}
+        payload = bytes(msgpack.packb({"header": header, **fields}))
+        return stamp, (key("dammrl", kind), payload, time.time_ns(), "")
+
+    def full(*args: object) -> int:
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    bus = _AckBus()
+    node = RecorderNode(RecorderSettings(out=tmp_path / "out.mcap", retry_s=0.1), bus)  # type: ignore[arg-type]
+    for message in (sent(TaskGoal, "controller", 0, episode=1),
+                    sent(RobotState, "sim", 0, episode=1, t_s=1.0),
+                    sent(Intent, "intent", 0, episode=1, request=1)):  # fmt: skip
+        node._write(message[1])  # type: ignore[arg-type]
+    with monkeypatch.context() as disk:
+        disk.setattr(tail.os, "pwrite", full)
+        assert node.recorder is not None
+        node.recorder.unflushed_ns = 0  # its chunk is due: its write fails
+        node._keep_up()
+        assert node.recorder is None
+    time.sleep(0.15)
+    node._keep_up()  # space again: a new file
+    assert node.recorder is not None
+    state_ns, last = sent(RobotState, "sim", 1, episode=1, t_s=9.0)
+    node._write(last)  # type: ignore[arg-type]
+    node._write(sent(EpisodeResult, "controller", 0, episode=1, n_decisions=1,  # type: ignore[arg-type]
+                     last_state_stamp_ns=state_ns)[1])  # fmt: skip
+    node.episodes.wait_s = 0.0  # an incomplete one is said at once
+    node._acknowledge()
+    node._close()
+    [ack] = bus.sent
+    assert not ack.complete and "what a write error lost (out.mcap: " in ack.missing

@@ -55,6 +55,7 @@ class _Episode:
     n_decisions: int = 0  # the decisions its result counts
     result_at_s: float = 0.0  # when the result was written (the caller's clock) [s]
     acked: bool | None = None  # None: not yet; False: as incomplete; True: complete
+    lost: str = ""  # why some of it never reached the disk (a write error), if it did not
 
 
 @dataclass
@@ -66,6 +67,7 @@ class EpisodeLedger:
     episodes: dict[int, _Episode] = field(default_factory=dict)
     arm_stamp_ns: int = -1  # the newest robot state's header stamp written (the arm's clock)
     in_file: set[int] = field(default_factory=set)  # episodes with something in this file
+    unflushed: set[int] = field(default_factory=set)  # episodes with something not on disk yet
 
     def written(self, key: str, payload: bytes, now_s: float) -> None:
         """A message written to the file (``now_s``: the caller's monotonic clock)."""
@@ -116,8 +118,21 @@ class EpisodeLedger:
             "incomplete": json.dumps(partial),
         }
 
+    def flushed(self) -> None:
+        """Everything written so far is on disk (a chunk closed, a sync, a file finished)."""
+        self.unflushed = set()
+
+    def write_failed(self, why: str) -> None:
+        """A write error left the file with what it held on disk: the episodes with
+        messages not yet there lost them (never acknowledged complete after that)."""
+        for number in self.unflushed:
+            episode = self.episodes[number]
+            episode.lost = episode.lost or why
+        self.unflushed = set()
+
     def _episode(self, number: int) -> _Episode:
         self.in_file.add(number)
+        self.unflushed.add(number)
         return self.episodes.setdefault(number, _Episode())
 
     def _state(self, number: int, fields: dict[str, Any]) -> None:
@@ -144,7 +159,8 @@ class EpisodeLedger:
         episode.result_at_s = now_s
 
     def _whole(self, episode: _Episode) -> bool:
-        return self._last_state_in(episode) and len(episode.answered) >= episode.n_decisions
+        whole = self._last_state_in(episode) and len(episode.answered) >= episode.n_decisions
+        return whole and not episode.lost
 
     def _last_state_in(self, episode: _Episode) -> bool:
         return episode.last_state_ns is None or self.arm_stamp_ns >= episode.last_state_ns
@@ -155,6 +171,8 @@ class EpisodeLedger:
             reached = "none" if episode.last_t_s is None else f"robot time {episode.last_t_s:.3f} s"
             missing.append(f"the robot state its result was decided from (the arm's states "
                            f"written reach {reached})")  # fmt: skip
+        if episode.lost:
+            missing.append(f"what a write error lost ({episode.lost})")
         if (written := len(episode.answered)) < episode.n_decisions:
             missing.append(f"{episode.n_decisions - written} of the {episode.n_decisions} "
                            f"decisions its result counts")  # fmt: skip

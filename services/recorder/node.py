@@ -133,6 +133,7 @@ class RecorderNode:
         try:
             if r.flush_due(time.time_ns(), s.chunk_s):
                 r.flush()
+                self.episodes.flushed()
             if self._rotation_due(r):
                 self._finish(r)
                 self._try_open()
@@ -167,6 +168,7 @@ class RecorderNode:
     def _degrade(self, exc: OSError) -> None:
         """Leave the file being written (readable up to its last chunk) after an error."""
         assert self.recorder is not None
+        self.episodes.write_failed(f"{self.recorder.path.name}: {_reason(exc)}")
         self.recorder.abandon()
         path, self.recorder = self.recorder.path, None
         self._pause(f"cannot write {path}: {_reason(exc)}")
@@ -254,6 +256,7 @@ class RecorderNode:
         except OSError as exc:
             self._degrade(exc)
             return
+        self.episodes.flushed()
         for ack in acks:
             if not ack.complete:
                 log.warning("episode %d recorded without %s", ack.episode, ack.missing)
@@ -263,6 +266,7 @@ class RecorderNode:
     def _finish(self, recorder: McapRecorder) -> None:
         recorder.writer.add_metadata(EPISODES_METADATA, self.episodes.metadata())
         recorder.finish()
+        self.episodes.flushed()
         self.recorder = None
         log.info("finished %s", recorder.path)
 
