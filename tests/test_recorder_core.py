@@ -520,3 +520,17 @@ def test_what_a_write_error_lost_is_never_acknowledged_complete(
     node._close()
     [ack] = bus.sent
     assert not ack.complete and "what a write error lost (out.mcap: " in ack.missing
+
+
+def test_acknowledgements_a_failed_sync_held_back_go_out_later(tmp_path: Path) -> None:
+    """They were marked said before the sync that failed, and never sent."""
+    from services.recorder.episodes import EpisodeLedger
+
+    ledger = EpisodeLedger("dammrl", wait_s=0.0)
+    result = msgpack.packb({"header": {"stamp_ns": 1, "seq": 0, "source": "controller"},
+                            "episode": 1, "n_decisions": 0})  # fmt: skip
+    ledger.written("dammrl/task/result", bytes(result), 0.0)
+    [ack] = ledger.due(1.0)
+    assert ack.complete and ledger.due(2.0) == []
+    ledger.not_acknowledged([1])
+    assert [a.episode for a in ledger.due(3.0)] == [1]

@@ -118,6 +118,12 @@ class EpisodeLedger:
             "incomplete": json.dumps(partial),
         }
 
+    def not_acknowledged(self, numbers: list[int]) -> None:
+        """The acknowledgements of these episodes never went out (the sync before them
+        failed): due again (they were dropped, and the session said "not confirmed")."""
+        for number in numbers:
+            self.episodes[number].acked = None
+
     def flushed(self) -> None:
         """Everything written so far is on disk (a chunk closed, a sync, a file finished)."""
         self.unflushed = set()

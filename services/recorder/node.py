@@ -255,6 +255,7 @@ class RecorderNode:
             recorder.sync()
         except OSError as exc:
             self._degrade(exc)
+            self.episodes.not_acknowledged([ack.episode for ack in acks])  # said later
             return
         self.episodes.flushed()
         for ack in acks:
