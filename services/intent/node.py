@@ -229,10 +229,7 @@ class IntentNode:
         if self.open is not None and self.open.episode != episode:
             self.open = None
             self.source.cancel()
-        for pending in (self.waiting, self.choices, self.answered, self.asked_at):
-            for key in [k for k in pending if k[0] != episode]:  # a choice may come first
-                del pending[key]
-        self.seen = {k for k in self.seen if k[0] == episode}
+        self._drop(lambda e: e != episode)  # a choice may come first: the new one's stay
 
     def _forget(self, episode: int) -> None:
         """Everything of ``episode`` so far (a restarted controller's episode of that
@@ -240,10 +237,14 @@ class IntentNode:
         if self.open is not None and self.open.episode == episode:
             self.open = None
             self.source.cancel()
+        self._drop(lambda e: e == episode)
+
+    def _drop(self, of: Callable[[int], bool]) -> None:
+        """What is kept per request, for the episodes ``of`` picks."""
         for pending in (self.waiting, self.choices, self.answered, self.asked_at):
-            for key in [k for k in pending if k[0] == episode]:
+            for key in [k for k in pending if of(k[0])]:
                 del pending[key]
-        self.seen = {k for k in self.seen if k[0] != episode}
+        self.seen = {k for k in self.seen if not of(k[0])}
 
     def _ask_if_chosen(self, key: Key) -> None:
         if key in self.waiting and key in self.choices:
