@@ -238,6 +238,8 @@ class RobotNode:
                 self.law.release_here(self.joint.q_rad, now)
 
     def _take_goal(self, goal: TaskGoal, now: float) -> None:
+        # the tries of the episode announced only (a restarted controller counts from 1)
+        self.start_retries = {e: n for e, n in self.start_retries.items() if e == goal.episode}
         joint = self.joint
         reason = self.link.fault or (None if joint is not None else "the arm is not connected")
         if reason is None and joint is not None:
