@@ -124,9 +124,11 @@ class ControllerSettings(Settings):
     outcome_hold_s: float = Field(0.0, ge=0, le=30)
     """Between a reach's result and the next reach's goal [s] (0-30): the participant
     display shows the outcome meanwhile (a session holds it 2 s by default)."""
-    first_reach_held_by: str = Field("", max_length=200)
+    first_reach_held_by: str = Field("", max_length=200, exclude=True)
     """Who holds the first reach back until their resume (a session: until its console,
-    stop and display are up); empty: it begins once the services are."""
+    stop and display are up); empty: it begins once the services are. A run's, not a
+    reach's: left out of the settings' dump (a study's search fingerprint, a recording's
+    settings), as it decides no result."""
     human_model: int = Field(1, ge=1, le=2)
     """Model used until the policy's first ModelChoice arrives (i: 1 = E_big)."""
     robot_model: int = Field(1, ge=1, le=8)
